@@ -1,0 +1,64 @@
+"""Every Zenoh key expression splittag uses, in one place (documented in the README).
+
+Data topics end in the schema version of the message they carry, so a v2 publisher never feeds a
+v1 subscriber; control keys (split, alive, echo) carry their schema in the Zenoh encoding instead.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Final
+
+ROOT: Final[str] = "splittag"
+_ID = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
+
+
+def _check(segment: str, what: str) -> str:
+    if not _ID.match(segment):
+        raise ValueError(f"{what} {segment!r} must match {_ID.pattern} (no '/', '*', '$' or spaces)")
+    return segment
+
+
+def frames(robot_id: str) -> str:
+    """Frame v1: camera -> robot_infer."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/frame/v1"
+
+
+def ground_truth(robot_id: str) -> str:
+    """CameraPose v1 (status ground_truth): camera -> evaluators, when the source knows it."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/ground_truth/v1"
+
+
+def features(robot_id: str) -> str:
+    """Features v1: robot_infer -> edge_infer (the split tensor crosses the link here)."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/features/v1"
+
+
+def tag_poses(robot_id: str) -> str:
+    """TagPoses v1: edge_infer -> slam, controller."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/tag_poses/v1"
+
+
+def camera_pose(robot_id: str) -> str:
+    """CameraPose v1: slam -> anyone."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/camera_pose/v1"
+
+
+def tag_map(robot_id: str) -> str:
+    """TagMap v1: slam publishes on change and answers gets (queryable) on the same key."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/map/v1"
+
+
+def split(robot_id: str) -> str:
+    """Queryable of robot_infer: get -> current SplitConfig; get with `k=<n>` sets it."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/split"
+
+
+def echo(robot_id: str) -> str:
+    """Queryable on the edge that answers link probes with a tiny reply."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/echo"
+
+
+def alive(robot_id: str, service: str) -> str:
+    """Liveliness token of one service of one robot."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/alive/{_check(service, 'service')}"

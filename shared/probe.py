@@ -1,0 +1,124 @@
+"""Link probing: an echo queryable on the edge and a client that times round trips.
+
+A probe is a real `Features` message of the requested size (one tag whose fp16 tensor fills the
+payload), so its cost includes the codec; the echo decodes and validates it and replies with a
+tiny `ProbeAck`, so only the uplink carries the payload, as in the paper's measurement.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import zenoh
+
+from shared.codec import WireError
+from shared.messages import CameraIntrinsics, Features, ProbeAck, TagFeature, decode, encode
+from shared.transport import encoding_for
+
+log = logging.getLogger(__name__)
+
+PROBE_INTRINSICS = CameraIntrinsics(
+    width=1280,
+    height=720,
+    fx=1045.0,
+    fy=1045.0,
+    cx=639.5,
+    cy=359.5,
+    distortion_model="none",
+    distortion=[],
+)
+
+
+def probe_features(tensor_bytes: int, *, robot_id: str = "probe", seq: int = 0) -> Features:
+    """A Features message whose single tensor holds `tensor_bytes` bytes of fp16 (rounded down to even)."""
+    n = max(0, tensor_bytes // 2)
+    rng = np.random.default_rng(seq)
+    tensor = rng.standard_normal(n).astype(np.float16) if n else np.zeros(0, np.float16)
+    tag = TagFeature(
+        tag_id=0,
+        decision_margin=0.0,
+        hamming=0,
+        corners_px=np.zeros((4, 2), np.float32),
+        roi_to_image=np.eye(3),
+        tensor=tensor,
+    )
+    now = time.time_ns()
+    return Features(
+        robot_id=robot_id,
+        seq=seq,
+        capture_nanos=now,
+        publish_nanos=now,
+        split_k=0,
+        codec="fp16",
+        intrinsics=PROBE_INTRINSICS,
+        robot_compute_secs=0.0,
+        tags=[tag],
+    )
+
+
+def serve_echo(session: zenoh.Session, key: str, *, max_bytes: int) -> zenoh.Queryable[None]:
+    """Declare the echo queryable: decode each probe, reply a ProbeAck (errors are replied, not raised)."""
+    enc = encoding_for(ProbeAck.SCHEMA)
+
+    def on_query(query: zenoh.Query) -> None:
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        error = ""
+        try:
+            decode(payload, Features, max_bytes=max_bytes)
+        except WireError as exc:
+            error = str(exc)
+            log.warning("echo: rejected probe of %d bytes: %s", len(payload), exc)
+        ack = ProbeAck(received_bytes=len(payload), decoded_ok=not error, error=error)
+        query.reply(query.key_expr, encode(ack), encoding=enc)
+
+    return session.declare_queryable(key, on_query)
+
+
+class ProbeError(RuntimeError):
+    """A probe got no reply, an error reply, or an ack saying the payload was rejected."""
+
+
+@dataclass(frozen=True)
+class ProbeResult:
+    """One timed round trip."""
+
+    payload_bytes: int
+    rtt_secs: float
+
+
+class Prober:
+    """Sends probes through one Zenoh querier and times each round trip on one clock."""
+
+    def __init__(self, session: zenoh.Session, key: str, *, timeout_secs: float = 10.0) -> None:
+        self._querier = session.declare_querier(
+            key,
+            timeout=timeout_secs,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            target=zenoh.QueryTarget.ALL,
+        )
+        self._enc = encoding_for(Features.SCHEMA)
+
+    def round_trip(self, payload: bytes) -> ProbeResult:
+        """Send `payload` (wire bytes of a Features message) and wait for the echo's ack."""
+        start = time.perf_counter()
+        replies = self._querier.get(payload=payload, encoding=self._enc)
+        ack: ProbeAck | None = None
+        for reply in replies:
+            if reply.ok is None:
+                err = reply.err.payload.to_string() if reply.err is not None else "?"
+                raise ProbeError(f"echo replied an error: {err}")
+            ack = decode(reply.ok.payload.to_bytes(), ProbeAck)
+            break
+        rtt = time.perf_counter() - start
+        if ack is None:
+            raise ProbeError("no reply from the echo queryable (is the edge running?)")
+        if not ack.decoded_ok or ack.received_bytes != len(payload):
+            raise ProbeError(f"echo rejected the probe: {ack.error or ack.received_bytes}")
+        return ProbeResult(payload_bytes=len(payload), rtt_secs=rtt)
+
+    def close(self) -> None:
+        """Undeclare the querier."""
+        self._querier.undeclare()

@@ -1,0 +1,128 @@
+"""Zenoh plumbing: sessions from settings, tensor publishers, latest-only subscribers, liveliness."""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Literal
+
+import zenoh
+from pydantic import BaseModel, ConfigDict, Field
+
+log = logging.getLogger(__name__)
+
+MSGPACK = "application/msgpack"
+
+
+class ZenohSettings(BaseModel):
+    """How a process joins the Zenoh network. Shared memory is OFF unless asked for: zenoh 1.10
+    enables it by default, and it silently bypasses any network shaping between local processes."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: list[str] = Field(default_factory=list)
+    connect: list[str] = Field(default_factory=list)
+    multicast_scouting: bool = False
+    shared_memory: bool = False
+    config_file: Path | None = None  # JSON5; the fields above are applied on top of it
+    connect_timeout_secs: float = Field(default=30.0, gt=0)  # open() fails after this long
+
+
+def build_config(settings: ZenohSettings) -> zenoh.Config:
+    """A zenoh.Config from settings (the optional JSON5 file first, explicit fields on top)."""
+    if settings.config_file is not None:
+        if not settings.config_file.is_file():
+            raise FileNotFoundError(f"zenoh config file {settings.config_file} does not exist")
+        config = zenoh.Config.from_file(str(settings.config_file))
+    else:
+        config = zenoh.Config()
+    config.insert_json5("mode", json.dumps(settings.mode))
+    if settings.listen or settings.config_file is None:
+        config.insert_json5("listen/endpoints", json.dumps(settings.listen))
+    if settings.connect or settings.config_file is None:
+        config.insert_json5("connect/endpoints", json.dumps(settings.connect))
+    if settings.connect:
+        # Wait for the other side to come up (start order does not matter), but fail loudly.
+        config.insert_json5("connect/timeout_ms", json.dumps(int(settings.connect_timeout_secs * 1000)))
+        config.insert_json5("connect/exit_on_failure", "true")
+    config.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
+    config.insert_json5("transport/shared_memory/enabled", json.dumps(settings.shared_memory))
+    return config
+
+
+def open_session(settings: ZenohSettings) -> zenoh.Session:
+    """Open a session; logs the resolved mode and endpoints once."""
+    session = zenoh.open(build_config(settings))
+    log.info(
+        "zenoh session %s: mode=%s listen=%s connect=%s multicast=%s shm=%s",
+        session.info.zid(),
+        settings.mode,
+        settings.listen,
+        settings.connect,
+        settings.multicast_scouting,
+        settings.shared_memory,
+    )
+    return session
+
+
+def encoding_for(schema: str) -> zenoh.Encoding:
+    """The Zenoh encoding of a splittag message: msgpack with the versioned schema id."""
+    return zenoh.Encoding(MSGPACK).with_schema(schema)
+
+
+def declare_tensor_publisher(session: zenoh.Session, key: str, schema: str) -> zenoh.Publisher:
+    """Reliable, congestion-control BLOCK publisher: the default DROP silently loses large messages."""
+    return session.declare_publisher(
+        key,
+        encoding=encoding_for(schema),
+        congestion_control=zenoh.CongestionControl.BLOCK,
+        reliability=zenoh.Reliability.RELIABLE,
+    )
+
+
+def declare_latest_subscriber(
+    session: zenoh.Session, key: str
+) -> zenoh.Subscriber[zenoh.handlers.Handler[zenoh.Sample]]:
+    """Subscriber that keeps only the newest sample (a ring of one): never works on stale frames."""
+    return session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
+
+
+def declare_fifo_subscriber(
+    session: zenoh.Session, key: str, capacity: int = 256
+) -> zenoh.Subscriber[zenoh.handlers.Handler[zenoh.Sample]]:
+    """Subscriber that queues samples in order (for streams where every message counts)."""
+    return session.declare_subscriber(key, zenoh.handlers.FifoChannel(capacity))
+
+
+def wait_for_liveliness(session: zenoh.Session, keys: Iterable[str], *, timeout_secs: float = 30.0) -> None:
+    """Block until a liveliness token is alive on every key, or raise TimeoutError naming the rest."""
+    wanted = set(keys)
+    seen: set[str] = set()
+    lock = threading.Lock()
+    done = threading.Event()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        with lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                seen.add(key)
+            else:
+                seen.discard(key)
+            if wanted <= seen:
+                done.set()
+
+    subs = [session.liveliness().declare_subscriber(k, on_sample, history=True) for k in wanted]
+    try:
+        deadline = time.monotonic() + timeout_secs
+        if not done.wait(max(0.0, deadline - time.monotonic())):
+            with lock:
+                missing = sorted(wanted - seen)
+            raise TimeoutError(f"no liveliness after {timeout_secs:.1f} s for: {', '.join(missing)}")
+    finally:
+        for s in subs:
+            s.undeclare()

@@ -1,0 +1,158 @@
+"""Deterministic example messages shared by the round-trip, golden-bytes and fuzzing tests."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from shared.messages import (
+    CameraIntrinsics,
+    CameraPose,
+    Features,
+    Frame,
+    HopTimings,
+    MapTag,
+    Message,
+    ProbeAck,
+    SplitConfig,
+    TagFeature,
+    TagMap,
+    TagPose,
+    TagPoses,
+)
+
+INTRINSICS = CameraIntrinsics(
+    width=8,
+    height=6,
+    fx=1045.0,
+    fy=1045.0,
+    cx=3.5,
+    cy=2.5,
+    distortion_model="plumb_bob",
+    distortion=[0.01, -0.002, 0.0, 0.0, 0.0],
+)
+
+
+def _pose(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    if np.linalg.det(q) < 0:
+        q[:, 0] *= -1
+    pose = np.eye(4)
+    pose[:3, :3] = q
+    pose[:3, 3] = rng.uniform(-2, 2, 3)
+    return pose
+
+
+def example_messages() -> dict[str, Message]:
+    """One instance of every schema, small enough for golden files, with every array dtype used."""
+    rng = np.random.default_rng(7)
+    corners = rng.uniform(0, 8, (4, 2)).astype(np.float32)
+    frame = Frame(
+        robot_id="robot1",
+        seq=3,
+        capture_nanos=1_700_000_000_123_456_789,
+        intrinsics=INTRINSICS,
+        image=rng.integers(0, 256, (6, 8), dtype=np.uint8),
+    )
+    tags = [
+        TagFeature(
+            tag_id=5,
+            decision_margin=61.5,
+            hamming=0,
+            corners_px=corners,
+            roi_to_image=np.arange(9, dtype=np.float64).reshape(3, 3),
+            tensor=rng.standard_normal((4, 2, 2)).astype(np.float16),
+        ),
+        TagFeature(
+            tag_id=9,
+            decision_margin=40.25,
+            hamming=1,
+            corners_px=corners,
+            roi_to_image=np.eye(3),
+            tensor=rng.integers(-128, 127, (2, 3), dtype=np.int8),
+        ),
+    ]
+    features = Features(
+        robot_id="robot1",
+        seq=3,
+        capture_nanos=1_700_000_000_123_456_789,
+        publish_nanos=1_700_000_000_140_000_000,
+        split_k=3,
+        codec="fp16",
+        intrinsics=INTRINSICS,
+        robot_compute_secs=0.0125,
+        tags=tags,
+    )
+    tag_pose = TagPose(
+        tag_id=5,
+        tag_size_m=0.16,
+        keypoints_px=rng.uniform(0, 8, (16, 2)).astype(np.float32),
+        corners_px=corners,
+        camera_from_tag=_pose(1),
+        reprojection_error_px=0.31,
+        alt_camera_from_tag=_pose(2),
+        alt_reprojection_error_px=2.5,
+    )
+    poses = TagPoses(
+        robot_id="robot1",
+        seq=3,
+        capture_nanos=1_700_000_000_123_456_789,
+        split_k=3,
+        payload_bytes=4242,
+        timings=HopTimings(
+            robot_compute_secs=0.0125,
+            transport_secs=0.041,
+            edge_compute_secs=0.004,
+            capture_to_pose_secs=0.07,
+        ),
+        tags=[tag_pose],
+    )
+    camera_pose = CameraPose(
+        robot_id="robot1",
+        seq=3,
+        capture_nanos=1_700_000_000_123_456_789,
+        world_from_camera=_pose(3),
+        status="tracking",
+        tags_used=1,
+    )
+    tag_map = TagMap(
+        robot_id="robot1",
+        revision=2,
+        anchor_tag_id=5,
+        tags=[
+            MapTag(tag_id=5, size_m=0.16, world_from_tag=np.eye(4), observations=10),
+            MapTag(tag_id=9, size_m=0.2, world_from_tag=_pose(4), observations=3),
+        ],
+    )
+    split = SplitConfig(k=5, codec="fp16", pinned=True, source="user")
+    ack = ProbeAck(received_bytes=1024, decoded_ok=True, error="")
+    msgs: list[Message] = [frame, features, poses, camera_pose, tag_map, split, ack]
+    return {m.SCHEMA: m for m in msgs}
+
+
+def golden_name(schema: str) -> str:
+    """File name of a schema's golden bytes under tests/golden/."""
+    return schema.replace("splittag/", "").replace("/", "_") + ".msgpack"
+
+
+def assert_messages_equal(a: Message, b: Message) -> None:
+    """Deep equality that compares arrays by dtype, shape and exact bytes."""
+    assert type(a) is type(b)
+    _assert_equal(a.model_dump(), b.model_dump(), type(a).__name__)
+
+
+def _assert_equal(x: object, y: object, path: str) -> None:
+    if isinstance(x, np.ndarray):
+        assert isinstance(y, np.ndarray), path
+        assert x.dtype == y.dtype and x.shape == y.shape, (path, x.dtype, y.dtype, x.shape, y.shape)
+        assert x.tobytes() == y.tobytes(), path
+    elif isinstance(x, dict):
+        assert isinstance(y, dict) and x.keys() == y.keys(), path
+        for k in x:
+            _assert_equal(x[k], y[k], f"{path}.{k}")
+    elif isinstance(x, list):
+        assert isinstance(y, list) and len(x) == len(y), path
+        for i, (xi, yi) in enumerate(zip(x, y, strict=True)):
+            _assert_equal(xi, yi, f"{path}[{i}]")
+    else:
+        assert x == y and type(x) is type(y), (path, x, y)

@@ -1,0 +1,22 @@
+"""Regenerate the golden wire bytes: `python -m tests.golden.regenerate` (review the diff!)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from shared.messages import encode
+from tests.examples import example_messages, golden_name
+
+HERE = Path(__file__).parent
+
+
+def main() -> None:
+    """Write one .msgpack file per schema next to this script."""
+    for schema, msg in example_messages().items():
+        path = HERE / golden_name(schema)
+        path.write_bytes(encode(msg))
+        print(f"wrote {path} ({path.stat().st_size} bytes)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,40 @@
+"""Session settings and key expressions."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from shared import keys
+from shared.transport import ZenohSettings, build_config
+
+
+def test_shared_memory_and_multicast_off_by_default() -> None:
+    config = build_config(ZenohSettings())
+    assert json.loads(config.get_json("transport/shared_memory/enabled")) is False
+    assert json.loads(config.get_json("scouting/multicast/enabled")) is False
+
+
+def test_settings_override_a_json5_file(tmp_path: Path) -> None:
+    path = tmp_path / "z.json5"
+    path.write_text('{ mode: "client", /* comment */ connect: { endpoints: ["tcp/127.0.0.1:7447"] } }')
+    config = build_config(ZenohSettings(mode="router", config_file=path, listen=["tcp/127.0.0.1:0"]))
+    assert json.loads(config.get_json("mode")) == "router"
+    assert json.loads(config.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7447"]
+    assert json.loads(config.get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]
+
+
+def test_missing_config_file_is_a_clear_error(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError, match=r"nope\.json5"):
+        build_config(ZenohSettings(config_file=tmp_path / "nope.json5"))
+
+
+def test_keys_are_versioned_and_under_root() -> None:
+    assert keys.features("r1") == "splittag/r1/features/v1"
+    assert keys.split("r1") == "splittag/r1/split"
+    assert keys.alive("r1", "edge_infer") == "splittag/r1/alive/edge_infer"
+    for bad in ["", "a/b", "*", "a b"]:
+        with pytest.raises(ValueError, match="robot id"):
+            keys.frames(bad)

@@ -1,0 +1,223 @@
+"""Wire format: round trips, golden bytes, typed errors for every kind of bad input, fuzzing."""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from shared.codec import (
+    WIRE_DTYPES,
+    ArrayError,
+    MalformedFrame,
+    PayloadTooLarge,
+    SchemaError,
+    WireError,
+    pack,
+    unpack,
+)
+from shared.messages import SCHEMAS, Features, Frame, SplitConfig, TagFeature, decode, encode
+from tests.examples import INTRINSICS, assert_messages_equal, example_messages, golden_name
+
+GOLDEN = Path(__file__).parent / "golden"
+EXAMPLES = example_messages()
+
+
+def test_every_schema_has_an_example() -> None:
+    assert set(EXAMPLES) == set(SCHEMAS)
+
+
+@pytest.mark.parametrize("schema", sorted(EXAMPLES))
+def test_round_trip(schema: str) -> None:
+    msg = EXAMPLES[schema]
+    out = decode(encode(msg), type(msg))
+    assert_messages_equal(msg, out)
+
+
+@pytest.mark.parametrize("schema", sorted(EXAMPLES))
+def test_golden_bytes(schema: str) -> None:
+    """Encoding is stable: a change here breaks every deployed peer (bump the version instead)."""
+    golden = (GOLDEN / golden_name(schema)).read_bytes()
+    assert encode(EXAMPLES[schema]) == golden
+    assert_messages_equal(decode(golden), EXAMPLES[schema])
+
+
+@pytest.mark.parametrize("dtype", sorted(WIRE_DTYPES))
+def test_array_round_trip_every_dtype(dtype: str) -> None:
+    rng = np.random.default_rng(0)
+    arr = (rng.standard_normal((3, 5, 7)) * 50).astype(WIRE_DTYPES[dtype])
+    out = unpack(pack({"a": arr, "empty": np.zeros((0, 4), WIRE_DTYPES[dtype])}))
+    assert out["a"].dtype == arr.dtype and out["a"].tobytes() == arr.tobytes()
+    assert out["empty"].shape == (0, 4)
+
+
+def test_decoded_tensor_views_the_payload_without_copy() -> None:
+    tensor = np.random.default_rng(1).standard_normal((64, 32, 32)).astype(np.float16)
+    msg = Features(
+        **{
+            **EXAMPLES[Features.SCHEMA].model_dump(),
+            "tags": [
+                TagFeature(
+                    tag_id=1,
+                    decision_margin=1.0,
+                    hamming=0,
+                    corners_px=np.zeros((4, 2), np.float32),
+                    roi_to_image=np.eye(3),
+                    tensor=tensor,
+                )
+            ],
+        }
+    )
+    payload = encode(msg)
+    out = decode(payload, Features)
+    got = out.tags[0].tensor
+    assert np.shares_memory(got, np.frombuffer(payload, np.uint8))
+    assert not got.flags.writeable
+    assert got.tobytes() == tensor.tobytes()
+
+
+@pytest.mark.parametrize("dtype", [object, np.complex64, np.int64, np.bool_])
+def test_disallowed_dtypes_are_refused_at_encode(dtype: type) -> None:
+    with pytest.raises(ArrayError, match="cannot be sent"):
+        pack({"a": np.zeros(3, dtype=dtype)})
+
+
+def _body(schema: str) -> dict:
+    return unpack(encode(EXAMPLES[schema]))["body"]
+
+
+def _patched(schema: str, **changes: object) -> bytes:
+    body = {k: v for k, v in _body(schema).items()}
+    body.update(changes)
+    return pack({"schema": schema, "body": body})
+
+
+@pytest.mark.parametrize(
+    ("payload", "error", "match"),
+    [
+        (b"", MalformedFrame, "empty payload"),
+        (encode(EXAMPLES[Frame.SCHEMA])[:-3], MalformedFrame, "truncated"),
+        (encode(EXAMPLES[Frame.SCHEMA]) + b"\x00", MalformedFrame, "1 trailing bytes"),
+        (b"\xc1", MalformedFrame, "0xc1"),
+        (msgpack.packb([1, 2]), MalformedFrame, "envelope"),
+        (
+            pack({"schema": "splittag/Frame/v2", "body": {}}),
+            SchemaError,
+            "unsupported version 'v2'",
+        ),
+        (pack({"schema": "other/Thing/v1", "body": {}}), SchemaError, "unknown schema id"),
+        (pack({"schema": 3, "body": {}}), SchemaError, "must be a string"),
+        (pack({"schema": "splittag/Frame/v1", "body": {"seq": 1}}), SchemaError, "missing fields"),
+        (_patched(Frame.SCHEMA, seq="3"), SchemaError, "seq"),
+        (_patched(Frame.SCHEMA, extra=1), SchemaError, "extra"),
+        (
+            _patched(Frame.SCHEMA, image={"dtype": "uint8", "shape": [6, 8], "data": b"\x00" * 47}),
+            ArrayError,
+            "needs 48 bytes, data has 47",
+        ),
+        (
+            _patched(Frame.SCHEMA, image={"dtype": "object", "shape": [1], "data": b"\x00"}),
+            ArrayError,
+            "'object'",
+        ),
+        (
+            _patched(Frame.SCHEMA, image={"dtype": "uint8", "shape": [-1], "data": b""}),
+            ArrayError,
+            "shape",
+        ),
+        (_patched(Frame.SCHEMA, image=np.zeros((6, 9), np.uint8)), SchemaError, "image is 9x6"),
+        (_patched(Frame.SCHEMA, image=np.zeros((6, 8), np.float32)), SchemaError, "not allowed"),
+        (_patched(SplitConfig.SCHEMA, k=8), SchemaError, "less than or equal to 7"),
+    ],
+)
+def test_bad_input_gives_typed_error_saying_what_was_received(
+    payload: bytes, error: type[WireError], match: str
+) -> None:
+    with pytest.raises(error, match=match):
+        decode(payload)
+
+
+def test_non_finite_values_are_rejected() -> None:
+    body = _body(Features.SCHEMA)
+    tags = [dict(t) for t in body["tags"]]
+    bad = np.array(tags[0]["tensor"], copy=True)
+    bad.flat[3] = np.nan
+    tags[0]["tensor"] = bad
+    with pytest.raises(SchemaError, match="1 non-finite"):
+        decode(pack({"schema": Features.SCHEMA, "body": {**body, "tags": tags}}))
+    with pytest.raises(SchemaError, match="finite"):
+        decode(_patched(Features.SCHEMA, robot_compute_secs=float("inf")))
+
+
+def test_size_limit() -> None:
+    payload = encode(EXAMPLES[Frame.SCHEMA])
+    with pytest.raises(PayloadTooLarge, match=f"payload of {len(payload)} bytes"):
+        decode(payload, max_bytes=len(payload) - 1)
+    decode(payload, max_bytes=len(payload))
+
+
+def test_unexpected_type_is_refused() -> None:
+    with pytest.raises(SchemaError, match="where splittag/Features/v1 was expected"):
+        decode(encode(EXAMPLES[Frame.SCHEMA]), Features)
+
+
+def test_deep_nesting_is_refused() -> None:
+    doc: object = 1
+    for _ in range(40):
+        doc = [doc]
+    with pytest.raises(MalformedFrame, match="nesting"):
+        unpack(msgpack.packb(doc))
+
+
+def test_huge_declared_container_fails_fast() -> None:
+    with pytest.raises(MalformedFrame, match="exceeds the payload"):
+        unpack(b"\xdd\xff\xff\xff\xff\x01")
+
+
+def test_intrinsics_mismatch_at_construction() -> None:
+    with pytest.raises(ValueError, match="image is 9x6"):
+        Frame(
+            robot_id="r",
+            seq=0,
+            capture_nanos=0,
+            intrinsics=INTRINSICS,
+            image=np.zeros((6, 9), np.uint8),
+        )
+
+
+_VALID = [encode(m) for m in EXAMPLES.values()]
+
+
+def _decode_only_typed_errors(payload: bytes) -> None:
+    with contextlib.suppress(WireError):
+        decode(payload)
+
+
+@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.binary(max_size=512))
+def test_fuzz_random_bytes(payload: bytes) -> None:
+    _decode_only_typed_errors(payload)
+
+
+@settings(max_examples=600, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    st.sampled_from(_VALID),
+    st.lists(st.tuples(st.integers(0, 10_000), st.integers(0, 255)), min_size=1, max_size=6),
+    st.integers(0, 10_000),
+    st.binary(max_size=16),
+)
+def test_fuzz_mutated_valid_messages(
+    payload: bytes, flips: list[tuple[int, int]], cut: int, insert: bytes
+) -> None:
+    buf = bytearray(payload)
+    for pos, val in flips:
+        buf[pos % len(buf)] = val
+    _decode_only_typed_errors(bytes(buf))
+    _decode_only_typed_errors(bytes(buf[: cut % (len(buf) + 1)]))
+    at = cut % (len(buf) + 1)
+    _decode_only_typed_errors(bytes(buf[:at]) + insert + bytes(buf[at:]))
