@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
 
 from shared.logs import setup_logging
 
@@ -23,6 +25,79 @@ def _cmd_echo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_data_synth(args: argparse.Namespace) -> int:
+    from shared.data.generate import generate
+    from shared.data.synth import SynthMaker, SynthSettings
+    from shared.geometry import camera_from_yaml, default_camera
+
+    camera = camera_from_yaml(args.camera) if args.camera else default_camera()
+    settings = SynthSettings(seed=args.seed)
+    info = generate(
+        args.out,
+        n=args.n,
+        seed=args.seed,
+        kind="synth",
+        settings={"camera": camera.model_dump(), **settings.model_dump(mode="json")},
+        factory=lambda: SynthMaker(camera, settings),
+        workers=args.workers,
+    )
+    _print_info(info)
+    return 0
+
+
+def _print_info(info: dict[str, Any]) -> None:
+    c = info["counts"]
+    print(
+        f"{info['kind']}: {c['samples']} samples ({c['train']} train / {c['test']} test), "
+        f"{c['attempts']} attempts, stage-1 failure rate {100 * c['detector_failure_rate']:.2f} %, "
+        f"{info['last_run']['wall_secs']} s this run"
+    )
+    for key in ("failure_by_distance_m", "failure_by_tilt_deg"):
+        cells = [
+            f"{r['range'][0]}-{r['range'][1] or 'inf'}: {r['failures']}/{r['attempts']}" for r in info[key]
+        ]
+        print(f"  {key}: " + ", ".join(cells))
+
+
+def _cmd_data_show(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from shared.data.shards import load_dataset
+    from shared.data.sheet import contact_sheet, write_sheet
+
+    ds = load_dataset(args.dir)
+    rows = np.random.default_rng(args.seed).choice(len(ds), size=min(args.n, len(ds)), replace=False)
+    a = ds.arrays
+    labels = [f"id {a['tag_id'][i]} {a['distance_m'][i]:.1f}m {a['tilt_deg'][i]:.0f}deg" for i in rows]
+    write_sheet(args.out, contact_sheet(a["roi"][rows], a["keypoints"][rows], labels=labels))
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from shared.train import TrainSettings, train
+
+    settings = TrainSettings(
+        data=args.data,
+        out=args.out,
+        init=args.init,
+        epochs=args.epochs,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        warmup_steps=args.warmup_steps,
+        device=args.device,
+        bf16=not args.no_bf16,
+        threads=args.threads,
+        seed=args.seed,
+        eval_samples=args.eval_samples,
+        limit_train=args.limit_train,
+        time_budget_secs=args.time_budget_secs,
+    )
+    result = train(settings)
+    print(f"best test e_px {result['best_e_px']:.3f} px; weights in {args.out / 'best'}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every subcommand."""
     parser = argparse.ArgumentParser(prog="splittag", description=__doc__)
@@ -38,6 +113,45 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--listen", action="append", default=[], help="zenoh endpoint, repeatable")
     p.add_argument("--connect", action="append", default=[], help="zenoh endpoint, repeatable")
     p.set_defaults(func=_cmd_echo)
+
+    data = sub.add_parser("data", help="generate and inspect training data").add_subparsers(
+        dest="data_command", required=True
+    )
+    p = data.add_parser("synth", help="synthetic planar-tag data set (paper IV-A2)")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--n", type=int, default=10_000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--camera", type=Path, help="ROS camera_info YAML (default: the paper's camera)")
+    p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    p.set_defaults(func=_cmd_data_synth)
+    p = data.add_parser("show", help="contact sheet of ROIs with ground-truth keypoints")
+    p.add_argument("dir", type=Path)
+    p.add_argument("--n", type=int, default=16)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, default=Path("sheet.png"))
+    p.set_defaults(func=_cmd_data_show)
+
+    p = sub.add_parser("train", help="train the keypoint network (resumes from OUT/last.pt)")
+    p.add_argument("--data", type=Path, action="append", required=True, help="data set folder, repeatable")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--init", type=Path, help="weights folder to start from (fine-tuning)")
+    p.add_argument("--epochs", type=int, default=70)
+    p.add_argument("--batch-size", type=int, default=32)
+    p.add_argument("--lr", type=float, default=3e-4)
+    p.add_argument("--warmup-steps", type=int, default=500)
+    p.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+    p.add_argument("--no-bf16", action="store_true", help="train in fp32")
+    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--eval-samples", type=int, default=1000)
+    p.add_argument("--limit-train", type=int, default=None)
+    p.add_argument(
+        "--time-budget-secs",
+        type=float,
+        default=None,
+        help="cut the epoch count after epoch 1 so the run fits this budget",
+    )
+    p.set_defaults(func=_cmd_train)
     return parser
 
 

@@ -1,0 +1,270 @@
+"""The synthetic data set (paper section IV-A2): planar tags under random 6-DoF poses.
+
+Per sample (deterministic from (seed, index)): a random tag36h11 id and size, a distance
+(log-uniform) and a tilt (uniform) sampled independently, a random in-plane rotation and image
+position; the tag is rendered anti-aliased (4x supersampling) over a procedural background,
+then lit, blurred (Gaussian or motion), noised, gamma-corrected and JPEG-compressed. The stage-1
+detector runs on the rendered image; a sample whose tag it misses is counted as a failure (never
+replaced by ground truth). The detected quad is perturbed (DeepTag's stage-2 strategy), warped to
+the 256x256 ROI, and the 16 keypoints are labelled by exact projection through the same
+homography. Only a window around the tag is materialised; coordinates stay full-image.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+from shared.detector import DetectorSettings, TagDetector
+from shared.geometry import (
+    ROI_MARGIN,
+    Array,
+    GeometryError,
+    apply_homography,
+    check_quad,
+    corners_in_tag,
+    image_to_roi_homography,
+    lattice_in_tag,
+    make_pose,
+    normalise_roi,
+    project,
+    tilt_deg,
+    warp_roi,
+)
+from shared.messages import CameraIntrinsics
+from shared.tags import BLACK_CELLS, CELLS, NUM_TAG36H11, render_tag, to_uint8
+
+Image = NDArray[Any]
+
+
+class SynthSettings(BaseModel):
+    """Generator settings; saved into info.json so a data set can be reproduced."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    seed: int = 0
+    tag_size_m: tuple[float, float] = (0.10, 0.30)
+    distance_m: tuple[float, float] = (0.3, 6.0)
+    max_tilt_deg: float = Field(default=70.0, ge=0, lt=89)
+    perturb_frac: float = Field(default=0.06, ge=0, le=0.15)  # of the quad's mean side, per corner
+    roi_margin: float = ROI_MARGIN
+    supersample: int = Field(default=4, ge=1, le=8)
+    p_gaussian_blur: float = 0.5
+    p_motion_blur: float = 0.25
+    p_jpeg: float = 0.5
+    max_noise_sigma: float = 0.03
+    detector: DetectorSettings = DetectorSettings()
+
+
+# ----------------------------------------------------------------------------------------------
+# Procedural backgrounds and augmentations (all float32 images in [0, 1])
+# ----------------------------------------------------------------------------------------------
+
+
+def _value_noise(rng: np.random.Generator, h: int, w: int) -> Image:
+    out = np.zeros((h, w), np.float32)
+    total = 0.0
+    for octave in range(int(rng.integers(2, 6))):
+        cell = max(2, int(rng.uniform(8, 200) / (2**octave)))
+        small = rng.random((h // cell + 2, w // cell + 2)).astype(np.float32)
+        amp = 0.55**octave
+        out += amp * cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC)
+        total += amp
+    return out / total
+
+
+def _clutter(rng: np.random.Generator, h: int, w: int) -> Image:
+    img = np.full((h, w), rng.uniform(0.1, 0.9), np.float32)
+    scale = max(h, w)
+    for _ in range(int(rng.integers(5, 40))):
+        val = float(rng.uniform(0, 1))
+        kind = rng.integers(0, 3)
+        x, y = int(rng.integers(-w // 4, w)), int(rng.integers(-h // 4, h))
+        s = int(rng.uniform(0.03, 0.4) * scale) + 1
+        if kind == 0:
+            cv2.rectangle(img, (x, y), (x + s, y + int(s * rng.uniform(0.2, 2))), val, -1)
+        elif kind == 1:
+            cv2.circle(img, (x, y), s // 2, val, -1, lineType=cv2.LINE_AA)
+        else:
+            x2, y2 = int(rng.integers(0, w)), int(rng.integers(0, h))
+            cv2.line(img, (x, y), (x2, y2), val, int(rng.integers(1, 6)), lineType=cv2.LINE_AA)
+    return img
+
+
+def _grating(rng: np.random.Generator, h: int, w: int) -> Image:
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    theta = rng.uniform(0, np.pi)
+    period = rng.uniform(4, 80)
+    phase = (xx * math.cos(theta) + yy * math.sin(theta)) * (2 * np.pi / period)
+    wave = np.sin(phase) if rng.random() < 0.5 else np.sign(np.sin(phase))
+    return (0.5 + 0.5 * rng.uniform(0.2, 1.0) * wave).astype(np.float32)
+
+
+def procedural_background(rng: np.random.Generator, h: int, w: int) -> Image:
+    """A random mix of value noise, geometric clutter and gratings (nothing downloaded)."""
+    makers = [_value_noise, _clutter, _grating]
+    first = makers[int(rng.integers(0, 3))](rng, h, w)
+    if rng.random() < 0.5:
+        second = makers[int(rng.integers(0, 3))](rng, h, w)
+        a = float(rng.uniform(0.2, 0.8))
+        first = a * first + (1 - a) * second
+    lo, hi = sorted(rng.uniform(0, 1, 2))
+    return (lo + (hi - lo + 0.05) * first).astype(np.float32)
+
+
+def _motion_kernel(rng: np.random.Generator) -> NDArray[np.float32]:
+    length = int(rng.integers(3, 10))
+    k = np.zeros((length, length), np.float32)
+    k[length // 2, :] = 1.0
+    rot = cv2.getRotationMatrix2D(((length - 1) / 2, (length - 1) / 2), float(rng.uniform(0, 180)), 1.0)
+    k = np.asarray(cv2.warpAffine(k, rot, (length, length)), np.float32)
+    return k / max(1e-6, float(k.sum()))
+
+
+def augment(rng: np.random.Generator, img: Image, s: SynthSettings) -> NDArray[np.uint8]:
+    """Lighting gradient, brightness/contrast, gamma, blur, noise, JPEG; returns uint8."""
+    h, w = img.shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    theta = rng.uniform(0, 2 * np.pi)
+    grad = 1.0 + rng.uniform(0, 0.6) * ((xx * math.cos(theta) + yy * math.sin(theta)) / max(h, w) - 0.5)
+    img = (img * grad * rng.uniform(0.5, 1.3) + rng.uniform(-0.15, 0.15)).astype(np.float32)
+    img = (np.clip(img, 0, 1) ** rng.uniform(0.6, 1.6)).astype(np.float32)
+    if rng.random() < s.p_gaussian_blur:
+        img = cv2.GaussianBlur(img, (0, 0), float(rng.uniform(0.3, 1.5)))
+    if rng.random() < s.p_motion_blur:
+        img = cv2.filter2D(img, -1, _motion_kernel(rng), borderType=cv2.BORDER_REFLECT)
+    noisy = img + rng.normal(0, rng.uniform(0, s.max_noise_sigma), img.shape).astype(np.float32)
+    out = to_uint8(np.clip(noisy, 0, 1).astype(np.float32))
+    if rng.random() < s.p_jpeg:
+        ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(30, 95))])
+        assert ok
+        out = np.asarray(cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE), dtype=np.uint8)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Poses
+# ----------------------------------------------------------------------------------------------
+
+
+def _axis_angle(axis: Array, angle: float) -> Array:
+    rvec = np.asarray(axis, np.float64) / np.linalg.norm(axis) * angle
+    r, _ = cv2.Rodrigues(rvec)
+    return np.asarray(r, np.float64)
+
+
+def pose_facing(
+    camera: CameraIntrinsics, centre_px: Array, distance_m: float, tilt: float, azimuth: float, roll: float
+) -> Array:
+    """camera_from_tag with the tag centre on the ray through `centre_px`, `distance_m` away,
+    its normal tilted by `tilt` rad from the ray (about an in-plane axis at `azimuth`), and rolled."""
+    ray = np.linalg.solve(camera.matrix(), np.array([centre_px[0], centre_px[1], 1.0]))
+    z = ray / np.linalg.norm(ray)  # tag z (into the tag) looks away from the camera
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    facing = np.column_stack([x, y, z])
+    axis = np.array([math.cos(azimuth), math.sin(azimuth), 0.0])
+    rot = facing @ _axis_angle(axis, tilt) @ _axis_angle(np.array([0.0, 0.0, 1.0]), roll)
+    return make_pose(rot, z * distance_m)
+
+
+def _white_border_in_tag(tag_size_m: float) -> Array:
+    return corners_in_tag(tag_size_m * CELLS / BLACK_CELLS)
+
+
+# ----------------------------------------------------------------------------------------------
+# One sample
+# ----------------------------------------------------------------------------------------------
+
+
+def sample_pose(
+    rng: np.random.Generator, camera: CameraIntrinsics, s: SynthSettings
+) -> tuple[Array, float, float, float]:
+    """(camera_from_tag, tag size, distance, tilt) with the tag and its white border in view."""
+    for _ in range(200):
+        size = float(rng.uniform(*s.tag_size_m))
+        dist = float(math.exp(rng.uniform(math.log(s.distance_m[0]), math.log(s.distance_m[1]))))
+        tilt = float(math.radians(rng.uniform(0.0, s.max_tilt_deg)))
+        centre = np.array([rng.uniform(0, camera.width - 1), rng.uniform(0, camera.height - 1)])
+        pose = pose_facing(camera, centre, dist, tilt, rng.uniform(0, 2 * np.pi), rng.uniform(0, 2 * np.pi))
+        border = (pose[:3, :3] @ _white_border_in_tag(size).T).T + pose[:3, 3]
+        if (border[:, 2] < 0.05).any():
+            continue
+        px = project(camera, pose, _white_border_in_tag(size))
+        if (px >= 2).all() and (px[:, 0] <= camera.width - 3).all() and (px[:, 1] <= camera.height - 3).all():
+            return pose, size, dist, float(math.degrees(tilt))
+    raise RuntimeError("could not place a visible tag in 200 tries; check the distance range")
+
+
+def perturb_quad(rng: np.random.Generator, corners_px: Array, frac: float) -> Array:
+    """Move each corner by up to `frac` of the quad's mean side per axis (uniform), staying valid."""
+    side = float(np.mean(np.linalg.norm(np.roll(corners_px, -1, 0) - corners_px, axis=1)))
+    for _ in range(50):
+        q = corners_px + rng.uniform(-frac, frac, (4, 2)) * side
+        try:
+            return check_quad(q)
+        except GeometryError:
+            continue
+    return corners_px
+
+
+def make_sample(
+    index: int, camera: CameraIntrinsics, s: SynthSettings, detector: TagDetector
+) -> tuple[dict[str, Any] | None, dict[str, float]]:
+    """Generate sample `index`; returns (sample or None if stage 1 missed the tag, its meta)."""
+    if camera.distortion_model != "none" and any(camera.distortion):
+        raise GeometryError("the synthetic renderer supports undistorted cameras only")
+    rng = np.random.default_rng([s.seed, index])
+    tag_id = int(rng.integers(0, NUM_TAG36H11))
+    pose, size, dist, _ = sample_pose(rng, camera, s)
+    meta = {"distance_m": dist, "tilt_deg": tilt_deg(pose)}
+    h_plane = camera.matrix() @ np.column_stack([pose[:3, 0], pose[:3, 1], pose[:3, 3]])
+    border_px = project(camera, pose, _white_border_in_tag(size))
+    span = float(np.ptp(border_px, axis=0).max())
+    pad = max(24.0, 0.3 * span)
+    x0 = int(max(0, math.floor(border_px[:, 0].min() - pad)))
+    y0 = int(max(0, math.floor(border_px[:, 1].min() - pad)))
+    x1 = int(min(camera.width, math.ceil(border_px[:, 0].max() + pad) + 1))
+    y1 = int(min(camera.height, math.ceil(border_px[:, 1].max() + pad) + 1))
+    canvas = procedural_background(rng, y1 - y0, x1 - x0)
+    albedo = (float(rng.uniform(0.0, 0.15)), float(rng.uniform(0.8, 1.0)))
+    render_tag(canvas, tag_id=tag_id, tag_size_m=size, tag_plane_to_image=h_plane,
+               origin_px=(x0, y0), supersample=s.supersample, albedo=albedo)
+    window = augment(rng, canvas, s)
+    found = [d for d in detector.detect(window) if d.tag_id == tag_id]
+    if not found:
+        return None, meta
+    corners = found[0].corners_px + [x0, y0]
+    perturbed = perturb_quad(rng, corners, s.perturb_frac)
+    img_to_roi = image_to_roi_homography(perturbed, s.roi_margin)
+    window_to_roi = img_to_roi @ np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]])
+    roi = warp_roi(window, window_to_roi)
+    keypoints_px = project(camera, pose, lattice_in_tag(size))
+    keypoints = normalise_roi(apply_homography(img_to_roi, keypoints_px))
+    sample = {
+        "roi": roi, "keypoints": keypoints, "roi_to_image": np.linalg.inv(img_to_roi),
+        "camera_from_tag": pose, "corners_px": corners, "keypoints_px": keypoints_px,
+        "tag_id": tag_id, "tag_size_m": size, "distance_m": dist, "tilt_deg": meta["tilt_deg"],
+        "index": index,
+    }
+    return sample, meta
+
+
+class SynthMaker:
+    """Picklable per-process sample maker (owns its own detector)."""
+
+    def __init__(self, camera: CameraIntrinsics, settings: SynthSettings) -> None:
+        self.camera = camera
+        self.settings = settings
+        self._detector: TagDetector | None = None
+
+    def __call__(self, index: int) -> tuple[dict[str, Any] | None, dict[str, float]]:
+        if self._detector is None:
+            self._detector = TagDetector(self.settings.detector)
+        return make_sample(index, self.camera, self.settings, self._detector)
