@@ -53,9 +53,7 @@ def _print_info(info: dict[str, Any]) -> None:
         f"{info['last_run']['wall_secs']} s this run"
     )
     for key in ("failure_by_distance_m", "failure_by_tilt_deg"):
-        cells = [
-            f"{r['range'][0]}-{r['range'][1] or 'inf'}: {r['failures']}/{r['attempts']}" for r in info[key]
-        ]
+        cells = [f"{r['range'][0]}-{r['range'][1] or 'inf'}: {r['failures']}/{r['attempts']}" for r in info[key]]
         print(f"  {key}: " + ", ".join(cells))
 
 
@@ -96,6 +94,36 @@ def _cmd_train(args: argparse.Namespace) -> int:
     result = train(settings)
     print(f"best test e_px {result['best_e_px']:.3f} px; weights in {args.out / 'best'}")
     return 0
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    import json
+
+    from shared.data.shards import load_dataset
+    from shared.evaluate import evaluate, format_report
+    from shared.weights import load_model
+
+    model = load_model(args.weights)
+    result = evaluate(model, load_dataset(args.data), split=args.split, bf16=args.bf16, limit=args.limit)
+    print(format_report(result))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=2))
+        print(f"wrote {args.json}")
+    return 0
+
+
+def _cmd_detect(args: argparse.Namespace) -> int:
+    from shared.detect import run_detect
+
+    return run_detect(
+        args.paths,
+        camera_path=args.camera,
+        tag_size_m=args.tag_size,
+        tags_path=args.tags,
+        weights=args.weights,
+        json_path=args.json,
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -152,6 +180,25 @@ def build_parser() -> argparse.ArgumentParser:
         help="cut the epoch count after epoch 1 so the run fits this budget",
     )
     p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("eval", help="keypoint and pose errors of weights on a data set split")
+    p.add_argument("--weights", type=Path, required=True, help="weights folder (model.safetensors + config.json)")
+    p.add_argument("--data", type=Path, required=True)
+    p.add_argument("--split", choices=["train", "test", "all"], default="test")
+    p.add_argument("--json", type=Path)
+    p.add_argument("--bf16", action="store_true", help="bf16 autocast inference (default fp32)")
+    p.add_argument("--limit", type=int, default=None)
+    p.set_defaults(func=_cmd_eval)
+
+    p = sub.add_parser("detect", help="stage 1 + network + PnP on image files or folders")
+    p.add_argument("paths", type=Path, nargs="+")
+    p.add_argument("--camera", type=Path, required=True, help="ROS camera_info YAML")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--tag-size", type=float, default=None, help="tag size in metres (black square side)")
+    g.add_argument("--tags", type=Path, default=None, help="tag map YAML/JSON with per-tag sizes")
+    p.add_argument("--weights", type=Path, default=None, help="weights folder (default: models/)")
+    p.add_argument("--json", type=Path, required=True)
+    p.set_defaults(func=_cmd_detect)
     return parser
 
 

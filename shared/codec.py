@@ -240,8 +240,7 @@ def array_from_wire(doc: Mapping[str, Any]) -> np.ndarray:
         count *= d
     if count * dtype.itemsize != len(data):
         raise ArrayError(
-            f"array of dtype {name} and shape {tuple(shape)} needs {count * dtype.itemsize} "
-            f"bytes, data has {len(data)}"
+            f"array of dtype {name} and shape {tuple(shape)} needs {count * dtype.itemsize} bytes, data has {len(data)}"
         )
     return np.frombuffer(data, dtype=dtype, count=count).reshape(shape)
 
@@ -263,7 +262,6 @@ def unpack(payload: bytes | bytearray | memoryview, *, max_bytes: int = DEFAULT_
     doc = reader.value(0)
     if reader.pos != size:
         raise MalformedFrame(
-            f"{size - reader.pos} trailing bytes after the document (document ends at byte "
-            f"{reader.pos} of {size})"
+            f"{size - reader.pos} trailing bytes after the document (document ends at byte {reader.pos} of {size})"
         )
     return doc

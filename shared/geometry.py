@@ -248,9 +248,7 @@ def warp_roi(image: NDArray[np.uint8], image_to_roi: Array) -> NDArray[np.uint8]
         src = np.asarray(cv2.pyrDown(src), np.uint8)
         h = h @ np.diag([2.0, 2.0, 1.0])  # level coords x' -> original coords 2x'
         jac_scale /= 2.0
-    roi = cv2.warpPerspective(
-        src, h, (ROI_SIZE, ROI_SIZE), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-    )
+    roi = cv2.warpPerspective(src, h, (ROI_SIZE, ROI_SIZE), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return np.asarray(roi, np.uint8)
 
 
@@ -273,7 +271,7 @@ def keypoints_to_image(keypoints_norm: Array, roi_to_image: Array) -> Array:
 # ----------------------------------------------------------------------------------------------
 
 
-def make_pose(rotation: Array, translation: Array) -> Array:
+def make_pose(rotation: Array, translation: Array | list[float]) -> Array:
     """4x4 rigid transform from a 3x3 rotation and a translation."""
     pose = np.eye(4)
     pose[:3, :3] = rotation

@@ -79,9 +79,7 @@ class ArraySpec:
             raise ValueError(f"{bad} non-finite values (NaN or inf) in a {name} array")
         return value
 
-    def __get_pydantic_core_schema__(
-        self, source: Any, handler: GetCoreSchemaHandler
-    ) -> core_schema.CoreSchema:
+    def __get_pydantic_core_schema__(self, source: Any, handler: GetCoreSchemaHandler) -> core_schema.CoreSchema:
         return core_schema.no_info_plain_validator_function(
             self.validate,
             serialization=core_schema.plain_serializer_function_ser_schema(lambda v: v),
@@ -159,9 +157,7 @@ class Frame(Message):
     def _image_matches_intrinsics(self) -> Frame:
         h, w = self.image.shape
         if (w, h) != (self.intrinsics.width, self.intrinsics.height):
-            raise ValueError(
-                f"image is {w}x{h} but intrinsics say {self.intrinsics.width}x{self.intrinsics.height}"
-            )
+            raise ValueError(f"image is {w}x{h} but intrinsics say {self.intrinsics.width}x{self.intrinsics.height}")
         return self
 
 
@@ -308,9 +304,7 @@ def _schema_error(schema: Any) -> SchemaError:
     name, _, version = schema.rpartition("/")
     known_versions = sorted(s for s in SCHEMAS if s.rpartition("/")[0] == name)
     if known_versions:
-        return SchemaError(
-            f"unsupported version {version!r} of {name} (supported: {', '.join(known_versions)})"
-        )
+        return SchemaError(f"unsupported version {version!r} of {name} (supported: {', '.join(known_versions)})")
     return SchemaError(f"unknown schema id {schema!r} (known: {', '.join(SCHEMAS)})")
 
 
@@ -351,7 +345,6 @@ def decode(
         return model.model_validate(doc["body"])
     except ValidationError as exc:
         details = "; ".join(
-            f"{'.'.join(str(p) for p in err['loc']) or '<body>'}: {err['msg']}"
-            for err in exc.errors(include_url=False)
+            f"{'.'.join(str(p) for p in err['loc']) or '<body>'}: {err['msg']}" for err in exc.errors(include_url=False)
         )
         raise SchemaError(f"invalid {schema}: {details}") from None

@@ -115,9 +115,7 @@ class SplitKeypointNet(nn.Module):
         super().__init__()
         chans = (1, *CHANNELS)
         self.blocks = nn.ModuleList(_block(chans[i], chans[i + 1]) for i in range(len(CHANNELS)))
-        self.head_conv = nn.Sequential(
-            nn.Conv2d(CHANNELS[-1], CHANNELS[-1], 3, padding=1), nn.ReLU(inplace=True)
-        )
+        self.head_conv = nn.Sequential(nn.Conv2d(CHANNELS[-1], CHANNELS[-1], 3, padding=1), nn.ReLU(inplace=True))
         self.pool = nn.AdaptiveAvgPool2d(POOLED_SIZE)
         self.fc = nn.Sequential(
             nn.Flatten(),

@@ -140,9 +140,7 @@ def _to_device(ds: Dataset, rows: np.ndarray, device: torch.device) -> tuple[Ten
 
 
 @torch.no_grad()
-def predict(
-    model: SplitKeypointNet, rois_u8: Tensor, *, bf16: bool, channels_last: bool, batch: int = 128
-) -> Tensor:
+def predict(model: SplitKeypointNet, rois_u8: Tensor, *, bf16: bool, channels_last: bool, batch: int = 128) -> Tensor:
     """Keypoints (N,16,2) for uint8 ROIs (N,1,S,S) already on the model's device."""
     model.eval()
     outs = []
@@ -191,18 +189,14 @@ def train(settings: TrainSettings) -> dict[str, Any]:
     test_roi, test_kp = torch.cat(te_roi), torch.cat(te_kp)
     log.info("train samples %d, eval samples %d, device %s", len(train_roi), len(test_roi), device)
 
-    model = (load_model(settings.init) if settings.init else SplitKeypointNet(roi_margin=ROI_MARGIN)).to(
-        device
-    )
+    model = (load_model(settings.init) if settings.init else SplitKeypointNet(roi_margin=ROI_MARGIN)).to(device)
     if settings.channels_last:
         model = model.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
     opt = torch.optim.Adam(model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
     steps_per_epoch = len(train_roi) // settings.batch_size
     epochs = settings.epochs
     plan = {"total": steps_per_epoch * epochs}
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda s: _lr_factor(s, plan["total"], settings.warmup_steps)
-    )
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: _lr_factor(s, plan["total"], settings.warmup_steps))
     start_epoch, best = 0, math.inf
     history: list[dict[str, Any]] = []
     ckpt_path = out / "last.pt"

@@ -47,11 +47,7 @@ def save_weights(model: SplitKeypointNet, folder: Path, *, extra: dict[str, Any]
         if v.dtype.is_floating_point
     }
     state.update(
-        {
-            k: v.detach().cpu().contiguous()
-            for k, v in model.state_dict().items()
-            if not v.dtype.is_floating_point
-        }
+        {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items() if not v.dtype.is_floating_point}
     )
     save_file(state, str(folder / "model.safetensors"))
     config = {**data_contract(model.roi_margin), "extra": extra or {}}

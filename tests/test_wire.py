@@ -211,9 +211,7 @@ def test_fuzz_random_bytes(payload: bytes) -> None:
     st.integers(0, 10_000),
     st.binary(max_size=16),
 )
-def test_fuzz_mutated_valid_messages(
-    payload: bytes, flips: list[tuple[int, int]], cut: int, insert: bytes
-) -> None:
+def test_fuzz_mutated_valid_messages(payload: bytes, flips: list[tuple[int, int]], cut: int, insert: bytes) -> None:
     buf = bytearray(payload)
     for pos, val in flips:
         buf[pos % len(buf)] = val

@@ -8,6 +8,7 @@ Finished shards are skipped on restart; a per-shard stats file keeps the failure
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import multiprocessing as mp
@@ -72,7 +73,7 @@ def _make_shard(job: tuple[Path, int, int, int]) -> dict[str, Any]:
 
 def _bin_table(attempts: list[dict[str, Any]], key: str, edges: tuple[float, ...]) -> list[dict[str, Any]]:
     rows = []
-    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+    for lo, hi in itertools.pairwise(edges):
         sel = [a for a in attempts if lo <= a[key] < hi]
         fails = sum(not a["ok"] for a in sel)
         rows.append({
