@@ -45,6 +45,27 @@ def _cmd_data_synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_data_render(args: argparse.Namespace) -> int:
+    from shared.data.generate import generate
+    from shared.data.render import RenderMaker, RenderSettings
+    from shared.geometry import camera_from_yaml, default_camera
+
+    camera = camera_from_yaml(args.camera) if args.camera else default_camera()
+    settings = RenderSettings(seed=args.seed)
+    info = generate(
+        args.out,
+        n=args.n,
+        seed=args.seed,
+        kind="render",
+        settings={"camera": camera.model_dump(), **settings.model_dump(mode="json")},
+        factory=lambda: RenderMaker(camera, settings),
+        workers=args.workers,
+        shard_size=200,
+    )
+    _print_info(info)
+    return 0
+
+
 def _print_info(info: dict[str, Any]) -> None:
     c = info["counts"]
     print(
@@ -152,6 +173,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--camera", type=Path, help="ROS camera_info YAML (default: the paper's camera)")
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     p.set_defaults(func=_cmd_data_synth)
+    p = data.add_parser("render", help="MuJoCo-rendered rooms (replaces the paper's Gazebo set)")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--n", type=int, default=8_000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--camera", type=Path, help="ROS camera_info YAML (default: the paper's camera)")
+    p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    p.set_defaults(func=_cmd_data_render)
     p = data.add_parser("show", help="contact sheet of ROIs with ground-truth keypoints")
     p.add_argument("dir", type=Path)
     p.add_argument("--n", type=int, default=16)

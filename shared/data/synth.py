@@ -222,8 +222,8 @@ def make_sample(
         raise GeometryError("the synthetic renderer supports undistorted cameras only")
     rng = np.random.default_rng([s.seed, index])
     tag_id = int(rng.integers(0, NUM_TAG36H11))
-    pose, size, dist, _ = sample_pose(rng, camera, s)
-    meta = {"distance_m": dist, "tilt_deg": tilt_deg(pose)}
+    pose, size, _, _ = sample_pose(rng, camera, s)
+    meta = {"distance_m": float(np.linalg.norm(pose[:3, 3])), "tilt_deg": tilt_deg(pose)}
     h_plane = camera.matrix() @ np.column_stack([pose[:3, 0], pose[:3, 1], pose[:3, 3]])
     border_px = project(camera, pose, _white_border_in_tag(size))
     span = float(np.ptp(border_px, axis=0).max())
@@ -240,20 +240,39 @@ def make_sample(
     found = [d for d in detector.detect(window) if d.tag_id == tag_id]
     if not found:
         return None, meta
-    corners = found[0].corners_px + [x0, y0]
-    perturbed = perturb_quad(rng, corners, s.perturb_frac)
-    img_to_roi = image_to_roi_homography(perturbed, s.roi_margin)
+    return label_sample(rng, window, (x0, y0), found[0].corners_px, camera=camera, pose=pose, size_m=size,
+                        tag_id=tag_id, index=index, perturb_frac=s.perturb_frac, roi_margin=s.roi_margin), meta
+
+
+def label_sample(
+    rng: np.random.Generator,
+    window: NDArray[np.uint8],
+    origin_px: tuple[int, int],
+    corners_in_window: Array,
+    *,
+    camera: CameraIntrinsics,
+    pose: Array,
+    size_m: float,
+    tag_id: int,
+    index: int,
+    perturb_frac: float,
+    roi_margin: float,
+) -> dict[str, Any]:
+    """Perturb the detected quad, warp the ROI and label the keypoints by exact projection."""
+    x0, y0 = origin_px
+    corners = corners_in_window + [x0, y0]
+    perturbed = perturb_quad(rng, corners, perturb_frac)
+    img_to_roi = image_to_roi_homography(perturbed, roi_margin)
     window_to_roi = img_to_roi @ np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1.0]])
     roi = warp_roi(window, window_to_roi)
-    keypoints_px = project(camera, pose, lattice_in_tag(size))
+    keypoints_px = project(camera, pose, lattice_in_tag(size_m))
     keypoints = normalise_roi(apply_homography(img_to_roi, keypoints_px))
-    sample = {
+    return {
         "roi": roi, "keypoints": keypoints, "roi_to_image": np.linalg.inv(img_to_roi),
         "camera_from_tag": pose, "corners_px": corners, "keypoints_px": keypoints_px,
-        "tag_id": tag_id, "tag_size_m": size, "distance_m": dist, "tilt_deg": meta["tilt_deg"],
-        "index": index,
+        "tag_id": tag_id, "tag_size_m": size_m, "distance_m": float(np.linalg.norm(pose[:3, 3])),
+        "tilt_deg": tilt_deg(pose), "index": index,
     }
-    return sample, meta
 
 
 class SynthMaker:
