@@ -20,10 +20,9 @@ import time
 import numpy as np
 
 from shared import keys
-from shared.demo import free_tcp_port
 from shared.messages import encode
 from shared.probe import Prober, probe_features
-from shared.transport import ZenohSettings, open_session, wait_for_liveliness
+from shared.transport import ZenohSettings, free_tcp_port, open_session, wait_for_liveliness
 
 SIZES = [64, 256, 1024, 4096, 16384, 65536, 262144, 1 << 20, 2 << 20]
 _LEN = struct.Struct("!Q")

@@ -11,9 +11,49 @@ from shared.logs import setup_logging
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from shared.demo import run_demo
+    import json
 
-    return run_demo(robot_id=args.robot_id, repetitions=args.repetitions)
+    from shared.launch import run_pipeline
+
+    summary = run_pipeline(args.config, duration_secs=args.duration)
+    print(json.dumps({k: v for k, v in summary.items() if k != "exit_codes"}, indent=2))
+    return 0 if summary.get("frames") else 1
+
+
+def _cmd_up(args: argparse.Namespace) -> int:
+    import json
+
+    from shared.launch import run_pipeline
+
+    summary = run_pipeline(args.config, duration_secs=args.duration)
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+def _cmd_down(args: argparse.Namespace) -> int:
+    import os
+    import signal
+
+    pids = Path("runs/current/pids")
+    if not pids.is_file():
+        print("no running deployment (runs/current/pids not found)")
+        return 1
+    for line in pids.read_text().split("\n"):
+        if line.strip():
+            name, pid = line.split()
+            try:
+                os.killpg(int(pid), signal.SIGINT)
+                print(f"stopping {name} ({pid})")
+            except ProcessLookupError:
+                print(f"{name} ({pid}) already stopped")
+    return 0
+
+
+def _cmd_split(args: argparse.Namespace) -> int:
+    from shared.split_client import split_query
+
+    print(split_query(args.robot_id, args.connect, k=getattr(args, "k", None), release=args.action == "release"))
+    return 0
 
 
 def _cmd_echo(args: argparse.Namespace) -> int:
@@ -152,10 +192,24 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="splittag", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("demo", help="two-process Zenoh exchange of split tensors on loopback")
-    p.add_argument("--robot-id", default="demo")
-    p.add_argument("--repetitions", type=int, default=20)
+    p = sub.add_parser("demo", help="run the whole pipeline on the demo scene with a live line per second")
+    p.add_argument("--config", type=Path, default=Path("deploy/local.toml"))
+    p.add_argument("--duration", type=float, default=30.0)
     p.set_defaults(func=_cmd_demo)
+
+    p = sub.add_parser("up", help="start every service (deploy/up.sh); Ctrl-C stops them")
+    p.add_argument("--config", type=Path, default=Path("deploy/local.toml"))
+    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    p.set_defaults(func=_cmd_up)
+    p = sub.add_parser("down", help="stop the deployment in runs/current")
+    p.set_defaults(func=_cmd_down)
+
+    p = sub.add_parser("split", help="read or set the split index live (Zenoh query)")
+    p.add_argument("action", choices=["get", "set", "release"])
+    p.add_argument("k", type=int, nargs="?", help="split index 0..7 (for set)")
+    p.add_argument("--robot-id", default="robot1")
+    p.add_argument("--connect", default="tcp/127.0.0.1:7447", help="zenoh endpoint to connect to")
+    p.set_defaults(func=_cmd_split)
 
     p = sub.add_parser("echo", help="run the edge echo queryable for link probes")
     p.add_argument("--robot-id", default="robot1")

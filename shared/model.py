@@ -146,8 +146,10 @@ class SplitKeypointNet(nn.Module):
         if k == 6:
             return self.pool(self.head_conv(z))
         if k == 7:
-            offsets = self.fc(z)
-            out = self.anchor.to(offsets.dtype) + OFFSET_SCALE * offsets
+            # The add happens in fp32 even under bf16 autocast: bf16 resolves only ~2e-3 near 0.5,
+            # i.e. ~0.5 ROI px, which would quantise every keypoint.
+            offsets = self.fc(z).float()
+            out = self.anchor + OFFSET_SCALE * offsets
             return out.view(-1, NUM_KEYPOINTS, 2)
         raise ValueError(f"no stage {k}")
 

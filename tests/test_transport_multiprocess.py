@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from shared import keys
-from shared.demo import free_tcp_port
 from shared.messages import Features, TagFeature, encode
 from shared.transport import (
     ZenohSettings,
     declare_tensor_publisher,
+    free_tcp_port,
     open_session,
     wait_for_liveliness,
 )

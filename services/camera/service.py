@@ -1,0 +1,98 @@
+"""The camera loop: read a source, publish Frame (and ground-truth CameraPose) at a fixed rate."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import zenoh
+
+from services.camera.settings import CameraSettings
+from shared import keys
+from shared.messages import CameraPose, Frame, encode
+from shared.sources import CaptureSource, DemoSource, FolderSource, FrameSource
+from shared.transport import declare_tensor_publisher, encoding_for, wait_for_liveliness
+
+log = logging.getLogger(__name__)
+
+
+def make_source(settings: CameraSettings) -> FrameSource:
+    """The configured frame source."""
+    if settings.source == "demo":
+        return DemoSource(n_frames=settings.demo_frames, cache_dir=settings.cache_dir)
+    if settings.camera_info is None:
+        raise ValueError(f"source {settings.source!r} needs camera_info (a ROS camera_info YAML)")
+    if settings.source == "folder":
+        from pathlib import Path
+
+        return FolderSource(Path(settings.path), settings.camera_info, settings.groundtruth)
+    if settings.source == "video":
+        return CaptureSource(settings.path, settings.camera_info)
+    target: str | int = int(settings.path) if settings.path.isdigit() else settings.path
+    return CaptureSource(target, settings.camera_info)
+
+
+def run(settings: CameraSettings, *, session: zenoh.Session, stop: threading.Event) -> int:
+    """Stream until the source ends (loop off), max_frames is reached, or `stop` is set."""
+    source = make_source(settings)
+    pub = declare_tensor_publisher(session, keys.frames(settings.robot_id), Frame.SCHEMA)
+    gt_pub = session.declare_publisher(keys.ground_truth(settings.robot_id), encoding=encoding_for(CameraPose.SCHEMA))
+    token = session.liveliness().declare_token(keys.alive(settings.robot_id, "camera"))
+    if settings.wait_for:
+        wait_for_liveliness(
+            session,
+            [keys.alive(settings.robot_id, s) for s in settings.wait_for],
+            timeout_secs=settings.liveliness_timeout_secs,
+        )
+    period = 1.0 / settings.fps
+    seq = 0
+    next_t = time.monotonic()
+    try:
+        while not stop.is_set():
+            produced = False
+            for item in source.frames():
+                produced = True
+                now = time.monotonic()
+                if now < next_t and stop.wait(next_t - now):
+                    return seq
+                next_t = max(next_t + period, time.monotonic() - period)
+                capture = time.time_ns()
+                pub.put(
+                    encode(
+                        Frame(
+                            robot_id=settings.robot_id,
+                            seq=seq,
+                            capture_nanos=capture,
+                            intrinsics=source.camera,
+                            image=item.image,
+                        )
+                    )
+                )
+                if item.world_from_camera is not None:
+                    gt_pub.put(
+                        encode(
+                            CameraPose(
+                                robot_id=settings.robot_id,
+                                seq=seq,
+                                capture_nanos=capture,
+                                world_from_camera=item.world_from_camera,
+                                status="ground_truth",
+                                tags_used=0,
+                            )
+                        )
+                    )
+                seq += 1
+                if settings.max_frames and seq >= settings.max_frames:
+                    log.info("published %d frames (max_frames)", seq)
+                    return seq
+                if stop.is_set():
+                    return seq
+            if not produced:
+                raise RuntimeError("the source produced no frames")
+            if not settings.loop:
+                log.info("source ended after %d frames", seq)
+                return seq
+    finally:
+        token.undeclare()
+    return seq

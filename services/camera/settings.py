@@ -1,0 +1,29 @@
+"""Settings of the camera service."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import ClassVar, Literal
+
+from pydantic import Field
+from pydantic_settings import SettingsConfigDict
+
+from shared.settings import ServiceSettings
+
+
+class CameraSettings(ServiceSettings):
+    """Where frames come from and how fast they go out."""
+
+    SERVICE: ClassVar[str] = "camera"
+    model_config = SettingsConfigDict(**{**ServiceSettings.model_config, "env_prefix": "SPLITTAG_CAMERA_"})
+
+    source: Literal["demo", "folder", "video", "v4l2"] = "demo"
+    path: str = ""  # folder, video file, or V4L2 device index/path
+    camera_info: Path | None = None  # ROS camera_info YAML (required for folder, video, v4l2)
+    groundtruth: Path | None = None  # optional TUM file for the folder source
+    fps: float = Field(default=15.0, gt=0)
+    loop: bool = True
+    max_frames: int = Field(default=0, ge=0)  # 0 = unlimited
+    demo_frames: int = Field(default=150, ge=2)
+    cache_dir: Path = Path("runs/cache")
+    wait_for: list[str] = Field(default_factory=lambda: ["robot_infer"])  # services to await before streaming

@@ -1,0 +1,1 @@
+"""edge_infer service: the network's tail for the announced k, keypoints to image, PnP; publishes TagPoses."""

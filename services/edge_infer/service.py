@@ -1,0 +1,67 @@
+"""edge_infer loop: Features -> tail(k) -> keypoints in the image -> PnP -> TagPoses, every frame."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import torch
+import zenoh
+
+from services.edge_infer.settings import EdgeInferSettings
+from shared import keys
+from shared.codec import WireError
+from shared.messages import Features, TagPoses, decode, encode
+from shared.perception import TagMapFile, load_tag_map
+from shared.pipeline import edge_step
+from shared.probe import serve_echo
+from shared.transport import declare_fifo_subscriber, declare_tensor_publisher
+from shared.weights import load_model
+
+log = logging.getLogger(__name__)
+
+
+def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.Event) -> None:
+    """Serve until `stop` is set. Malformed or inconsistent Features are rejected, counted and logged."""
+    torch.set_num_threads(settings.threads)
+    model = load_model(settings.weights)
+    tag_map = (
+        load_tag_map(settings.tag_map) if settings.tag_map else TagMapFile(default_size_m=settings.default_tag_size_m)
+    )
+    rid = settings.robot_id
+    sub = declare_fifo_subscriber(session, keys.features(rid))
+    pub = declare_tensor_publisher(session, keys.tag_poses(rid), TagPoses.SCHEMA)
+    echo = serve_echo(session, keys.echo(rid), max_bytes=settings.max_payload_bytes) if settings.serve_echo else None
+    token = session.liveliness().declare_token(keys.alive(rid, "edge_infer"))
+    rejected = processed = 0
+    log.info("edge_infer ready")
+    try:
+        while not stop.is_set():
+            sample = sub.try_recv()
+            if sample is None:
+                stop.wait(0.001)
+                continue
+            received = time.time_ns()
+            payload = sample.payload.to_bytes()
+            try:
+                features = decode(payload, Features, max_bytes=settings.max_payload_bytes)
+                poses = edge_step(
+                    features,
+                    model=model,
+                    tag_map=tag_map,
+                    receive_nanos=received,
+                    payload_bytes=len(payload),
+                    bf16=settings.bf16,
+                )
+            except WireError as exc:
+                rejected += 1
+                log.warning("rejected features #%d (%d bytes): %s", rejected, len(payload), exc)
+                continue
+            pub.put(encode(poses))
+            processed += 1
+    finally:
+        token.undeclare()
+        if echo is not None:
+            echo.undeclare()
+        log.info("edge_infer: %d frames processed, %d rejected", processed, rejected)

@@ -1,0 +1,25 @@
+"""Settings of edge_infer."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import ClassVar
+
+from pydantic import Field
+from pydantic_settings import SettingsConfigDict
+
+from shared.settings import ServiceSettings
+
+
+class EdgeInferSettings(ServiceSettings):
+    """The edge side of the split."""
+
+    SERVICE: ClassVar[str] = "edge_infer"
+    model_config = SettingsConfigDict(**{**ServiceSettings.model_config, "env_prefix": "SPLITTAG_EDGE_INFER_"})
+
+    weights: Path = Path("models")
+    tag_map: Path | None = None  # YAML/JSON with per-tag sizes; unknown ids use default_tag_size_m
+    default_tag_size_m: float = Field(default=0.2, gt=0)
+    bf16: bool = True
+    threads: int = Field(default=1, ge=1)
+    serve_echo: bool = True  # the link-probe echo queryable lives on the edge

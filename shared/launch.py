@@ -1,0 +1,290 @@
+"""Start the services as separate processes, watch the pipeline live, stop everything cleanly.
+
+`splittag up` (and deploy/up.sh) writes runs/<run_id>/: one log per service, the resolved config,
+the demo tag map, `pids`, and `summary.json` at exit. runs/current points at the newest run.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+import zenoh
+
+from shared import keys
+from shared.codec import WireError
+from shared.messages import CameraPose, TagPoses, decode
+from shared.metrics import translation_error_cm
+from shared.perception import TagMapFile, TagSpec
+from shared.sources import demo_scene
+from shared.transport import ZenohSettings, open_session, wait_for_liveliness
+
+log = logging.getLogger(__name__)
+SERVICES = ("edge_infer", "robot_infer", "camera")
+
+
+def demo_tag_map() -> TagMapFile:
+    """Sizes and world poses of the demo scene's tags."""
+    scene = demo_scene()
+    return TagMapFile(
+        default_size_m=0.2,
+        anchor_tag_id=scene.tags[0].id,
+        tags=[TagSpec(id=t.id, size_m=t.size_m, world_from_tag=t.world_from_tag) for t in scene.tags],
+    )
+
+
+def new_run_dir(root: Path = Path("runs")) -> Path:
+    """runs/<timestamp>-<pid>, with runs/current pointing at it."""
+    run = root / time.strftime(f"%Y%m%d-%H%M%S-{os.getpid()}")
+    run.mkdir(parents=True, exist_ok=True)
+    current = root / "current"
+    if current.is_symlink() or current.exists():
+        current.unlink()
+    current.symlink_to(run.name)
+    return run
+
+
+@dataclass
+class Service:
+    """One running service process."""
+
+    name: str
+    popen: subprocess.Popen[bytes]
+    log_path: Path
+
+
+def start_service(name: str, config: Path, run_dir: Path, env: dict[str, str] | None = None) -> Service:
+    """Start `python -m services.<name> --config <config>` in its own process group."""
+    log_path = run_dir / f"{name}.log"
+    full_env = {**os.environ, "PYTHONUNBUFFERED": "1", "SPLITTAG_RUN_DIR": str(run_dir), **(env or {})}
+    with log_path.open("ab") as out:
+        popen = subprocess.Popen(
+            [sys.executable, "-m", f"services.{name}", "--config", str(config)],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            env=full_env,
+        )
+    return Service(name, popen, log_path)
+
+
+def stop_services(services: list[Service], timeout_secs: float = 15.0) -> dict[str, int | None]:
+    """SIGINT every process group, then wait, escalating to SIGKILL."""
+    for s in services:
+        if s.popen.poll() is None:
+            os.killpg(s.popen.pid, signal.SIGINT)
+    codes: dict[str, int | None] = {}
+    deadline = time.monotonic() + timeout_secs
+    for s in services:
+        try:
+            s.popen.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            os.killpg(s.popen.pid, signal.SIGKILL)
+            s.popen.wait()
+        codes[s.name] = s.popen.returncode
+    return codes
+
+
+@dataclass
+class Monitor:
+    """Subscribes to TagPoses and ground truth; keeps per-frame records and prints a line per second."""
+
+    tag_map: TagMapFile | None
+    records: list[dict[str, Any]] = field(default_factory=list)
+    gt: dict[int, np.ndarray] = field(default_factory=dict)
+    bad: int = 0
+    _recent: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=400))
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def on_poses(self, payload: bytes) -> None:
+        """Record one TagPoses message."""
+        try:
+            msg = decode(payload, TagPoses)
+        except WireError as exc:
+            self.bad += 1
+            log.warning("monitor: bad TagPoses: %s", exc)
+            return
+        rec: dict[str, Any] = {
+            "seq": msg.seq,
+            "k": msg.split_k,
+            "payload_bytes": msg.payload_bytes,
+            "tags": len(msg.tags),
+            "robot_ms": 1e3 * msg.timings.robot_compute_secs,
+            "transport_ms": 1e3 * msg.timings.transport_secs,
+            "edge_ms": 1e3 * msg.timings.edge_compute_secs,
+            "e2e_ms": 1e3 * msg.timings.capture_to_pose_secs,
+            "t": time.monotonic(),
+            "errors_cm": self._errors(msg),
+        }
+        with self._lock:
+            self.records.append(rec)
+            self._recent.append(rec)
+
+    def on_gt(self, payload: bytes) -> None:
+        """Record one ground-truth camera pose."""
+        try:
+            msg = decode(payload, CameraPose)
+        except WireError:
+            self.bad += 1
+            return
+        with self._lock:
+            self.gt[msg.seq] = msg.world_from_camera
+
+    def _errors(self, msg: TagPoses) -> list[float]:
+        if self.tag_map is None:
+            return []
+        with self._lock:
+            world_from_camera = self.gt.get(msg.seq)
+        if world_from_camera is None:
+            return []
+        poses = {t.id: t.world_from_tag for t in self.tag_map.tags if t.world_from_tag is not None}
+        out = []
+        for tag in msg.tags:
+            if tag.tag_id in poses:
+                true = np.linalg.inv(world_from_camera) @ np.asarray(poses[tag.tag_id])
+                out.append(float(translation_error_cm(tag.camera_from_tag[:3, 3], true[:3, 3])))
+        return out
+
+    def line(self) -> str:
+        """One status line over the last second."""
+        now = time.monotonic()
+        with self._lock:
+            recent = [r for r in self._recent if now - r["t"] <= 1.0]
+        if not recent:
+            return "waiting for TagPoses..."
+        med = {k: float(np.median([r[k] for r in recent])) for k in ("robot_ms", "transport_ms", "edge_ms", "e2e_ms")}
+        errs = [e for r in recent for e in r["errors_cm"]]
+        err = f" e_t {np.median(errs):.2f} cm" if errs else ""
+        return (
+            f"{len(recent):>3} fps  k={recent[-1]['k']}  payload {recent[-1]['payload_bytes'] / 1024:7.1f} kB  "
+            f"robot {med['robot_ms']:6.1f} ms  link {med['transport_ms']:5.1f} ms  edge {med['edge_ms']:5.1f} ms  "
+            f"capture->pose {med['e2e_ms']:6.1f} ms  tags {recent[-1]['tags']}{err}"
+        )
+
+    def summary(self) -> dict[str, Any]:
+        """Totals over the whole run."""
+        with self._lock:
+            recs = list(self.records)
+        errs = [e for r in recs for e in r["errors_cm"]]
+        out: dict[str, Any] = {"frames": len(recs), "bad_messages": self.bad}
+        if recs:
+            e2e = [r["e2e_ms"] for r in recs]
+            out.update({"e2e_ms_p50": float(np.percentile(e2e, 50)), "e2e_ms_p99": float(np.percentile(e2e, 99))})
+        if errs:
+            out.update(
+                {
+                    "e_t_cm_median": float(np.median(errs)),
+                    "e_t_cm_mean": float(np.mean(errs)),
+                    "tag_observations": len(errs),
+                }
+            )
+        return out
+
+
+def attach_monitor(session: zenoh.Session, robot_id: str, monitor: Monitor) -> list[Any]:
+    """Subscribe the monitor (callbacks) to TagPoses and ground truth."""
+    return [
+        session.declare_subscriber(keys.ground_truth(robot_id), lambda s: monitor.on_gt(s.payload.to_bytes())),
+        session.declare_subscriber(keys.tag_poses(robot_id), lambda s: monitor.on_poses(s.payload.to_bytes())),
+    ]
+
+
+def write_run_config(run_dir: Path, base_config: Path, *, extra: dict[str, dict[str, Any]] | None = None) -> Path:
+    """Copy the TOML config into the run folder, adding the demo tag map and run_dir."""
+    import tomllib
+
+    doc = tomllib.loads(base_config.read_text())
+    tag_map_path = run_dir / "tag_map.yaml"
+    tag_map_path.write_text(yaml.safe_dump(demo_tag_map().model_dump(), sort_keys=False))
+    doc.setdefault("common", {})["run_dir"] = str(run_dir)
+    doc.setdefault("edge_infer", {}).setdefault("tag_map", str(tag_map_path))
+    for section, values in (extra or {}).items():
+        doc.setdefault(section, {}).update(values)
+    out = run_dir / "config.toml"
+    out.write_text(_to_toml(doc))
+    return out
+
+
+def _to_toml(doc: dict[str, Any], prefix: str = "") -> str:
+    lines, tables = [], []
+    for key, value in doc.items():
+        if isinstance(value, dict):
+            tables.append((key, value))
+        else:
+            lines.append(f"{key} = {json.dumps(value)}")
+    out = "\n".join(lines) + ("\n" if lines else "")
+    for key, value in tables:
+        name = f"{prefix}.{key}" if prefix else key
+        out += f"\n[{name}]\n" + _to_toml(value, name)
+    return out
+
+
+def monitor_settings(config: Path) -> tuple[str, ZenohSettings]:
+    """robot_id and a client session to the edge router, from the run config."""
+    import tomllib
+
+    doc = tomllib.loads(config.read_text())
+    robot_id = doc.get("common", {}).get("robot_id", "robot1")
+    edge = doc.get("edge_infer", {}).get("zenoh", {})
+    return robot_id, ZenohSettings(mode="client", connect=edge.get("listen", ["tcp/127.0.0.1:7447"]))
+
+
+def run_pipeline(
+    config: Path,
+    *,
+    duration_secs: float | None,
+    services: tuple[str, ...] = SERVICES,
+    extra: dict[str, dict[str, Any]] | None = None,
+    quiet: bool = False,
+) -> dict[str, Any]:
+    """Start the services, print a live line per second until duration/SIGINT/camera end, stop all."""
+    run_dir = new_run_dir()
+    run_config = write_run_config(run_dir, config, extra=extra)
+    robot_id, zs = monitor_settings(run_config)
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    started: list[Service] = []
+    monitor = Monitor(demo_tag_map())
+    try:
+        for name in services:
+            started.append(start_service(name, run_config, run_dir))
+        (run_dir / "pids").write_text("\n".join(f"{s.name} {s.popen.pid}" for s in started) + "\n")
+        session = open_session(zs)
+        subs = attach_monitor(session, robot_id, monitor)
+        wait_for_liveliness(session, [keys.alive(robot_id, s) for s in services], timeout_secs=120)
+        print(f"run {run_dir}: {', '.join(services)} alive; Ctrl-C stops", flush=True)
+        t_end = None if duration_secs is None else time.monotonic() + duration_secs
+        while not stop.wait(1.0):
+            if not quiet:
+                print(monitor.line(), flush=True)
+            if t_end is not None and time.monotonic() > t_end:
+                break
+            if any(s.popen.poll() is not None for s in started if s.name != "camera"):
+                print("a service exited; stopping", flush=True)
+                break
+            camera = next((s for s in started if s.name == "camera"), None)
+            if camera is not None and camera.popen.poll() is not None:
+                time.sleep(1.0)  # let the last frames arrive
+                break
+        for s in subs:
+            s.undeclare()
+        session.close()
+    finally:
+        codes = stop_services(started)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    summary = {**monitor.summary(), "exit_codes": codes, "run_dir": str(run_dir)}
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary

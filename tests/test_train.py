@@ -1,0 +1,86 @@
+"""Training pieces: Wing loss, edge weights, dihedral relabelling, weights contract, a tiny real run."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from shared.data.generate import generate
+from shared.data.synth import SynthMaker, SynthSettings
+from shared.geometry import ROI_MARGIN, default_camera
+from shared.model import SplitKeypointNet, canonical_keypoints
+from shared.train import WING_C, TrainSettings, dihedral, train, wing_loss
+from shared.weights import WeightsError, load_model, save_weights
+
+
+def test_wing_loss_values_and_weights() -> None:
+    gt = torch.tensor([[[0.5, 0.5]]])
+    # 1 px error on one coordinate at the patch centre (omega = 1): w * ln(1 + 1/eps).
+    pred = gt + torch.tensor([[[1 / 256, 0.0]]])
+    assert math.isclose(float(wing_loss(pred, gt)), 10 * math.log(1.5), rel_tol=1e-5)
+    # Large error: linear branch |d| - C.
+    pred = gt + torch.tensor([[[20 / 256, 0.0]]])
+    assert math.isclose(float(wing_loss(pred, gt)), 20 - WING_C, rel_tol=1e-5)
+    # Near the edge the weight is clamped to 0.3.
+    gt_edge = torch.tensor([[[0.05, 0.5]]])
+    pred = gt_edge + torch.tensor([[[1 / 256, 0.0]]])
+    assert math.isclose(float(wing_loss(pred, gt_edge)), 0.3 * 10 * math.log(1.5), rel_tol=1e-5)
+
+
+@pytest.mark.parametrize("t", range(8))
+def test_dihedral_moves_pixels_and_keypoints_together(t: int) -> None:
+    """A bright dot drawn at each keypoint stays under its (relabelled) keypoint after the transform."""
+    rng = np.random.default_rng(t)
+    kp = canonical_keypoints(ROI_MARGIN) + rng.uniform(-0.03, 0.03, (16, 2)).astype(np.float32)
+    img = torch.zeros(1, 1, 256, 256, dtype=torch.uint8)
+    for j, (x, y) in enumerate(kp * 256 - 0.5):
+        img[0, 0, round(y), round(x)] = 10 + j
+    out_img, out_kp = dihedral(img, torch.from_numpy(kp)[None], t)
+    for x, y in out_kp[0].numpy() * 256 - 0.5:
+        assert int(out_img[0, 0, round(y), round(x)]) > 0
+    # Relabelled keypoints stay in canonical lattice order.
+    assert np.abs(out_kp[0].numpy() - canonical_keypoints(ROI_MARGIN)).max() < 0.05
+
+
+def test_weights_round_trip_and_contract(tmp_path: Path) -> None:
+    model = SplitKeypointNet(roi_margin=ROI_MARGIN)
+    save_weights(model, tmp_path / "w")
+    loaded = load_model(tmp_path / "w")
+    x = torch.randn(1, 1, 256, 256)
+    torch.testing.assert_close(loaded(x), model.eval()(x))
+    cfg = json.loads((tmp_path / "w" / "config.json").read_text())
+    cfg["input_size"] = 224
+    (tmp_path / "w" / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(WeightsError, match="input_size is 224"):
+        load_model(tmp_path / "w")
+    with pytest.raises(WeightsError, match="does not exist"):
+        load_model(tmp_path / "nothing")
+
+
+@pytest.mark.slow
+def test_tiny_training_run_writes_weights_and_resumes(tmp_path: Path) -> None:
+    cam, s = default_camera(), SynthSettings(seed=9)
+    generate(
+        tmp_path / "d",
+        n=40,
+        seed=9,
+        kind="synth",
+        settings=s.model_dump(mode="json"),
+        factory=lambda: SynthMaker(cam, s),
+        shard_size=20,
+        workers=2,
+    )
+    settings = TrainSettings(
+        data=[tmp_path / "d"], out=tmp_path / "run", epochs=2, batch_size=8, warmup_steps=2, lr=3e-4, eval_samples=12
+    )
+    first = train(settings)
+    assert (tmp_path / "run" / "best" / "model.safetensors").is_file()
+    assert len(first["history"]) == 2
+    again = train(settings.model_copy(update={"epochs": 3}))  # resumes at epoch 2 of the saved plan
+    assert len(again["history"]) == 2
+    assert (tmp_path / "run" / "curve.jsonl").read_text().count("\n") == 2
