@@ -1,0 +1,104 @@
+"""End-to-end frame-to-pose latency (p50/p99) and throughput for every split k on loopback.
+
+Starts edge_infer, robot_infer and the demo camera (15 fps, 3-4 tags in view) as separate
+processes, then for each k sets the split through the Zenoh query, waits for the change to take
+effect, and measures capture->pose latency over a window.
+
+    .venv/bin/python -m bench.pipeline [--fps 15] [--window-secs 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from shared import keys
+from shared.launch import Monitor, attach_monitor, demo_tag_map, start_service, stop_services, write_run_config
+from shared.model import CUTS
+from shared.split_client import query_split
+from shared.transport import ZenohSettings, free_tcp_port, open_session, wait_for_liveliness
+
+ROBOT = "bench"
+
+
+def main() -> None:
+    """Run and print the table."""
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--fps", type=float, default=15.0)
+    ap.add_argument("--window-secs", type=float, default=10.0)
+    ap.add_argument("--settle-secs", type=float, default=2.0)
+    args = ap.parse_args()
+    tmp = Path(tempfile.mkdtemp(prefix="splittag-bench-"))
+    edge, robot = free_tcp_port(), free_tcp_port()
+    base = tmp / "base.toml"
+    base.write_text(f"""
+[common]
+robot_id = "{ROBOT}"
+[edge_infer.zenoh]
+mode = "router"
+listen = ["tcp/127.0.0.1:{edge}"]
+[robot_infer.zenoh]
+mode = "router"
+listen = ["tcp/127.0.0.1:{robot}"]
+connect = ["tcp/127.0.0.1:{edge}"]
+[camera]
+fps = {args.fps}
+[camera.zenoh]
+mode = "client"
+connect = ["tcp/127.0.0.1:{robot}"]
+""")
+    cfg = write_run_config(tmp, base)
+    services = [start_service(n, cfg, tmp) for n in ("edge_infer", "robot_infer", "camera")]
+    rows = []
+    try:
+        session = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{robot}"]))
+        monitor = Monitor(demo_tag_map())
+        subs = attach_monitor(session, ROBOT, monitor)
+        wait_for_liveliness(
+            session, [keys.alive(ROBOT, s) for s in ("edge_infer", "robot_infer", "camera")], timeout_secs=120
+        )
+        for cut in CUTS:
+            query_split(session, ROBOT, params=f"k={cut.k}")
+            time.sleep(args.settle_secs)
+            start = len(monitor.records)
+            t0 = time.monotonic()
+            time.sleep(args.window_secs)
+            recs = [r for r in monitor.records[start:] if r["k"] == cut.k]
+            elapsed = time.monotonic() - t0
+            e2e = np.array([r["e2e_ms"] for r in recs])
+            rows.append(
+                (
+                    cut,
+                    len(recs) / elapsed,
+                    np.percentile(e2e, 50),
+                    np.percentile(e2e, 99),
+                    np.median([r["robot_ms"] for r in recs]),
+                    np.median([r["transport_ms"] for r in recs]),
+                    np.median([r["edge_ms"] for r in recs]),
+                    np.mean([r["tags"] for r in recs]),
+                    np.median([r["payload_bytes"] for r in recs]),
+                )
+            )
+        for s in subs:
+            s.undeclare()
+        session.close()
+    finally:
+        stop_services(services)
+    print(f"camera {args.fps} fps, window {args.window_secs} s per k, loopback, 2-core CPU; latencies in ms")
+    print(
+        f"{'k':>2} {'cut':<10} {'fps':>6} {'e2e p50':>8} {'e2e p99':>8} {'robot':>7} {'link':>6} {'edge':>6} "
+        f"{'tags':>5} {'msg kB':>8}"
+    )
+    for cut, fps, p50, p99, rb, tr, ed, tags, size in rows:
+        print(
+            f"{cut.k:>2} {cut.name:<10} {fps:>6.1f} {p50:>8.1f} {p99:>8.1f} {rb:>7.1f} {tr:>6.1f} {ed:>6.1f} "
+            f"{tags:>5.1f} {size / 1024:>8.1f}"
+        )
+
+
+if __name__ == "__main__":
+    main()
