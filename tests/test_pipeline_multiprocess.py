@@ -14,9 +14,16 @@ import pytest
 import zenoh
 
 from shared import keys
+from shared.geometry import default_camera
 from shared.launch import Monitor, attach_monitor, demo_tag_map, write_run_config
-from shared.messages import SplitConfig, decode
-from shared.transport import ZenohSettings, free_tcp_port, open_session, wait_for_liveliness
+from shared.messages import Features, SplitConfig, TagFeature, decode, encode
+from shared.transport import (
+    ZenohSettings,
+    declare_tensor_publisher,
+    free_tcp_port,
+    open_session,
+    wait_for_liveliness,
+)
 from tests.procs import Proc, processes
 
 pytestmark = pytest.mark.multiprocess
@@ -95,7 +102,7 @@ def _split(session: zenoh.Session, params: str = "") -> tuple[SplitConfig | None
 
 
 def test_every_frame_yields_poses_within_tolerance(pipeline: tuple, tmp_path: Path) -> None:
-    cfg, procs, session, monitor, _ = pipeline
+    cfg, procs, _, monitor, _ = pipeline
     cam_env = {"SPLITTAG_CAMERA_MAX_FRAMES": "60", "SPLITTAG_CAMERA_LOOP": "false"}
     camera = Proc("camera", ["-m", "services.camera", "--config", str(cfg)], tmp_path, env=cam_env)
     procs.append(camera)
@@ -110,7 +117,7 @@ def test_every_frame_yields_poses_within_tolerance(pipeline: tuple, tmp_path: Pa
     assert monitor.bad == 0
 
 
-def test_split_changes_live_and_edge_restarts(pipeline: tuple, tmp_path: Path) -> None:
+def test_split_changes_live_bad_input_and_edge_restart(pipeline: tuple, tmp_path: Path) -> None:
     cfg, procs, session, monitor, _ = pipeline
     procs.append(Proc("camera", ["-m", "services.camera", "--config", str(cfg)], tmp_path))
     _wait(lambda: len(monitor.records) >= 3, 60, "first poses")
@@ -140,6 +147,38 @@ def test_split_changes_live_and_edge_restarts(pipeline: tuple, tmp_path: Path) -
     assert still is not None
     assert still.k == 5
 
+    # Bad input on the features topic: rejected, counted, logged; good frames keep flowing.
+    pub = declare_tensor_publisher(session, keys.features(ROBOT), Features.SCHEMA)
+    wrong_shape = Features(
+        robot_id=ROBOT,
+        seq=10_000,
+        capture_nanos=1,
+        publish_nanos=1,
+        split_k=3,
+        codec="fp16",
+        intrinsics=default_camera(),
+        robot_compute_secs=0.0,
+        tags=[
+            TagFeature(
+                tag_id=1,
+                decision_margin=50.0,
+                hamming=0,
+                corners_px=np.zeros((4, 2), np.float32),
+                roi_to_image=np.eye(3),
+                tensor=np.zeros((64, 64, 64), np.float16),
+            )
+        ],
+    )
+    pub.put(encode(wrong_shape))
+    pub.put(b"\x93garbage")
+    mark = len(monitor.records)
+    _wait(lambda: len(monitor.records) >= mark + 3, 30, "poses after bad input")
+    edge_log = next(p for p in procs if p.name == "edge_infer").log_text()
+    assert "rejected features #1" in edge_log
+    assert "does not match k=3" in edge_log
+    assert "rejected features #2" in edge_log
+    assert all(r["seq"] != 10_000 for r in monitor.records)
+
     # Kill edge_infer hard and start it again: the pipeline resumes on its own.
     edge = next(p for p in procs if p.name == "edge_infer")
     os.killpg(edge.popen.pid, signal.SIGKILL)
@@ -149,3 +188,24 @@ def test_split_changes_live_and_edge_restarts(pipeline: tuple, tmp_path: Path) -
     procs.append(Proc("edge_infer_2", ["-m", "services.edge_infer", "--config", str(cfg)], tmp_path))
     _wait(lambda: len(monitor.records) >= mark + 5, 90, "poses after the edge restart")
     assert all(r["k"] == 5 for r in monitor.records[mark:])
+
+
+def test_two_host_profile_on_loopback(tmp_path: Path) -> None:
+    """deploy/two_host.toml as shipped: edge on 127.0.0.2, robot on 127.0.0.3, each its own endpoint."""
+    cfg = write_run_config(tmp_path, Path("deploy/two_host.toml"))
+    env = {"SPLITTAG_CAMERA_FPS": "2", "SPLITTAG_CAMERA_MAX_FRAMES": "8", "SPLITTAG_CAMERA_LOOP": "false"}
+    with processes(tmp_path) as procs:
+        for name in ("edge_infer", "robot_infer", "camera"):
+            procs.append(Proc(name, ["-m", f"services.{name}", "--config", str(cfg)], tmp_path, env=env))
+        session = open_session(ZenohSettings(mode="client", connect=["tcp/127.0.0.2:7447"]))
+        monitor = Monitor(demo_tag_map())
+        subs = attach_monitor(session, "robot1", monitor)
+        try:
+            _wait(lambda: len(monitor.records) >= 8, 120, "8 TagPoses through the two-host profile")
+            assert {r["k"] for r in monitor.records} == {5}
+            robot_log = next(p for p in procs if p.name == "robot_infer").log_text()
+            assert "connect=['tcp/127.0.0.2:7447']" in robot_log
+        finally:
+            for s in subs:
+                s.undeclare()
+            session.close()
