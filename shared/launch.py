@@ -32,7 +32,7 @@ from shared.sources import demo_scene
 from shared.transport import ZenohSettings, open_session, wait_for_liveliness
 
 log = logging.getLogger(__name__)
-SERVICES = ("edge_infer", "robot_infer", "camera")
+SERVICES = ("edge_infer", "slam", "robot_infer", "camera")
 
 
 def demo_tag_map() -> TagMapFile:
@@ -210,6 +210,7 @@ def write_run_config(run_dir: Path, base_config: Path, *, extra: dict[str, dict[
     tag_map_path.write_text(yaml.safe_dump(demo_tag_map().model_dump(), sort_keys=False))
     doc.setdefault("common", {})["run_dir"] = str(run_dir)
     doc.setdefault("edge_infer", {}).setdefault("tag_map", str(tag_map_path))
+    doc.setdefault("slam", {}).setdefault("tag_map", str(tag_map_path))
     for section, values in (extra or {}).items():
         doc.setdefault(section, {}).update(values)
     out = run_dir / "config.toml"
@@ -286,5 +287,8 @@ def run_pipeline(
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     summary = {**monitor.summary(), "exit_codes": codes, "run_dir": str(run_dir)}
+    ate_path = run_dir / "ate.json"
+    if ate_path.is_file():
+        summary["slam"] = json.loads(ate_path.read_text())
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary

@@ -1,0 +1,169 @@
+"""slam loop: TagPoses -> MarkerSlam -> CameraPose every frame, TagMap on change; files at exit/on request.
+
+Map queryable on `splittag/<robot_id>/map/v1`: a get replies the current TagMap; `?save=1` also
+writes trajectory.tum, map.json (and groundtruth.tum / ate.json when ground truth was seen) now.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from services.slam.settings import SlamServiceSettings
+from shared import keys
+from shared.codec import WireError
+from shared.messages import CameraPose, MapTag, TagMap, TagPoses, decode, encode
+from shared.perception import load_tag_map
+from shared.slam import MarkerSlam, Observation, absolute_trajectory_error
+from shared.sources import write_tum
+from shared.transport import declare_fifo_subscriber, encoding_for
+
+log = logging.getLogger(__name__)
+
+
+class SlamNode:
+    """The service's state: the SLAM core plus ground truth and output writing (no Zenoh here)."""
+
+    def __init__(self, settings: SlamServiceSettings) -> None:
+        self.settings = settings
+        known: dict[int, tuple[float, np.ndarray]] = {}
+        slam_settings = settings.slam
+        if settings.tag_map is not None:
+            tm = load_tag_map(settings.tag_map)
+            known = {t.id: (t.size_m, np.asarray(t.world_from_tag)) for t in tm.tags if t.world_from_tag is not None}
+            if slam_settings.anchor_tag_id is None and tm.anchor_tag_id is not None:
+                slam_settings = slam_settings.model_copy(update={"anchor_tag_id": tm.anchor_tag_id})
+        self.slam = MarkerSlam(slam_settings, known_tags=known)
+        self.gt: dict[int, np.ndarray] = {}
+        self.revision = 0
+        self.last_pose: np.ndarray | None = None
+        self.lock = threading.Lock()
+
+    def on_poses(self, msg: TagPoses) -> tuple[CameraPose, TagMap | None]:
+        """Fuse one frame; returns the camera pose message and the map if it should be published."""
+        with self.lock:
+            res = self.slam.update(msg.seq, msg.capture_nanos, [Observation.from_message(t) for t in msg.tags])
+            if res.world_from_camera is not None:
+                self.last_pose = res.world_from_camera
+            pose = self.last_pose if self.last_pose is not None else np.eye(4)
+            cam = CameraPose(
+                robot_id=msg.robot_id,
+                seq=msg.seq,
+                capture_nanos=msg.capture_nanos,
+                world_from_camera=pose,
+                status="tracking" if res.world_from_camera is not None else "lost",
+                tags_used=res.tags_used,
+            )
+            publish_map = res.map_changed or self.slam.state.frames % self.settings.map_publish_every == 0
+            if res.map_changed:
+                self.revision += 1
+            return cam, (self._map(msg.robot_id) if publish_map else None)
+
+    def _map(self, robot_id: str) -> TagMap:
+        tags = [
+            MapTag(tag_id=t, size_m=size, world_from_tag=pose, observations=self.slam.state.observations.get(t, 0))
+            for t, (size, pose) in sorted(self.slam.tag_map().items())
+        ]
+        return TagMap(robot_id=robot_id, revision=self.revision, anchor_tag_id=self.slam.anchor or 0, tags=tags)
+
+    def current_map(self, robot_id: str) -> TagMap:
+        """Thread-safe map snapshot."""
+        with self.lock:
+            return self._map(robot_id)
+
+    def write_outputs(self, run_dir: Path) -> dict[str, Any]:
+        """trajectory.tum, map.json, and with ground truth groundtruth.tum + ate.json."""
+        run_dir.mkdir(parents=True, exist_ok=True)
+        with self.lock:
+            traj = self.slam.trajectory()
+            tag_map = self.slam.tag_map()
+            gt = dict(self.gt)
+            state = self.slam.state
+        write_tum(run_dir / "trajectory.tum", [(s / 1e9, p) for s, p in traj])
+        (run_dir / "map.json").write_text(
+            json.dumps(
+                {
+                    "anchor_tag_id": self.slam.anchor,
+                    "tags": [
+                        {"id": t, "size_m": size, "world_from_tag": pose.tolist()}
+                        for t, (size, pose) in sorted(tag_map.items())
+                    ],
+                    "frames": state.frames,
+                    "lost_frames": state.lost,
+                    "rejected_ambiguous": state.rejected_ambiguous,
+                },
+                indent=2,
+            )
+        )
+        out: dict[str, Any] = {
+            "frames": state.frames,
+            "poses": len(traj),
+            "tags": len(tag_map),
+            "lost_frames": state.lost,
+            "rejected_ambiguous": state.rejected_ambiguous,
+        }
+        if gt:
+            write_tum(run_dir / "groundtruth.tum", [(s / 1e9, p) for s, p in sorted(gt.items())])
+            try:
+                ate, n = absolute_trajectory_error(dict(traj), gt)
+                out.update({"ate_m": ate, "ate_frames": n})
+            except ValueError as exc:
+                out["ate_error"] = str(exc)
+            (run_dir / "ate.json").write_text(json.dumps(out, indent=2))
+        return out
+
+
+def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threading.Event) -> None:
+    """Serve until `stop`; writes the outputs into run_dir at exit."""
+    node = SlamNode(settings)
+    rid = settings.robot_id
+    poses_sub = declare_fifo_subscriber(session, keys.tag_poses(rid))
+    cam_pub = session.declare_publisher(keys.camera_pose(rid), encoding=encoding_for(CameraPose.SCHEMA))
+    map_pub = session.declare_publisher(keys.tag_map(rid), encoding=encoding_for(TagMap.SCHEMA))
+
+    def on_gt(sample: zenoh.Sample) -> None:
+        try:
+            msg = decode(sample.payload.to_bytes(), CameraPose)
+        except WireError as exc:
+            log.warning("bad ground truth: %s", exc)
+            return
+        with node.lock:
+            node.gt[msg.capture_nanos] = np.asarray(msg.world_from_camera)
+
+    def on_map_query(query: zenoh.Query) -> None:
+        if query.parameters.get("save") in ("1", "true"):
+            node.write_outputs(settings.run_dir)
+        query.reply(query.key_expr, encode(node.current_map(rid)), encoding=encoding_for(TagMap.SCHEMA))
+
+    gt_sub = session.declare_subscriber(keys.ground_truth(rid), on_gt)
+    queryable = session.declare_queryable(keys.tag_map(rid), on_map_query)
+    token = session.liveliness().declare_token(keys.alive(rid, "slam"))
+    rejected = 0
+    try:
+        while not stop.is_set():
+            sample = poses_sub.try_recv()
+            if sample is None:
+                stop.wait(0.002)
+                continue
+            try:
+                msg = decode(sample.payload.to_bytes(), TagPoses)
+            except WireError as exc:
+                rejected += 1
+                log.warning("rejected TagPoses #%d: %s", rejected, exc)
+                continue
+            cam, tag_map = node.on_poses(msg)
+            cam_pub.put(encode(cam))
+            if tag_map is not None:
+                map_pub.put(encode(tag_map))
+    finally:
+        token.undeclare()
+        queryable.undeclare()
+        gt_sub.undeclare()
+        summary = node.write_outputs(settings.run_dir)
+        log.info("slam outputs in %s: %s", settings.run_dir, summary)

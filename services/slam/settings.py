@@ -1,0 +1,23 @@
+"""Settings of the slam service."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import ClassVar
+
+from pydantic import Field
+from pydantic_settings import SettingsConfigDict
+
+from shared.settings import ServiceSettings
+from shared.slam import SlamSettings
+
+
+class SlamServiceSettings(ServiceSettings):
+    """Where the map comes from and where the outputs go (run_dir)."""
+
+    SERVICE: ClassVar[str] = "slam"
+    model_config = SettingsConfigDict(**{**ServiceSettings.model_config, "env_prefix": "SPLITTAG_SLAM_"})
+
+    slam: SlamSettings = Field(default_factory=SlamSettings)
+    tag_map: Path | None = None  # anchor world pose, and all poses in localisation-only mode
+    map_publish_every: int = Field(default=30, ge=1)  # frames; plus whenever a tag is added
