@@ -30,6 +30,7 @@ from shared.metrics import translation_error_cm
 from shared.perception import TagMapFile, TagSpec
 from shared.sources import demo_scene
 from shared.transport import ZenohSettings, open_session, wait_for_liveliness
+from shared.viz import merge_recordings
 
 log = logging.getLogger(__name__)
 SERVICES = ("edge_infer", "slam", "robot_infer", "camera")
@@ -287,6 +288,9 @@ def run_pipeline(
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     summary = {**monitor.summary(), "exit_codes": codes, "run_dir": str(run_dir)}
+    recording = merge_recordings(run_dir)
+    if recording is not None:
+        summary["recording"] = str(recording)
     ate_path = run_dir / "ate.json"
     if ate_path.is_file():
         summary["slam"] = json.loads(ate_path.read_text())

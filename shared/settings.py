@@ -19,6 +19,7 @@ from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, Settings
 from shared.codec import DEFAULT_MAX_BYTES
 from shared.messages import RobotId
 from shared.transport import ZenohSettings
+from shared.viz import RerunSettings
 
 log = logging.getLogger(__name__)
 _CONFIG_FILE: ContextVar[Path | None] = ContextVar("splittag_config_file", default=None)
@@ -37,6 +38,7 @@ class ServiceSettings(BaseSettings):
     run_dir: Path = Path("runs/latest")
     max_payload_bytes: int = Field(default=DEFAULT_MAX_BYTES, gt=0)
     liveliness_timeout_secs: float = Field(default=60.0, gt=0)
+    rerun: RerunSettings = Field(default_factory=RerunSettings)
 
     @classmethod
     def settings_customise_sources(

@@ -17,7 +17,15 @@ import numpy as np
 from numpy.typing import NDArray
 from tqdm import tqdm
 
-from shared.geometry import Array, GeometryError, camera_from_yaml, default_camera, make_pose
+from shared.geometry import (
+    Array,
+    GeometryError,
+    camera_from_yaml,
+    default_camera,
+    lattice_in_tag,
+    make_pose,
+    project,
+)
 from shared.messages import CameraIntrinsics
 from shared.scene import BoxObject, LightSpec, SceneSpec, look_at, tag_on_wall
 
@@ -112,6 +120,18 @@ class DemoSource:
         finally:
             renderer.close()
         (self.cache / "scene.json").write_text(self.scene.model_dump_json(indent=2))
+
+    def gt_keypoints(self, world_from_camera: Array) -> list[Array]:
+        """Exact image keypoints of every tag fully in view from `world_from_camera`."""
+        out = []
+        for tag in self.scene.tags:
+            camera_from_tag = np.linalg.inv(world_from_camera) @ tag.pose()
+            if camera_from_tag[2, 3] <= 0.1 or camera_from_tag[2, 2] <= 0:  # behind, or seen from the back
+                continue
+            px = project(self.camera, camera_from_tag, lattice_in_tag(tag.size_m))
+            if (px >= 0).all() and (px[:, 0] < self.camera.width).all() and (px[:, 1] < self.camera.height).all():
+                out.append(px)
+        return out
 
     def frames(self) -> Iterator[SourceFrame]:
         """One pass along the trajectory."""

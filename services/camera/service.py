@@ -13,6 +13,7 @@ from shared import keys
 from shared.messages import CameraPose, Frame, encode
 from shared.sources import CaptureSource, DemoSource, FolderSource, FrameSource
 from shared.transport import declare_tensor_publisher, encoding_for, wait_for_liveliness
+from shared.viz import make_viz
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +46,8 @@ def run(settings: CameraSettings, *, session: zenoh.Session, stop: threading.Eve
             [keys.alive(settings.robot_id, s) for s in settings.wait_for],
             timeout_secs=settings.liveliness_timeout_secs,
         )
+    viz = make_viz(settings.rerun, service="camera", run_dir=settings.run_dir)
+    gt_keypoints = source.gt_keypoints if isinstance(source, DemoSource) else None
     period = 1.0 / settings.fps
     seq = 0
     next_t = time.monotonic()
@@ -82,6 +85,9 @@ def run(settings: CameraSettings, *, session: zenoh.Session, stop: threading.Eve
                             )
                         )
                     )
+                viz.image(capture, item.image, source.camera, seq)
+                if gt_keypoints is not None and item.world_from_camera is not None:
+                    viz.keypoints_gt(capture, gt_keypoints(item.world_from_camera))
                 seq += 1
                 if settings.max_frames and seq >= settings.max_frames:
                     log.info("published %d frames (max_frames)", seq)
@@ -95,4 +101,5 @@ def run(settings: CameraSettings, *, session: zenoh.Session, stop: threading.Eve
                 return seq
     finally:
         token.undeclare()
+        viz.close()
     return seq

@@ -17,6 +17,7 @@ from shared.perception import TagMapFile, load_tag_map
 from shared.pipeline import edge_step
 from shared.probe import serve_echo
 from shared.transport import declare_fifo_subscriber, declare_tensor_publisher
+from shared.viz import make_viz
 from shared.weights import load_model
 
 log = logging.getLogger(__name__)
@@ -34,6 +35,7 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
     pub = declare_tensor_publisher(session, keys.tag_poses(rid), TagPoses.SCHEMA)
     echo = serve_echo(session, keys.echo(rid), max_bytes=settings.max_payload_bytes) if settings.serve_echo else None
     token = session.liveliness().declare_token(keys.alive(rid, "edge_infer"))
+    viz = make_viz(settings.rerun, service="edge_infer", run_dir=settings.run_dir)
     rejected = processed = 0
     log.info("edge_infer ready")
     try:
@@ -59,9 +61,11 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
                 log.warning("rejected features #%d (%d bytes): %s", rejected, len(payload), exc)
                 continue
             pub.put(encode(poses))
+            viz.tag_poses(poses)
             processed += 1
     finally:
         token.undeclare()
         if echo is not None:
             echo.undeclare()
+        viz.close()
         log.info("edge_infer: %d frames processed, %d rejected", processed, rejected)

@@ -23,6 +23,7 @@ from shared.perception import load_tag_map
 from shared.slam import MarkerSlam, Observation, absolute_trajectory_error
 from shared.sources import write_tum
 from shared.transport import declare_fifo_subscriber, encoding_for
+from shared.viz import make_viz
 
 log = logging.getLogger(__name__)
 
@@ -144,6 +145,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
     gt_sub = session.declare_subscriber(keys.ground_truth(rid), on_gt)
     queryable = session.declare_queryable(keys.tag_map(rid), on_map_query)
     token = session.liveliness().declare_token(keys.alive(rid, "slam"))
+    viz = make_viz(settings.rerun, service="slam", run_dir=settings.run_dir)
     rejected = 0
     try:
         while not stop.is_set():
@@ -159,11 +161,21 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
                 continue
             cam, tag_map = node.on_poses(msg)
             cam_pub.put(encode(cam))
+            if cam.status == "tracking":
+                viz.camera_pose(cam.capture_nanos, cam.world_from_camera, None)
             if tag_map is not None:
                 map_pub.put(encode(tag_map))
+                viz.tag_map(cam.capture_nanos, {t.tag_id: (t.size_m, t.world_from_tag) for t in tag_map.tags})
+            if node.slam.state.frames % 10 == 0:
+                with node.lock:
+                    traj = np.array([p[:3, 3] for _, p in node.slam.trajectory()])
+                    gt = np.array([p[:3, 3] for _, p in sorted(node.gt.items())])
+                viz.trajectory(cam.capture_nanos, "world/trajectory", traj)
+                viz.trajectory(cam.capture_nanos, "world/groundtruth", gt)
     finally:
         token.undeclare()
         queryable.undeclare()
         gt_sub.undeclare()
         summary = node.write_outputs(settings.run_dir)
         log.info("slam outputs in %s: %s", settings.run_dir, summary)
+        viz.close()
