@@ -206,7 +206,7 @@ def train(settings: TrainSettings) -> dict[str, Any]:
         opt.load_state_dict(ckpt["opt"])
         sched.load_state_dict(ckpt["sched"])
         start_epoch, best, history = ckpt["epoch"], ckpt["best"], ckpt["history"]
-        epochs = ckpt.get("epochs", epochs)
+        epochs = min(ckpt.get("epochs", epochs), settings.epochs)  # a smaller --epochs shortens the plan
         plan["total"] = steps_per_epoch * epochs
         log.info("resumed from %s at epoch %d (best e_px %.3f)", ckpt_path, start_epoch, best)
 
