@@ -18,6 +18,7 @@ import sys
 import time
 
 import numpy as np
+import zenoh
 
 from shared import keys
 from shared.messages import encode
@@ -95,6 +96,9 @@ def main() -> None:
         session = open_session(ZenohSettings(mode="client", connect=[endpoint]))
         wait_for_liveliness(session, [keys.alive(robot, "echo")])
         prober = Prober(session, keys.echo(robot))
+        raw_querier = session.declare_querier(
+            keys.echo(robot) + "/raw", congestion_control=zenoh.CongestionControl.BLOCK
+        )
         for size in SIZES:
             msg = probe_features(size, robot_id=robot)
             zen = []
@@ -103,6 +107,14 @@ def main() -> None:
                 prober.round_trip(encode(msg))
                 if i >= 5:
                     zen.append((time.perf_counter() - t0) * 1e3)
+            raw_payload = bytes(len(encode(msg)))
+            raw = []
+            for i in range(args.repetitions + 5):
+                t0 = time.perf_counter()
+                for reply in raw_querier.get(payload=raw_payload):
+                    assert reply.ok is not None
+                if i >= 5:
+                    raw.append((time.perf_counter() - t0) * 1e3)
             port = free_tcp_port()
             server = subprocess.Popen(
                 [
@@ -115,16 +127,19 @@ def main() -> None:
                 tcp = bench_tcp(port, len(encode(msg)), args.repetitions)
             finally:
                 server.wait(timeout=10)
-            rows.append((size, len(encode(msg)), float(np.median(zen)), float(np.median(tcp))))
+            rows.append((size, len(encode(msg)), float(np.median(zen)), float(np.median(raw)), float(np.median(tcp))))
         prober.close()
         session.close()
     finally:
         echo.send_signal(signal.SIGINT)
         echo.wait(timeout=10)
     print(f"median of {args.repetitions} round trips, 127.0.0.1, zenoh shared memory off")
-    print(f"{'tensor B':>9} {'message B':>10} {'codec+zenoh ms':>15} {'raw TCP ms':>11} {'ratio':>6}")
-    for size, wire, z, t in rows:
-        print(f"{size:>9} {wire:>10} {z:>15.3f} {t:>11.3f} {z / t:>6.2f}")
+    print(
+        f"{'tensor B':>9} {'message B':>10} {'codec+zenoh ms':>15} {'zenoh only ms':>14} {'raw TCP ms':>11} "
+        f"{'ratio':>6} {'zenoh/TCP':>10}"
+    )
+    for size, wire, z, r, t in rows:
+        print(f"{size:>9} {wire:>10} {z:>15.3f} {r:>14.3f} {t:>11.3f} {z / t:>6.2f} {r / t:>10.2f}")
 
 
 if __name__ == "__main__":

@@ -29,10 +29,13 @@ def run(
     session = open_session(zenoh_settings)
     try:
         queryable = serve_echo(session, keys.echo(robot_id), max_bytes=max_bytes)
+        # Raw echo: replies at once without decoding, to separate Zenoh's cost from the codec's.
+        raw = session.declare_queryable(keys.echo(robot_id) + "/raw", lambda q: q.reply(q.key_expr, b""))
         token = session.liveliness().declare_token(keys.alive(robot_id, "echo"))
         log.info("echo serving %s", keys.echo(robot_id))
         stop.wait()
         token.undeclare()
+        raw.undeclare()
         queryable.undeclare()
     finally:
         session.close()
