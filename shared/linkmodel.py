@@ -1,0 +1,157 @@
+"""Link model RTT = t0 + beta * S and the split cost T(k) = gamma C(k) + t0 + beta S(k) + E(k).
+
+Pure functions and small classes: the controller service and `splittag link ...` wire them to data.
+Units: milliseconds and kilobytes (1 kB = 1024 bytes, as the paper's table).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+FLOOR_BELOW_KB = 32.0  # the paper: payloads below ~32 kB see the same latency (scheduling floor)
+
+
+@dataclass(frozen=True)
+class LinkFit:
+    """A least-squares fit of RTT against payload size."""
+
+    t0_ms: float  # fitted intercept
+    beta_ms_per_kB: float
+    floor_ms: float  # measured: median RTT of the payloads below FLOOR_BELOW_KB (or of the smallest)
+    rmse_ms: float
+    n: int
+
+
+def fit_link(sizes_kB: Sequence[float], rtts_ms: Sequence[float]) -> LinkFit:
+    """Fit RTT = t0 + beta * S by least squares over all samples; report the measured floor too."""
+    s = np.asarray(sizes_kB, np.float64)
+    r = np.asarray(rtts_ms, np.float64)
+    if len(s) != len(r) or len(s) < 2 or np.ptp(s) == 0:
+        raise ValueError("need >= 2 samples at >= 2 different payload sizes")
+    a = np.column_stack([np.ones_like(s), s])
+    (t0, beta), *_ = np.linalg.lstsq(a, r, rcond=None)
+    small = r[s < FLOOR_BELOW_KB]
+    floor = float(np.median(small)) if len(small) else float(np.median(r[s == s.min()]))
+    rmse = float(np.sqrt(np.mean((a @ np.array([t0, beta]) - r) ** 2)))
+    return LinkFit(float(t0), float(beta), floor, rmse, len(s))
+
+
+class OnlineLinkEstimator:
+    """Robust recursive least squares for (t0, beta) with exponential forgetting.
+
+    Samples whose residual exceeds `gate` robust standard deviations are down-weighted (Huber);
+    a two-sided CUSUM on the clamped, normalised residuals detects a link change, and the estimator
+    then forgets old evidence at once (covariance reset) instead of slowly.
+    """
+
+    def __init__(
+        self,
+        *,
+        half_life: float = 50.0,
+        gate: float = 3.0,
+        cusum_drift: float = 0.5,
+        cusum_threshold: float = 8.0,
+        prior_t0_ms: float = 40.0,
+        prior_beta: float = 0.2,
+    ) -> None:
+        self.lam = 0.5 ** (1.0 / half_life)
+        self.gate = gate
+        self.drift, self.threshold = cusum_drift, cusum_threshold
+        self.theta = np.array([prior_t0_ms, prior_beta])
+        self.p = np.diag([1e4, 1.0])
+        self.scale = 5.0  # robust residual scale, ms
+        self.n = 0
+        self._g_pos = self._g_neg = 0.0
+        self.changes = 0
+
+    def add(self, size_kB: float, rtt_ms: float) -> None:
+        """Fuse one (payload, RTT) sample."""
+        if not (math.isfinite(size_kB) and math.isfinite(rtt_ms)) or size_kB < 0 or rtt_ms <= 0:
+            return
+        x = np.array([1.0, size_kB])
+        resid = rtt_ms - float(x @ self.theta)
+        z = abs(resid) / max(self.scale, 1e-3)
+        if self.n >= 10:
+            zc = max(-self.gate, min(self.gate, resid / max(self.scale, 1e-3)))
+            self._g_pos = max(0.0, self._g_pos + zc - self.drift)
+            self._g_neg = max(0.0, self._g_neg - zc - self.drift)
+            if max(self._g_pos, self._g_neg) > self.threshold:
+                self.p = np.diag([1e4, 1.0])  # the link changed: forget
+                self.changes += 1
+                self._g_pos = self._g_neg = 0.0
+        weight = 1.0 if z <= self.gate or self.n < 10 else self.gate / z
+        px = self.p @ x
+        k = weight * px / (self.lam + weight * float(x @ px))
+        self.theta = self.theta + k * resid
+        self.p = (self.p - np.outer(k, px)) / self.lam
+        self.scale = 0.95 * self.scale + 0.05 * min(abs(resid), 5 * self.scale) * 1.25
+        self.n += 1
+
+    @property
+    def t0_ms(self) -> float:
+        """Current intercept estimate."""
+        return float(self.theta[0])
+
+    @property
+    def beta_ms_per_kB(self) -> float:
+        """Current slope estimate."""
+        return float(self.theta[1])
+
+
+def split_costs(
+    *,
+    compute_ms: Sequence[float],
+    edge_ms: Sequence[float],
+    payload_kB: Sequence[float],
+    t0_ms: float,
+    beta_ms_per_kB: float,
+    gamma: float = 1.0,
+) -> np.ndarray:
+    """T(k) = gamma C(k) + t0 + beta S(k) + E(k) for every split point."""
+    c, e, s = (np.asarray(v, np.float64) for v in (compute_ms, edge_ms, payload_kB))
+    return gamma * c + t0_ms + beta_ms_per_kB * s + e
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What the controller chose and why."""
+
+    k: int
+    best_k: int
+    predicted_ms: tuple[float, ...]
+    reason: str
+
+
+class HysteresisChooser:
+    """argmin T(k), switching only when the best beats the current k by more than
+    max(min_gain_ms, min_gain_rel * T(current)) for `dwell` consecutive decisions."""
+
+    def __init__(self, *, min_gain_ms: float = 2.0, min_gain_rel: float = 0.05, dwell: int = 3) -> None:
+        self.min_gain_ms, self.min_gain_rel, self.dwell = min_gain_ms, min_gain_rel, dwell
+        self._streak = 0
+        self._candidate: int | None = None
+
+    def choose(self, costs: ArrayLike, current: int) -> Decision:
+        """One decision given the predicted T(k) and the k in effect."""
+        t = np.asarray(costs, np.float64)
+        best = int(np.argmin(t))
+        gain = float(t[current] - t[best])
+        needed = max(self.min_gain_ms, self.min_gain_rel * float(t[current]))
+        pred = tuple(float(v) for v in t)
+        if best == current or gain <= needed:
+            self._streak, self._candidate = 0, None
+            why = "already optimal" if best == current else f"gain {gain:.1f} ms <= {needed:.1f} ms"
+            return Decision(current, best, pred, f"keep k={current}: {why}")
+        self._streak = self._streak + 1 if self._candidate == best else 1
+        self._candidate = best
+        if self._streak < self.dwell:
+            return Decision(
+                current, best, pred, f"keep k={current}: k={best} better by {gain:.1f} ms ({self._streak}/{self.dwell})"
+            )
+        self._streak, self._candidate = 0, None
+        return Decision(best, best, pred, f"switch k={current}->{best}: predicted {gain:.1f} ms faster")
