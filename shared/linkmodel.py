@@ -105,9 +105,9 @@ class OnlineLinkEstimator:
 
 def split_costs(
     *,
-    compute_ms: Sequence[float],
-    edge_ms: Sequence[float],
-    payload_kB: Sequence[float],
+    compute_ms: ArrayLike,
+    edge_ms: ArrayLike,
+    payload_kB: ArrayLike,
     t0_ms: float,
     beta_ms_per_kB: float,
     gamma: float = 1.0,
