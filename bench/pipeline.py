@@ -31,6 +31,8 @@ def main() -> None:
     ap.add_argument("--fps", type=float, default=15.0)
     ap.add_argument("--window-secs", type=float, default=10.0)
     ap.add_argument("--settle-secs", type=float, default=2.0)
+    ap.add_argument("--ks", type=int, nargs="*", default=[c.k for c in CUTS])
+    ap.add_argument("--rerun", action="store_true", help="log everything to Rerun (to measure its cost)")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="splittag-bench-"))
     edge, robot = free_tcp_port(), free_tcp_port()
@@ -38,6 +40,8 @@ def main() -> None:
     base.write_text(f"""
 [common]
 robot_id = "{ROBOT}"
+[common.rerun]
+enabled = {str(args.rerun).lower()}
 [edge_infer.zenoh]
 mode = "router"
 listen = ["tcp/127.0.0.1:{edge}"]
@@ -61,7 +65,7 @@ connect = ["tcp/127.0.0.1:{robot}"]
         wait_for_liveliness(
             session, [keys.alive(ROBOT, s) for s in ("edge_infer", "robot_infer", "camera")], timeout_secs=120
         )
-        for cut in CUTS:
+        for cut in (CUTS[k] for k in args.ks):
             query_split(session, ROBOT, params=f"k={cut.k}")
             time.sleep(args.settle_secs)
             start = len(monitor.records)
@@ -88,7 +92,10 @@ connect = ["tcp/127.0.0.1:{robot}"]
         session.close()
     finally:
         stop_services(services)
-    print(f"camera {args.fps} fps, window {args.window_secs} s per k, loopback, 2-core CPU; latencies in ms")
+    print(
+        f"camera {args.fps} fps, window {args.window_secs} s per k, loopback, 2-core CPU, rerun "
+        f"{'on' if args.rerun else 'off'}; latencies in ms"
+    )
     print(
         f"{'k':>2} {'cut':<10} {'fps':>6} {'e2e p50':>8} {'e2e p99':>8} {'robot':>7} {'link':>6} {'edge':>6} "
         f"{'tags':>5} {'msg kB':>8}"

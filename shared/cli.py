@@ -187,6 +187,26 @@ def _cmd_detect(args: argparse.Namespace) -> int:
     )
 
 
+def _cmd_profile(args: argparse.Namespace) -> int:
+    import torch
+
+    from shared.model import CUTS, SplitKeypointNet
+    from shared.profile import profile_cuts
+    from shared.weights import load_model
+
+    torch.set_num_threads(args.threads)
+    model = load_model(args.weights) if args.weights.exists() else SplitKeypointNet(roi_margin=0.2)
+    timings = profile_cuts(model, variant=args.variant, batch=args.batch, repetitions=args.repetitions)
+    print(
+        f"payload S(k) and cumulative robot compute C(k); {args.variant}, {args.threads} thread(s), "
+        f"batch {args.batch}, median of {args.repetitions}"
+    )
+    print(f"{'k':>2} {'split point':<12} {'S(k) kB':>9} {'C(k) ms':>9}")
+    for cut, t in zip(CUTS, timings, strict=True):
+        print(f"{cut.k:>2} {cut.name:<12} {cut.payload_bytes / 1024:>9.2f} {t.median_ms:>9.2f}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every subcommand."""
     parser = argparse.ArgumentParser(prog="splittag", description=__doc__)
@@ -203,6 +223,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_up)
     p = sub.add_parser("down", help="stop the deployment in runs/current")
     p.set_defaults(func=_cmd_down)
+
+    p = sub.add_parser("profile", help="the paper's Table: payload S(k) and cumulative compute C(k) per cut")
+    p.add_argument("--weights", type=Path, default=Path("models"))
+    p.add_argument(
+        "--variant", choices=["fp32", "fp32-channels-last", "bf16-channels-last"], default="bf16-channels-last"
+    )
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--batch", type=int, default=1)
+    p.add_argument("--repetitions", type=int, default=30)
+    p.set_defaults(func=_cmd_profile)
 
     p = sub.add_parser("split", help="read or set the split index live (Zenoh query)")
     p.add_argument("action", choices=["get", "set", "release"])
