@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import argparse
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -65,42 +65,31 @@ def _cmd_echo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_data_synth(args: argparse.Namespace) -> int:
-    from shared.data.generate import generate
-    from shared.data.synth import SynthMaker, SynthSettings
+def _cmd_data_generate(args: argparse.Namespace) -> int:
+    from shared.data.generate import SampleMaker, generate
     from shared.geometry import camera_from_yaml, default_camera
 
     camera = camera_from_yaml(args.camera) if args.camera else default_camera()
-    settings = SynthSettings(seed=args.seed)
+    factory: Callable[[], SampleMaker]
+    if args.data_command == "synth":
+        from shared.data.synth import SynthMaker, SynthSettings
+
+        synth = SynthSettings(seed=args.seed)
+        settings, factory, shard_size = synth.model_dump(mode="json"), (lambda: SynthMaker(camera, synth)), 250
+    else:
+        from shared.data.render import RenderMaker, RenderSettings
+
+        render = RenderSettings(seed=args.seed)
+        settings, factory, shard_size = render.model_dump(mode="json"), (lambda: RenderMaker(camera, render)), 200
     info = generate(
         args.out,
         n=args.n,
         seed=args.seed,
-        kind="synth",
-        settings={"camera": camera.model_dump(), **settings.model_dump(mode="json")},
-        factory=lambda: SynthMaker(camera, settings),
+        kind=args.data_command,
+        settings={"camera": camera.model_dump(), **settings},
+        factory=factory,
         workers=args.workers,
-    )
-    _print_info(info)
-    return 0
-
-
-def _cmd_data_render(args: argparse.Namespace) -> int:
-    from shared.data.generate import generate
-    from shared.data.render import RenderMaker, RenderSettings
-    from shared.geometry import camera_from_yaml, default_camera
-
-    camera = camera_from_yaml(args.camera) if args.camera else default_camera()
-    settings = RenderSettings(seed=args.seed)
-    info = generate(
-        args.out,
-        n=args.n,
-        seed=args.seed,
-        kind="render",
-        settings={"camera": camera.model_dump(), **settings.model_dump(mode="json")},
-        factory=lambda: RenderMaker(camera, settings),
-        workers=args.workers,
-        shard_size=200,
+        shard_size=shard_size,
     )
     _print_info(info)
     return 0
@@ -256,14 +245,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--camera", type=Path, help="ROS camera_info YAML (default: the paper's camera)")
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
-    p.set_defaults(func=_cmd_data_synth)
+    p.set_defaults(func=_cmd_data_generate)
     p = data.add_parser("render", help="MuJoCo-rendered rooms (replaces the paper's Gazebo set)")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--n", type=int, default=8_000)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--camera", type=Path, help="ROS camera_info YAML (default: the paper's camera)")
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
-    p.set_defaults(func=_cmd_data_render)
+    p.set_defaults(func=_cmd_data_generate)
     p = data.add_parser("show", help="contact sheet of ROIs with ground-truth keypoints")
     p.add_argument("dir", type=Path)
     p.add_argument("--n", type=int, default=16)

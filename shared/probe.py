@@ -15,21 +15,11 @@ import numpy as np
 import zenoh
 
 from shared.codec import WireError
-from shared.messages import CameraIntrinsics, Features, ProbeAck, TagFeature, decode, encode
+from shared.geometry import default_camera
+from shared.messages import Features, ProbeAck, TagFeature, decode, encode
 from shared.transport import encoding_for
 
 log = logging.getLogger(__name__)
-
-PROBE_INTRINSICS = CameraIntrinsics(
-    width=1280,
-    height=720,
-    fx=1045.0,
-    fy=1045.0,
-    cx=639.5,
-    cy=359.5,
-    distortion_model="none",
-    distortion=[],
-)
 
 
 def probe_features(tensor_bytes: int, *, robot_id: str = "probe", seq: int = 0) -> Features:
@@ -53,7 +43,7 @@ def probe_features(tensor_bytes: int, *, robot_id: str = "probe", seq: int = 0) 
         publish_nanos=now,
         split_k=0,
         codec="fp16",
-        intrinsics=PROBE_INTRINSICS,
+        intrinsics=default_camera(),
         robot_compute_secs=0.0,
         tags=[tag],
     )

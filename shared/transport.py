@@ -100,6 +100,21 @@ def declare_fifo_subscriber(
     return session.declare_subscriber(key, zenoh.handlers.FifoChannel(capacity))
 
 
+def next_sample(
+    subscriber: zenoh.Subscriber[zenoh.handlers.Handler[zenoh.Sample]],
+    stop: threading.Event,
+    *,
+    poll_secs: float = 0.001,
+) -> zenoh.Sample | None:
+    """The next sample of a channel subscriber, or None once `stop` is set (checked every poll_secs)."""
+    while not stop.is_set():
+        sample = subscriber.try_recv()
+        if sample is not None:
+            return sample
+        stop.wait(poll_secs)
+    return None
+
+
 def wait_for_liveliness(session: zenoh.Session, keys: Iterable[str], *, timeout_secs: float = 30.0) -> None:
     """Block until a liveliness token is alive on every key, or raise TimeoutError naming the rest."""
     wanted = set(keys)

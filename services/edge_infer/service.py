@@ -16,7 +16,7 @@ from shared.messages import Features, TagPoses, decode, encode
 from shared.perception import TagMapFile, load_tag_map
 from shared.pipeline import edge_step
 from shared.probe import serve_echo
-from shared.transport import declare_fifo_subscriber, declare_tensor_publisher
+from shared.transport import declare_fifo_subscriber, declare_tensor_publisher, next_sample
 from shared.viz import make_viz
 from shared.weights import load_model
 
@@ -39,11 +39,7 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
     rejected = processed = 0
     log.info("edge_infer ready")
     try:
-        while not stop.is_set():
-            sample = sub.try_recv()
-            if sample is None:
-                stop.wait(0.001)
-                continue
+        while (sample := next_sample(sub, stop)) is not None:
             received = time.time_ns()
             payload = sample.payload.to_bytes()
             try:

@@ -16,7 +16,7 @@ from shared.detector import TagDetector
 from shared.messages import Features, Frame, SplitConfig, decode, encode
 from shared.pipeline import robot_step
 from shared.split_control import SplitState, serve_split
-from shared.transport import declare_latest_subscriber, declare_tensor_publisher
+from shared.transport import declare_latest_subscriber, declare_tensor_publisher, next_sample
 from shared.weights import load_model
 
 log = logging.getLogger(__name__)
@@ -36,11 +36,7 @@ def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading
     rejected = processed = 0
     log.info("robot_infer ready: k=%d codec=%s gamma=%.2f", settings.split_k, settings.codec, settings.gamma)
     try:
-        while not stop.is_set():
-            sample = sub.try_recv()
-            if sample is None:
-                stop.wait(0.001)
-                continue
+        while (sample := next_sample(sub, stop)) is not None:
             payload = sample.payload.to_bytes()
             try:
                 frame = decode(payload, Frame, max_bytes=settings.max_payload_bytes)

@@ -22,7 +22,7 @@ from shared.messages import CameraPose, MapTag, TagMap, TagPoses, decode, encode
 from shared.perception import load_tag_map
 from shared.slam import MarkerSlam, Observation, absolute_trajectory_error
 from shared.sources import write_tum
-from shared.transport import declare_fifo_subscriber, encoding_for
+from shared.transport import declare_fifo_subscriber, encoding_for, next_sample
 from shared.viz import make_viz
 
 log = logging.getLogger(__name__)
@@ -148,11 +148,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
     viz = make_viz(settings.rerun, service="slam", run_dir=settings.run_dir)
     rejected = 0
     try:
-        while not stop.is_set():
-            sample = poses_sub.try_recv()
-            if sample is None:
-                stop.wait(0.002)
-                continue
+        while (sample := next_sample(poses_sub, stop)) is not None:
             try:
                 msg = decode(sample.payload.to_bytes(), TagPoses)
             except WireError as exc:
