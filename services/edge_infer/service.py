@@ -31,7 +31,9 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
         load_tag_map(settings.tag_map) if settings.tag_map else TagMapFile(default_size_m=settings.default_tag_size_m)
     )
     rid = settings.robot_id
-    sub = declare_fifo_subscriber(session, keys.features(rid))
+    # A short queue: when the edge is the bottleneck, backpressure reaches robot_infer (its publisher
+    # blocks) and the robot's latest-only frame ring drops stale frames, so latency stays bounded.
+    sub = declare_fifo_subscriber(session, keys.features(rid), capacity=settings.queue_depth)
     pub = declare_tensor_publisher(session, keys.tag_poses(rid), TagPoses.SCHEMA)
     echo = serve_echo(session, keys.echo(rid), max_bytes=settings.max_payload_bytes) if settings.serve_echo else None
     token = session.liveliness().declare_token(keys.alive(rid, "edge_infer"))

@@ -23,3 +23,4 @@ class EdgeInferSettings(ServiceSettings):
     bf16: bool = True
     threads: int = Field(default=1, ge=1)
     serve_echo: bool = True  # the link-probe echo queryable lives on the edge
+    queue_depth: int = Field(default=2, ge=1)  # Features waiting for the edge; small = bounded latency
