@@ -33,6 +33,7 @@ def main() -> None:
     ap.add_argument("--settle-secs", type=float, default=2.0)
     ap.add_argument("--ks", type=int, nargs="*", default=[c.k for c in CUTS])
     ap.add_argument("--rerun", action="store_true", help="log everything to Rerun (to measure its cost)")
+    ap.add_argument("--rerun-image-every", type=int, default=1)
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="splittag-bench-"))
     edge, robot = free_tcp_port(), free_tcp_port()
@@ -42,6 +43,7 @@ def main() -> None:
 robot_id = "{ROBOT}"
 [common.rerun]
 enabled = {str(args.rerun).lower()}
+image_every = {args.rerun_image_every}
 [edge_infer.zenoh]
 mode = "router"
 listen = ["tcp/127.0.0.1:{edge}"]

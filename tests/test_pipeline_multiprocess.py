@@ -30,7 +30,7 @@ pytestmark = pytest.mark.multiprocess
 
 ROBOT = "pipe1"
 FPS = 2.0  # well under what robot_infer sustains even on a loaded 2-core machine
-MEDIAN_E_T_CM_MAX = 4.0  # TEMP while training
+MEDIAN_E_T_CM_MAX = 2.0
 
 
 def _config(tmp: Path, edge_port: int, robot_port: int, *, max_frames: int) -> Path:
