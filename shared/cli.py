@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -70,24 +70,24 @@ def _cmd_data_generate(args: argparse.Namespace) -> int:
     from shared.geometry import camera_from_yaml, default_camera
 
     camera = camera_from_yaml(args.camera) if args.camera else default_camera()
-    factory: Callable[[], SampleMaker]
+    maker: SampleMaker
     if args.data_command == "synth":
         from shared.data.synth import SynthMaker, SynthSettings
 
         synth = SynthSettings(seed=args.seed)
-        settings, factory, shard_size = synth.model_dump(mode="json"), (lambda: SynthMaker(camera, synth)), 250
+        settings, maker, shard_size = synth.model_dump(mode="json"), SynthMaker(camera, synth), 250
     else:
         from shared.data.render import RenderMaker, RenderSettings
 
         render = RenderSettings(seed=args.seed)
-        settings, factory, shard_size = render.model_dump(mode="json"), (lambda: RenderMaker(camera, render)), 200
+        settings, maker, shard_size = render.model_dump(mode="json"), RenderMaker(camera, render), 200
     info = generate(
         args.out,
         n=args.n,
         seed=args.seed,
         kind=args.data_command,
         settings={"camera": camera.model_dump(), **settings},
-        factory=factory,
+        maker=maker,
         workers=args.workers,
         shard_size=shard_size,
     )

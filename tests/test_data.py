@@ -23,7 +23,7 @@ def _make(out: Path, n: int, seed: int) -> dict:
         seed=seed,
         kind="synth",
         settings=s.model_dump(mode="json"),
-        factory=lambda: SynthMaker(cam, s),
+        maker=SynthMaker(cam, s),
         shard_size=6,
         workers=2,
     )

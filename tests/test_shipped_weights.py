@@ -37,7 +37,7 @@ def regression_e_px(tmp: Path) -> float:
         seed=SEED,
         kind="synth",
         settings=s.model_dump(mode="json"),
-        factory=lambda: SynthMaker(cam, s),
+        maker=SynthMaker(cam, s),
         shard_size=150,
         workers=2,
     )

@@ -71,7 +71,7 @@ def test_tiny_training_run_writes_weights_and_resumes(tmp_path: Path) -> None:
         seed=9,
         kind="synth",
         settings=s.model_dump(mode="json"),
-        factory=lambda: SynthMaker(cam, s),
+        maker=SynthMaker(cam, s),
         shard_size=20,
         workers=2,
     )

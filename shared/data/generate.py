@@ -14,7 +14,6 @@ import math
 import multiprocessing as mp
 import os
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Final, Protocol
 
@@ -39,10 +38,10 @@ class SampleMaker(Protocol):
 _MAKER: SampleMaker | None = None
 
 
-def _init_worker(factory: Callable[[], SampleMaker]) -> None:
+def _init_worker(maker: SampleMaker) -> None:
     global _MAKER
     cv2.setNumThreads(1)
-    _MAKER = factory()
+    _MAKER = maker
 
 
 def _make_shard(job: tuple[Path, int, int, int]) -> dict[str, Any]:
@@ -90,7 +89,7 @@ def generate(
     seed: int,
     kind: str,
     settings: dict[str, Any],
-    factory: Callable[[], SampleMaker],
+    maker: SampleMaker,
     shard_size: int = 250,
     workers: int | None = None,
 ) -> dict[str, Any]:
@@ -118,8 +117,10 @@ def generate(
     started = time.monotonic()
     workers = workers or os.cpu_count() or 1
     if todo:
-        ctx = mp.get_context("fork")
-        with ctx.Pool(workers, initializer=_init_worker, initargs=(factory,)) as pool, tqdm(
+        # spawn, not fork: a parent that already runs OpenCV/OpenMP thread pools (tests, notebooks)
+        # would leave forked workers deadlocked on those pools' locks. The maker is pickled.
+        ctx = mp.get_context("spawn")
+        with ctx.Pool(workers, initializer=_init_worker, initargs=(maker,)) as pool, tqdm(
             total=sum(j[2] for j in todo), unit="sample", desc=f"data {kind}"
         ) as bar:
             for stats in pool.imap_unordered(_make_shard, todo):
