@@ -185,8 +185,8 @@ def _white_border_in_tag(tag_size_m: float) -> Array:
 
 def sample_pose(
     rng: np.random.Generator, camera: CameraIntrinsics, s: SynthSettings
-) -> tuple[Array, float, float, float]:
-    """(camera_from_tag, tag size, distance, tilt) with the tag and its white border in view."""
+) -> tuple[Array, float]:
+    """(camera_from_tag, tag size) with the tag and its white border in view."""
     for _ in range(200):
         size = float(rng.uniform(*s.tag_size_m))
         dist = float(math.exp(rng.uniform(math.log(s.distance_m[0]), math.log(s.distance_m[1]))))
@@ -198,7 +198,7 @@ def sample_pose(
             continue
         px = project(camera, pose, _white_border_in_tag(size))
         if (px >= 2).all() and (px[:, 0] <= camera.width - 3).all() and (px[:, 1] <= camera.height - 3).all():
-            return pose, size, dist, float(math.degrees(tilt))
+            return pose, size
     raise RuntimeError("could not place a visible tag in 200 tries; check the distance range")
 
 
@@ -222,7 +222,7 @@ def make_sample(
         raise GeometryError("the synthetic renderer supports undistorted cameras only")
     rng = np.random.default_rng([s.seed, index])
     tag_id = int(rng.integers(0, NUM_TAG36H11))
-    pose, size, _, _ = sample_pose(rng, camera, s)
+    pose, size = sample_pose(rng, camera, s)
     meta = {"distance_m": float(np.linalg.norm(pose[:3, 3])), "tilt_deg": tilt_deg(pose)}
     h_plane = camera.matrix() @ np.column_stack([pose[:3, 0], pose[:3, 1], pose[:3, 3]])
     border_px = project(camera, pose, _white_border_in_tag(size))
