@@ -195,12 +195,18 @@ def test_two_host_profile_on_loopback(tmp_path: Path) -> None:
     cfg = write_run_config(tmp_path, Path("deploy/two_host.toml"))
     env = {"SPLITTAG_CAMERA_FPS": "2", "SPLITTAG_CAMERA_MAX_FRAMES": "8", "SPLITTAG_CAMERA_LOOP": "false"}
     with processes(tmp_path) as procs:
-        for name in ("edge_infer", "robot_infer", "camera"):
+        for name in ("edge_infer", "robot_infer"):
             procs.append(Proc(name, ["-m", f"services.{name}", "--config", str(cfg)], tmp_path, env=env))
         session = open_session(ZenohSettings(mode="client", connect=["tcp/127.0.0.2:7447"]))
         monitor = Monitor(demo_tag_map())
         subs = attach_monitor(session, "robot1", monitor)
         try:
+            # The camera starts only once the monitor listens and both routers are up: 8 frames at 2 fps
+            # are over in 4 s, before a slow-starting monitor session would have subscribed.
+            wait_for_liveliness(
+                session, [keys.alive("robot1", "edge_infer"), keys.alive("robot1", "robot_infer")], timeout_secs=90
+            )
+            procs.append(Proc("camera", ["-m", "services.camera", "--config", str(cfg)], tmp_path, env=env))
             _wait(lambda: len(monitor.records) >= 8, 120, "8 TagPoses through the two-host profile")
             assert {r["k"] for r in monitor.records} == {5}
             robot_log = next(p for p in procs if p.name == "robot_infer").log_text()
