@@ -25,7 +25,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
 
     from shared.launch import run_pipeline
 
-    summary = run_pipeline(args.config, duration_secs=args.duration)
+    summary = run_pipeline(args.config, duration_secs=args.duration, runs_root=args.runs)
     print(json.dumps(summary, indent=2))
     return 0
 
@@ -34,9 +34,9 @@ def _cmd_down(args: argparse.Namespace) -> int:
     import os
     import signal
 
-    pids = Path("runs/current/pids")
+    pids = args.runs / "current" / "pids"
     if not pids.is_file():
-        print("no running deployment (runs/current/pids not found)")
+        print(f"no running deployment ({pids} not found)")
         return 1
     for line in pids.read_text().split("\n"):
         if line.strip():
@@ -209,8 +209,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("up", help="start every service (deploy/up.sh); Ctrl-C stops them")
     p.add_argument("--config", type=Path, default=Path("deploy/local.toml"))
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    p.add_argument("--runs", type=Path, default=Path("runs"), help="run folders go under here (RUNS/current links)")
     p.set_defaults(func=_cmd_up)
-    p = sub.add_parser("down", help="stop the deployment in runs/current")
+    p = sub.add_parser("down", help="stop the deployment in RUNS/current (SIGINT to every service)")
+    p.add_argument("--runs", type=Path, default=Path("runs"))
     p.set_defaults(func=_cmd_down)
 
     p = sub.add_parser("profile", help="the paper's Table: payload S(k) and cumulative compute C(k) per cut")

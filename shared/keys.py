@@ -54,6 +54,18 @@ def split(robot_id: str) -> str:
     return f"{ROOT}/{_check(robot_id, 'robot id')}/split"
 
 
+def compute(robot_id: str, side: str) -> str:
+    """ComputeProfile v1: robot_infer (side robot) and edge_infer (side edge) -> controller, ~1 Hz."""
+    if side not in ("robot", "edge"):
+        raise ValueError(f"side must be robot or edge, not {side!r}")
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/compute/{side}/v1"
+
+
+def controller(robot_id: str) -> str:
+    """ControllerState v1: the adaptive split controller's estimates, predictions and decision."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/controller/v1"
+
+
 def echo(robot_id: str) -> str:
     """Queryable on the edge that answers link probes with a tiny reply."""
     return f"{ROOT}/{_check(robot_id, 'robot id')}/echo"

@@ -250,9 +250,10 @@ def run_pipeline(
     services: tuple[str, ...] = SERVICES,
     extra: dict[str, dict[str, Any]] | None = None,
     quiet: bool = False,
+    runs_root: Path = Path("runs"),
 ) -> dict[str, Any]:
     """Start the services, print a live line per second until duration/SIGINT/camera end, stop all."""
-    run_dir = new_run_dir()
+    run_dir = new_run_dir(runs_root)
     run_config = write_run_config(run_dir, config, extra=extra)
     robot_id, zs = monitor_settings(run_config)
     stop = threading.Event()

@@ -272,6 +272,50 @@ class ProbeAck(Message):
     error: str
 
 
+N_CUTS: Final[int] = 8  # split points k = 0..7
+PerCut = Annotated[list[NonNegFloat], Field(min_length=N_CUTS, max_length=N_CUTS)]
+
+
+class ComputeProfile(Message):
+    """One side's compute estimate for every split point, ms per frame at `tags_per_frame` tags.
+
+    robot: C(k), everything the robot computes when cutting at k (stage 1 + head), gamma included;
+    edge: E(k), everything the edge computes (tail + PnP). A start-up calibration per block, scaled by
+    the running median of live measurements at the k in use. Published at most once per second.
+    """
+
+    SCHEMA: ClassVar[str] = "splittag/ComputeProfile/v1"
+    robot_id: RobotId
+    side: Literal["robot", "edge"]
+    stamp_nanos: int = Field(ge=0)
+    current_k: SplitIndex
+    tags_per_frame: NonNegFloat
+    live_scale: NonNegFloat  # live / calibrated time at current_k (1.0 until measured)
+    ms_by_k: PerCut
+
+
+class ControllerState(Message):
+    """What the adaptive split controller believes, predicts and did (one per decision)."""
+
+    SCHEMA: ClassVar[str] = "splittag/ControllerState/v1"
+    robot_id: RobotId
+    stamp_nanos: int = Field(ge=0)
+    t0_ms: FiniteFloat
+    beta_ms_per_kB: FiniteFloat
+    link_samples: int = Field(ge=0)
+    link_changes: int = Field(ge=0)
+    robot_ms_by_k: PerCut
+    edge_ms_by_k: PerCut
+    payload_kB_by_k: PerCut
+    predicted_ms_by_k: PerCut
+    current_k: SplitIndex
+    best_k: SplitIndex
+    chosen_k: SplitIndex
+    pinned: bool
+    applied: bool  # True when this decision changed the split through the split query
+    reason: str
+
+
 MESSAGE_TYPES: Final[tuple[type[Message], ...]] = (
     Frame,
     Features,
@@ -280,6 +324,8 @@ MESSAGE_TYPES: Final[tuple[type[Message], ...]] = (
     TagMap,
     SplitConfig,
     ProbeAck,
+    ComputeProfile,
+    ControllerState,
 )
 SCHEMAS: Final[dict[str, type[Message]]] = {m.SCHEMA: m for m in MESSAGE_TYPES}
 ENVELOPE_KEYS: Final[frozenset[str]] = frozenset({"schema", "body"})

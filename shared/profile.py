@@ -48,3 +48,27 @@ def profile_cuts(
                 times.append((time.perf_counter() - t0) * 1e3)
         out.append(CutTiming(cut.k, float(np.median(times)), float(np.percentile(times, 90))))
     return out
+
+
+def calibrate_cumulative_ms(model: SplitKeypointNet, *, bf16: bool, repetitions: int = 3) -> list[float]:
+    """Quick start-up calibration: median cumulative head time per tag (batch 1) at every cut, ms."""
+    variant: Variant = "bf16-channels-last" if bf16 else "fp32-channels-last"
+    return [t.median_ms for t in profile_cuts(model, variant=variant, repetitions=repetitions, warmup=1)]
+
+
+def calibrate_pnp_ms(repetitions: int = 20) -> float:
+    """Median time to map 16 keypoints to the image and solve both PnP branches for one tag, ms."""
+    from shared.geometry import default_camera, lattice_in_tag, make_pose
+    from shared.pnp import solve_planar_pnp
+
+    cam = default_camera()
+    obj = lattice_in_tag(0.16)
+    pose = make_pose(np.eye(3), [0.05, -0.02, 1.2])
+    pts = (cam.matrix() @ (pose[:3, :3] @ obj.T + pose[:3, 3:4])).T
+    img = pts[:, :2] / pts[:, 2:3]
+    times = []
+    for _ in range(repetitions):
+        t0 = time.perf_counter()
+        solve_planar_pnp(cam, obj, img)
+        times.append((time.perf_counter() - t0) * 1e3)
+    return float(np.median(times))

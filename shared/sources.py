@@ -181,6 +181,8 @@ class FolderSource:
         from shared.detect import expand_paths
 
         self.camera = camera_from_yaml(camera_info)
+        if not Path(folder).is_dir():
+            raise FileNotFoundError(f"no images in {folder}: not a folder")
         self.files = expand_paths([Path(folder)])
         if not self.files:
             raise FileNotFoundError(f"no images in {folder}")

@@ -7,6 +7,8 @@ import numpy as np
 from shared.messages import (
     CameraIntrinsics,
     CameraPose,
+    ComputeProfile,
+    ControllerState,
     Features,
     Frame,
     HopTimings,
@@ -126,7 +128,35 @@ def example_messages() -> dict[str, Message]:
     )
     split = SplitConfig(k=5, codec="fp16", pinned=True, source="user")
     ack = ProbeAck(received_bytes=1024, decoded_ok=True, error="")
-    msgs: list[Message] = [frame, features, poses, camera_pose, tag_map, split, ack]
+    per_cut = [0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0]
+    compute = ComputeProfile(
+        robot_id="robot1",
+        side="robot",
+        stamp_nanos=1_700_000_000_123_456_789,
+        current_k=7,
+        tags_per_frame=3.5,
+        live_scale=1.08,
+        ms_by_k=per_cut,
+    )
+    controller = ControllerState(
+        robot_id="robot1",
+        stamp_nanos=1_700_000_000_123_456_789,
+        t0_ms=39.9,
+        beta_ms_per_kB=0.18,
+        link_samples=120,
+        link_changes=1,
+        robot_ms_by_k=per_cut,
+        edge_ms_by_k=per_cut[::-1],
+        payload_kB_by_k=[256.0, 4096.0, 2048.0, 1024.0, 512.0, 128.0, 32.0, 0.5],
+        predicted_ms_by_k=[100.0, 800.0, 400.0, 250.0, 150.0, 90.0, 95.0, 105.0],
+        current_k=7,
+        best_k=5,
+        chosen_k=7,
+        pinned=False,
+        applied=False,
+        reason="keep k=7: k=5 better by 15.0 ms (1/3)",
+    )
+    msgs: list[Message] = [frame, features, poses, camera_pose, tag_map, split, ack, compute, controller]
     return {m.SCHEMA: m for m in msgs}
 
 

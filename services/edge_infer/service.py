@@ -12,11 +12,13 @@ import zenoh
 from services.edge_infer.settings import EdgeInferSettings
 from shared import keys
 from shared.codec import WireError
-from shared.messages import Features, TagPoses, decode, encode
+from shared.compute import ComputeEstimator, tail_per_tag_ms
+from shared.messages import ComputeProfile, Features, TagPoses, decode, encode
 from shared.perception import TagMapFile, load_tag_map
 from shared.pipeline import edge_step
 from shared.probe import serve_echo
-from shared.transport import declare_fifo_subscriber, declare_tensor_publisher, next_sample
+from shared.profile import calibrate_cumulative_ms, calibrate_pnp_ms
+from shared.transport import declare_fifo_subscriber, declare_tensor_publisher, encoding_for, next_sample
 from shared.viz import make_viz
 from shared.weights import load_model
 
@@ -27,6 +29,10 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
     """Serve until `stop` is set. Malformed or inconsistent Features are rejected, counted and logged."""
     torch.set_num_threads(settings.threads)
     model = load_model(settings.weights)
+    compute = ComputeEstimator(
+        tail_per_tag_ms(calibrate_cumulative_ms(model, bf16=settings.bf16), pnp_ms=calibrate_pnp_ms())
+    )
+    last_profile = 0.0
     tag_map = (
         load_tag_map(settings.tag_map) if settings.tag_map else TagMapFile(default_size_m=settings.default_tag_size_m)
     )
@@ -35,6 +41,7 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
     # blocks) and the robot's latest-only frame ring drops stale frames, so latency stays bounded.
     sub = declare_fifo_subscriber(session, keys.features(rid), capacity=settings.queue_depth)
     pub = declare_tensor_publisher(session, keys.tag_poses(rid), TagPoses.SCHEMA)
+    compute_pub = session.declare_publisher(keys.compute(rid, "edge"), encoding=encoding_for(ComputeProfile.SCHEMA))
     echo = serve_echo(session, keys.echo(rid), max_bytes=settings.max_payload_bytes) if settings.serve_echo else None
     token = session.liveliness().declare_token(keys.alive(rid, "edge_infer"))
     viz = make_viz(settings.rerun, service="edge_infer", run_dir=settings.run_dir)
@@ -61,6 +68,22 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
             pub.put(encode(poses))
             viz.tag_poses(poses)
             processed += 1
+            compute.observe(k=poses.split_k, tags=len(poses.tags), network_ms=poses.timings.edge_compute_secs * 1e3)
+            if time.monotonic() - last_profile >= settings.profile_period_secs:
+                last_profile = time.monotonic()
+                compute_pub.put(
+                    encode(
+                        ComputeProfile(
+                            robot_id=rid,
+                            side="edge",
+                            stamp_nanos=time.time_ns(),
+                            current_k=poses.split_k,
+                            tags_per_frame=compute.tags_per_frame,
+                            live_scale=compute.live_scale,
+                            ms_by_k=compute.ms_by_k(),
+                        )
+                    )
+                )
     finally:
         token.undeclare()
         if echo is not None:

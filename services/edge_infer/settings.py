@@ -24,3 +24,4 @@ class EdgeInferSettings(ServiceSettings):
     threads: int = Field(default=1, ge=1)
     serve_echo: bool = True  # the link-probe echo queryable lives on the edge
     queue_depth: int = Field(default=2, ge=1)  # Features waiting for the edge; small = bounded latency
+    profile_period_secs: float = Field(default=1.0, gt=0)  # ComputeProfile E(k) publication period

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -12,11 +13,14 @@ import zenoh
 from services.robot_infer.settings import RobotInferSettings
 from shared import keys
 from shared.codec import WireError
+from shared.compute import ComputeEstimator, head_per_tag_ms
 from shared.detector import TagDetector
-from shared.messages import Features, Frame, SplitConfig, decode, encode
+from shared.flow import InFlightWindow
+from shared.messages import ComputeProfile, Features, Frame, SplitConfig, TagPoses, decode, encode
 from shared.pipeline import robot_step
+from shared.profile import calibrate_cumulative_ms
 from shared.split_control import SplitState, serve_split
-from shared.transport import declare_latest_subscriber, declare_tensor_publisher, next_sample
+from shared.transport import declare_latest_subscriber, declare_tensor_publisher, encoding_for, next_sample
 from shared.weights import load_model
 
 log = logging.getLogger(__name__)
@@ -26,17 +30,29 @@ def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading
     """Process frames until `stop` is set."""
     torch.set_num_threads(settings.threads)
     model = load_model(settings.weights)
+    estimator = ComputeEstimator(head_per_tag_ms(calibrate_cumulative_ms(model, bf16=settings.bf16)))
     detector = TagDetector(settings.detector)
     state = SplitState(SplitConfig(k=settings.split_k, codec=settings.codec, pinned=False, source="default"))
     rid = settings.robot_id
     sub = declare_latest_subscriber(session, keys.frames(rid))
     pub = declare_tensor_publisher(session, keys.features(rid), Features.SCHEMA)
+    compute_pub = session.declare_publisher(keys.compute(rid, "robot"), encoding=encoding_for(ComputeProfile.SCHEMA))
+    last_profile = 0.0
     queryable = serve_split(session, keys.split(rid), state)
+    window = InFlightWindow(settings.max_in_flight, timeout_secs=settings.in_flight_timeout_secs)
+
+    def on_poses(sample: zenoh.Sample) -> None:
+        # A bad TagPoses is edge_infer's problem to report; that frame's credit expires on its own.
+        with contextlib.suppress(WireError):
+            window.done(decode(sample.payload.to_bytes(), TagPoses).seq)
+
+    acks = session.declare_subscriber(keys.tag_poses(rid), on_poses) if settings.max_in_flight else None
     token = session.liveliness().declare_token(keys.alive(rid, "robot_infer"))
     rejected = processed = 0
     log.info("robot_infer ready: k=%d codec=%s gamma=%.2f", settings.split_k, settings.codec, settings.gamma)
     try:
-        while (sample := next_sample(sub, stop)) is not None:
+        # Take a frame only with a credit in hand: the ring keeps the newest one while the edge catches up.
+        while window.acquire(stop) and (sample := next_sample(sub, stop)) is not None:
             payload = sample.payload.to_bytes()
             try:
                 frame = decode(payload, Frame, max_bytes=settings.max_payload_bytes)
@@ -68,8 +84,34 @@ def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading
                     )
                 )
             )
+            window.sent(frame.seq)
             processed += 1
+            estimator.observe(
+                k=split.k,
+                tags=len(tags),
+                network_ms=timings.head_secs * 1e3,
+                fixed_ms=(timings.detect_secs + timings.warp_secs) * 1e3,
+            )
+            if time.monotonic() - last_profile >= settings.profile_period_secs:
+                last_profile = time.monotonic()
+                compute_pub.put(
+                    encode(
+                        ComputeProfile(
+                            robot_id=rid,
+                            side="robot",
+                            stamp_nanos=time.time_ns(),
+                            current_k=split.k,
+                            tags_per_frame=estimator.tags_per_frame,
+                            live_scale=estimator.live_scale,
+                            ms_by_k=[settings.gamma * v for v in estimator.ms_by_k()],
+                        )
+                    )
+                )
     finally:
         token.undeclare()
+        if acks is not None:
+            acks.undeclare()
         queryable.undeclare()
-        log.info("robot_infer: %d frames processed, %d rejected", processed, rejected)
+        log.info(
+            "robot_infer: %d frames processed, %d rejected, %d credits expired", processed, rejected, window.expired
+        )

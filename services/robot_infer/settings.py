@@ -24,4 +24,7 @@ class RobotInferSettings(ServiceSettings):
     detector: DetectorSettings = Field(default_factory=DetectorSettings)
     bf16: bool = True
     threads: int = Field(default=1, ge=1)
+    max_in_flight: int = Field(default=2, ge=0)  # frames sent without TagPoses back yet; 0 = no limit
+    in_flight_timeout_secs: float = Field(default=2.0, gt=0)  # a frame never answered returns its credit
+    profile_period_secs: float = Field(default=1.0, gt=0)  # ComputeProfile C(k) publication period
     gamma: float = Field(default=1.0, ge=1.0)  # >1 emulates a slower robot CPU by sleeping (gamma-1)*compute

@@ -1,0 +1,81 @@
+"""Per-split compute estimates C(k) (robot) and E(k) (edge) for the controller.
+
+Each side only ever runs its own part of the network at the k in use, so it cannot time the other
+cuts live. It calibrates per-tag cumulative block times once at start-up (`profile_cuts`, batch 1)
+and scales them by the running median of live / calibrated time at the k in use: CPU contention, a
+slower machine or the gamma slowdown move every cut's estimate together. Pure: no I/O, no clocks.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Sequence
+
+import numpy as np
+
+from shared.messages import N_CUTS
+
+
+class _RunningMedian:
+    def __init__(self, window: int) -> None:
+        self._values: deque[float] = deque(maxlen=window)
+
+    def add(self, value: float) -> None:
+        self._values.append(value)
+
+    def get(self, default: float) -> float:
+        return float(np.median(self._values)) if self._values else default
+
+
+class ComputeEstimator:
+    """ms per frame for every cut: fixed_ms + tags * per_tag_ms[k] * live_scale.
+
+    `per_tag_ms` is the calibrated per-tag time of this side's network part at each cut (robot: the
+    head up to k; edge: the tail from k plus PnP). `fixed_ms` (robot: detection and ROI warping) is a
+    running median of its own. Frames without tags teach only the fixed part.
+    """
+
+    def __init__(self, per_tag_ms: Sequence[float], *, window: int = 30) -> None:
+        if len(per_tag_ms) != N_CUTS or min(per_tag_ms) < 0:
+            raise ValueError(f"need {N_CUTS} non-negative per-tag times, got {list(per_tag_ms)}")
+        self.per_tag_ms = np.asarray(per_tag_ms, np.float64)
+        self._scale = _RunningMedian(window)
+        self._fixed = _RunningMedian(window)
+        self._tags = _RunningMedian(window)
+        self.current_k = 0
+
+    def observe(self, *, k: int, tags: int, network_ms: float, fixed_ms: float = 0.0) -> None:
+        """One frame computed at cut k: `network_ms` in the network part, `fixed_ms` outside it."""
+        self.current_k = k
+        self._tags.add(float(tags))
+        self._fixed.add(max(0.0, fixed_ms))
+        predicted = tags * self.per_tag_ms[k]
+        if tags and predicted >= 0.5:  # too little work at this cut to tell a scale from noise
+            self._scale.add(max(0.0, network_ms) / predicted)
+
+    @property
+    def live_scale(self) -> float:
+        """Running median of live / calibrated network time (1.0 before any evidence)."""
+        return self._scale.get(1.0)
+
+    @property
+    def tags_per_frame(self) -> float:
+        """Running median of tags per frame."""
+        return self._tags.get(0.0)
+
+    def ms_by_k(self, tags: float | None = None) -> list[float]:
+        """Estimated ms per frame at every cut for `tags` tags (default: the running median)."""
+        n = self.tags_per_frame if tags is None else tags
+        fixed = self._fixed.get(0.0)
+        return [float(v) for v in fixed + n * self.per_tag_ms * self.live_scale]
+
+
+def head_per_tag_ms(cumulative_ms: Sequence[float]) -> list[float]:
+    """Robot side: the cumulative head time up to each cut is what the robot computes per tag."""
+    return [max(0.0, float(v)) for v in cumulative_ms]
+
+
+def tail_per_tag_ms(cumulative_ms: Sequence[float], pnp_ms: float) -> list[float]:
+    """Edge side: the rest of the network after each cut, plus PnP, per tag."""
+    full = float(cumulative_ms[-1])
+    return [max(0.0, full - float(v)) + pnp_ms for v in cumulative_ms]

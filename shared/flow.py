@@ -1,0 +1,77 @@
+"""Credit-based flow control between robot_infer and edge_infer.
+
+robot_infer may have at most `capacity` frames in flight (sent, no TagPoses back yet). When the edge
+(or the link) is the bottleneck, the robot waits for a credit before it takes the next frame from its
+latest-only ring, so it always sends the freshest frame and no backlog can build up in transport
+buffers: latency stays bounded by about `capacity` edge service times instead of growing without
+limit. A frame whose TagPoses never come back (edge restarted, message rejected) expires after
+`timeout_secs` and its credit returns.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+
+class InFlightWindow:
+    """Thread-safe set of in-flight sequence numbers with a capacity and per-entry expiry."""
+
+    def __init__(self, capacity: int, *, timeout_secs: float = 2.0, clock: Callable[[], float] = time.monotonic):
+        if capacity < 0:
+            raise ValueError("capacity must be >= 0 (0 disables the window)")
+        if timeout_secs <= 0:
+            raise ValueError("timeout_secs must be > 0")
+        self.capacity = capacity
+        self.timeout_secs = timeout_secs
+        self._clock = clock
+        self._sent: dict[int, float] = {}
+        self._cond = threading.Condition()
+        self.expired = 0
+
+    def _expire(self) -> None:
+        now = self._clock()
+        stale = [s for s, t in self._sent.items() if now - t > self.timeout_secs]
+        for s in stale:
+            del self._sent[s]
+        self.expired += len(stale)
+
+    def has_credit(self) -> bool:
+        """True when another frame may be sent now."""
+        if self.capacity == 0:
+            return True
+        with self._cond:
+            self._expire()
+            return len(self._sent) < self.capacity
+
+    def acquire(self, stop: threading.Event, *, poll_secs: float = 0.05) -> bool:
+        """Wait for a credit; False once `stop` is set. Expiry is re-checked every poll_secs."""
+        if self.capacity == 0:
+            return not stop.is_set()
+        with self._cond:
+            while not stop.is_set():
+                self._expire()
+                if len(self._sent) < self.capacity:
+                    return True
+                self._cond.wait(poll_secs)
+        return False
+
+    def sent(self, seq: int) -> None:
+        """Record that frame `seq` left the robot."""
+        if self.capacity == 0:
+            return
+        with self._cond:
+            self._sent[seq] = self._clock()
+
+    def done(self, seq: int) -> None:
+        """TagPoses for `seq` arrived: return its credit (unknown seqs are ignored)."""
+        with self._cond:
+            if self._sent.pop(seq, None) is not None:
+                self._cond.notify_all()
+
+    @property
+    def in_flight(self) -> int:
+        """Frames currently in flight."""
+        with self._cond:
+            return len(self._sent)

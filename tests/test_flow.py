@@ -1,0 +1,62 @@
+"""The robot's in-flight window: credits, freshest-frame waiting, expiry of unanswered frames."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from shared.flow import InFlightWindow
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_capacity_credits_and_done() -> None:
+    w = InFlightWindow(2, clock=FakeClock())
+    assert w.has_credit()
+    w.sent(1)
+    w.sent(2)
+    assert not w.has_credit() and w.in_flight == 2
+    w.done(99)  # unknown: ignored
+    assert not w.has_credit()
+    w.done(1)
+    assert w.has_credit() and w.in_flight == 1
+
+
+def test_unanswered_frames_expire() -> None:
+    clock = FakeClock()
+    w = InFlightWindow(1, timeout_secs=2.0, clock=clock)
+    w.sent(7)
+    clock.now = 1.9
+    assert not w.has_credit()
+    clock.now = 2.1
+    assert w.has_credit()
+    assert w.expired == 1
+
+
+def test_acquire_waits_for_done_and_stops() -> None:
+    w = InFlightWindow(1)
+    stop = threading.Event()
+    w.sent(1)
+    threading.Timer(0.1, w.done, args=(1,)).start()
+    assert w.acquire(stop, poll_secs=1.0)  # woken by done(), not by the poll
+    w.sent(2)
+    threading.Timer(0.1, stop.set).start()
+    assert not w.acquire(stop, poll_secs=0.02)
+
+
+def test_zero_capacity_disables_and_bad_values_raise() -> None:
+    w = InFlightWindow(0)
+    for s in range(100):
+        w.sent(s)
+    assert w.has_credit() and w.in_flight == 0
+    with pytest.raises(ValueError, match="capacity"):
+        InFlightWindow(-1)
+    with pytest.raises(ValueError, match="timeout"):
+        InFlightWindow(1, timeout_secs=0)

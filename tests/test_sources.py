@@ -1,0 +1,167 @@
+"""Camera sources other than the demo scene: an image folder (+ TUM ground truth), a video file, V4L2;
+and the camera service streaming them over a real Zenoh session, looping or stopping at the end."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from services.camera.service import run as run_camera
+from services.camera.settings import CameraSettings
+from shared import keys
+from shared.geometry import GeometryError, camera_to_yaml, default_camera, make_pose
+from shared.messages import CameraPose, Frame, decode
+from shared.sources import CaptureSource, FolderSource, read_tum, write_tum
+from shared.tags import render_tag, to_uint8
+from shared.transport import ZenohSettings, free_tcp_port, open_session
+
+CAM = default_camera()
+
+
+def _tag_image(i: int) -> np.ndarray:
+    """A grey frame with tag i at a known pose (its id encodes the frame index)."""
+    pose = make_pose(np.eye(3), [0.05 * i, -0.05, 1.5])
+    canvas = np.full((CAM.height, CAM.width), 0.55, np.float32)
+    h = CAM.matrix() @ np.column_stack([pose[:3, 0], pose[:3, 1], pose[:3, 3]])
+    render_tag(canvas, tag_id=i, tag_size_m=0.2, tag_plane_to_image=h)
+    return to_uint8(canvas)
+
+
+def _folder(tmp: Path, n: int = 3) -> tuple[Path, Path, Path]:
+    folder = tmp / "images"
+    folder.mkdir()
+    for i in range(n):
+        cv2.imwrite(str(folder / f"{i:04d}.png"), _tag_image(i))
+    info = tmp / "camera_info.yaml"
+    info.write_text(camera_to_yaml(CAM))
+    gt = tmp / "groundtruth.tum"
+    write_tum(gt, [(float(i), make_pose(np.eye(3), [i, 0.0, 0.0])) for i in range(n)])
+    return folder, info, gt
+
+
+def test_folder_source_images_and_groundtruth(tmp_path: Path) -> None:
+    folder, info, gt = _folder(tmp_path)
+    frames = list(FolderSource(folder, info, gt).frames())
+    assert [f.image.shape for f in frames] == [(CAM.height, CAM.width)] * 3
+    assert np.array_equal(frames[1].image, _tag_image(1))
+    assert [f.world_from_camera[0, 3] for f in frames if f.world_from_camera is not None] == [0.0, 1.0, 2.0]
+    assert len(read_tum(gt)) == 3
+
+
+def test_folder_source_skips_bad_images_and_checks_groundtruth(tmp_path: Path) -> None:
+    folder, info, gt = _folder(tmp_path)
+    cv2.imwrite(str(folder / "0005_small.png"), np.zeros((10, 10), np.uint8))
+    with pytest.raises(GeometryError, match="4 images"):
+        FolderSource(folder, info, gt)  # 3 poses for 4 images
+    frames = list(FolderSource(folder, info).frames())
+    assert len(frames) == 3  # the wrong-size image is skipped with a warning, the rest stream
+    with pytest.raises(FileNotFoundError, match="no images"):
+        FolderSource(tmp_path / "empty_does_not_exist", info)
+
+
+def test_video_source_reads_gray_frames_at_camera_size(tmp_path: Path) -> None:
+    info = tmp_path / "camera_info.yaml"
+    info.write_text(camera_to_yaml(CAM))
+    video = tmp_path / "clip.avi"
+    # Written at half size in colour: the source converts to grey and resizes to the camera_info size.
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"MJPG"), 15.0, (CAM.width // 2, CAM.height // 2))
+    assert writer.isOpened(), "OpenCV cannot write MJPG here"
+    for i in range(5):
+        small = cv2.resize(_tag_image(i), (CAM.width // 2, CAM.height // 2), interpolation=cv2.INTER_AREA)
+        writer.write(cv2.cvtColor(small, cv2.COLOR_GRAY2BGR))
+    writer.release()
+    frames = list(CaptureSource(str(video), info).frames())
+    assert len(frames) == 5
+    assert all(f.image.shape == (CAM.height, CAM.width) and f.image.dtype == np.uint8 for f in frames)
+    with pytest.raises(OSError, match="cannot open"):
+        list(CaptureSource(str(tmp_path / "absent.avi"), info).frames())
+
+
+def test_v4l2_source_when_a_device_exists(tmp_path: Path) -> None:
+    devices = sorted(Path("/dev").glob("video*"))
+    if not devices:
+        pytest.skip("no V4L2 device (/dev/video*) on this machine")
+    info = tmp_path / "camera_info.yaml"
+    info.write_text(camera_to_yaml(CAM))
+    frame = next(iter(CaptureSource(str(devices[0]), info).frames()))
+    assert frame.image.shape == (CAM.height, CAM.width)
+
+
+def _stream(settings: CameraSettings, key_prefix: str, expect: int) -> tuple[list[Frame], list[CameraPose], int]:
+    port = free_tcp_port()
+    hub = open_session(ZenohSettings(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
+    frames: list[Frame] = []
+    gts: list[CameraPose] = []
+    got = threading.Event()
+
+    def on_frame(sample: object) -> None:
+        frames.append(decode(sample.payload.to_bytes(), Frame))  # type: ignore[attr-defined]
+        if len(frames) >= expect:
+            got.set()
+
+    subs = [
+        hub.declare_subscriber(keys.frames(key_prefix), on_frame),
+        hub.declare_subscriber(
+            keys.ground_truth(key_prefix),
+            lambda s: gts.append(decode(s.payload.to_bytes(), CameraPose)),
+        ),
+    ]
+    cam_session = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
+    try:
+        published = run_camera(
+            settings.model_copy(update={"wait_for": []}), session=cam_session, stop=threading.Event()
+        )
+        assert got.wait(10), f"received {len(frames)} of {expect} frames"
+    finally:
+        cam_session.close()
+        for s in subs:
+            s.undeclare()
+        hub.close()
+    return frames, gts, published
+
+
+def test_camera_service_streams_a_folder_and_loops(tmp_path: Path) -> None:
+    folder, info, gt = _folder(tmp_path)
+    settings = CameraSettings(
+        robot_id="src1",
+        source="folder",
+        path=str(folder),
+        camera_info=info,
+        groundtruth=gt,
+        fps=50.0,
+        loop=True,
+        max_frames=7,
+        run_dir=tmp_path,
+    )
+    frames, gts, published = _stream(settings, "src1", 7)
+    assert published == 7
+    assert [f.seq for f in frames] == list(range(7))
+    assert np.array_equal(frames[4].image, _tag_image(1))  # 0 1 2 0 1 2 0: looped
+    assert [g.world_from_camera[0, 3] for g in gts] == [0, 1, 2, 0, 1, 2, 0]
+    assert frames[0].intrinsics == CAM
+
+
+def test_camera_service_stops_at_the_end_of_a_video(tmp_path: Path) -> None:
+    info = tmp_path / "camera_info.yaml"
+    info.write_text(camera_to_yaml(CAM))
+    video = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"MJPG"), 15.0, (CAM.width, CAM.height))
+    for i in range(4):
+        writer.write(cv2.cvtColor(_tag_image(i), cv2.COLOR_GRAY2BGR))
+    writer.release()
+    settings = CameraSettings(
+        robot_id="src2", source="video", path=str(video), camera_info=info, fps=50.0, loop=False, run_dir=tmp_path
+    )
+    frames, gts, published = _stream(settings, "src2", 4)
+    assert published == 4 and len(frames) == 4 and not gts
+
+
+def test_camera_settings_need_camera_info_for_files(tmp_path: Path) -> None:
+    from services.camera.service import make_source
+
+    with pytest.raises(ValueError, match="camera_info"):
+        make_source(CameraSettings(source="folder", path=str(tmp_path)))
