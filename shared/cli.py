@@ -196,6 +196,153 @@ def _cmd_profile(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_link_up(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    from shared.linkemu import LinkEmulator, LinkEmulatorSettings, profile
+
+    emu = LinkEmulator(LinkEmulatorSettings(prefix=args.prefix))
+    emu.up(profile(args.profile))
+    s = emu.settings
+    print(
+        f"link up: robot netns {s.robot_ns} ({s.robot_addr}), edge netns {s.edge_ns} ({s.edge_addr}, "
+        f"reachable from here at {s.mgmt_edge_addr}); profile {args.profile}. "
+        f"Switch with `splittag link set PROFILE`; Ctrl-C tears it down.",
+        flush=True,
+    )
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    stop.wait()
+    emu.down()
+    return 0
+
+
+def _cmd_link_set(args: argparse.Namespace) -> int:
+    from shared.linkemu import LinkEmulator, LinkEmulatorSettings, profile
+
+    LinkEmulator(LinkEmulatorSettings(prefix=args.prefix)).set_profile(profile(args.profile))
+    print(f"link profile {args.profile}")
+    return 0
+
+
+def _cmd_link_down(args: argparse.Namespace) -> int:
+    from shared.linkemu import LinkEmulator, LinkEmulatorSettings
+
+    LinkEmulator(LinkEmulatorSettings(prefix=args.prefix)).down()
+    return 0
+
+
+def _probe_here(args: argparse.Namespace) -> list[list[float]]:
+    from shared import keys
+    from shared.linkprobe import probe_payloads, run_probes
+    from shared.probe import Prober
+    from shared.transport import ZenohSettings, open_session, wait_for_liveliness
+
+    session = open_session(ZenohSettings(mode="client", connect=[args.connect]))
+    try:
+        wait_for_liveliness(session, [keys.alive(args.robot_id, "echo")], timeout_secs=30)
+        prober = Prober(session, keys.echo(args.robot_id))
+        try:
+            return run_probes(prober, probe_payloads(args.tags), repetitions=args.repetitions)
+        finally:
+            prober.close()
+    finally:
+        session.close()
+
+
+def _probe_emulated(args: argparse.Namespace) -> list[list[float]]:
+    import json
+    import subprocess
+    import sys
+    import tempfile
+
+    from shared.linkemu import LinkEmulator, LinkEmulatorSettings, in_netns, profile
+
+    emu_settings = LinkEmulatorSettings(prefix=args.prefix)
+    endpoint = f"tcp/{emu_settings.edge_addr}:7447"
+    with tempfile.TemporaryDirectory() as tmp, LinkEmulator(emu_settings, log_dir=Path(tmp)) as emu:
+        emu.up(profile(args.profile))
+        py = [sys.executable, "-m", "shared.cli"]
+        echo = subprocess.Popen(
+            in_netns(emu_settings.edge_ns, [*py, "echo", "--listen", endpoint, "--robot-id", args.robot_id]),
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            start_new_session=True,
+        )
+        try:
+            raw = Path(tmp) / "samples.json"
+            probe = [*py, "link", "probe", "--connect", endpoint, "--robot-id", args.robot_id]
+            probe += ["--repetitions", str(args.repetitions), "--tags", str(args.tags), "--samples-out", str(raw)]
+            subprocess.run(in_netns(emu_settings.robot_ns, probe), check=True, timeout=3600)
+            samples: list[list[float]] = json.loads(raw.read_text())
+            return samples
+        finally:
+            echo.terminate()
+            echo.wait(timeout=10)
+
+
+def _cmd_link_probe(args: argparse.Namespace) -> int:
+    import json
+
+    from shared.linkprobe import plot_link, report, write_json
+
+    samples = _probe_emulated(args) if args.profile else _probe_here(args)
+    if args.samples_out:
+        args.samples_out.write_text(json.dumps(samples))
+        return 0
+    doc = report(samples, profile=args.profile)
+    print(
+        f"t0 {doc['t0_ms']:.2f} ms (fitted intercept), floor {doc['floor_ms']:.2f} ms (measured), "
+        f"beta {doc['beta_ms_per_kB']:.4f} ms/kB, rmse {doc['rmse_ms']:.2f} ms over {doc['n']} probes"
+    )
+    for m in doc["per_size"]:
+        print(f"  {m['payload_kB']:>9.2f} kB  median {m['rtt_ms_median']:8.2f} ms  p90 {m['rtt_ms_p90']:8.2f} ms")
+    if args.json:
+        write_json(doc, args.json)
+    if args.plot:
+        plot_link(doc, args.plot)
+        print(f"figure: {args.plot}")
+    return 0
+
+
+def _cmd_link_cost(args: argparse.Namespace) -> int:
+    import json
+
+    import torch
+
+    from shared.linkprobe import cost_table, cut_tensor_bytes, link_fit_of, plot_costs, write_json
+    from shared.model import CUTS
+    from shared.profile import calibrate_cumulative_ms, calibrate_pnp_ms
+    from shared.weights import load_model
+
+    torch.set_num_threads(args.threads)
+    fit = link_fit_of(json.loads(args.link.read_text()))
+    cumulative = calibrate_cumulative_ms(load_model(args.weights), bf16=True, repetitions=args.repetitions)
+    pnp = calibrate_pnp_ms()
+    compute = [args.tags * c for c in cumulative]
+    edge = [args.tags * (cumulative[-1] - c + pnp) for c in cumulative]
+    payload = [args.tags * cut_tensor_bytes(c.k) / 1024 for c in CUTS]
+    table = cost_table(compute_ms=compute, edge_ms=edge, payload_kB=payload, fit=fit, gammas=args.gamma)
+    print(
+        f"link: t0 {fit.t0_ms:.2f} ms, beta {fit.beta_ms_per_kB:.4f} ms/kB; {args.tags} tag(s), edge as fast as gamma=1"
+    )
+    print(
+        f"{'k':>2} {'split point':<10} {'S kB':>8} {'C ms':>7} {'E ms':>7}"
+        + "".join(f"{'T g=' + format(r['gamma'], 'g'):>10}" for r in table["gammas"])
+    )
+    for k, cut in enumerate(CUTS):
+        stars = "".join(f"{row['T_ms'][k]:>9.1f}{'*' if row['best_k'] == k else ' '}" for row in table["gammas"])
+        print(f"{k:>2} {cut.name:<10} {payload[k]:>8.1f} {compute[k]:>7.1f} {edge[k]:>7.1f}{stars}")
+    if args.json:
+        write_json(table, args.json)
+    if args.plot:
+        plot_costs(table, args.plot)
+        print(f"figure: {args.plot}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every subcommand."""
     parser = argparse.ArgumentParser(prog="splittag", description=__doc__)
@@ -237,6 +384,43 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--listen", action="append", default=[], help="zenoh endpoint, repeatable")
     p.add_argument("--connect", action="append", default=[], help="zenoh endpoint, repeatable")
     p.set_defaults(func=_cmd_echo)
+
+    link = sub.add_parser("link", help="emulated 5G uplink, link probing and split costs").add_subparsers(
+        dest="link_command", required=True
+    )
+    p = link.add_parser("up", help="create the robot/edge namespaces with the emulated link (root); Ctrl-C removes")
+    p.add_argument("--profile", default="5g")
+    p.add_argument("--prefix", default="st")
+    p.set_defaults(func=_cmd_link_up)
+    p = link.add_parser("set", help="switch the running emulated link to another profile")
+    p.add_argument("profile")
+    p.add_argument("--prefix", default="st")
+    p.set_defaults(func=_cmd_link_set)
+    p = link.add_parser("down", help="remove the emulated link")
+    p.add_argument("--prefix", default="st")
+    p.set_defaults(func=_cmd_link_down)
+    p = link.add_parser("probe", help="fit RTT = t0 + beta*S from probes at every split point's payload")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--profile", help="probe a fresh emulated link with this profile (root)")
+    where.add_argument("--connect", default="tcp/127.0.0.1:7447", help="or probe the echo behind this endpoint")
+    p.add_argument("--prefix", default="st")
+    p.add_argument("--robot-id", default="robot1")
+    p.add_argument("--repetitions", type=int, default=200)
+    p.add_argument("--tags", type=int, default=1, help="payloads of this many tags per split point")
+    p.add_argument("--json", type=Path)
+    p.add_argument("--plot", type=Path)
+    p.add_argument("--samples-out", type=Path, help=argparse.SUPPRESS)
+    p.set_defaults(func=_cmd_link_probe)
+    p = link.add_parser("cost", help="T(k) per split point for several gamma from measured C, E and a fitted link")
+    p.add_argument("--link", type=Path, required=True, help="JSON written by `splittag link probe`")
+    p.add_argument("--gamma", type=float, nargs="+", default=[1.0, 2.0, 4.0, 8.0])
+    p.add_argument("--tags", type=int, default=1)
+    p.add_argument("--weights", type=Path, default=Path("models"))
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--repetitions", type=int, default=10)
+    p.add_argument("--json", type=Path)
+    p.add_argument("--plot", type=Path)
+    p.set_defaults(func=_cmd_link_cost)
 
     data = sub.add_parser("data", help="generate and inspect training data").add_subparsers(
         dest="data_command", required=True
