@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import queue
 import threading
 import time
 
@@ -18,7 +19,7 @@ from shared.perception import TagMapFile, load_tag_map
 from shared.pipeline import edge_step
 from shared.probe import serve_echo
 from shared.profile import calibrate_cumulative_ms, calibrate_pnp_ms
-from shared.transport import declare_fifo_subscriber, declare_tensor_publisher, encoding_for, next_sample
+from shared.transport import declare_tensor_publisher, encoding_for
 from shared.viz import make_viz
 from shared.weights import load_model
 
@@ -39,7 +40,20 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
     rid = settings.robot_id
     # A short queue: when the edge is the bottleneck, backpressure reaches robot_infer (its publisher
     # blocks) and the robot's latest-only frame ring drops stale frames, so latency stays bounded.
-    sub = declare_fifo_subscriber(session, keys.features(rid), capacity=settings.queue_depth)
+    # Arrival is stamped in the subscriber callback, so a frame's transport time excludes the time it
+    # then waits for the edge (the controller fits the link to it; queueing is not the link's).
+    inbox: queue.Queue[tuple[int, bytes]] = queue.Queue(maxsize=settings.queue_depth)
+
+    def on_features(sample: zenoh.Sample) -> None:
+        item = (time.time_ns(), sample.payload.to_bytes())
+        while not stop.is_set():  # a full inbox blocks Zenoh's delivery: backpressure up to the robot
+            try:
+                inbox.put(item, timeout=0.1)
+                return
+            except queue.Full:
+                continue
+
+    sub = session.declare_subscriber(keys.features(rid), on_features)
     pub = declare_tensor_publisher(session, keys.tag_poses(rid), TagPoses.SCHEMA)
     compute_pub = session.declare_publisher(keys.compute(rid, "edge"), encoding=encoding_for(ComputeProfile.SCHEMA))
     echo = serve_echo(session, keys.echo(rid), max_bytes=settings.max_payload_bytes) if settings.serve_echo else None
@@ -48,9 +62,11 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
     rejected = processed = 0
     log.info("edge_infer ready")
     try:
-        while (sample := next_sample(sub, stop)) is not None:
-            received = time.time_ns()
-            payload = sample.payload.to_bytes()
+        while not stop.is_set():
+            try:
+                received, payload = inbox.get(timeout=0.05)
+            except queue.Empty:
+                continue
             try:
                 features = decode(payload, Features, max_bytes=settings.max_payload_bytes)
                 poses = edge_step(
@@ -85,6 +101,7 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
                     )
                 )
     finally:
+        sub.undeclare()
         token.undeclare()
         if echo is not None:
             echo.undeclare()

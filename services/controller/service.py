@@ -1,0 +1,137 @@
+"""The controller loop: evidence from TagPoses, ComputeProfiles and sparse probes; a decision every
+decide_period_secs; the split applied through the same Zenoh query a person uses; state published.
+
+Why its own process (not inside robot_infer): it must never delay a frame (probing blocks for a
+round trip, fitting costs CPU at its own pace); it can be stopped, restarted or replaced (e.g. by an
+oracle in experiments) without touching inference; and going through the public split query proves
+that any client, human or not, can steer the split. It runs on the robot side, next to the split
+queryable, so its probes cross the uplink exactly like the features do.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+import zenoh
+
+from services.controller.settings import ControllerSettings
+from shared import keys
+from shared.codec import WireError
+from shared.controller import ControllerSettingsCore, SplitController
+from shared.messages import ComputeProfile, ControllerState, TagPoses, decode, encode
+from shared.probe import ProbeError, Prober, probe_features
+from shared.split_client import SplitQueryError, query_split
+from shared.transport import encoding_for
+from shared.viz import make_viz
+
+log = logging.getLogger(__name__)
+
+
+def _probe_loop(
+    settings: ControllerSettings, core: SplitController, lock: threading.Lock, prober: Prober, stop: threading.Event
+) -> None:
+    burst_from = core.link.changes
+    while not stop.wait(settings.probe_period_secs):
+        with lock:
+            changed = core.link.changes != burst_from
+            burst_from = core.link.changes
+            due = core.probe_size_due(settings.probe_sizes_bytes, 0.0 if changed else settings.probe_max_age_secs)
+        # After a detected link change, probe every size at once to re-identify t0 and beta.
+        sizes = settings.probe_sizes_bytes if changed else ([due] if due is not None else [])
+        for size in sizes:
+            try:
+                r = prober.round_trip(encode(probe_features(size)))
+            except ProbeError as exc:
+                log.warning("probe of %d bytes failed: %s", size, exc)
+                continue
+            with lock:
+                core.add_link_sample(r.payload_bytes, r.rtt_secs * 1e3)
+
+
+def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading.Event) -> None:
+    """Decide until `stop` is set."""
+    rid = settings.robot_id
+    core = SplitController(
+        ControllerSettingsCore(
+            min_gain_ms=settings.min_gain_ms,
+            min_gain_rel=settings.min_gain_rel,
+            dwell=settings.dwell,
+            half_life=settings.half_life_samples,
+            codec=settings.codec,
+        )
+    )
+    lock = threading.Lock()
+    rejected = 0
+
+    def on_poses(sample: zenoh.Sample) -> None:
+        nonlocal rejected
+        try:
+            msg = decode(sample.payload.to_bytes(), TagPoses)
+        except WireError as exc:
+            rejected += 1
+            log.warning("rejected TagPoses #%d: %s", rejected, exc)
+            return
+        with lock:
+            core.add_link_sample(msg.payload_bytes, msg.timings.transport_secs * 1e3)
+
+    def on_compute(sample: zenoh.Sample) -> None:
+        nonlocal rejected
+        try:
+            msg = decode(sample.payload.to_bytes(), ComputeProfile)
+        except WireError as exc:
+            rejected += 1
+            log.warning("rejected ComputeProfile #%d: %s", rejected, exc)
+            return
+        with lock:
+            core.add_compute(msg)
+
+    subs = [
+        session.declare_subscriber(keys.tag_poses(rid), on_poses),
+        session.declare_subscriber(keys.compute(rid, "robot"), on_compute),
+        session.declare_subscriber(keys.compute(rid, "edge"), on_compute),
+    ]
+    pub = session.declare_publisher(keys.controller(rid), encoding=encoding_for(ControllerState.SCHEMA))
+    prober = Prober(session, keys.echo(rid), timeout_secs=5.0)
+    prober_thread = threading.Thread(target=_probe_loop, args=(settings, core, lock, prober, stop), daemon=True)
+    prober_thread.start()
+    token = session.liveliness().declare_token(keys.alive(rid, "controller"))
+    viz = make_viz(settings.rerun, service="controller", run_dir=settings.run_dir)
+    switches = 0
+    log.info("controller ready (enabled=%s)", settings.enabled)
+    try:
+        while not stop.wait(settings.decide_period_secs):
+            try:
+                split = query_split(session, rid, timeout_secs=2.0)
+            except SplitQueryError as exc:
+                log.debug("no split state: %s", exc)
+                continue
+            with lock:
+                state = core.decide(robot_id=rid, current_k=split.k, pinned=split.pinned)
+            if settings.enabled and state.chosen_k != split.k:
+                try:
+                    applied = query_split(session, rid, params=f"k={state.chosen_k}&source=controller")
+                    state = state.model_copy(update={"applied": applied.k == state.chosen_k})
+                    switches += 1
+                    log.info("split k=%d -> %d: %s", split.k, state.chosen_k, state.reason)
+                except SplitQueryError as exc:  # pinned meanwhile, or robot_infer restarting
+                    state = state.model_copy(update={"reason": f"{state.reason}; refused: {exc}"})
+            pub.put(encode(state))
+            viz.scalars(
+                state.stamp_nanos,
+                {
+                    "controller/t0_ms": state.t0_ms,
+                    "controller/beta_ms_per_kB": state.beta_ms_per_kB,
+                    "controller/chosen_k": float(state.chosen_k),
+                    "controller/best_k": float(state.best_k),
+                    **{f"controller/predicted_ms/k{k}": v for k, v in enumerate(state.predicted_ms_by_k)},
+                },
+            )
+    finally:
+        token.undeclare()
+        for s in subs:
+            s.undeclare()
+        prober_thread.join(timeout=10)
+        prober.close()
+        viz.close()
+        log.info("controller: %d switches, %d messages rejected", switches, rejected)

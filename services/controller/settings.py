@@ -1,0 +1,28 @@
+"""Settings of the adaptive split controller."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+from pydantic import Field
+from pydantic_settings import SettingsConfigDict
+
+from shared.settings import ServiceSettings
+
+
+class ControllerSettings(ServiceSettings):
+    """How often to decide and probe, and how reluctant to switch."""
+
+    SERVICE: ClassVar[str] = "controller"
+    model_config = SettingsConfigDict(**{**ServiceSettings.model_config, "env_prefix": "SPLITTAG_CONTROLLER_"})
+
+    enabled: bool = True  # False: estimate and publish state, never change k (an observer)
+    decide_period_secs: float = Field(default=0.1, gt=0)
+    min_gain_ms: float = Field(default=3.0, ge=0)  # switch only for at least this much ...
+    min_gain_rel: float = Field(default=0.05, ge=0)  # ... and this fraction of T(current)
+    dwell: int = Field(default=2, ge=1)  # consecutive decisions that must agree before a switch
+    half_life_samples: float = Field(default=40.0, gt=1)  # forgetting of the link estimator
+    probe_period_secs: float = Field(default=0.5, gt=0)  # at most one probe per period ...
+    probe_max_age_secs: float = Field(default=2.0, gt=0)  # ... at a size not seen for this long
+    probe_sizes_bytes: list[int] = Field(default_factory=lambda: [1024, 16 * 1024, 64 * 1024])
+    codec: str = "fp16"
