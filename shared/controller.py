@@ -42,6 +42,7 @@ class ControllerSettingsCore:
     min_gain_rel: float = 0.05
     dwell: int = 2
     half_life: float = 40.0
+    change_threshold: float = 5.0
     codec: str = "fp16"
 
 
@@ -52,7 +53,9 @@ class SplitController:
         self, settings: ControllerSettingsCore | None = None, *, clock: Callable[[], float] = time.monotonic
     ) -> None:
         self.settings = settings or ControllerSettingsCore()
-        self.link = OnlineLinkEstimator(half_life=self.settings.half_life)
+        self.link = OnlineLinkEstimator(
+            half_life=self.settings.half_life, cusum_threshold=self.settings.change_threshold
+        )
         self.chooser = HysteresisChooser(
             min_gain_ms=self.settings.min_gain_ms, min_gain_rel=self.settings.min_gain_rel, dwell=self.settings.dwell
         )
@@ -81,10 +84,11 @@ class SplitController:
         return int(np.log2(max(payload_bytes, 1024) / 1024.0))
 
     def probe_size_due(self, candidates: list[int], max_age_secs: float) -> int | None:
-        """The candidate probe size whose neighbourhood was seen longest ago, if older than max_age_secs."""
+        """The candidate probe size whose neighbourhood (log2 kB bucket) was seen longest ago, if that
+        is more than max_age_secs ago. Sizes alternate, so t0 and beta stay identifiable whatever the
+        frames carry, and a rate change shows up in the large probes within a period or two."""
         now = self._clock()
-        ages = [(now - self.last_sizes.get(self._bucket(c), -1e9), c) for c in candidates]
-        age, size = max(ages)
+        age, size = max((now - self.last_sizes.get(self._bucket(c), -1e9), c) for c in candidates)
         return size if age >= max_age_secs else None
 
     # -- decision ----------------------------------------------------------------------------------

@@ -119,6 +119,7 @@ class Monitor:
             return
         rec: dict[str, Any] = {
             "seq": msg.seq,
+            "capture_nanos": msg.capture_nanos,
             "k": msg.split_k,
             "payload_bytes": msg.payload_bytes,
             "tags": len(msg.tags),

@@ -93,6 +93,11 @@ class OnlineLinkEstimator:
         self.n += 1
 
     @property
+    def alarm_level(self) -> float:
+        """How close the change detector is to firing: 0 (quiet) .. 1 (fires)."""
+        return max(self._g_pos, self._g_neg) / self.threshold
+
+    @property
     def t0_ms(self) -> float:
         """Current intercept estimate."""
         return float(self.theta[0])

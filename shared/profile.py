@@ -72,3 +72,15 @@ def calibrate_pnp_ms(repetitions: int = 20) -> float:
         solve_planar_pnp(cam, obj, img)
         times.append((time.perf_counter() - t0) * 1e3)
     return float(np.median(times))
+
+
+@torch.no_grad()
+def warm_up(model: SplitKeypointNet, *, bf16: bool, max_batch: int = 6) -> None:
+    """Run the whole network once per batch size 1..max_batch: oneDNN builds its kernels per shape,
+    and the first frame with a new tag count would otherwise take several times longer (and teach
+    the compute estimator a wrong scale)."""
+    for n in range(1, max_batch + 1):
+        x = SplitKeypointNet.normalise_input(torch.zeros((n, 1, 256, 256), dtype=torch.uint8))
+        x = x.contiguous(memory_format=torch.channels_last)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            model.forward_tail(model.forward_head(x, 0), 0)

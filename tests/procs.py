@@ -16,13 +16,21 @@ REPO = Path(__file__).resolve().parent.parent
 class Proc:
     """A child process whose combined output goes to a log file."""
 
-    def __init__(self, name: str, argv: list[str], log_dir: Path, env: dict[str, str] | None = None):
+    def __init__(
+        self,
+        name: str,
+        argv: list[str],
+        log_dir: Path,
+        env: dict[str, str] | None = None,
+        *,
+        wrapper: list[str] | None = None,
+    ):
         self.name = name
         self.log_path = log_dir / f"{name}.log"
         self._log = self.log_path.open("wb")
         full_env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
         self.popen = subprocess.Popen(
-            [sys.executable, *argv],
+            [*(wrapper or []), sys.executable, *argv],  # wrapper: e.g. `ip netns exec NS`
             cwd=REPO,
             stdout=self._log,
             stderr=subprocess.STDOUT,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 
 import zenoh
 
@@ -31,20 +32,33 @@ log = logging.getLogger(__name__)
 def _probe_loop(
     settings: ControllerSettings, core: SplitController, lock: threading.Lock, prober: Prober, stop: threading.Event
 ) -> None:
+    """Sparse probes: one per period at a size not seen lately; at once (largest size) when the change
+    detector is half-way to firing, to confirm or dismiss it quickly; every size right after a change."""
     burst_from = core.link.changes
-    while not stop.wait(settings.probe_period_secs):
+    last_probe = 0.0
+    while not stop.wait(0.02):
+        now = time.monotonic()
         with lock:
             changed = core.link.changes != burst_from
             burst_from = core.link.changes
-            due = core.probe_size_due(settings.probe_sizes_bytes, 0.0 if changed else settings.probe_max_age_secs)
-        # After a detected link change, probe every size at once to re-identify t0 and beta.
-        sizes = settings.probe_sizes_bytes if changed else ([due] if due is not None else [])
+            suspicious = core.link.alarm_level >= 0.4
+            due = core.probe_size_due(settings.probe_sizes_bytes, settings.probe_max_age_secs)
+        if changed:
+            sizes = list(settings.probe_sizes_bytes)
+        elif suspicious and now - last_probe >= 0.05:
+            sizes = [max(settings.probe_sizes_bytes)]
+        elif due is not None and now - last_probe >= settings.probe_period_secs:
+            sizes = [due]
+        else:
+            continue
         for size in sizes:
             try:
                 r = prober.round_trip(encode(probe_features(size)))
             except ProbeError as exc:
                 log.warning("probe of %d bytes failed: %s", size, exc)
                 continue
+            finally:
+                last_probe = time.monotonic()
             with lock:
                 core.add_link_sample(r.payload_bytes, r.rtt_secs * 1e3)
 
@@ -58,6 +72,7 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
             min_gain_rel=settings.min_gain_rel,
             dwell=settings.dwell,
             half_life=settings.half_life_samples,
+            change_threshold=settings.change_threshold,
             codec=settings.codec,
         )
     )
@@ -110,7 +125,7 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
                 state = core.decide(robot_id=rid, current_k=split.k, pinned=split.pinned)
             if settings.enabled and state.chosen_k != split.k:
                 try:
-                    applied = query_split(session, rid, params=f"k={state.chosen_k}&source=controller")
+                    applied = query_split(session, rid, params=f"k={state.chosen_k};source=controller")
                     state = state.model_copy(update={"applied": applied.k == state.chosen_k})
                     switches += 1
                     log.info("split k=%d -> %d: %s", split.k, state.chosen_k, state.reason)

@@ -22,7 +22,10 @@ class ControllerSettings(ServiceSettings):
     min_gain_rel: float = Field(default=0.05, ge=0)  # ... and this fraction of T(current)
     dwell: int = Field(default=2, ge=1)  # consecutive decisions that must agree before a switch
     half_life_samples: float = Field(default=40.0, gt=1)  # forgetting of the link estimator
-    probe_period_secs: float = Field(default=0.5, gt=0)  # at most one probe per period ...
-    probe_max_age_secs: float = Field(default=2.0, gt=0)  # ... at a size not seen for this long
-    probe_sizes_bytes: list[int] = Field(default_factory=lambda: [1024, 16 * 1024, 64 * 1024])
+    change_threshold: float = Field(default=5.0, gt=0)  # CUSUM threshold (robust sigmas) for a link change
+    probe_period_secs: float = Field(default=0.15, gt=0)  # at most one routine probe per period ...
+    probe_max_age_secs: float = Field(default=0.3, gt=0)  # ... at a size not seen for this long
+    # Two sizes pin both t0 and beta even while frames carry almost nothing (k = 7); small enough
+    # to occupy the 14.2 Mbit/s uplink for at most ~37 ms.
+    probe_sizes_bytes: list[int] = Field(default_factory=lambda: [16 * 1024, 64 * 1024])
     codec: str = "fp16"

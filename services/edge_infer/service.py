@@ -18,7 +18,7 @@ from shared.messages import ComputeProfile, Features, TagPoses, decode, encode
 from shared.perception import TagMapFile, load_tag_map
 from shared.pipeline import edge_step
 from shared.probe import serve_echo
-from shared.profile import calibrate_cumulative_ms, calibrate_pnp_ms
+from shared.profile import calibrate_cumulative_ms, calibrate_pnp_ms, warm_up
 from shared.transport import declare_tensor_publisher, encoding_for
 from shared.viz import make_viz
 from shared.weights import load_model
@@ -30,6 +30,7 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
     """Serve until `stop` is set. Malformed or inconsistent Features are rejected, counted and logged."""
     torch.set_num_threads(settings.threads)
     model = load_model(settings.weights)
+    warm_up(model, bf16=settings.bf16)
     compute = ComputeEstimator(
         tail_per_tag_ms(calibrate_cumulative_ms(model, bf16=settings.bf16), pnp_ms=calibrate_pnp_ms())
     )

@@ -18,7 +18,7 @@ from shared.detector import TagDetector
 from shared.flow import InFlightWindow
 from shared.messages import ComputeProfile, Features, Frame, SplitConfig, TagPoses, decode, encode
 from shared.pipeline import robot_step
-from shared.profile import calibrate_cumulative_ms
+from shared.profile import calibrate_cumulative_ms, warm_up
 from shared.split_control import SplitState, serve_split
 from shared.transport import declare_latest_subscriber, declare_tensor_publisher, encoding_for, next_sample
 from shared.weights import load_model
@@ -30,6 +30,7 @@ def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading
     """Process frames until `stop` is set."""
     torch.set_num_threads(settings.threads)
     model = load_model(settings.weights)
+    warm_up(model, bf16=settings.bf16)
     estimator = ComputeEstimator(head_per_tag_ms(calibrate_cumulative_ms(model, bf16=settings.bf16)))
     detector = TagDetector(settings.detector)
     state = SplitState(SplitConfig(k=settings.split_k, codec=settings.codec, pinned=False, source="default"))
