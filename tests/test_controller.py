@@ -1,0 +1,80 @@
+"""The controller's pure core: payload sizes, probe scheduling, decisions, pinning."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from shared.controller import ControllerSettingsCore, SplitController, features_payload_bytes
+from shared.messages import ComputeProfile, Features, decode, encode
+from shared.probe import probe_features
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def _profile(side: str, ms: list[float], tags: float = 4.0) -> ComputeProfile:
+    return ComputeProfile(
+        robot_id="r1",
+        side=side,  # type: ignore[arg-type]
+        stamp_nanos=1,
+        current_k=7,
+        tags_per_frame=tags,
+        live_scale=1.0,
+        ms_by_k=ms,
+    )
+
+
+def test_payload_bytes_are_exact_wire_sizes() -> None:
+    for tags, k in ((1, 0), (3, 5), (4, 7), (0, 3)):
+        n = features_payload_bytes(tags, k)
+        assert n > 0
+    one = features_payload_bytes(1, 5)
+    msg = probe_features(256 * 8 * 8 * 2)
+    assert one == len(encode(msg))
+    assert decode(encode(msg), Features).tags[0].tensor.nbytes == 256 * 8 * 8 * 2
+    assert features_payload_bytes(4, 1) > features_payload_bytes(4, 0) > features_payload_bytes(4, 7)
+
+
+def test_decision_follows_the_link_and_respects_pinning() -> None:
+    clock = FakeClock()
+    core = SplitController(ControllerSettingsCore(dwell=1), clock=clock)
+    state = core.decide(robot_id="r1", current_k=7, pinned=False)
+    assert state.chosen_k == 7 and "waiting" in state.reason
+    # A slow robot (C grows fast with k) and an edge that does the rest: cheap link -> k = 0.
+    c = [5.0, 60.0, 80.0, 95.0, 100.0, 110.0, 112.0, 115.0]
+    e = [60.0, 40.0, 30.0, 20.0, 15.0, 5.0, 3.0, 1.0]
+    core.add_compute(_profile("robot", c))
+    core.add_compute(_profile("edge", e))
+    rng = np.random.default_rng(0)
+    for _ in range(200):  # a fast link: t0 10 ms, beta 0.01 ms/kB
+        size = float(rng.choice([1024, 65536, 262144]))
+        core.add_link_sample(int(size), 10.0 + 0.01 * size / 1024 + rng.normal(0, 0.2))
+    state = core.decide(robot_id="r1", current_k=7, pinned=False)
+    assert abs(state.t0_ms - 10.0) < 1.0 and abs(state.beta_ms_per_kB - 0.01) < 0.005
+    expected = np.asarray(c) + 10.0 + 0.01 * np.asarray(state.payload_kB_by_k) + np.asarray(e)
+    assert state.best_k == int(np.argmin(expected)) == 0
+    assert state.chosen_k == 0 and "switch" in state.reason
+    assert np.allclose(state.predicted_ms_by_k, expected, atol=1.5)
+    pinned = core.decide(robot_id="r1", current_k=5, pinned=True)
+    assert pinned.chosen_k == 5 and "pinned" in pinned.reason and pinned.best_k == 0
+
+
+def test_probe_sizes_rotate_to_what_was_not_seen() -> None:
+    clock = FakeClock()
+    core = SplitController(clock=clock)
+    sizes = [16 * 1024, 64 * 1024]
+    assert core.probe_size_due(sizes, 0.3) in sizes
+    core.add_link_sample(16 * 1024, 40.0)
+    assert core.probe_size_due(sizes, 0.3) == 64 * 1024
+    clock.now += 0.1
+    core.add_link_sample(64 * 1024, 50.0)
+    assert core.probe_size_due(sizes, 0.3) is None  # everything fresh
+    clock.now += 1.0
+    assert core.probe_size_due(sizes, 0.3) == 16 * 1024  # both stale: the older one first
+    core.add_link_sample(100, -1.0)  # nonsense samples are ignored
+    assert core.link.n == 2

@@ -1,0 +1,54 @@
+"""Link emulation: profiles, the delay line's bookkeeping, and `splittag link probe` recovering the
+paper's 5G link (t0 = 39.9 ms, beta = 0.18 ms/kB) within 10 % on the emulated link (root only)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from shared.cli import main
+from shared.delayline import DelayLine
+from shared.linkemu import PROFILES, profile, unavailable_reason
+
+
+def test_profiles_match_the_paper() -> None:
+    assert PROFILES["5g"].delay_ms == 39.9
+    assert abs(PROFILES["5g"].beta_ms_per_kB - 0.18) < 1e-3
+    assert PROFILES["5g-pre-tdd"].rate_mbit == 14.2
+    assert PROFILES["unshaped"].beta_ms_per_kB == 0.0
+    with pytest.raises(ValueError, match="known: 5g"):
+        profile("6g")
+
+
+def test_delay_line_is_fifo_and_holds_each_packet_for_the_delay() -> None:
+    line = DelayLine(40.0)
+    line.push(0.0, b"a")
+    line.push(0.010, b"b")
+    assert line.timeout(0.0) == pytest.approx(0.040)
+    assert line.pop_due(0.039) == []
+    assert line.pop_due(0.040) == [b"a"]
+    line.set_delay_ms(5.0)  # shorter now, but b"c" must not overtake b"b"
+    line.push(0.041, b"c")
+    assert line.pop_due(0.046) == []
+    assert line.pop_due(0.050) == [b"b", b"c"]
+    assert line.state()["forwarded"] == 3
+    with pytest.raises(ValueError, match="delay_ms"):
+        line.set_delay_ms(-1)
+
+
+@pytest.mark.multiprocess
+def test_link_probe_recovers_the_5g_model(tmp_path: Path) -> None:
+    reason = unavailable_reason()
+    if reason is not None:
+        pytest.skip(reason)
+    out = tmp_path / "probe.json"
+    argv = ["link", "probe", "--profile", "5g", "--prefix", "stp", "--repetitions", "6", "--json", str(out)]
+    assert main([*argv, "--plot", str(tmp_path / "probe.png")]) == 0
+    doc = json.loads(out.read_text())
+    assert abs(doc["t0_ms"] - 39.9) <= 0.1 * 39.9, doc["t0_ms"]
+    assert abs(doc["beta_ms_per_kB"] - 0.18) <= 0.1 * 0.18, doc["beta_ms_per_kB"]
+    assert doc["floor_ms"] >= 39.9
+    assert len(doc["samples"]) == 6 * 8
+    assert (tmp_path / "probe.png").stat().st_size > 10_000
