@@ -7,6 +7,7 @@ BL and subtracts `CORNER_OFFSET_PX` (measured on exact renders by tests/test_geo
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 from typing import Final
 
@@ -45,6 +46,23 @@ class Detection:
     corners_px: Array
 
 
+def destroy_detector(det: pupil_apriltags.Detector) -> None:
+    """Free a pupil-apriltags detector in the safe order: the detector first (its destructor still
+    reads the tag family), then the family. pupil-apriltags 1.0.4's own __del__ frees the family first,
+    a use-after-free that segfaults intermittently (pupil-labs/apriltags#46, fix in PR #65, unreleased).
+    Clearing the pointer afterwards turns its __del__ into a no-op."""
+    ptr = getattr(det, "tag_detector_ptr", None)
+    if ptr is None:
+        return
+    det.libc.apriltag_detector_destroy.restype = None
+    det.libc.apriltag_detector_destroy(ptr)
+    for tf in det.tag_families.values():
+        det.libc.tag36h11_destroy.restype = None
+        det.libc.tag36h11_destroy(tf)
+    det.tag_families = {}
+    det.tag_detector_ptr = None
+
+
 class TagDetector:
     """A reusable pupil-apriltags detector (not thread-safe: one per thread)."""
 
@@ -59,6 +77,11 @@ class TagDetector:
             refine_edges=int(s.refine_edges),
             decode_sharpening=s.decode_sharpening,
         )
+        self._finalizer = weakref.finalize(self, destroy_detector, self._det)
+
+    def close(self) -> None:
+        """Free the C detector now (also done when the object is collected); idempotent."""
+        self._finalizer()
 
     def detect(self, image: NDArray[np.uint8]) -> list[Detection]:
         """Detect tags in a uint8 grayscale image, sorted by id."""

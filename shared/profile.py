@@ -22,6 +22,7 @@ class CutTiming:
     k: int
     median_ms: float
     p90_ms: float
+    min_ms: float
 
 
 @torch.no_grad()
@@ -46,14 +47,16 @@ def profile_cuts(
                 model.forward_head(z, cut.k)
             if i >= warmup:
                 times.append((time.perf_counter() - t0) * 1e3)
-        out.append(CutTiming(cut.k, float(np.median(times)), float(np.percentile(times, 90))))
+        out.append(CutTiming(cut.k, float(np.median(times)), float(np.percentile(times, 90)), float(min(times))))
     return out
 
 
-def calibrate_cumulative_ms(model: SplitKeypointNet, *, bf16: bool, repetitions: int = 3) -> list[float]:
-    """Quick start-up calibration: median cumulative head time per tag (batch 1) at every cut, ms."""
+def calibrate_cumulative_ms(model: SplitKeypointNet, *, bf16: bool, repetitions: int = 5) -> list[float]:
+    """Quick start-up calibration: cumulative head time per tag (batch 1) at every cut, ms. The minimum
+    over repetitions, not the median: services start together and calibrate while their neighbours
+    load, and the fastest run is the one least disturbed by them (live measurements scale it later)."""
     variant: Variant = "bf16-channels-last" if bf16 else "fp32-channels-last"
-    return [t.median_ms for t in profile_cuts(model, variant=variant, repetitions=repetitions, warmup=1)]
+    return [t.min_ms for t in profile_cuts(model, variant=variant, repetitions=repetitions, warmup=1)]
 
 
 def calibrate_pnp_ms(repetitions: int = 20) -> float:

@@ -10,7 +10,7 @@ import pupil_apriltags
 import pytest
 
 from shared.data.synth import pose_facing
-from shared.detector import CORNER_OFFSET_PX, DetectorSettings, TagDetector
+from shared.detector import CORNER_OFFSET_PX, DetectorSettings, TagDetector, destroy_detector
 from shared.geometry import (
     CORNER_KEYPOINTS,
     GeometryError,
@@ -65,6 +65,7 @@ def test_canonical_orientation_matches_apriltag3_pose_frame() -> None:
     img = _render(pose, 42, 0.2)
     det = pupil_apriltags.Detector(families="tag36h11", quad_decimate=1.0)
     (r,) = det.detect(img, estimate_tag_pose=True, camera_params=(CAM.fx, CAM.fy, CAM.cx, CAM.cy), tag_size=0.2)
+    destroy_detector(det)
     assert r.tag_id == 42
     np.testing.assert_allclose(r.pose_R, np.eye(3), atol=0.02)
     np.testing.assert_allclose(r.pose_t.ravel(), pose[:3, 3], atol=0.01)
@@ -90,6 +91,7 @@ def test_detector_corners_match_projection_after_measured_bias() -> None:
         (d,) = ours.detect(img)
         assert d.tag_id == 100 + i
         errs.append(d.corners_px - gt)
+    destroy_detector(raw)  # upstream __del__ frees in the wrong order; this makes it a no-op
     bias = np.concatenate(raw_res).mean(axis=0)
     print(f"measured pupil-apriltags corner bias (x, y) = {bias[0]:+.3f}, {bias[1]:+.3f} px")
     np.testing.assert_allclose(bias, [CORNER_OFFSET_PX, CORNER_OFFSET_PX], atol=0.1)

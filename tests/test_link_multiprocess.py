@@ -105,10 +105,14 @@ def _stream(tmp: Path, emu: LinkEmulator, *, controller: bool, oracle_k: list[in
     emu.set_profile(PROFILES[SCHEDULE[0]])
     with processes(tmp) as procs:
         procs.append(Proc("edge_infer", ["-m", "services.edge_infer", "--config", str(cfg)], tmp, wrapper=edge))
+        session = open_session(
+            ZenohSettings(mode="client", connect=[f"tcp/{s.mgmt_edge_addr}:7447"], connect_timeout_secs=90)
+        )
+        # One at a time: each side calibrates its per-cut compute at start-up, best not side by side.
+        wait_for_liveliness(session, [keys.alive(ROBOT, "edge_infer")], timeout_secs=120)
         procs.append(Proc("robot_infer", ["-m", "services.robot_infer", "--config", str(cfg)], tmp, wrapper=robot))
         if controller:
             procs.append(Proc("controller", ["-m", "services.controller", "--config", str(cfg)], tmp, wrapper=robot))
-        session = open_session(ZenohSettings(mode="client", connect=[f"tcp/{s.mgmt_edge_addr}:7447"]))
         run = Run(Monitor(None))
         lock = threading.Lock()
 

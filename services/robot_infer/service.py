@@ -109,6 +109,7 @@ def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading
                     )
                 )
     finally:
+        detector.close()
         token.undeclare()
         if acks is not None:
             acks.undeclare()
