@@ -35,6 +35,9 @@ class ComputeEstimator:
     running median of its own. Frames without tags teach only the fixed part.
     """
 
+    LEARN_FROM_FRACTION = 0.3
+    SKIP_FIRST = 3  # the first frames after start-up carry one-time costs, not the steady state
+
     def __init__(self, per_tag_ms: Sequence[float], *, window: int = 30) -> None:
         if len(per_tag_ms) != N_CUTS or min(per_tag_ms) < 0:
             raise ValueError(f"need {N_CUTS} non-negative per-tag times, got {list(per_tag_ms)}")
@@ -42,6 +45,9 @@ class ComputeEstimator:
         self._scale = _RunningMedian(window)
         self._fixed = _RunningMedian(window)
         self._tags = _RunningMedian(window)
+        self._seen = 0
+        self._stale = 0  # frames since the last scale evidence
+        self._half_life = float(window)
         self.current_k = 0
 
     def observe(self, *, k: int, tags: int, network_ms: float, fixed_ms: float = 0.0) -> None:
@@ -50,13 +56,24 @@ class ComputeEstimator:
         self._tags.add(float(tags))
         self._fixed.add(max(0.0, fixed_ms))
         predicted = tags * self.per_tag_ms[k]
-        if tags and predicted >= 0.5:  # too little work at this cut to tell a scale from noise
-            self._scale.add(max(0.0, network_ms) / predicted)
+        # Learn the scale only where most of this side's network runs: where little of it runs, the
+        # per-frame overheads (dispatch, tensor conversion, PnP) and the batch-friendly FC layers
+        # dominate, and their ratio says nothing about the convolutions the other cuts would run.
+        if tags and self.per_tag_ms[k] >= self.LEARN_FROM_FRACTION * float(self.per_tag_ms.max()):
+            self._seen += 1
+            if self._seen > self.SKIP_FIRST:
+                self._scale.add(max(0.0, network_ms) / predicted)
+                self._stale = 0
+                return
+        self._stale += 1
 
     @property
     def live_scale(self) -> float:
-        """Running median of live / calibrated network time (1.0 before any evidence)."""
-        return self._scale.get(1.0)
+        """Running median of live / calibrated network time; 1.0 before any evidence, and decaying back
+        towards 1.0 (half-life `window` frames) while the k in use gives no evidence: a scale learnt
+        long ago, perhaps under start-up load, must not decide the other cuts forever."""
+        learnt = self._scale.get(1.0)
+        return 1.0 + (learnt - 1.0) * 0.5 ** (self._stale / self._half_life)
 
     @property
     def tags_per_frame(self) -> float:

@@ -66,13 +66,21 @@ class Service:
     log_path: Path
 
 
-def start_service(name: str, config: Path, run_dir: Path, env: dict[str, str] | None = None) -> Service:
-    """Start `python -m services.<name> --config <config>` in its own process group."""
+def start_service(
+    name: str,
+    config: Path,
+    run_dir: Path,
+    env: dict[str, str] | None = None,
+    *,
+    wrapper: list[str] | None = None,
+) -> Service:
+    """Start `python -m services.<name> --config <config>` in its own process group; `wrapper` prefixes
+    the command line (e.g. `ip netns exec st-robot` to run it on the robot side of the emulated link)."""
     log_path = run_dir / f"{name}.log"
     full_env = {**os.environ, "PYTHONUNBUFFERED": "1", "SPLITTAG_RUN_DIR": str(run_dir), **(env or {})}
     with log_path.open("ab") as out:
         popen = subprocess.Popen(
-            [sys.executable, "-m", f"services.{name}", "--config", str(config)],
+            [*(wrapper or []), sys.executable, "-m", f"services.{name}", "--config", str(config)],
             stdout=out,
             stderr=subprocess.STDOUT,
             start_new_session=True,

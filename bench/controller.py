@@ -1,0 +1,252 @@
+"""The adaptive controller against an oracle on the emulated 5G uplink (root; run by hand).
+
+    sudo .venv/bin/python -m bench.controller --repetitions 3
+
+Robot side (camera, robot_infer with gamma, controller) and edge side (edge_infer) run in two network
+namespaces joined by the shaped veth (shared/linkemu.py). The link goes 5g -> 5g-pre-tdd -> 5g while
+frames stream. Run A: the controller decides. Run B: an oracle that knows the schedule pins the best
+k (computed from the C(k), E(k), S(k) measured in run A at the end of each phase and the profile's
+nominal link) at the instant of each change. Reported per repetition: how long after each change the
+controller's choice became optimal (or within its 5 % hysteresis margin of it), and the ratio of the
+mean end-to-end latencies A / B. Goals: <= 1 s and <= 1.05.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from shared import keys
+from shared.launch import Monitor, attach_monitor, start_service, stop_services
+from shared.linkemu import PROFILES, LinkEmulator, LinkEmulatorSettings, LinkProfile, in_netns, unavailable_reason
+from shared.messages import ControllerState, decode
+from shared.split_client import query_split
+from shared.transport import ZenohSettings, open_session, wait_for_liveliness
+
+ROBOT = "emu1"
+# A robot CPU 1.75x slower than the edge. T(0) < T(7) iff beta * 64 kB < (gamma - 1) * c7, c7 being the
+# network's time per tag (~23-36 ms here): 11.5 ms on 5g, 36.9 ms on 5g-pre-tdd, so gamma = 1.75 puts
+# the optimum at k = 0 on 5g and at a late cut on 5g-pre-tdd, with a margin of ~15 % either way.
+GAMMA = 1.75
+FPS = 3.0  # below every stage's service time at every k here: latency is T(k), not queueing
+SCHEDULE = ("5g", "5g-pre-tdd", "5g")
+HYSTERESIS = 1.05
+
+PhaseHook = Callable[[int, str, zenoh.Session, "Run"], None]
+
+
+def write_config(tmp: Path, emu: LinkEmulatorSettings, *, gamma: float = GAMMA, fps: float = FPS) -> Path:
+    """The services' TOML for the two namespaces."""
+    cfg = tmp / "emulated.toml"
+    cfg.write_text(f"""
+[common]
+robot_id = "{ROBOT}"
+run_dir = "{tmp}"
+[common.rerun]
+enabled = false
+[edge_infer.zenoh]
+mode = "router"
+listen = ["tcp/0.0.0.0:7447"]
+[robot_infer]
+split_k = 7
+gamma = {gamma}
+[robot_infer.zenoh]
+mode = "router"
+listen = ["tcp/127.0.0.1:7448"]
+connect = ["tcp/{emu.edge_addr}:7447"]
+[camera]
+fps = {fps}
+loop = true
+[camera.zenoh]
+mode = "client"
+connect = ["tcp/127.0.0.1:7448"]
+[controller.zenoh]
+mode = "client"
+connect = ["tcp/127.0.0.1:7448"]
+""")
+    return cfg
+
+
+@dataclass
+class Run:
+    """What one streaming run recorded."""
+
+    monitor: Monitor
+    states: list[tuple[int, ControllerState]] = field(default_factory=list)
+    changes_nanos: list[int] = field(default_factory=list)
+    start_nanos: int = 0
+    end_nanos: int = 0
+
+    def frames(self) -> list[dict[str, Any]]:
+        """TagPoses records captured between start and end."""
+        return [r for r in self.monitor.records if self.start_nanos <= r["capture_nanos"] < self.end_nanos]
+
+    def phase_bounds(self) -> list[tuple[int, int]]:
+        """(start, end) nanos of every phase."""
+        edges = [self.start_nanos, *self.changes_nanos, self.end_nanos]
+        return list(itertools.pairwise(edges))
+
+    def state_before(self, nanos: int) -> ControllerState:
+        """The last controller state published before `nanos`."""
+        return next(st for stamp, st in reversed(self.states) if stamp < nanos)
+
+
+def true_costs(state: ControllerState, p: LinkProfile) -> np.ndarray:
+    """T(k) from the measured C, E, S in a controller state and the profile's nominal link."""
+    return (
+        np.asarray(state.robot_ms_by_k)
+        + p.delay_ms
+        + p.beta_ms_per_kB * np.asarray(state.payload_kB_by_k)
+        + np.asarray(state.edge_ms_by_k)
+    )
+
+
+def stream(
+    tmp: Path,
+    emu: LinkEmulator,
+    *,
+    controller: bool,
+    oracle_k: list[int] | None = None,
+    warmup_secs: float = 6.0,
+    phase_secs: float = 9.0,
+    on_phase: PhaseHook | None = None,
+) -> Run:
+    """Start the services in the namespaces, stream through SCHEDULE, stop everything."""
+    s = emu.settings
+    cfg = write_config(tmp, s)
+    robot, edge = in_netns(s.robot_ns, []), in_netns(s.edge_ns, [])
+    emu.set_profile(PROFILES[SCHEDULE[0]])
+    started = [start_service("edge_infer", cfg, tmp, wrapper=edge)]
+    run = Run(Monitor(None))
+    session = open_session(
+        ZenohSettings(mode="client", connect=[f"tcp/{s.mgmt_edge_addr}:7447"], connect_timeout_secs=90)
+    )
+    lock = threading.Lock()
+
+    def on_state(sample: zenoh.Sample) -> None:
+        with lock:
+            run.states.append((time.time_ns(), decode(sample.payload.to_bytes(), ControllerState)))
+
+    subs = [*attach_monitor(session, ROBOT, run.monitor), session.declare_subscriber(keys.controller(ROBOT), on_state)]
+    try:
+        # One side at a time: each calibrates its per-cut compute at start-up, best not side by side.
+        wait_for_liveliness(session, [keys.alive(ROBOT, "edge_infer")], timeout_secs=120)
+        started.append(start_service("robot_infer", cfg, tmp, wrapper=robot))
+        if controller:
+            started.append(start_service("controller", cfg, tmp, wrapper=robot))
+        names = ["robot_infer", *(["controller"] if controller else [])]
+        wait_for_liveliness(session, [keys.alive(ROBOT, n) for n in names], timeout_secs=120)
+        started.append(start_service("camera", cfg, tmp, wrapper=robot))
+        if oracle_k is not None:
+            query_split(session, ROBOT, params=f"k={oracle_k[0]}")
+        time.sleep(warmup_secs)
+        run.start_nanos = time.time_ns()
+        for i, name in enumerate(SCHEDULE):
+            t_phase = time.monotonic()
+            if i:
+                emu.set_profile(PROFILES[name])
+                if oracle_k is not None:
+                    query_split(session, ROBOT, params=f"k={oracle_k[i]}")
+                run.changes_nanos.append(time.time_ns())
+            if on_phase is not None:
+                on_phase(i, name, session, run)
+            time.sleep(max(0.0, t_phase + phase_secs - time.monotonic()))
+        run.end_nanos = time.time_ns()
+        time.sleep(2.0)  # frames captured before the end are still on their way
+    finally:
+        for sub in subs:
+            sub.undeclare()
+        session.close()
+        codes = stop_services(started)
+    bad = {n: c for n, c in codes.items() if c != 0}
+    if bad:
+        raise RuntimeError(f"services exited badly: {bad} (logs in {tmp})")
+    return run
+
+
+def oracle_choice(run: Run) -> list[int]:
+    """Best k per phase from what run measured at the end of that phase and the profile's link."""
+    return [
+        int(np.argmin(true_costs(run.state_before(end), PROFILES[name])))
+        for (_, end), name in zip(run.phase_bounds(), SCHEDULE, strict=True)
+    ]
+
+
+def reach_secs(run: Run) -> list[float | None]:
+    """Per change: seconds until the controller's choice was optimal or within HYSTERESIS of it."""
+    out: list[float | None] = []
+    bounds = run.phase_bounds()[1:]
+    for (change, end), name in zip(bounds, SCHEDULE[1:], strict=True):
+        t = true_costs(run.state_before(end), PROFILES[name])
+        good = {k for k in range(len(t)) if t[k] <= HYSTERESIS * t.min()}
+        hit = next((stamp for stamp, st in run.states if change <= stamp < end and st.chosen_k in good), None)
+        out.append(None if hit is None else (hit - change) / 1e9)
+    return out
+
+
+def mean_e2e_ms(run: Run) -> float:
+    """Mean capture-to-pose latency over the measured frames."""
+    return float(np.mean([r["e2e_ms"] for r in run.frames()]))
+
+
+def main() -> int:
+    """Run the comparison `--repetitions` times and print one row per repetition."""
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--repetitions", type=int, default=3)
+    ap.add_argument("--phase-secs", type=float, default=9.0)
+    ap.add_argument("--json", type=Path)
+    args = ap.parse_args()
+    reason = unavailable_reason()
+    if reason is not None:
+        raise SystemExit(reason)
+    rows: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory() as tmp, LinkEmulator(LinkEmulatorSettings(prefix="stb")) as emu:
+        emu.up(PROFILES[SCHEDULE[0]])
+        for rep in range(args.repetitions):
+            a, b = Path(tmp) / f"ctl{rep}", Path(tmp) / f"oracle{rep}"
+            a.mkdir()
+            b.mkdir()
+            ctl = stream(a, emu, controller=True, phase_secs=args.phase_secs)
+            ks = oracle_choice(ctl)
+            oracle = stream(b, emu, controller=False, oracle_k=ks, phase_secs=args.phase_secs)
+            reached, m_ctl, m_oracle = reach_secs(ctl), mean_e2e_ms(ctl), mean_e2e_ms(oracle)
+            row: dict[str, Any] = {
+                "oracle_k": ks,
+                "reach_secs": reached,
+                "mean_e2e_ms_controller": m_ctl,
+                "mean_e2e_ms_oracle": m_oracle,
+                "ratio": m_ctl / m_oracle,
+                "frames": len(ctl.frames()),
+            }
+            rows.append(row)
+            reach = " / ".join("never" if r is None else f"{r:.2f} s" for r in reached)
+            print(
+                f"rep {rep}: oracle k {ks}, reach {reach}, mean e2e controller {row['mean_e2e_ms_controller']:.1f} ms, "
+                f"oracle {row['mean_e2e_ms_oracle']:.1f} ms, ratio {row['ratio']:.3f}",
+                flush=True,
+            )
+    ratios = [float(r["ratio"]) for r in rows]
+    all_reach: list[float | None] = [x for r in rows for x in r["reach_secs"]]
+    reaches = [x for x in all_reach if x is not None]
+    print(
+        f"median ratio {np.median(ratios):.3f} (goal <= 1.05); reach median {np.median(reaches):.2f} s, "
+        f"max {max(reaches):.2f} s (goal <= 1 s); never reached: {len(all_reach) - len(reaches)}"
+    )
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,39 @@
+"""ComputeEstimator: calibration scaled by live evidence where it is informative, forgetting when stale."""
+
+from __future__ import annotations
+
+import pytest
+
+from shared.compute import ComputeEstimator, head_per_tag_ms, tail_per_tag_ms
+
+CUMULATIVE = [0.1, 15.0, 19.0, 22.0, 23.0, 27.0, 28.0, 32.0]
+
+
+def test_robot_scale_learnt_at_heavy_cuts_applies_to_all() -> None:
+    est = ComputeEstimator(head_per_tag_ms(CUMULATIVE))
+    for _ in range(3 + 10):  # the first 3 are start-up transients and ignored
+        est.observe(k=7, tags=4, network_ms=2.0 * 4 * 32.0, fixed_ms=8.0)
+    assert est.live_scale == pytest.approx(2.0)
+    assert est.tags_per_frame == 4
+    ms = est.ms_by_k()
+    assert ms[7] == pytest.approx(8.0 + 4 * 32.0 * 2.0)
+    assert ms[3] == pytest.approx(8.0 + 4 * 22.0 * 2.0)
+    assert ms[0] == pytest.approx(8.0 + 4 * 0.1 * 2.0)
+
+
+def test_light_cuts_teach_nothing_and_stale_scale_decays_to_calibration() -> None:
+    est = ComputeEstimator(tail_per_tag_ms(CUMULATIVE, pnp_ms=0.1))  # edge: heavy at k = 0
+    for _ in range(13):
+        est.observe(k=0, tags=3, network_ms=1.5 * 3 * (31.9 + 0.1))
+    assert est.live_scale == pytest.approx(1.5)
+    for _ in range(30):  # at k = 7 the edge only solves PnP: overheads, not the convolutions
+        est.observe(k=7, tags=3, network_ms=5.0)
+    assert est.live_scale == pytest.approx(1.25)  # one half-life back towards the calibration
+    for _ in range(300):
+        est.observe(k=7, tags=3, network_ms=5.0)
+    assert est.live_scale == pytest.approx(1.0, abs=1e-3)
+
+
+def test_bad_calibration_is_rejected() -> None:
+    with pytest.raises(ValueError, match="8 non-negative"):
+        ComputeEstimator([1.0, 2.0])
