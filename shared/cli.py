@@ -15,7 +15,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     from shared.launch import run_pipeline
 
-    summary = run_pipeline(args.config, duration_secs=args.duration)
+    summary = run_pipeline(args.config, duration_secs=args.duration, controller=args.controller, link=args.link)
     print(json.dumps({k: v for k, v in summary.items() if k != "exit_codes"}, indent=2))
     return 0 if summary.get("frames") else 1
 
@@ -25,7 +25,9 @@ def _cmd_up(args: argparse.Namespace) -> int:
 
     from shared.launch import run_pipeline
 
-    summary = run_pipeline(args.config, duration_secs=args.duration, runs_root=args.runs)
+    summary = run_pipeline(
+        args.config, duration_secs=args.duration, runs_root=args.runs, controller=args.controller, link=args.link
+    )
     print(json.dumps(summary, indent=2))
     return 0
 
@@ -343,6 +345,15 @@ def _cmd_link_cost(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_launch_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--controller", action="store_true", help="also run the adaptive split controller")
+    p.add_argument(
+        "--link",
+        metavar="PROFILE",
+        help="run robot and edge sides over the emulated uplink (root): 5g, 5g-pre-tdd, ...",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every subcommand."""
     parser = argparse.ArgumentParser(prog="splittag", description=__doc__)
@@ -351,12 +362,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="run the whole pipeline on the demo scene with a live line per second")
     p.add_argument("--config", type=Path, default=Path("deploy/local.toml"))
     p.add_argument("--duration", type=float, default=30.0)
+    _add_launch_options(p)
     p.set_defaults(func=_cmd_demo)
 
     p = sub.add_parser("up", help="start every service (deploy/up.sh); Ctrl-C stops them")
     p.add_argument("--config", type=Path, default=Path("deploy/local.toml"))
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     p.add_argument("--runs", type=Path, default=Path("runs"), help="run folders go under here (RUNS/current links)")
+    _add_launch_options(p)
     p.set_defaults(func=_cmd_up)
     p = sub.add_parser("down", help="stop the deployment in RUNS/current (SIGINT to every service)")
     p.add_argument("--runs", type=Path, default=Path("runs"))

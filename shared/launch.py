@@ -25,7 +25,7 @@ import zenoh
 
 from shared import keys
 from shared.codec import WireError
-from shared.messages import CameraPose, TagPoses, decode
+from shared.messages import CameraPose, ControllerState, TagPoses, decode
 from shared.metrics import translation_error_cm
 from shared.perception import TagMapFile, TagSpec
 from shared.sources import demo_scene
@@ -114,6 +114,7 @@ class Monitor:
     records: list[dict[str, Any]] = field(default_factory=list)
     gt: dict[int, np.ndarray] = field(default_factory=dict)
     bad: int = 0
+    controller: ControllerState | None = None
     _recent: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=400))
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -141,6 +142,14 @@ class Monitor:
         with self._lock:
             self.records.append(rec)
             self._recent.append(rec)
+
+    def on_controller(self, payload: bytes) -> None:
+        """Keep the latest controller state for the live line."""
+        try:
+            self.controller = decode(payload, ControllerState)
+        except WireError as exc:
+            self.bad += 1
+            log.warning("monitor: bad ControllerState: %s", exc)
 
     def on_gt(self, payload: bytes) -> None:
         """Record one ground-truth camera pose."""
@@ -180,7 +189,18 @@ class Monitor:
         return (
             f"{len(recent):>3} fps  k={recent[-1]['k']}  payload {recent[-1]['payload_bytes'] / 1024:7.1f} kB  "
             f"robot {med['robot_ms']:6.1f} ms  link {med['transport_ms']:5.1f} ms  edge {med['edge_ms']:5.1f} ms  "
-            f"capture->pose {med['e2e_ms']:6.1f} ms  tags {recent[-1]['tags']}{err}"
+            f"capture->pose {med['e2e_ms']:6.1f} ms  tags {recent[-1]['tags']}{err}{self._controller_part()}"
+        )
+
+    def _controller_part(self) -> str:
+        c = self.controller
+        if c is None:
+            return ""
+        t = c.predicted_ms_by_k
+        pin = " pinned" if c.pinned else ""
+        return (
+            f"  | controller t0 {c.t0_ms:.1f} ms beta {c.beta_ms_per_kB:.3f} ms/kB "
+            f"best k={c.best_k} ({t[c.best_k]:.0f} ms){pin}"
         )
 
     def summary(self) -> dict[str, Any]:
@@ -208,6 +228,7 @@ def attach_monitor(session: zenoh.Session, robot_id: str, monitor: Monitor) -> l
     return [
         session.declare_subscriber(keys.ground_truth(robot_id), lambda s: monitor.on_gt(s.payload.to_bytes())),
         session.declare_subscriber(keys.tag_poses(robot_id), lambda s: monitor.on_poses(s.payload.to_bytes())),
+        session.declare_subscriber(keys.controller(robot_id), lambda s: monitor.on_controller(s.payload.to_bytes())),
     ]
 
 
@@ -248,8 +269,18 @@ def monitor_settings(config: Path) -> tuple[str, ZenohSettings]:
 
     doc = tomllib.loads(config.read_text())
     robot_id = doc.get("common", {}).get("robot_id", "robot1")
+    if "connect" in doc.get("monitor", {}):
+        return robot_id, ZenohSettings(mode="client", connect=doc["monitor"]["connect"])
     edge = doc.get("edge_infer", {}).get("zenoh", {})
     return robot_id, ZenohSettings(mode="client", connect=edge.get("listen", ["tcp/127.0.0.1:7447"]))
+
+
+def _robot_router(config: Path) -> str:
+    """The robot-side router's endpoint in a deploy TOML (where the controller connects)."""
+    import tomllib
+
+    listen = tomllib.loads(config.read_text()).get("robot_infer", {}).get("zenoh", {}).get("listen", [])
+    return str(listen[0]) if listen else "tcp/127.0.0.1:7448"
 
 
 def run_pipeline(
@@ -260,18 +291,55 @@ def run_pipeline(
     extra: dict[str, dict[str, Any]] | None = None,
     quiet: bool = False,
     runs_root: Path = Path("runs"),
+    controller: bool = False,
+    link: str | None = None,
 ) -> dict[str, Any]:
-    """Start the services, print a live line per second until duration/SIGINT/camera end, stop all."""
+    """Start the services, print a live line per second until duration/SIGINT/camera end, stop all.
+
+    `controller` adds the adaptive split controller. `link` (a profile name, root only) runs the robot
+    side (camera, robot_infer, controller) and the edge side (edge_infer, slam) in the namespaces of
+    an emulated uplink with that profile (switch it live with `splittag link set`), rewriting the
+    endpoints: edge router on tcp/0.0.0.0:7447, robot router connecting over the shaped veth.
+    """
+    from shared.linkemu import LinkEmulator, LinkEmulatorSettings, in_netns, profile
+
+    if controller and "controller" not in services:
+        services = (*services, "controller")
+    emu = None
+    wrappers: dict[str, list[str]] = {}
+    if link is not None:
+        emu = LinkEmulator(LinkEmulatorSettings())
+        s = emu.settings
+        extra = {
+            **(extra or {}),
+            "edge_infer": {"zenoh": {"mode": "router", "listen": ["tcp/0.0.0.0:7447"]}},
+            "robot_infer": {
+                "zenoh": {"mode": "router", "listen": ["tcp/127.0.0.1:7448"], "connect": [f"tcp/{s.edge_addr}:7447"]}
+            },
+            "camera": {"zenoh": {"mode": "client", "connect": ["tcp/127.0.0.1:7448"]}},
+            "controller": {"zenoh": {"mode": "client", "connect": ["tcp/127.0.0.1:7448"]}},
+            "slam": {"zenoh": {"mode": "client", "connect": ["tcp/127.0.0.1:7447"]}},
+            "monitor": {"connect": [f"tcp/{s.mgmt_edge_addr}:7447"]},
+        }
+        side = {"camera": s.robot_ns, "robot_infer": s.robot_ns, "controller": s.robot_ns}
+        wrappers = {name: in_netns(side.get(name, s.edge_ns), []) for name in services}
+    elif controller:
+        robot_router = _robot_router(config)
+        extra = {**(extra or {}), "controller": {"zenoh": {"mode": "client", "connect": [robot_router]}}}
     run_dir = new_run_dir(runs_root)
     run_config = write_run_config(run_dir, config, extra=extra)
     robot_id, zs = monitor_settings(run_config)
+    if emu is not None:
+        emu.log_dir = run_dir
+        emu.up(profile(link or "5g"))
+        print(f"emulated link up: profile {link}; `sudo splittag link set PROFILE` switches it live", flush=True)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     started: list[Service] = []
     monitor = Monitor(demo_tag_map())
     try:
         for name in services:
-            started.append(start_service(name, run_config, run_dir))
+            started.append(start_service(name, run_config, run_dir, wrapper=wrappers.get(name)))
         (run_dir / "pids").write_text("\n".join(f"{s.name} {s.popen.pid}" for s in started) + "\n")
         session = open_session(zs)
         subs = attach_monitor(session, robot_id, monitor)
@@ -295,6 +363,8 @@ def run_pipeline(
         session.close()
     finally:
         codes = stop_services(started)
+        if emu is not None:
+            emu.down()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     summary = {**monitor.summary(), "exit_codes": codes, "run_dir": str(run_dir)}

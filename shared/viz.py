@@ -29,6 +29,9 @@ from shared.messages import CameraIntrinsics, TagPoses
 log = logging.getLogger(__name__)
 
 
+TRAJECTORY_PERIOD_NANOS = 1_000_000_000
+
+
 class RerunSettings(BaseModel):
     """Rerun logging of one service."""
 
@@ -92,6 +95,7 @@ class RerunViz:
         self.rec = rr.RecordingStream("splittag", recording_id=settings.recording_id or run_dir.name)
         self.rec.save(run_dir / f"{service}.rrd")
         self._time_set = False
+        self._trajectory_logged: dict[str, int] = {}
 
     def _at(self, capture_nanos: int) -> None:
         self.rec.set_time("capture_time", timestamp=capture_nanos / 1e9)
@@ -165,6 +169,10 @@ class RerunViz:
         """A whole 3D trajectory as one line strip (re-logged as it grows)."""
         if len(positions) < 2:
             return
+        # The strip is re-logged whole, so its cost grows with the run: once per second of capture time.
+        if capture_nanos - self._trajectory_logged.get(path, -(10**18)) < TRAJECTORY_PERIOD_NANOS:
+            return
+        self._trajectory_logged[path] = capture_nanos
         self._at(capture_nanos)
         colour = [255, 120, 0] if path.endswith("trajectory") else [60, 120, 255]
         self.rec.log(path, self._rr.LineStrips3D([positions], colors=colour, radii=0.01))
