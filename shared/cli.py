@@ -222,9 +222,13 @@ def _cmd_link_up(args: argparse.Namespace) -> int:
 
 
 def _cmd_link_set(args: argparse.Namespace) -> int:
-    from shared.linkemu import LinkEmulator, LinkEmulatorSettings, profile
+    from shared.linkemu import LinkEmulationUnavailable, LinkEmulator, LinkEmulatorSettings, profile
 
-    LinkEmulator(LinkEmulatorSettings(prefix=args.prefix)).set_profile(profile(args.profile))
+    try:
+        LinkEmulator(LinkEmulatorSettings(prefix=args.prefix)).set_profile(profile(args.profile))
+    except (LinkEmulationUnavailable, ValueError) as exc:
+        print(f"error: {exc}")
+        return 1
     print(f"link profile {args.profile}")
     return 0
 
@@ -398,9 +402,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--connect", action="append", default=[], help="zenoh endpoint, repeatable")
     p.set_defaults(func=_cmd_echo)
 
-    link = sub.add_parser("link", help="emulated 5G uplink, link probing and split costs").add_subparsers(
-        dest="link_command", required=True
+    link_parser = sub.add_parser("link", help="emulated 5G uplink, link probing and split costs")
+    link_parser.add_argument(
+        "--profiles", type=Path, help="TOML of extra link profiles ([name] rate_mbit, delay_ms, description)"
     )
+    link = link_parser.add_subparsers(dest="link_command", required=True)
     p = link.add_parser("up", help="create the robot/edge namespaces with the emulated link (root); Ctrl-C removes")
     p.add_argument("--profile", default="5g")
     p.add_argument("--prefix", default="st")
@@ -502,10 +508,19 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _load_link_profiles(args: argparse.Namespace) -> None:
+    path = getattr(args, "profiles", None) or getattr(args, "link_profiles", None)
+    if path:
+        from shared.linkemu import load_profiles
+
+        load_profiles(path)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Parse arguments and run the chosen subcommand."""
     args = build_parser().parse_args(argv)
     setup_logging(f"splittag-{args.command}")
+    _load_link_profiles(args)
     code: int = args.func(args)
     return code
 

@@ -75,8 +75,36 @@ PROFILES: dict[str, LinkProfile] = {
 }
 
 
+def load_profiles(path: Path) -> dict[str, LinkProfile]:
+    """Profiles from a TOML file, one table per profile, e.g.
+
+        [lte-uplink]
+        rate_mbit = 8.0
+        delay_ms = 25.0
+        description = "a congested LTE uplink"
+
+    They add to (or replace) the built-in ones in PROFILES; a bad entry raises a ValueError naming it.
+    """
+    import tomllib
+
+    try:
+        doc = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise ValueError(f"cannot read link profiles from {path}: {exc}") from exc
+    out = {}
+    for name, values in doc.items():
+        if not isinstance(values, dict):
+            raise ValueError(f"{path}: [{name}] must be a table of rate_mbit / delay_ms / description")
+        try:
+            out[name] = LinkProfile(name=name, **values)
+        except ValueError as exc:
+            raise ValueError(f"{path}: profile [{name}]: {exc}") from exc
+    PROFILES.update(out)
+    return out
+
+
 def profile(name: str) -> LinkProfile:
-    """A named profile, or a ValueError listing the names."""
+    """A named profile (built in, or added by load_profiles), or a ValueError listing the names."""
     try:
         return PROFILES[name]
     except KeyError:
@@ -274,6 +302,10 @@ class LinkEmulator:
     def set_profile(self, p: LinkProfile) -> None:
         """Switch the link live: tbf rate on the uplink veth, floor delay in the delay line."""
         s = self.settings
+        if not s.control_path.exists():
+            raise LinkEmulationUnavailable(
+                f"no emulated link with prefix {s.prefix!r} is up (start one with `splittag link up`)"
+            )
         if p.rate_mbit is None:
             _run(in_netns(s.robot_ns, ["tc", "qdisc", "del", "dev", s.uplink_dev, "root"]), check=False)
         else:

@@ -52,3 +52,18 @@ def test_link_probe_recovers_the_5g_model(tmp_path: Path) -> None:
     assert doc["floor_ms"] >= 39.9
     assert len(doc["samples"]) == 6 * 8
     assert (tmp_path / "probe.png").stat().st_size > 10_000
+
+
+def test_profiles_load_from_toml_with_clear_errors(tmp_path: Path) -> None:
+    from shared.linkemu import load_profiles
+
+    loaded = load_profiles(Path("deploy/link_profiles.example.toml"))
+    assert set(loaded) == {"lte", "wifi"}
+    assert profile("lte").rate_mbit == 8.0 and profile("lte").delay_ms == 25.0
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[slow]\nrate_mbit = -1\n")
+    with pytest.raises(ValueError, match=r"profile \[slow\]"):
+        load_profiles(bad)
+    bad.write_text("speed = 3\n")
+    with pytest.raises(ValueError, match="must be a table"):
+        load_profiles(bad)

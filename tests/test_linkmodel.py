@@ -64,3 +64,19 @@ def test_hysteresis_needs_a_real_and_lasting_gain() -> None:
     assert chooser.choose(flat, current=7).k == 7  # 1 ms gain: not worth a switch
     better = [100.0, 100.0, 50.0, 100.0, 100.0, 100.0, 100.0, 100.0]
     assert [chooser.choose(better, current=7).k for _ in range(3)] == [7, 7, 2]
+
+
+def test_online_estimator_refits_within_a_few_samples_of_a_change() -> None:
+    """Detection plus re-fit must be quick: the controller's 1 s goal allows only a handful of samples."""
+    rng = np.random.default_rng(3)
+    est = OnlineLinkEstimator(cusum_threshold=5.0)
+    for s, r in _samples(rng, 39.9, 0.577, 300):
+        est.add(s, r)
+    needed = None
+    for i, (s, r) in enumerate(_samples(rng, 39.9, 0.18, 60)):
+        est.add(s, r)
+        if needed is None and abs(est.beta_ms_per_kB - 0.18) <= 0.15 * 0.18 and abs(est.t0_ms - 39.9) <= 4.0:
+            needed = i + 1
+    print(f"re-fit after {needed} samples")
+    assert needed is not None and needed <= 12
+    assert est.beta_ms_per_kB == pytest.approx(0.18, rel=0.1)
