@@ -79,4 +79,4 @@ def test_online_estimator_refits_within_a_few_samples_of_a_change() -> None:
             needed = i + 1
     print(f"re-fit after {needed} samples")
     assert needed is not None and needed <= 12
-    assert est.beta_ms_per_kB == pytest.approx(0.18, rel=0.1)
+    assert est.beta_ms_per_kB == pytest.approx(0.18, rel=0.15)  # and stays there (outliers included)
