@@ -195,6 +195,28 @@ def reach_secs(run: Run) -> list[float | None]:
     return out
 
 
+def timeline(run: Run, before_secs: float = 0.5, after_secs: float = 2.0) -> list[list[list[float]]]:
+    """Per change: [t since change s, t0, beta, link changes, samples, chosen k, best k] of each state."""
+    out = []
+    for change in run.changes_nanos:
+        out.append(
+            [
+                [
+                    (stamp - change) / 1e9,
+                    st.t0_ms,
+                    st.beta_ms_per_kB,
+                    st.link_changes,
+                    st.link_samples,
+                    st.chosen_k,
+                    st.best_k,
+                ]
+                for stamp, st in run.states
+                if -before_secs <= (stamp - change) / 1e9 <= after_secs
+            ]
+        )
+    return out
+
+
 def mean_e2e_ms(run: Run) -> float:
     """Mean capture-to-pose latency over the measured frames."""
     return float(np.mean([r["e2e_ms"] for r in run.frames()]))
@@ -228,6 +250,7 @@ def main() -> int:
                 "mean_e2e_ms_oracle": m_oracle,
                 "ratio": m_ctl / m_oracle,
                 "frames": len(ctl.frames()),
+                "timeline": timeline(ctl),
             }
             rows.append(row)
             reach = " / ".join("never" if r is None else f"{r:.2f} s" for r in reached)
