@@ -49,6 +49,8 @@ class OnlineLinkEstimator:
     then forgets old evidence at once (covariance reset) instead of slowly.
     """
 
+    RESET_VARIANCE = (400.0, 0.25)  # after a change: t0 within ~20 ms, beta within ~0.5 ms/kB
+
     def __init__(
         self,
         *,
@@ -81,13 +83,15 @@ class OnlineLinkEstimator:
             self._g_pos = max(0.0, self._g_pos + zc - self.drift)
             self._g_neg = max(0.0, self._g_neg - zc - self.drift)
             if max(self._g_pos, self._g_neg) > self.threshold:
-                self.p = np.diag([1e4, 1.0])  # the link changed: forget
+                self.p = np.diag(list(self.RESET_VARIANCE))  # the link changed: forget
                 self.changes += 1
                 self._g_pos = self._g_neg = 0.0
         weight = 1.0 if z <= self.gate or self.n < 10 else self.gate / z
         px = self.p @ x
         k = weight * px / (self.lam + weight * float(x @ px))
-        self.theta = self.theta + k * resid
+        # A link has no negative floor or slope: clamping keeps a half-re-fitted estimate physical
+        # (a negative beta would make the biggest payload look cheapest for a moment).
+        self.theta = np.maximum(self.theta + k * resid, 0.0)
         self.p = (self.p - np.outer(k, px)) / self.lam
         self.scale = 0.95 * self.scale + 0.05 * min(abs(resid), 5 * self.scale) * 1.25
         self.n += 1
