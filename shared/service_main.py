@@ -39,4 +39,9 @@ def service_main(name: str, settings_cls: type[S], run: Callable[[S, zenoh.Sessi
     finally:
         session.close()
         log.info("%s stopped", name)
+        # From here on the interpreter shuts down and restores default handlers for signals it
+        # handles; a late SIGINT (a launcher stopping everyone, a second Ctrl-C) would then kill the
+        # process mid-cleanup with -SIGINT. Ignored signals stay ignored: the exit code stays ours.
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)
     return 0
