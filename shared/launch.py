@@ -6,6 +6,7 @@ the demo tag map, `pids`, and `summary.json` at exit. runs/current points at the
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -90,20 +91,24 @@ def start_service(
 
 
 def stop_services(services: list[Service], timeout_secs: float = 15.0) -> dict[str, int | None]:
-    """SIGINT every process group, then wait, escalating to SIGKILL."""
-    for s in services:
+    """Stop in reverse start order, one at a time (SIGINT to the process group, SIGKILL after
+    timeout_secs): producers (camera, robot side) finish before the consumers they feed, so nobody
+    blocks sending into a peer that is already gone, and the edge and SLAM see the last frames."""
+    codes: dict[str, int | None] = {}
+    for s in reversed(services):
         if s.popen.poll() is None:
             os.killpg(s.popen.pid, signal.SIGINT)
-    codes: dict[str, int | None] = {}
-    deadline = time.monotonic() + timeout_secs
-    for s in services:
         try:
-            s.popen.wait(timeout=max(0.1, deadline - time.monotonic()))
+            s.popen.wait(timeout=timeout_secs)
         except subprocess.TimeoutExpired:
+            log.warning("%s did not stop within %.0f s: its stacks go to its log, then SIGKILL", s.name, timeout_secs)
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(s.popen.pid, signal.SIGUSR1)
+            time.sleep(1.0)
             os.killpg(s.popen.pid, signal.SIGKILL)
             s.popen.wait()
         codes[s.name] = s.popen.returncode
-    return codes
+    return {s.name: codes[s.name] for s in services}
 
 
 @dataclass

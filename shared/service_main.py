@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import logging
 import signal
 import threading
@@ -25,6 +26,9 @@ def service_main(name: str, settings_cls: type[S], run: Callable[[S, zenoh.Sessi
     parser.add_argument("--config", type=Path, default=None, help="TOML settings file (see deploy/)")
     args = parser.parse_args()
     log = setup_logging(name)
+    # `kill -USR1 <pid>` (and stop_services before it escalates to SIGKILL) writes every thread's
+    # stack to this service's log: a hung service says where it hangs.
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     settings = settings_cls.load(args.config)
     settings.log_resolved()
     stop = threading.Event()
