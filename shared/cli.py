@@ -318,8 +318,9 @@ def _cmd_link_cost(args: argparse.Namespace) -> int:
 
     import torch
 
-    from shared.linkprobe import cost_table, cut_tensor_bytes, link_fit_of, plot_costs, write_json
+    from shared.linkprobe import cost_table, link_fit_of, plot_costs, write_json
     from shared.model import CUTS
+    from shared.pipeline import tensor_bytes
     from shared.profile import calibrate_cumulative_ms, calibrate_pnp_ms
     from shared.weights import load_model
 
@@ -329,7 +330,7 @@ def _cmd_link_cost(args: argparse.Namespace) -> int:
     pnp = calibrate_pnp_ms()
     compute = [args.tags * c for c in cumulative]
     edge = [args.tags * (cumulative[-1] - c + pnp) for c in cumulative]
-    payload = [args.tags * cut_tensor_bytes(c.k) / 1024 for c in CUTS]
+    payload = [args.tags * tensor_bytes(c.k, "fp16") / 1024 for c in CUTS]
     table = cost_table(compute_ms=compute, edge_ms=edge, payload_kB=payload, fit=fit, gammas=args.gamma)
     print(
         f"link: t0 {fit.t0_ms:.2f} ms, beta {fit.beta_ms_per_kB:.4f} ms/kB; {args.tags} tag(s), edge as fast as gamma=1"

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from shared.messages import N_CUTS
+from shared.messages import N_CUTS, ComputeProfile
 
 
 class _RunningMedian:
@@ -85,6 +85,18 @@ class ComputeEstimator:
         n = self.tags_per_frame if tags is None else tags
         fixed = self._fixed.get(0.0)
         return [float(v) for v in fixed + n * self.per_tag_ms * self.live_scale]
+
+    def message(self, *, robot_id: str, side: str, stamp_nanos: int, factor: float = 1.0) -> ComputeProfile:
+        """The ComputeProfile to publish: ms per frame at every cut, times `factor` (robot: gamma)."""
+        return ComputeProfile(
+            robot_id=robot_id,
+            side=side,  # type: ignore[arg-type]
+            stamp_nanos=stamp_nanos,
+            current_k=self.current_k,
+            tags_per_frame=self.tags_per_frame,
+            live_scale=self.live_scale,
+            ms_by_k=[factor * v for v in self.ms_by_k()],
+        )
 
 
 def head_per_tag_ms(cumulative_ms: Sequence[float]) -> list[float]:

@@ -19,18 +19,16 @@ import numpy as np
 
 from shared.linkmodel import HysteresisChooser, OnlineLinkEstimator
 from shared.messages import N_CUTS, ComputeProfile, ControllerState, encode
-from shared.model import CUTS
-from shared.pipeline import wire_dtype
+from shared.pipeline import CodecName, tensor_bytes
 from shared.probe import probe_features
 
 
 @lru_cache(maxsize=64)
-def features_payload_bytes(tags: int, k: int, codec: str = "fp16") -> int:
+def features_payload_bytes(tags: int, k: int, codec: CodecName = "fp16") -> int:
     """Exact wire size of a Features message with `tags` tags at cut k (envelope included)."""
-    one = int(np.prod(CUTS[k].shape)) * wire_dtype(k, codec).itemsize  # type: ignore[arg-type]
     if tags == 0:
         return len(encode(probe_features(0)))
-    msg = probe_features(one)
+    msg = probe_features(tensor_bytes(k, codec))
     return len(encode(msg.model_copy(update={"tags": msg.tags * tags})))
 
 
@@ -43,7 +41,7 @@ class ControllerSettingsCore:
     dwell: int = 2
     half_life: float = 40.0
     change_threshold: float = 5.0
-    codec: str = "fp16"
+    codec: CodecName = "fp16"
 
 
 class SplitController:

@@ -20,20 +20,15 @@ import numpy as np
 from shared.linkmodel import FLOOR_BELOW_KB, LinkFit, fit_link, split_costs
 from shared.messages import encode
 from shared.model import CUTS
-from shared.pipeline import wire_dtype
+from shared.pipeline import tensor_bytes
 from shared.probe import Prober, probe_features
 
 KB = 1024.0
 
 
-def cut_tensor_bytes(k: int, codec: str = "fp16") -> int:
-    """Bytes of one tag's tensor at cut k on the wire."""
-    return int(np.prod(CUTS[k].shape)) * wire_dtype(k, codec).itemsize  # type: ignore[arg-type]
-
-
 def probe_payloads(tags: int = 1) -> list[bytes]:
     """One probe message per split point, as large as `tags` tags' tensors at that cut."""
-    return [encode(probe_features(tags * cut_tensor_bytes(c.k), seq=c.k)) for c in CUTS]
+    return [encode(probe_features(tags * tensor_bytes(c.k, "fp16"), seq=c.k)) for c in CUTS]
 
 
 def run_probes(prober: Prober, payloads: Sequence[bytes], *, repetitions: int, warmup: int = 3) -> list[list[float]]:

@@ -37,6 +37,11 @@ def wire_dtype(k: int, codec: CodecName) -> np.dtype[np.generic]:
     return np.dtype(np.float16 if codec == "fp16" else np.float32)
 
 
+def tensor_bytes(k: int, codec: CodecName) -> int:
+    """Bytes of one tag's tensor at cut k on the wire."""
+    return CUTS[k].elements * wire_dtype(k, codec).itemsize
+
+
 def check_tensor(tensor: np.ndarray, k: int, codec: CodecName) -> None:
     """Raise FeatureShapeError unless the tensor has the shape and dtype of cut k."""
     want_shape, want_dtype = CUTS[k].shape, wire_dtype(k, codec)

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+import pytest
 
 from shared.controller import ControllerSettingsCore, SplitController, features_payload_bytes
 from shared.messages import ComputeProfile, Features, decode, encode
@@ -78,3 +81,43 @@ def test_probe_sizes_rotate_to_what_was_not_seen() -> None:
     assert core.probe_size_due(sizes, 0.3) == 16 * 1024  # both stale: the older one first
     core.add_link_sample(100, -1.0)  # nonsense samples are ignored
     assert core.link.n == 2
+
+
+def test_controller_service_rejects_bad_messages_and_keeps_running(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Real Zenoh on loopback: garbage on its inputs is rejected, counted and logged; the loop goes on."""
+    import logging
+    import threading
+    import time
+
+    from services.controller.service import run
+    from services.controller.settings import ControllerSettings
+    from shared import keys
+    from shared.transport import ZenohSettings, free_tcp_port, open_session
+
+    port = free_tcp_port()
+    hub = open_session(ZenohSettings(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
+    ctl_session = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
+    settings = ControllerSettings(robot_id="ctl1", run_dir=tmp_path, probe_period_secs=10.0)
+    stop = threading.Event()
+    worker = threading.Thread(target=run, args=(settings,), kwargs={"session": ctl_session, "stop": stop})
+    caplog.set_level(logging.WARNING, logger="services.controller.service")
+    worker.start()
+    try:
+        time.sleep(1.0)
+        hub.put(keys.tag_poses("ctl1"), b"not msgpack at all")
+        hub.put(keys.compute("ctl1", "edge"), encode(_profile("edge", [1.0] * 8))[:-5])  # truncated
+        hub.put(keys.compute("ctl1", "robot"), encode(_profile("robot", [1.0] * 8)))  # fine
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and sum("rejected" in r.message for r in caplog.records) < 2:
+            time.sleep(0.05)
+        rejections = [r.message for r in caplog.records if "rejected" in r.message]
+        assert any("TagPoses #" in m for m in rejections) and any("ComputeProfile #" in m for m in rejections)
+        assert worker.is_alive()
+    finally:
+        stop.set()
+        worker.join(timeout=20)
+        ctl_session.close()
+        hub.close()
+    assert not worker.is_alive()

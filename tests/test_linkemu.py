@@ -67,3 +67,22 @@ def test_profiles_load_from_toml_with_clear_errors(tmp_path: Path) -> None:
     bad.write_text("speed = 3\n")
     with pytest.raises(ValueError, match="must be a table"):
         load_profiles(bad)
+
+
+def test_delay_line_control_rejects_bad_requests_and_keeps_its_delay() -> None:
+    import json
+    import socket
+
+    from shared.delayline import _handle_control
+
+    line = DelayLine(39.9)
+    for request, ok in ((b"not json", False), (b'{"delay_ms": -5}', False), (b'{"delay_ms": 12.5}', True)):
+        ours, theirs = socket.socketpair()
+        with ours:
+            ours.sendall(request)
+            _handle_control(theirs, line)
+            answer = json.loads(ours.recv(4096))
+        assert answer["ok"] is ok, (request, answer)
+        if not ok:
+            assert answer["error"] and line.delay_secs == pytest.approx(0.0399)
+    assert line.delay_secs == pytest.approx(0.0125)

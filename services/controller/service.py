@@ -13,6 +13,8 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
+from typing import TypeVar
 
 import zenoh
 
@@ -20,13 +22,14 @@ from services.controller.settings import ControllerSettings
 from shared import keys
 from shared.codec import WireError
 from shared.controller import ControllerSettingsCore, SplitController
-from shared.messages import ComputeProfile, ControllerState, TagPoses, decode, encode
+from shared.messages import ComputeProfile, ControllerState, Message, TagPoses, decode, encode
 from shared.probe import ProbeError, Prober, probe_features
 from shared.split_client import SplitQueryError, query_split
 from shared.transport import encoding_for
 from shared.viz import make_viz
 
 log = logging.getLogger(__name__)
+M = TypeVar("M", bound=Message)
 
 
 def _probe_loop(
@@ -79,32 +82,30 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
     lock = threading.Lock()
     rejected = 0
 
-    def on_poses(sample: zenoh.Sample) -> None:
-        nonlocal rejected
-        try:
-            msg = decode(sample.payload.to_bytes(), TagPoses)
-        except WireError as exc:
-            rejected += 1
-            log.warning("rejected TagPoses #%d: %s", rejected, exc)
-            return
-        with lock:
-            core.add_link_sample(msg.payload_bytes, msg.timings.transport_secs * 1e3)
+    def subscribe(key: str, schema: type[M], handle: Callable[[M], None]) -> zenoh.Subscriber[None]:
+        """A callback subscriber that decodes, counts and logs bad messages, and fuses good ones."""
 
-    def on_compute(sample: zenoh.Sample) -> None:
-        nonlocal rejected
-        try:
-            msg = decode(sample.payload.to_bytes(), ComputeProfile)
-        except WireError as exc:
-            rejected += 1
-            log.warning("rejected ComputeProfile #%d: %s", rejected, exc)
-            return
-        with lock:
-            core.add_compute(msg)
+        def on_sample(sample: zenoh.Sample) -> None:
+            nonlocal rejected
+            try:
+                msg = decode(sample.payload.to_bytes(), schema)
+            except WireError as exc:
+                rejected += 1
+                log.warning("rejected %s #%d on %s: %s", schema.__name__, rejected, key, exc)
+                return
+            with lock:
+                handle(msg)
+
+        return session.declare_subscriber(key, on_sample)
 
     subs = [
-        session.declare_subscriber(keys.tag_poses(rid), on_poses),
-        session.declare_subscriber(keys.compute(rid, "robot"), on_compute),
-        session.declare_subscriber(keys.compute(rid, "edge"), on_compute),
+        subscribe(
+            keys.tag_poses(rid),
+            TagPoses,
+            lambda m: core.add_link_sample(m.payload_bytes, m.timings.transport_secs * 1e3),
+        ),
+        subscribe(keys.compute(rid, "robot"), ComputeProfile, core.add_compute),
+        subscribe(keys.compute(rid, "edge"), ComputeProfile, core.add_compute),
     ]
     pub = session.declare_publisher(keys.controller(rid), encoding=encoding_for(ControllerState.SCHEMA))
     prober = Prober(session, keys.echo(rid), timeout_secs=5.0)

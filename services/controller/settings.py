@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
@@ -28,4 +28,4 @@ class ControllerSettings(ServiceSettings):
     # Two sizes pin both t0 and beta even while frames carry almost nothing (k = 7); small enough
     # to occupy the 14.2 Mbit/s uplink for at most ~37 ms.
     probe_sizes_bytes: list[int] = Field(default_factory=lambda: [16 * 1024, 64 * 1024])
-    codec: str = "fp16"
+    codec: Literal["fp16", "fp32"] = "fp16"  # the codec robot_infer uses at cuts 1..6 (payload sizes)

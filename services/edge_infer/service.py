@@ -31,7 +31,7 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
     torch.set_num_threads(settings.threads)
     model = load_model(settings.weights)
     warm_up(model, bf16=settings.bf16)
-    compute = ComputeEstimator(
+    estimator = ComputeEstimator(
         tail_per_tag_ms(calibrate_cumulative_ms(model, bf16=settings.bf16), pnp_ms=calibrate_pnp_ms())
     )
     last_profile = 0.0
@@ -85,22 +85,10 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
             pub.put(encode(poses))
             viz.tag_poses(poses)
             processed += 1
-            compute.observe(k=poses.split_k, tags=len(poses.tags), network_ms=poses.timings.edge_compute_secs * 1e3)
+            estimator.observe(k=poses.split_k, tags=len(poses.tags), network_ms=poses.timings.edge_compute_secs * 1e3)
             if time.monotonic() - last_profile >= settings.profile_period_secs:
                 last_profile = time.monotonic()
-                compute_pub.put(
-                    encode(
-                        ComputeProfile(
-                            robot_id=rid,
-                            side="edge",
-                            stamp_nanos=time.time_ns(),
-                            current_k=poses.split_k,
-                            tags_per_frame=compute.tags_per_frame,
-                            live_scale=compute.live_scale,
-                            ms_by_k=compute.ms_by_k(),
-                        )
-                    )
-                )
+                compute_pub.put(encode(estimator.message(robot_id=rid, side="edge", stamp_nanos=time.time_ns())))
     finally:
         sub.undeclare()
         token.undeclare()

@@ -97,15 +97,7 @@ def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading
                 last_profile = time.monotonic()
                 compute_pub.put(
                     encode(
-                        ComputeProfile(
-                            robot_id=rid,
-                            side="robot",
-                            stamp_nanos=time.time_ns(),
-                            current_k=split.k,
-                            tags_per_frame=estimator.tags_per_frame,
-                            live_scale=estimator.live_scale,
-                            ms_by_k=[settings.gamma * v for v in estimator.ms_by_k()],
-                        )
+                        estimator.message(robot_id=rid, side="robot", stamp_nanos=time.time_ns(), factor=settings.gamma)
                     )
                 )
     finally:
