@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 
 from shared import keys
-from shared.launch import Monitor, attach_monitor, demo_tag_map, start_service, stop_services, write_run_config
+from shared.launch import Monitor, attach_monitor, demo_tag_map, loopback_config, start_service, stop_services
 from shared.model import CUTS
 from shared.split_client import query_split
-from shared.transport import ZenohSettings, free_tcp_port, open_session, wait_for_liveliness
+from shared.transport import ZenohSettings, open_session, wait_for_liveliness
 
 ROBOT = "bench"
 
@@ -36,28 +36,9 @@ def main() -> None:
     ap.add_argument("--rerun-image-every", type=int, default=1)
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="splittag-bench-"))
-    edge, robot = free_tcp_port(), free_tcp_port()
-    base = tmp / "base.toml"
-    base.write_text(f"""
-[common]
-robot_id = "{ROBOT}"
-[common.rerun]
-enabled = {str(args.rerun).lower()}
-image_every = {args.rerun_image_every}
-[edge_infer.zenoh]
-mode = "router"
-listen = ["tcp/127.0.0.1:{edge}"]
-[robot_infer.zenoh]
-mode = "router"
-listen = ["tcp/127.0.0.1:{robot}"]
-connect = ["tcp/127.0.0.1:{edge}"]
-[camera]
-fps = {args.fps}
-[camera.zenoh]
-mode = "client"
-connect = ["tcp/127.0.0.1:{robot}"]
-""")
-    cfg = write_run_config(tmp, base)
+    cfg, _, robot = loopback_config(
+        tmp, robot_id=ROBOT, rerun=args.rerun, image_every=args.rerun_image_every, fps=args.fps
+    )
     services = [start_service(n, cfg, tmp) for n in ("edge_infer", "robot_infer", "camera")]
     rows = []
     try:

@@ -22,11 +22,11 @@ import numpy as np
 
 from shared import keys
 from shared.geometry import default_camera, make_pose
-from shared.launch import Monitor, attach_monitor, demo_tag_map, start_service, stop_services, write_run_config
+from shared.launch import Monitor, attach_monitor, demo_tag_map, loopback_config, start_service, stop_services
 from shared.messages import HopTimings, TagPose, TagPoses
 from shared.sources import DemoSource
 from shared.split_client import query_split
-from shared.transport import ZenohSettings, free_tcp_port, open_session, wait_for_liveliness
+from shared.transport import ZenohSettings, open_session, wait_for_liveliness
 from shared.viz import RerunSettings, RerunViz
 
 ROBOT = "rrcost"
@@ -101,33 +101,9 @@ def logging_cpu_ms_per_frame(frames: int, image_every: int) -> dict[str, float]:
 
 def throughput(args: argparse.Namespace, rerun: bool, tmp: Path) -> tuple[float, float, float]:
     """(fps, e2e p50 ms, robot+edge compute ms per frame) of one run with Rerun on or off."""
-    edge, robot = free_tcp_port(), free_tcp_port()
-    base = tmp / "base.toml"
-    base.write_text(f"""
-[common]
-robot_id = "{ROBOT}"
-[common.rerun]
-enabled = {str(rerun).lower()}
-image_every = {args.image_every}
-[edge_infer.zenoh]
-mode = "router"
-listen = ["tcp/127.0.0.1:{edge}"]
-[robot_infer]
-split_k = {args.k}
-[robot_infer.zenoh]
-mode = "router"
-listen = ["tcp/127.0.0.1:{robot}"]
-connect = ["tcp/127.0.0.1:{edge}"]
-[camera]
-fps = {args.fps}
-[camera.zenoh]
-mode = "client"
-connect = ["tcp/127.0.0.1:{robot}"]
-[slam.zenoh]
-mode = "client"
-connect = ["tcp/127.0.0.1:{edge}"]
-""")
-    cfg = write_run_config(tmp, base)
+    cfg, _, robot = loopback_config(
+        tmp, robot_id=ROBOT, rerun=rerun, image_every=args.image_every, fps=args.fps, split_k=args.k
+    )
     services = [start_service(n, cfg, tmp) for n in SERVICES]
     try:
         session = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{robot}"]))

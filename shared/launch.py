@@ -30,7 +30,7 @@ from shared.messages import CameraPose, ControllerState, TagPoses, decode
 from shared.metrics import translation_error_cm
 from shared.perception import TagMapFile, TagSpec
 from shared.sources import demo_scene
-from shared.transport import ZenohSettings, open_session, wait_for_liveliness
+from shared.transport import ZenohSettings, free_tcp_port, open_session, wait_for_liveliness
 from shared.viz import merge_recordings
 
 log = logging.getLogger(__name__)
@@ -252,6 +252,31 @@ def write_run_config(run_dir: Path, base_config: Path, *, extra: dict[str, dict[
     out = run_dir / "config.toml"
     out.write_text(_to_toml(doc))
     return out
+
+
+def loopback_config(
+    run_dir: Path,
+    *,
+    robot_id: str,
+    rerun: bool = False,
+    image_every: int = 5,
+    fps: float = 15.0,
+    split_k: int = 7,
+    base_config: Path = Path("deploy/local.toml"),
+) -> tuple[Path, int, int]:
+    """deploy/local.toml on free loopback ports (for benchmarks): (run config, edge port, robot port)."""
+    edge, robot = free_tcp_port(), free_tcp_port()
+    extra: dict[str, dict[str, Any]] = {
+        "common": {"robot_id": robot_id, "rerun": {"enabled": rerun, "image_every": image_every}},
+        "edge_infer": {"zenoh": {"mode": "router", "listen": [f"tcp/127.0.0.1:{edge}"]}},
+        "robot_infer": {
+            "split_k": split_k,
+            "zenoh": {"mode": "router", "listen": [f"tcp/127.0.0.1:{robot}"], "connect": [f"tcp/127.0.0.1:{edge}"]},
+        },
+        "camera": {"source": "demo", "fps": fps, "zenoh": {"mode": "client", "connect": [f"tcp/127.0.0.1:{robot}"]}},
+        "slam": {"zenoh": {"mode": "client", "connect": [f"tcp/127.0.0.1:{edge}"]}},
+    }
+    return write_run_config(run_dir, base_config, extra=extra), edge, robot
 
 
 def _to_toml(doc: dict[str, Any], prefix: str = "") -> str:
