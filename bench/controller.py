@@ -46,8 +46,32 @@ HYSTERESIS = 1.05
 PhaseHook = Callable[[int, str, zenoh.Session, "Run"], None]
 
 
-def write_config(tmp: Path, emu: LinkEmulatorSettings, *, gamma: float = GAMMA, fps: float = FPS) -> Path:
-    """The services' TOML for the two namespaces."""
+@dataclass(frozen=True)
+class EmulatedCompute:
+    """Fixed per-tag compute profiles (ms at every cut) that replace what this CPU measures, so a
+    scenario's optimum does not move with the machine: robot head up to k, edge tail from k + PnP."""
+
+    robot_ms_per_tag_by_k: list[float]
+    edge_ms_per_tag_by_k: list[float]
+
+    @classmethod
+    def from_network(cls, cumulative_ms: list[float], *, pnp_ms: float = 0.2) -> EmulatedCompute:
+        """Both sides from one cumulative per-tag head time of the network."""
+        full = cumulative_ms[-1]
+        return cls(list(cumulative_ms), [full - c + pnp_ms for c in cumulative_ms])
+
+
+def write_config(
+    tmp: Path,
+    emu: LinkEmulatorSettings,
+    *,
+    gamma: float = GAMMA,
+    fps: float = FPS,
+    compute: EmulatedCompute | None = None,
+) -> Path:
+    """The services' TOML for the two namespaces (compute: fixed profiles instead of this CPU's)."""
+    robot_extra = f"emulated_ms_per_tag_by_k = {compute.robot_ms_per_tag_by_k}" if compute else ""
+    edge_extra = f"emulated_ms_per_tag_by_k = {compute.edge_ms_per_tag_by_k}" if compute else ""
     cfg = tmp / "emulated.toml"
     cfg.write_text(f"""
 [common]
@@ -55,12 +79,15 @@ robot_id = "{ROBOT}"
 run_dir = "{tmp}"
 [common.rerun]
 enabled = false
+[edge_infer]
+{edge_extra}
 [edge_infer.zenoh]
 mode = "router"
 listen = ["tcp/0.0.0.0:7447"]
 [robot_infer]
 split_k = 7
 gamma = {gamma}
+{robot_extra}
 [robot_infer.zenoh]
 mode = "router"
 listen = ["tcp/127.0.0.1:7448"]
@@ -121,10 +148,13 @@ def stream(
     warmup_secs: float = 6.0,
     phase_secs: float = 9.0,
     on_phase: PhaseHook | None = None,
+    gamma: float = GAMMA,
+    fps: float = FPS,
+    compute: EmulatedCompute | None = None,
 ) -> Run:
     """Start the services in the namespaces, stream through SCHEDULE, stop everything."""
     s = emu.settings
-    cfg = write_config(tmp, s)
+    cfg = write_config(tmp, s, gamma=gamma, fps=fps, compute=compute)
     robot, edge = in_netns(s.robot_ns, []), in_netns(s.edge_ns, [])
     emu.set_profile(PROFILES[SCHEDULE[0]])
     started = [start_service("edge_infer", cfg, tmp, wrapper=edge)]

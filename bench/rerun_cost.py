@@ -23,7 +23,7 @@ import numpy as np
 from shared import keys
 from shared.geometry import default_camera, make_pose
 from shared.launch import Monitor, attach_monitor, demo_tag_map, loopback_config, start_service, stop_services
-from shared.messages import HopTimings, TagPose, TagPoses
+from shared.messages import HopTimings, LinkStamps, TagPose, TagPoses
 from shared.sources import DemoSource
 from shared.split_client import query_split
 from shared.transport import ZenohSettings, open_session, wait_for_liveliness
@@ -71,6 +71,7 @@ def logging_cpu_ms_per_frame(frames: int, image_every: int) -> dict[str, float]:
                 capture_nanos=t_ns,
                 split_k=7,
                 payload_bytes=1400,
+                link=LinkStamps(sent_nanos=t_ns, received_nanos=t_ns + 1_000_000, previous_received_nanos=0),
                 timings=HopTimings(
                     robot_compute_secs=0.09, transport_secs=0.001, edge_compute_secs=0.002, capture_to_pose_secs=0.1
                 ),

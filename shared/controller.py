@@ -1,11 +1,12 @@
 """The adaptive split controller's pure core: evidence in, a decision and its explanation out.
 
-Evidence: live (payload, one-way transport) samples from TagPoses, sparse probe RTTs, and the
-ComputeProfiles of robot_infer (C(k), gamma included: the slowdown is real) and edge_infer (E(k)).
+Evidence: every frame's and probe's one-way crossing of the uplink (send and arrival stamps, and the
+arrival of the message ahead of it, so waiting in the queue is not mistaken for the link: see
+`OnlineLinkEstimator`), FrameSent notices (probes wait for an idle link), and the ComputeProfiles of
+robot_infer (C(k), gamma included: the slowdown is real) and edge_infer (E(k)).
 Decision: T(k) = C(k) + t0 + beta S(k) + E(k) for every k, argmin with hysteresis (HysteresisChooser).
-The floor t0 is the uplink's: the emulated link (like the paper's probes) delays only the uplink,
-and the pipeline's latency ends at the edge, so one-way frame transport and probe RTT measure the
-same line.
+The floor t0 is the uplink's: the emulated link (like the paper's probes) delays only the uplink, and
+the pipeline's latency ends at the edge, so frames and probes are timed one way, on the same line.
 """
 
 from __future__ import annotations
@@ -17,8 +18,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from shared.linkmodel import HysteresisChooser, OnlineLinkEstimator
-from shared.messages import N_CUTS, ComputeProfile, ControllerState, encode
+from shared.linkmodel import HysteresisChooser, LinkOccupancy, OnlineLinkEstimator
+from shared.messages import N_CUTS, ComputeProfile, ControllerState, FrameSent, LinkStamps, encode
 from shared.pipeline import CodecName, tensor_bytes
 from shared.probe import probe_features
 
@@ -57,6 +58,7 @@ class SplitController:
         self.chooser = HysteresisChooser(
             min_gain_ms=self.settings.min_gain_ms, min_gain_rel=self.settings.min_gain_rel, dwell=self.settings.dwell
         )
+        self.occupancy = LinkOccupancy()
         self.robot: ComputeProfile | None = None
         self.edge: ComputeProfile | None = None
         self._clock = clock
@@ -64,11 +66,31 @@ class SplitController:
 
     # -- evidence ----------------------------------------------------------------------------------
     def add_link_sample(self, payload_bytes: int, ms: float) -> None:
-        """A frame's one-way transport time or a probe's RTT, for a payload of this size."""
+        """A latency sample of a message that found the link idle (a probe's RTT without stamps)."""
         if ms <= 0 or not np.isfinite(ms):
             return
         self.link.add(payload_bytes / 1024.0, ms)
         self.last_sizes[self._bucket(payload_bytes)] = self._clock()
+
+    def add_crossing(self, payload_bytes: int, link: LinkStamps) -> None:
+        """A frame's or probe's crossing of the uplink, with what was ahead of it (queue-aware)."""
+        self.link.add_crossing(
+            size_kB=payload_bytes / 1024.0,
+            sent_ms=link.sent_nanos / 1e6,
+            received_ms=link.received_nanos / 1e6,
+            previous_received_ms=link.previous_received_nanos / 1e6 if link.previous_received_nanos else None,
+        )
+        self.last_sizes[self._bucket(payload_bytes)] = self._clock()
+
+    def frame_sent(self, msg: FrameSent) -> None:
+        """robot_infer put a frame on the uplink: the link is busy for about beta * size from then."""
+        self.occupancy.sent(
+            sent_ms=msg.sent_nanos / 1e6, size_kB=msg.payload_bytes / 1024.0, beta_ms_per_kB=self.link.beta_ms_per_kB
+        )
+
+    def link_idle(self, now_nanos: int, *, guard_ms: float = 2.0) -> bool:
+        """True when every frame sent so far should have left the robot (a probe now waits for none)."""
+        return self.occupancy.idle(now_nanos / 1e6, guard_ms=guard_ms)
 
     def add_compute(self, profile: ComputeProfile) -> None:
         """The latest ComputeProfile of either side."""

@@ -35,8 +35,13 @@ def features(robot_id: str) -> str:
 
 
 def tag_poses(robot_id: str) -> str:
-    """TagPoses v1: edge_infer -> slam, controller."""
-    return f"{ROOT}/{_check(robot_id, 'robot id')}/tag_poses/v1"
+    """TagPoses v2: edge_infer -> slam, controller, robot_infer (credits)."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/tag_poses/v2"
+
+
+def frame_sent(robot_id: str) -> str:
+    """FrameSent v1: robot_infer -> controller (robot-local), one per Features put on the uplink."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/frame_sent/v1"
 
 
 def camera_pose(robot_id: str) -> str:

@@ -7,7 +7,9 @@ Units: milliseconds and kilobytes (1 kB = 1024 bytes, as the paper's table).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import threading
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,14 +44,29 @@ def fit_link(sizes_kB: Sequence[float], rtts_ms: Sequence[float]) -> LinkFit:
 
 
 class OnlineLinkEstimator:
-    """Robust recursive least squares for (t0, beta) with exponential forgetting.
+    """Robust recursive least squares for the uplink's floor t0 and slope beta, with forgetting.
+
+    The link is a FIFO pipe: a message of S kB sent at p (sender clock) starts crossing once the
+    message ahead of it has arrived, so it arrives at
+
+        a = max(p + t0, a_prev) + beta * S        (a, a_prev: receiver clock)
+
+    where a_prev is the arrival of the message just ahead of it on the same link (any kind: frames
+    and probes share the uplink). An idle link (p + t0 >= a_prev) gives a sample of t0 + beta S from
+    a - p; a busy one only of beta S from a - a_prev, because the floor overlapped with the message
+    ahead. The time a message waited behind others is therefore never read as floor latency
+    (`add_crossing`). Which case a sample is in is decided with the current t0 estimate. A clock
+    offset between sender and receiver enters t0, the same for every sample. `add` takes a plain
+    (size, latency) sample of a message that found the link idle (a probe's round trip).
 
     Samples whose residual exceeds `gate` robust standard deviations are down-weighted (Huber);
     a two-sided CUSUM on the clamped, normalised residuals detects a link change, and the estimator
-    then forgets old evidence at once (covariance reset) instead of slowly.
+    then forgets old evidence at once (covariance reset) instead of slowly. While only busy samples
+    arrive t0 is unobserved: its variance grows with the forgetting but is capped at the prior's.
     """
 
     RESET_VARIANCE = (400.0, 0.25)  # after a change: t0 within ~20 ms, beta within ~0.5 ms/kB
+    PRIOR_VARIANCE = (1e4, 1.0)
 
     def __init__(
         self,
@@ -65,18 +82,38 @@ class OnlineLinkEstimator:
         self.gate = gate
         self.drift, self.threshold = cusum_drift, cusum_threshold
         self.theta = np.array([prior_t0_ms, prior_beta])
-        self.p = np.diag([1e4, 1.0])
+        self.p = np.diag(list(self.PRIOR_VARIANCE))
         self.scale = 5.0  # robust residual scale, ms
         self.n = 0
+        self.busy = 0  # samples that crossed a busy link
         self._g_pos = self._g_neg = 0.0
         self.changes = 0
 
     def add(self, size_kB: float, rtt_ms: float) -> None:
-        """Fuse one (payload, RTT) sample."""
+        """Fuse a (payload, latency) sample of a message that found the link idle."""
         if not (math.isfinite(size_kB) and math.isfinite(rtt_ms)) or size_kB < 0 or rtt_ms <= 0:
             return
-        x = np.array([1.0, size_kB])
-        resid = rtt_ms - float(x @ self.theta)
+        self._fuse(np.array([1.0, size_kB]), rtt_ms)
+
+    def add_crossing(
+        self, *, size_kB: float, sent_ms: float, received_ms: float, previous_received_ms: float | None
+    ) -> None:
+        """Fuse one message's crossing of the link: sent at sent_ms (sender clock), received at
+        received_ms, the message ahead of it received at previous_received_ms (receiver clock; None
+        when unknown). See the class docstring for the model."""
+        values = (size_kB, sent_ms, received_ms, 0.0 if previous_received_ms is None else previous_received_ms)
+        if not all(math.isfinite(v) for v in values) or size_kB < 0:
+            return
+        if previous_received_ms is not None and previous_received_ms > sent_ms + self.t0_ms:
+            if received_ms <= previous_received_ms:
+                return  # out of order: not a FIFO crossing we can explain
+            self.busy += 1
+            self._fuse(np.array([0.0, size_kB]), received_ms - previous_received_ms)
+        elif received_ms > sent_ms:
+            self._fuse(np.array([1.0, size_kB]), received_ms - sent_ms)
+
+    def _fuse(self, x: np.ndarray, y_ms: float) -> None:
+        resid = y_ms - float(x @ self.theta)
         z = abs(resid) / max(self.scale, 1e-3)
         if self.n >= 10:
             zc = max(-self.gate, min(self.gate, resid / max(self.scale, 1e-3)))
@@ -93,6 +130,9 @@ class OnlineLinkEstimator:
         # (a negative beta would make the biggest payload look cheapest for a moment).
         self.theta = np.maximum(self.theta + k * resid, 0.0)
         self.p = (self.p - np.outer(k, px)) / self.lam
+        # Cap each variance at the prior's (scaling its row and column keeps P positive definite).
+        cap = np.sqrt(np.minimum(1.0, np.asarray(self.PRIOR_VARIANCE) / np.maximum(np.diag(self.p), 1e-300)))
+        self.p = self.p * np.outer(cap, cap)
         self.scale = 0.95 * self.scale + 0.05 * min(abs(resid), 5 * self.scale) * 1.25
         self.n += 1
 
@@ -164,3 +204,38 @@ class HysteresisChooser:
             )
         self._streak, self._candidate = 0, None
         return Decision(best, best, pred, f"switch k={current}->{best}: predicted {gain:.1f} ms faster")
+
+
+class ArrivalClock:
+    """Receiver side of one link: stamps each arriving message and returns the previous arrival, so
+    every message can say what was ahead of it (thread-safe: subscribers and queryables stamp on
+    Zenoh's threads). Stamp where the bytes arrive, before any queue of the receiver's own."""
+
+    def __init__(self, clock: Callable[[], int] = time.time_ns) -> None:
+        self._clock = clock
+        self._last = 0
+        self._lock = threading.Lock()
+
+    def stamp(self) -> tuple[int, int]:
+        """(received_nanos, previous_received_nanos); the previous is 0 for the first message."""
+        with self._lock:
+            now = self._clock()
+            previous, self._last = self._last, max(self._last, now)
+            return now, previous
+
+
+class LinkOccupancy:
+    """Sender side: when the uplink will have sent everything put on it, predicted from the send times
+    and sizes of the messages and the current beta (the floor delays bytes but does not occupy the
+    sender). Lets a prober wait for an idle link instead of queueing behind, or delaying, frames."""
+
+    def __init__(self) -> None:
+        self.busy_until_ms = 0.0
+
+    def sent(self, *, sent_ms: float, size_kB: float, beta_ms_per_kB: float) -> None:
+        """A message of size_kB left the sender at sent_ms."""
+        self.busy_until_ms = max(self.busy_until_ms, sent_ms) + beta_ms_per_kB * size_kB
+
+    def idle(self, now_ms: float, *, guard_ms: float = 0.0) -> bool:
+        """True when the link is predicted to have drained guard_ms ago."""
+        return now_ms >= self.busy_until_ms + guard_ms

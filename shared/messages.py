@@ -209,8 +209,33 @@ class TagPose(WireModel):
     alt_reprojection_error_px: NonNegFloat
 
 
+class LinkStamps(WireModel):
+    """How one message crossed the uplink: sent on the sender's clock, received on the receiver's,
+    and when the message just ahead of it on the same link was received (0: none since the receiver
+    started). With these the link estimator tells the link's own time from waiting behind others."""
+
+    sent_nanos: int = Field(ge=0)
+    received_nanos: int = Field(ge=0)
+    previous_received_nanos: int = Field(ge=0)
+
+
 class TagPoses(Message):
-    """Edge output for one frame: the tags' poses and the frame's per-hop timings."""
+    """Edge output for one frame: the tags' poses, the frame's per-hop timings and its link stamps
+    (None only in messages upgraded from v1)."""
+
+    SCHEMA: ClassVar[str] = "splittag/TagPoses/v2"
+    robot_id: RobotId
+    seq: int = Field(ge=0)
+    capture_nanos: int = Field(ge=0)
+    split_k: SplitIndex
+    payload_bytes: int = Field(ge=0)
+    timings: HopTimings
+    link: LinkStamps | None
+    tags: list[TagPose]
+
+
+class TagPosesV1(Message):
+    """TagPoses before the link stamps; still decoded (as a v2 TagPoses with link None)."""
 
     SCHEMA: ClassVar[str] = "splittag/TagPoses/v1"
     robot_id: RobotId
@@ -220,6 +245,10 @@ class TagPoses(Message):
     payload_bytes: int = Field(ge=0)
     timings: HopTimings
     tags: list[TagPose]
+
+    def upgrade(self) -> TagPoses:
+        """The same content as the current schema."""
+        return TagPoses(**{name: getattr(self, name) for name in TagPosesV1.model_fields}, link=None)
 
 
 class CameraPose(Message):
@@ -264,12 +293,38 @@ class SplitConfig(Message):
 
 
 class ProbeAck(Message):
-    """The edge echo's tiny reply to a link probe (so the probe loads only the uplink)."""
+    """The edge echo's tiny reply to a link probe (so the probe loads only the uplink), with the
+    probe's link stamps (None only in messages upgraded from v1)."""
+
+    SCHEMA: ClassVar[str] = "splittag/ProbeAck/v2"
+    received_bytes: int = Field(ge=0)
+    decoded_ok: bool
+    error: str
+    link: LinkStamps | None
+
+
+class ProbeAckV1(Message):
+    """ProbeAck before the link stamps; still decoded (as a v2 ProbeAck with link None)."""
 
     SCHEMA: ClassVar[str] = "splittag/ProbeAck/v1"
     received_bytes: int = Field(ge=0)
     decoded_ok: bool
     error: str
+
+    def upgrade(self) -> ProbeAck:
+        """The same content as the current schema."""
+        return ProbeAck(**{name: getattr(self, name) for name in ProbeAckV1.model_fields}, link=None)
+
+
+class FrameSent(Message):
+    """robot_infer put one Features message on the uplink (tiny, robot-local: lets the controller
+    keep its probes out of a busy link)."""
+
+    SCHEMA: ClassVar[str] = "splittag/FrameSent/v1"
+    robot_id: RobotId
+    seq: int = Field(ge=0)
+    sent_nanos: int = Field(ge=0)
+    payload_bytes: int = Field(ge=0)
 
 
 N_CUTS: Final[int] = 8  # split points k = 0..7
@@ -326,8 +381,12 @@ MESSAGE_TYPES: Final[tuple[type[Message], ...]] = (
     ProbeAck,
     ComputeProfile,
     ControllerState,
+    FrameSent,
 )
 SCHEMAS: Final[dict[str, type[Message]]] = {m.SCHEMA: m for m in MESSAGE_TYPES}
+# Older versions still accepted: each has `upgrade()` to the current message of its name.
+LEGACY_SCHEMAS: Final[dict[str, type[TagPosesV1] | type[ProbeAckV1]]] = {m.SCHEMA: m for m in (TagPosesV1, ProbeAckV1)}
+_CURRENT_BY_NAME: Final[dict[str, type[Message]]] = {m.SCHEMA.rpartition("/")[0]: m for m in MESSAGE_TYPES}
 ENVELOPE_KEYS: Final[frozenset[str]] = frozenset({"schema", "body"})
 
 M = TypeVar("M", bound=Message)
@@ -348,7 +407,7 @@ def _schema_error(schema: Any) -> SchemaError:
     if not isinstance(schema, str):
         return SchemaError(f"schema id must be a string, got {type(schema).__name__}")
     name, _, version = schema.rpartition("/")
-    known_versions = sorted(s for s in SCHEMAS if s.rpartition("/")[0] == name)
+    known_versions = sorted(s for s in (*SCHEMAS, *LEGACY_SCHEMAS) if s.rpartition("/")[0] == name)
     if known_versions:
         return SchemaError(f"unsupported version {version!r} of {name} (supported: {', '.join(known_versions)})")
     return SchemaError(f"unknown schema id {schema!r} (known: {', '.join(SCHEMAS)})")
@@ -378,16 +437,20 @@ def decode(
         got = sorted(doc) if isinstance(doc, dict) else type(doc).__name__
         raise MalformedFrame(f"expected an envelope map with keys schema and body, got {got}")
     schema = doc["schema"]
-    model = SCHEMAS.get(schema) if isinstance(schema, str) else None
+    legacy = LEGACY_SCHEMAS.get(schema) if isinstance(schema, str) else None
+    model = legacy or (SCHEMAS.get(schema) if isinstance(schema, str) else None)
     if model is None:
         raise _schema_error(schema)
+    current = _CURRENT_BY_NAME[schema.rpartition("/")[0]] if legacy is not None else model
     if expected is not None:
         allowed = (expected,) if isinstance(expected, type) else tuple(expected)
-        if model not in allowed:
+        if current not in allowed:
             names = ", ".join(m.SCHEMA for m in allowed)
             raise SchemaError(f"received {schema} where {names} was expected")
     _require_all_fields(model, doc["body"], schema)
     try:
+        if legacy is not None:
+            return legacy.model_validate(doc["body"]).upgrade()
         return model.model_validate(doc["body"])
     except ValidationError as exc:
         details = "; ".join(

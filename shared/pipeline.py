@@ -16,7 +16,7 @@ import torch
 from shared.codec import WireError
 from shared.detector import TagDetector
 from shared.geometry import keypoints_to_image, lattice_in_tag
-from shared.messages import Features, Frame, HopTimings, TagFeature, TagPose, TagPoses
+from shared.messages import Features, Frame, HopTimings, LinkStamps, TagFeature, TagPose, TagPoses
 from shared.model import CUTS, SplitKeypointNet, check_cut
 from shared.perception import TagMapFile, extract_rois
 from shared.pnp import solve_planar_pnp
@@ -114,10 +114,15 @@ def edge_step(
     model: SplitKeypointNet,
     tag_map: TagMapFile,
     receive_nanos: int,
+    previous_receive_nanos: int,
     payload_bytes: int,
     bf16: bool = True,
+    min_compute_secs: float = 0.0,
 ) -> TagPoses:
-    """Validate, run the tail for the announced k, map keypoints to the image, solve PnP per tag."""
+    """Validate, run the tail for the announced k, map keypoints to the image, solve PnP per tag.
+    `receive_nanos`/`previous_receive_nanos`: when this message and the one ahead of it on the uplink
+    arrived (edge clock, 0 = none), stamped where the bytes came in. `min_compute_secs` emulates a
+    slower edge: the step sleeps until it has taken at least that long."""
     k, codec = features.split_k, features.codec
     if codec not in ("fp16", "fp32"):
         raise FeatureShapeError(f"codec {codec!r} is not fp16 or fp32")
@@ -150,6 +155,9 @@ def edge_step(
                 )
             )
     edge_secs = time.perf_counter() - t0
+    if edge_secs < min_compute_secs:
+        time.sleep(min_compute_secs - edge_secs)
+        edge_secs = time.perf_counter() - t0
     done_nanos = time.time_ns()
     return TagPoses(
         robot_id=features.robot_id,
@@ -157,6 +165,11 @@ def edge_step(
         capture_nanos=features.capture_nanos,
         split_k=k,
         payload_bytes=payload_bytes,
+        link=LinkStamps(
+            sent_nanos=features.publish_nanos,
+            received_nanos=receive_nanos,
+            previous_received_nanos=previous_receive_nanos,
+        ),
         timings=HopTimings(
             robot_compute_secs=features.robot_compute_secs,
             transport_secs=(receive_nanos - features.publish_nanos) / 1e9,

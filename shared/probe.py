@@ -16,7 +16,8 @@ import zenoh
 
 from shared.codec import WireError
 from shared.geometry import default_camera
-from shared.messages import Features, ProbeAck, TagFeature, decode, encode
+from shared.linkmodel import ArrivalClock
+from shared.messages import Features, LinkStamps, ProbeAck, TagFeature, decode, encode
 from shared.transport import encoding_for
 
 log = logging.getLogger(__name__)
@@ -49,19 +50,27 @@ def probe_features(tensor_bytes: int, *, robot_id: str = "probe", seq: int = 0) 
     )
 
 
-def serve_echo(session: zenoh.Session, key: str, *, max_bytes: int) -> zenoh.Queryable[None]:
-    """Declare the echo queryable: decode each probe, reply a ProbeAck (errors are replied, not raised)."""
+def serve_echo(
+    session: zenoh.Session, key: str, *, max_bytes: int, arrivals: ArrivalClock | None = None
+) -> zenoh.Queryable[None]:
+    """Declare the echo queryable: decode each probe, reply a ProbeAck with the probe's link stamps
+    (errors are replied, not raised). `arrivals` is shared with whatever else arrives on the same
+    uplink (edge_infer's Features), so a probe's stamps say what was ahead of it."""
     enc = encoding_for(ProbeAck.SCHEMA)
+    arrivals = arrivals or ArrivalClock()
 
     def on_query(query: zenoh.Query) -> None:
+        received, previous = arrivals.stamp()
         payload = query.payload.to_bytes() if query.payload is not None else b""
         error = ""
+        link = None
         try:
-            decode(payload, Features, max_bytes=max_bytes)
+            probe = decode(payload, Features, max_bytes=max_bytes)
+            link = LinkStamps(sent_nanos=probe.publish_nanos, received_nanos=received, previous_received_nanos=previous)
         except WireError as exc:
             error = str(exc)
             log.warning("echo: rejected probe of %d bytes: %s", len(payload), exc)
-        ack = ProbeAck(received_bytes=len(payload), decoded_ok=not error, error=error)
+        ack = ProbeAck(received_bytes=len(payload), decoded_ok=not error, error=error, link=link)
         query.reply(query.key_expr, encode(ack), encoding=enc)
 
     return session.declare_queryable(key, on_query)
@@ -77,6 +86,7 @@ class ProbeResult:
 
     payload_bytes: int
     rtt_secs: float
+    link: LinkStamps | None  # the probe's one-way stamps (None from an echo that predates them)
 
 
 class Prober:
@@ -107,7 +117,7 @@ class Prober:
             raise ProbeError("no reply from the echo queryable (is the edge running?)")
         if not ack.decoded_ok or ack.received_bytes != len(payload):
             raise ProbeError(f"echo rejected the probe: {ack.error or ack.received_bytes}")
-        return ProbeResult(payload_bytes=len(payload), rtt_secs=rtt)
+        return ProbeResult(payload_bytes=len(payload), rtt_secs=rtt, link=ack.link)
 
     def close(self) -> None:
         """Undeclare the querier."""

@@ -11,7 +11,9 @@ from shared.messages import (
     ControllerState,
     Features,
     Frame,
+    FrameSent,
     HopTimings,
+    LinkStamps,
     MapTag,
     Message,
     ProbeAck,
@@ -101,6 +103,11 @@ def example_messages() -> dict[str, Message]:
         capture_nanos=1_700_000_000_123_456_789,
         split_k=3,
         payload_bytes=4242,
+        link=LinkStamps(
+            sent_nanos=1_700_000_000_140_000_000,
+            received_nanos=1_700_000_000_181_000_000,
+            previous_received_nanos=1_700_000_000_150_000_000,
+        ),
         timings=HopTimings(
             robot_compute_secs=0.0125,
             transport_secs=0.041,
@@ -127,7 +134,15 @@ def example_messages() -> dict[str, Message]:
         ],
     )
     split = SplitConfig(k=5, codec="fp16", pinned=True, source="user")
-    ack = ProbeAck(received_bytes=1024, decoded_ok=True, error="")
+    ack = ProbeAck(
+        received_bytes=1024,
+        decoded_ok=True,
+        error="",
+        link=LinkStamps(
+            sent_nanos=1_700_000_000_140_000_000, received_nanos=1_700_000_000_181_000_000, previous_received_nanos=0
+        ),
+    )
+    sent = FrameSent(robot_id="robot1", seq=3, sent_nanos=1_700_000_000_140_000_000, payload_bytes=4242)
     per_cut = [0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0]
     compute = ComputeProfile(
         robot_id="robot1",
@@ -156,7 +171,7 @@ def example_messages() -> dict[str, Message]:
         applied=False,
         reason="keep k=7: k=5 better by 15.0 ms (1/3)",
     )
-    msgs: list[Message] = [frame, features, poses, camera_pose, tag_map, split, ack, compute, controller]
+    msgs: list[Message] = [frame, features, poses, camera_pose, tag_map, split, ack, compute, controller, sent]
     return {m.SCHEMA: m for m in msgs}
 
 

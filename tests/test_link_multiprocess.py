@@ -2,6 +2,12 @@
 (root only; skips with the reason elsewhere). The link goes 5g -> 5g-pre-tdd -> 5g while frames
 stream; in the last phase a person pins k = 5 (never optimal here) and later releases it.
 
+The compute profiles are injected (COMPUTE, padded by sleeping), not measured, so the scenario is the
+same on every CPU: with gamma 1.6 the optimum is k = 0 on 5g (the ROI is cheap to send) and k = 7 on
+5g-pre-tdd, by ~15 and ~10 ms per tag. Run with SPLITTAG_ROBOT_INFER_GAMMA=2 or 0.5 the optimum moves
+(k = 0 on both, or k = 7 on both) and every check still holds: they are about the estimate and the
+controller's consistency, not a particular k.
+
 Functional checks only: the speed goals (optimum within 1 s of a change, mean latency within 5 % of
 an oracle) are measured by `bench/controller.py` and reported in the README, not asserted here.
 """
@@ -16,7 +22,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from bench.controller import ROBOT, SCHEDULE, Run, stream
+from bench.controller import ROBOT, SCHEDULE, EmulatedCompute, Run, stream
 from shared.linkemu import PROFILES, LinkEmulator, LinkEmulatorSettings, unavailable_reason
 from shared.split_client import query_split
 
@@ -24,6 +30,11 @@ pytestmark = pytest.mark.multiprocess
 
 PHASE_SECS = 9.0
 PIN_AFTER_SECS, PIN_FOR_SECS = 2.0, 2.5
+FPS = 2.5
+GAMMA = 1.6
+# Per-tag cumulative head time of a reference CPU, shaped like the paper network's blocks (AMD EPYC
+# Zen 4 bf16 measures 8, 17, 26, 35, 38, 39, 40 ms): above what either CPU kind takes.
+COMPUTE = EmulatedCompute.from_network([0.0, 10.0, 20.0, 30.0, 40.0, 44.0, 44.0, 45.0])
 
 
 @pytest.fixture(scope="module")
@@ -52,9 +63,18 @@ def test_controller_follows_the_link_and_respects_pinning(emulator: LinkEmulator
         assert not released.pinned
         pin["to"] = time.time_ns()
 
-    run = stream(tmp_path, emulator, controller=True, phase_secs=PHASE_SECS, on_phase=on_phase)
+    run = stream(
+        tmp_path,
+        emulator,
+        controller=True,
+        phase_secs=PHASE_SECS,
+        on_phase=on_phase,
+        gamma=GAMMA,
+        fps=FPS,
+        compute=COMPUTE,
+    )
     frames = run.frames()
-    assert len(frames) >= 0.8 * 3.0 * PHASE_SECS * len(SCHEDULE), f"only {len(frames)} frames"
+    assert len(frames) >= 0.6 * FPS * PHASE_SECS * len(SCHEDULE), f"only {len(frames)} frames"
 
     # Each phase is judged at its end: 9 s on one profile (the last one's pin, from 2 s to 4.5 s, changes
     # the split, not the link, and the controller has 4.5 s after the release to settle again).

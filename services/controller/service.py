@@ -22,7 +22,7 @@ from services.controller.settings import ControllerSettings
 from shared import keys
 from shared.codec import WireError
 from shared.controller import ControllerSettingsCore, SplitController
-from shared.messages import ComputeProfile, ControllerState, Message, TagPoses, decode, encode
+from shared.messages import ComputeProfile, ControllerState, FrameSent, Message, TagPoses, decode, encode
 from shared.probe import ProbeError, Prober, probe_features
 from shared.split_client import SplitQueryError, query_split
 from shared.transport import encoding_for
@@ -39,8 +39,16 @@ def _probe_loop(
     detector is half-way to firing, to confirm or dismiss it quickly; every size right after a change."""
     burst_from = core.link.changes
     last_probe = 0.0
-    while not stop.wait(0.02):
+    busy_since: float | None = None
+    while not stop.wait(0.005):
         now = time.monotonic()
+        with lock:
+            idle = core.link_idle(time.time_ns())
+        # A probe sent into a busy link waits behind frames and delays the ones after it: wait for the
+        # link to drain, unless it has been busy so long that t0 would go unobserved.
+        busy_since = None if idle else (busy_since if busy_since is not None else now)
+        if busy_since is not None and now - busy_since < settings.probe_busy_max_wait_secs:
+            continue
         with lock:
             changed = core.link.changes != burst_from
             burst_from = core.link.changes
@@ -63,7 +71,10 @@ def _probe_loop(
             finally:
                 last_probe = time.monotonic()
             with lock:
-                core.add_link_sample(r.payload_bytes, r.rtt_secs * 1e3)
+                if r.link is not None:
+                    core.add_crossing(r.payload_bytes, r.link)
+                else:
+                    core.add_link_sample(r.payload_bytes, r.rtt_secs * 1e3)
 
 
 def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading.Event) -> None:
@@ -98,12 +109,15 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
 
         return session.declare_subscriber(key, on_sample)
 
+    def on_poses(m: TagPoses) -> None:
+        if m.link is not None:
+            core.add_crossing(m.payload_bytes, m.link)
+        else:  # from an edge that predates link stamps: right only on an idle link
+            core.add_link_sample(m.payload_bytes, m.timings.transport_secs * 1e3)
+
     subs = [
-        subscribe(
-            keys.tag_poses(rid),
-            TagPoses,
-            lambda m: core.add_link_sample(m.payload_bytes, m.timings.transport_secs * 1e3),
-        ),
+        subscribe(keys.tag_poses(rid), TagPoses, on_poses),
+        subscribe(keys.frame_sent(rid), FrameSent, core.frame_sent),
         subscribe(keys.compute(rid, "robot"), ComputeProfile, core.add_compute),
         subscribe(keys.compute(rid, "edge"), ComputeProfile, core.add_compute),
     ]

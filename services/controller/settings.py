@@ -25,6 +25,7 @@ class ControllerSettings(ServiceSettings):
     change_threshold: float = Field(default=5.0, gt=0)  # CUSUM threshold (robust sigmas) for a link change
     probe_period_secs: float = Field(default=0.15, gt=0)  # at most one routine probe per period ...
     probe_max_age_secs: float = Field(default=0.3, gt=0)  # ... at a size not seen for this long
+    probe_busy_max_wait_secs: float = Field(default=2.0, gt=0)  # probe a link busy this long anyway
     # Two sizes pin both t0 and beta even while frames carry almost nothing (k = 7); small enough
     # to occupy the 14.2 Mbit/s uplink for at most ~37 ms.
     probe_sizes_bytes: list[int] = Field(default_factory=lambda: [16 * 1024, 64 * 1024])

@@ -14,6 +14,7 @@ from services.edge_infer.settings import EdgeInferSettings
 from shared import keys
 from shared.codec import WireError
 from shared.compute import ComputeEstimator, tail_per_tag_ms
+from shared.linkmodel import ArrivalClock
 from shared.messages import ComputeProfile, Features, TagPoses, decode, encode
 from shared.perception import TagMapFile, load_tag_map
 from shared.pipeline import edge_step
@@ -31,8 +32,9 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
     torch.set_num_threads(settings.threads)
     model = load_model(settings.weights)
     warm_up(model, bf16=settings.bf16)
+    emulated = settings.emulated_ms_per_tag_by_k
     estimator = ComputeEstimator(
-        tail_per_tag_ms(calibrate_cumulative_ms(model, bf16=settings.bf16), pnp_ms=calibrate_pnp_ms())
+        emulated or tail_per_tag_ms(calibrate_cumulative_ms(model, bf16=settings.bf16), pnp_ms=calibrate_pnp_ms())
     )
     last_profile = 0.0
     tag_map = (
@@ -43,10 +45,12 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
     # blocks) and the robot's latest-only frame ring drops stale frames, so latency stays bounded.
     # Arrival is stamped in the subscriber callback, so a frame's transport time excludes the time it
     # then waits for the edge (the controller fits the link to it; queueing is not the link's).
-    inbox: queue.Queue[tuple[int, bytes]] = queue.Queue(maxsize=settings.queue_depth)
+    # Probes and Features share the uplink: one arrival clock tells each message what was ahead of it.
+    inbox: queue.Queue[tuple[int, int, bytes]] = queue.Queue(maxsize=settings.queue_depth)
+    arrivals = ArrivalClock()
 
     def on_features(sample: zenoh.Sample) -> None:
-        item = (time.time_ns(), sample.payload.to_bytes())
+        item = (*arrivals.stamp(), sample.payload.to_bytes())
         while not stop.is_set():  # a full inbox blocks Zenoh's delivery: backpressure up to the robot
             try:
                 inbox.put(item, timeout=0.1)
@@ -57,7 +61,11 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
     sub = session.declare_subscriber(keys.features(rid), on_features)
     pub = declare_tensor_publisher(session, keys.tag_poses(rid), TagPoses.SCHEMA)
     compute_pub = session.declare_publisher(keys.compute(rid, "edge"), encoding=encoding_for(ComputeProfile.SCHEMA))
-    echo = serve_echo(session, keys.echo(rid), max_bytes=settings.max_payload_bytes) if settings.serve_echo else None
+    echo = (
+        serve_echo(session, keys.echo(rid), max_bytes=settings.max_payload_bytes, arrivals=arrivals)
+        if settings.serve_echo
+        else None
+    )
     token = session.liveliness().declare_token(keys.alive(rid, "edge_infer"))
     viz = make_viz(settings.rerun, service="edge_infer", run_dir=settings.run_dir)
     rejected = processed = 0
@@ -65,7 +73,7 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
     try:
         while not stop.is_set():
             try:
-                received, payload = inbox.get(timeout=0.05)
+                received, previous, payload = inbox.get(timeout=0.05)
             except queue.Empty:
                 continue
             try:
@@ -75,8 +83,10 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
                     model=model,
                     tag_map=tag_map,
                     receive_nanos=received,
+                    previous_receive_nanos=previous,
                     payload_bytes=len(payload),
                     bf16=settings.bf16,
+                    min_compute_secs=len(features.tags) * emulated[features.split_k] / 1e3 if emulated else 0.0,
                 )
             except WireError as exc:
                 rejected += 1
@@ -85,7 +95,10 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
             pub.put(encode(poses))
             viz.tag_poses(poses)
             processed += 1
-            estimator.observe(k=poses.split_k, tags=len(poses.tags), network_ms=poses.timings.edge_compute_secs * 1e3)
+            # An emulated edge publishes its fixed profile (reality only pads up to it).
+            live_ms = poses.timings.edge_compute_secs * 1e3
+            network_ms = len(poses.tags) * emulated[poses.split_k] if emulated else live_ms
+            estimator.observe(k=poses.split_k, tags=len(poses.tags), network_ms=network_ms)
             if time.monotonic() - last_profile >= settings.profile_period_secs:
                 last_profile = time.monotonic()
                 compute_pub.put(encode(estimator.message(robot_id=rid, side="edge", stamp_nanos=time.time_ns())))

@@ -8,6 +8,7 @@ from typing import ClassVar
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
+from shared.messages import PerCut
 from shared.settings import ServiceSettings
 
 
@@ -25,3 +26,7 @@ class EdgeInferSettings(ServiceSettings):
     serve_echo: bool = True  # the link-probe echo queryable lives on the edge
     queue_depth: int = Field(default=2, ge=1)  # Features waiting for the edge; small = bounded latency
     profile_period_secs: float = Field(default=1.0, gt=0)  # ComputeProfile E(k) publication period
+    # Emulating another edge CPU: a fixed per-tag tail time (PnP included) at every cut, ms. Frames are
+    # padded by sleeping up to it and E(k) is published from it, independent of this CPU; a frame
+    # whose real compute exceeds it takes the real time. None: calibrated and measured live.
+    emulated_ms_per_tag_by_k: PerCut | None = None

@@ -16,7 +16,7 @@ from shared.codec import WireError
 from shared.compute import ComputeEstimator, head_per_tag_ms
 from shared.detector import TagDetector
 from shared.flow import InFlightWindow
-from shared.messages import ComputeProfile, Features, Frame, SplitConfig, TagPoses, decode, encode
+from shared.messages import ComputeProfile, Features, Frame, FrameSent, SplitConfig, TagPoses, decode, encode
 from shared.pipeline import robot_step
 from shared.profile import calibrate_cumulative_ms, warm_up
 from shared.split_control import SplitState, serve_split
@@ -31,13 +31,16 @@ def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading
     torch.set_num_threads(settings.threads)
     model = load_model(settings.weights)
     warm_up(model, bf16=settings.bf16)
-    estimator = ComputeEstimator(head_per_tag_ms(calibrate_cumulative_ms(model, bf16=settings.bf16)))
+    emulated = settings.emulated_ms_per_tag_by_k
+    per_tag_ms = emulated or head_per_tag_ms(calibrate_cumulative_ms(model, bf16=settings.bf16))
+    estimator = ComputeEstimator(per_tag_ms)
     detector = TagDetector(settings.detector)
     state = SplitState(SplitConfig(k=settings.split_k, codec=settings.codec, pinned=False, source="default"))
     rid = settings.robot_id
     sub = declare_latest_subscriber(session, keys.frames(rid))
     pub = declare_tensor_publisher(session, keys.features(rid), Features.SCHEMA)
     compute_pub = session.declare_publisher(keys.compute(rid, "robot"), encoding=encoding_for(ComputeProfile.SCHEMA))
+    sent_pub = session.declare_publisher(keys.frame_sent(rid), encoding=encoding_for(FrameSent.SCHEMA))
     last_profile = 0.0
     queryable = serve_split(session, keys.split(rid), state)
     window = InFlightWindow(settings.max_in_flight, timeout_secs=settings.in_flight_timeout_secs)
@@ -65,33 +68,37 @@ def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading
             tags, timings = robot_step(
                 frame, detector=detector, model=model, k=split.k, codec=split.codec, bf16=settings.bf16
             )
-            compute = timings.total_secs
-            if settings.gamma > 1.0:
-                # Emulate a robot CPU `gamma` times slower: the latency really grows, not just a model.
-                time.sleep((settings.gamma - 1.0) * compute)
-                compute *= settings.gamma
-            pub.put(
-                encode(
-                    Features(
-                        robot_id=rid,
-                        seq=frame.seq,
-                        capture_nanos=frame.capture_nanos,
-                        publish_nanos=time.time_ns(),
-                        split_k=split.k,
-                        codec=split.codec,
-                        intrinsics=frame.intrinsics,
-                        robot_compute_secs=compute,
-                        tags=tags,
-                    )
+            # Emulate the robot's CPU: the latency really grows to gamma x the reference, not just a model.
+            network_ms = len(tags) * per_tag_ms[split.k] if emulated else timings.head_secs * 1e3
+            fixed_secs = timings.detect_secs + timings.warp_secs
+            target = settings.gamma * (fixed_secs + network_ms / 1e3)
+            if target > timings.total_secs:
+                time.sleep(target - timings.total_secs)
+            compute = max(target, timings.total_secs)
+            wire = encode(
+                Features(
+                    robot_id=rid,
+                    seq=frame.seq,
+                    capture_nanos=frame.capture_nanos,
+                    publish_nanos=time.time_ns(),
+                    split_k=split.k,
+                    codec=split.codec,
+                    intrinsics=frame.intrinsics,
+                    robot_compute_secs=compute,
+                    tags=tags,
                 )
             )
+            # The credit is taken before the put: the answer can arrive before put() returns.
             window.sent(frame.seq)
+            sent_nanos = time.time_ns()
+            pub.put(wire)
+            sent_pub.put(encode(FrameSent(robot_id=rid, seq=frame.seq, sent_nanos=sent_nanos, payload_bytes=len(wire))))
             processed += 1
             estimator.observe(
                 k=split.k,
                 tags=len(tags),
-                network_ms=timings.head_secs * 1e3,
-                fixed_ms=(timings.detect_secs + timings.warp_secs) * 1e3,
+                network_ms=network_ms,
+                fixed_ms=fixed_secs * 1e3,
             )
             if time.monotonic() - last_profile >= settings.profile_period_secs:
                 last_profile = time.monotonic()

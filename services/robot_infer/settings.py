@@ -5,10 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import ClassVar, Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 from pydantic_settings import SettingsConfigDict
 
 from shared.detector import DetectorSettings
+from shared.messages import PerCut
 from shared.settings import ServiceSettings
 
 
@@ -27,4 +28,19 @@ class RobotInferSettings(ServiceSettings):
     max_in_flight: int = Field(default=2, ge=0)  # frames sent without TagPoses back yet; 0 = no limit
     in_flight_timeout_secs: float = Field(default=2.0, gt=0)  # a frame never answered returns its credit
     profile_period_secs: float = Field(default=1.0, gt=0)  # ComputeProfile C(k) publication period
-    gamma: float = Field(default=1.0, ge=1.0)  # >1 emulates a slower robot CPU by sleeping (gamma-1)*compute
+    # Emulating another robot CPU. The robot's compute is gamma times a reference: this CPU's own
+    # (calibrated at start-up and measured live) or, when set, a fixed per-tag head time at every cut
+    # (ms, cumulative up to k), which makes C(k) independent of the CPU the service runs on. Frames
+    # are padded by sleeping up to the target; a CPU cannot be made faster, so gamma < 1 needs the
+    # fixed reference, and a frame whose real compute exceeds its target takes the real time.
+    gamma: float = Field(default=1.0, gt=0)
+    emulated_ms_per_tag_by_k: PerCut | None = None
+
+    @model_validator(mode="after")
+    def _faster_needs_a_reference(self) -> RobotInferSettings:
+        if self.gamma < 1.0 and self.emulated_ms_per_tag_by_k is None:
+            raise ValueError(
+                f"gamma {self.gamma} < 1 would make the robot faster than this CPU: "
+                "set emulated_ms_per_tag_by_k (a fixed reference profile) to emulate a faster robot"
+            )
+        return self
