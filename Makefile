@@ -1,5 +1,5 @@
 # The two commands of the README's quick start. Both set up .venv first (idempotent).
-.PHONY: setup demo test lint
+.PHONY: setup demo test lint test-gamma
 
 setup:
 	@bash deploy/setup.sh
@@ -14,3 +14,7 @@ lint: setup
 
 test: lint
 	.venv/bin/pytest
+
+# The suite again with the robot's compute at 2x and 0.5x (see deploy/test-gamma.sh).
+test-gamma: setup
+	bash deploy/test-gamma.sh

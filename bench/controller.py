@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from bench.machine import cpu_label
 from shared import keys
 from shared.launch import Monitor, attach_monitor, start_service, stop_services
 from shared.linkemu import PROFILES, LinkEmulator, LinkEmulatorSettings, LinkProfile, in_netns, unavailable_reason
@@ -259,6 +260,7 @@ def main() -> int:
     ap.add_argument("--phase-secs", type=float, default=9.0)
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
+    print(f"CPU: {cpu_label()}", flush=True)
     reason = unavailable_reason()
     if reason is not None:
         raise SystemExit(reason)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import torch
 
+from bench.machine import cpu_label
 from shared.model import CUTS, SplitKeypointNet
 from shared.profile import VARIANTS, profile_cuts
 from shared.weights import load_model
@@ -24,6 +25,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--batch", type=int, default=1, help="tags per frame")
     args = ap.parse_args()
+    print(f"CPU: {cpu_label()}", flush=True)
     torch.set_num_threads(args.threads)
     model = load_model(args.weights) if args.weights else SplitKeypointNet(roi_margin=0.2)
     results = {v: profile_cuts(model, variant=v, batch=args.batch, repetitions=args.repetitions) for v in VARIANTS}

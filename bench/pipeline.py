@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.machine import cpu_label
 from shared import keys
 from shared.launch import Monitor, attach_monitor, demo_tag_map, loopback_config, start_service, stop_services
 from shared.model import CUTS
@@ -35,6 +36,7 @@ def main() -> None:
     ap.add_argument("--rerun", action="store_true", help="log everything to Rerun (to measure its cost)")
     ap.add_argument("--rerun-image-every", type=int, default=1)
     args = ap.parse_args()
+    print(f"CPU: {cpu_label()}", flush=True)
     tmp = Path(tempfile.mkdtemp(prefix="splittag-bench-"))
     cfg, _, robot = loopback_config(
         tmp, robot_id=ROBOT, rerun=args.rerun, image_every=args.rerun_image_every, fps=args.fps

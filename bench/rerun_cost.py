@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.machine import cpu_label
 from shared import keys
 from shared.geometry import default_camera, make_pose
 from shared.launch import Monitor, attach_monitor, demo_tag_map, loopback_config, start_service, stop_services
@@ -138,6 +139,7 @@ def main() -> None:
     ap.add_argument("--image-every", type=int, default=5)
     ap.add_argument("--frames", type=int, default=300)
     args = ap.parse_args()
+    print(f"CPU: {cpu_label()}", flush=True)
 
     cost = logging_cpu_ms_per_frame(args.frames, args.image_every)
     print(f"logging CPU per frame (image_every={args.image_every}, {args.frames} frames, ms):")

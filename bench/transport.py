@@ -20,6 +20,7 @@ import time
 import numpy as np
 import zenoh
 
+from bench.machine import cpu_label
 from shared import keys
 from shared.messages import encode
 from shared.probe import Prober, probe_features
@@ -84,6 +85,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repetitions", type=int, default=200)
     args = ap.parse_args()
+    print(f"CPU: {cpu_label()}", flush=True)
     robot = "bench"
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     echo = subprocess.Popen(

@@ -15,6 +15,11 @@ import numpy as np
 
 from shared.messages import N_CUTS, ComputeProfile
 
+# A reference CPU's per-tag cumulative head time at every cut (ms), shaped like the paper network's
+# blocks and above what either CPU kind here takes (AMD EPYC Zen 4 bf16: 8, 17, 26, 35, 38, 39, 40 ms),
+# for tests and scenarios that must not depend on the machine (`emulated_ms_per_tag_by_k`).
+REFERENCE_HEAD_MS_PER_TAG: tuple[float, ...] = (0.0, 10.0, 20.0, 30.0, 40.0, 44.0, 44.0, 45.0)
+
 
 class _RunningMedian:
     def __init__(self, window: int) -> None:

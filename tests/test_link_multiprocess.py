@@ -23,6 +23,8 @@ import pytest
 import zenoh
 
 from bench.controller import ROBOT, SCHEDULE, EmulatedCompute, Run, stream
+from shared.compute import REFERENCE_HEAD_MS_PER_TAG
+from shared.controller import features_payload_bytes
 from shared.linkemu import PROFILES, LinkEmulator, LinkEmulatorSettings, unavailable_reason
 from shared.split_client import query_split
 
@@ -32,9 +34,7 @@ PHASE_SECS = 9.0
 PIN_AFTER_SECS, PIN_FOR_SECS = 2.0, 2.5
 FPS = 2.5
 GAMMA = 1.6
-# Per-tag cumulative head time of a reference CPU, shaped like the paper network's blocks (AMD EPYC
-# Zen 4 bf16 measures 8, 17, 26, 35, 38, 39, 40 ms): above what either CPU kind takes.
-COMPUTE = EmulatedCompute.from_network([0.0, 10.0, 20.0, 30.0, 40.0, 44.0, 44.0, 45.0])
+COMPUTE = EmulatedCompute.from_network(list(REFERENCE_HEAD_MS_PER_TAG))
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +92,8 @@ def test_controller_follows_the_link_and_respects_pinning(emulator: LinkEmulator
         # ... and the controller sits at its own optimum, up to its hysteresis margin.
         t = np.asarray(st.predicted_ms_by_k)
         assert t[st.chosen_k] <= max(1.05 * t.min(), t.min() + 3.0) + 1e-6, name
-        chosen_payload.append(st.payload_kB_by_k[st.chosen_k])
+        # Per tag: the frames' tag count differs between phases, the order of the cuts' sizes does not.
+        chosen_payload.append(features_payload_bytes(1, st.chosen_k))
     # 5g-pre-tdd's slope is 3.2x 5g's: the estimate must see at least 1.8x, both ways.
     assert betas[1] >= 1.8 * betas[0] and betas[1] >= 1.8 * betas[2], betas
     assert abs(betas[1] - PROFILES["5g-pre-tdd"].beta_ms_per_kB) <= 0.3 * PROFILES["5g-pre-tdd"].beta_ms_per_kB
