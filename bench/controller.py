@@ -3,7 +3,7 @@
     sudo .venv/bin/python -m bench.controller --repetitions 3
 
 Robot side (camera, robot_infer with gamma, controller) and edge side (edge_infer) run in two network
-namespaces joined by the shaped veth (shared/linkemu.py). The link goes 5g -> 5g-pre-tdd -> 5g while
+namespaces joined by the shaped veth (shared/tools/linkemu.py). The link goes 5g -> 5g-pre-tdd -> 5g while
 frames stream. Run A: the controller decides. Run B: an oracle that knows the schedule pins the best
 k (computed from the C(k), E(k), S(k) measured in run A at the end of each phase and the profile's
 nominal link) at the instant of each change. Reported per repetition: how long after each change the
@@ -28,12 +28,12 @@ import numpy as np
 import zenoh
 
 from bench.machine import cpu_label
-from shared import keys
-from shared.launch import Monitor, attach_monitor, start_service, stop_services
-from shared.linkemu import PROFILES, LinkEmulator, LinkEmulatorSettings, LinkProfile, in_netns, unavailable_reason
-from shared.messages import ControllerState, decode
-from shared.split_client import query_split
-from shared.transport import ZenohSettings, open_session, wait_for_liveliness
+from shared.tools.launch import Monitor, attach_monitor, start_service, stop_services
+from shared.tools.linkemu import PROFILES, LinkEmulator, LinkEmulatorSettings, LinkProfile, in_netns, unavailable_reason
+from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
+from shared.transport.split_client import query_split
+from shared.wire import keys
+from shared.wire.messages import ControllerState, decode
 
 ROBOT = "emu1"
 # A robot CPU 1.75x slower than the edge. T(0) < T(7) iff beta * 64 kB < (gamma - 1) * c7, c7 being the

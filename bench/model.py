@@ -12,9 +12,10 @@ from pathlib import Path
 import torch
 
 from bench.machine import cpu_label
-from shared.model import CUTS, SplitKeypointNet
-from shared.profile import VARIANTS, profile_cuts
-from shared.weights import load_model
+from shared.model.net import SplitKeypointNet
+from shared.model.profile import VARIANTS, profile_cuts
+from shared.model.weights import load_model
+from shared.wire.cuts import CUTS
 
 
 def main() -> None:
@@ -34,7 +35,7 @@ def main() -> None:
     print(f"{'k':>2} {'cut':<10} {'S(k) bytes':>11} {'S(k) kB fp16':>13}{head}")
     for cut in CUTS:
         cells = "".join(f"{results[v][cut.k].median_ms:>20.2f}" for v in VARIANTS)
-        print(f"{cut.k:>2} {cut.name:<10} {cut.payload_bytes:>11} {cut.payload_bytes_fp16 / 1024:>13.2f}{cells}")
+        print(f"{cut.k:>2} {cut.name:<10} {cut.tensor_bytes():>11} {cut.payload_bytes_fp16 / 1024:>13.2f}{cells}")
     full = {v: results[v][-1].median_ms for v in VARIANTS}
     print("full-network speed-up vs fp32 NCHW: " + ", ".join(f"{v} {full['fp32'] / full[v]:.2f}x" for v in VARIANTS))
 

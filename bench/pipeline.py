@@ -17,11 +17,11 @@ from pathlib import Path
 import numpy as np
 
 from bench.machine import cpu_label
-from shared import keys
-from shared.launch import Monitor, attach_monitor, demo_tag_map, loopback_config, start_service, stop_services
-from shared.model import CUTS
-from shared.split_client import query_split
-from shared.transport import ZenohSettings, open_session, wait_for_liveliness
+from shared.tools.launch import Monitor, attach_monitor, demo_tag_map, loopback_config, start_service, stop_services
+from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
+from shared.transport.split_client import query_split
+from shared.wire import keys
+from shared.wire.cuts import CUTS
 
 ROBOT = "bench"
 

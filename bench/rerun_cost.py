@@ -21,14 +21,14 @@ from pathlib import Path
 import numpy as np
 
 from bench.machine import cpu_label
-from shared import keys
-from shared.geometry import default_camera, make_pose
-from shared.launch import Monitor, attach_monitor, demo_tag_map, loopback_config, start_service, stop_services
-from shared.messages import HopTimings, LinkStamps, TagPose, TagPoses
-from shared.sources import DemoSource
-from shared.split_client import query_split
-from shared.transport import ZenohSettings, open_session, wait_for_liveliness
-from shared.viz import RerunSettings, RerunViz
+from shared.runtime.sources import DemoSource
+from shared.tools.launch import Monitor, attach_monitor, demo_tag_map, loopback_config, start_service, stop_services
+from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
+from shared.transport.split_client import query_split
+from shared.vision.geometry import default_camera, make_pose
+from shared.viz.recording import RerunSettings, RerunViz
+from shared.wire import keys
+from shared.wire.messages import HopTimings, LinkStamps, TagPose, TagPoses
 
 ROBOT = "rrcost"
 SERVICES = ("edge_infer", "robot_infer", "slam", "camera")

@@ -21,10 +21,11 @@ import numpy as np
 import zenoh
 
 from bench.machine import cpu_label
-from shared import keys
-from shared.messages import encode
-from shared.probe import Prober, probe_features
-from shared.transport import ZenohSettings, free_tcp_port, open_session, wait_for_liveliness
+from shared.transport.probe import Prober
+from shared.transport.session import ZenohSettings, free_tcp_port, open_session, wait_for_liveliness
+from shared.wire import keys
+from shared.wire.messages import encode
+from shared.wire.sizing import probe_features
 
 SIZES = [64, 256, 1024, 4096, 16384, 65536, 262144, 1 << 20, 2 << 20]
 _LEN = struct.Struct("!Q")
@@ -89,7 +90,7 @@ def main() -> None:
     robot = "bench"
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     echo = subprocess.Popen(
-        [sys.executable, "-m", "shared.cli", "echo", "--listen", endpoint, "--robot-id", robot],
+        [sys.executable, "-m", "shared.tools.cli", "echo", "--listen", endpoint, "--robot-id", robot],
         start_new_session=True,
         stderr=subprocess.DEVNULL,
     )

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.messages import (
+from shared.wire.messages import (
     CameraIntrinsics,
     CameraPose,
     ComputeProfile,

@@ -1,5 +1,5 @@
 """A packet-level simulation of the robot -> edge uplink with the pipeline's flow control, for the
-link estimator's tests. Written independently of `shared.linkmodel`: messages are cut into MTU-sized
+link estimator's tests. Written independently of `shared.control.linkmodel`: messages are cut into MTU-sized
 packets that cross a FIFO delay line with per-packet jitter and then a token-bucket rate limiter (the
 emulated link's order), the robot keeps up to `window` frames in flight and takes the newest camera
 frame when a credit returns, the edge serves frames one at a time, and probes share the same link.

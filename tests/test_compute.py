@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from shared.compute import ComputeEstimator, head_per_tag_ms, tail_per_tag_ms
+from shared.control.compute import ComputeEstimator, head_per_tag_ms, tail_per_tag_ms
 
 CUMULATIVE = [0.1, 15.0, 19.0, 22.0, 23.0, 27.0, 28.0, 32.0]
 

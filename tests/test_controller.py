@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shared.controller import ControllerSettingsCore, SplitController, features_payload_bytes
-from shared.messages import ComputeProfile, Features, decode, encode
-from shared.probe import probe_features
+from shared.control.controller import ControllerSettingsCore, SplitController
+from shared.wire.messages import ComputeProfile, Features, decode, encode
+from shared.wire.sizing import features_payload_bytes, probe_features
 
 
 class FakeClock:
@@ -93,8 +93,8 @@ def test_controller_service_rejects_bad_messages_and_keeps_running(
 
     from services.controller.service import run
     from services.controller.settings import ControllerSettings
-    from shared import keys
-    from shared.transport import ZenohSettings, free_tcp_port, open_session
+    from shared.transport.session import ZenohSettings, free_tcp_port, open_session
+    from shared.wire import keys
 
     port = free_tcp_port()
     hub = open_session(ZenohSettings(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))

@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.data.generate import generate
-from shared.data.shards import load_dataset
-from shared.data.synth import SynthMaker, SynthSettings
-from shared.geometry import apply_homography, default_camera, denormalise_roi
+from shared.datasets.generate import generate
+from shared.datasets.shards import load_dataset
+from shared.datasets.synth import SynthMaker, SynthSettings
+from shared.vision.geometry import apply_homography, default_camera, denormalise_roi
 
 
 def _make(out: Path, n: int, seed: int) -> dict:

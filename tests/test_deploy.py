@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from shared import keys
-from shared.transport import ZenohSettings, free_tcp_port, open_session, wait_for_liveliness
+from shared.transport.session import ZenohSettings, free_tcp_port, open_session, wait_for_liveliness
+from shared.wire import keys
 from tests.procs import REPO
 
 pytestmark = pytest.mark.multiprocess

@@ -8,9 +8,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from shared.cli import main
-from shared.geometry import camera_to_yaml, default_camera, make_pose
-from shared.tags import render_tag, to_uint8
+from shared.tools.cli import main
+from shared.vision.geometry import camera_to_yaml, default_camera, make_pose
+from shared.vision.tags import render_tag, to_uint8
 
 
 def test_detect_reports_keypoints_poses_and_bad_files(tmp_path: Path) -> None:

@@ -6,7 +6,7 @@ import threading
 
 import pytest
 
-from shared.flow import InFlightWindow
+from shared.transport.flow import InFlightWindow
 
 
 class FakeClock:

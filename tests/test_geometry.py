@@ -9,9 +9,9 @@ import numpy as np
 import pupil_apriltags
 import pytest
 
-from shared.data.synth import pose_facing
-from shared.detector import CORNER_OFFSET_PX, DetectorSettings, TagDetector, destroy_detector
-from shared.geometry import (
+from shared.datasets.synth import pose_facing
+from shared.vision.detector import CORNER_OFFSET_PX, DetectorSettings, TagDetector, destroy_detector
+from shared.vision.geometry import (
     CORNER_KEYPOINTS,
     GeometryError,
     apply_homography,
@@ -29,7 +29,7 @@ from shared.geometry import (
     roi_square,
     warp_roi,
 )
-from shared.tags import render_tag, tag_cells, to_uint8
+from shared.vision.tags import render_tag, tag_cells, to_uint8
 
 CAM = default_camera()
 

@@ -23,10 +23,10 @@ import pytest
 import zenoh
 
 from bench.controller import ROBOT, SCHEDULE, EmulatedCompute, Run, stream
-from shared.compute import REFERENCE_HEAD_MS_PER_TAG
-from shared.controller import features_payload_bytes
-from shared.linkemu import PROFILES, LinkEmulator, LinkEmulatorSettings, unavailable_reason
-from shared.split_client import query_split
+from shared.control.compute import REFERENCE_HEAD_MS_PER_TAG
+from shared.tools.linkemu import PROFILES, LinkEmulator, LinkEmulatorSettings, unavailable_reason
+from shared.transport.split_client import query_split
+from shared.wire.sizing import features_payload_bytes
 
 pytestmark = pytest.mark.multiprocess
 

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from shared.cli import main
-from shared.delayline import DelayLine
-from shared.linkemu import PROFILES, profile, unavailable_reason
+from shared.tools.cli import main
+from shared.tools.delayline import DelayLine
+from shared.tools.linkemu import PROFILES, profile, unavailable_reason
 
 
 def test_profiles_match_the_paper() -> None:
@@ -55,7 +55,7 @@ def test_link_probe_recovers_the_5g_model(tmp_path: Path) -> None:
 
 
 def test_profiles_load_from_toml_with_clear_errors(tmp_path: Path) -> None:
-    from shared.linkemu import load_profiles
+    from shared.tools.linkemu import load_profiles
 
     loaded = load_profiles(Path("deploy/link_profiles.example.toml"))
     assert set(loaded) == {"lte", "wifi"}
@@ -73,7 +73,7 @@ def test_delay_line_control_rejects_bad_requests_and_keeps_its_delay() -> None:
     import json
     import socket
 
-    from shared.delayline import _handle_control
+    from shared.tools.delayline import _handle_control
 
     line = DelayLine(39.9)
     for request, ok in ((b"not json", False), (b'{"delay_ms": -5}', False), (b'{"delay_ms": 12.5}', True)):
@@ -86,3 +86,19 @@ def test_delay_line_control_rejects_bad_requests_and_keeps_its_delay() -> None:
         if not ok:
             assert answer["error"] and line.delay_secs == pytest.approx(0.0399)
     assert line.delay_secs == pytest.approx(0.0125)
+
+
+def test_demo_and_up_take_extra_link_profiles() -> None:
+    """deploy/link_profiles.example.toml documents `splittag demo --link lte --link-profiles FILE`."""
+    from shared.tools.cli import _load_link_profiles, build_parser
+
+    example = Path(__file__).resolve().parent.parent / "deploy" / "link_profiles.example.toml"
+    saved = dict(PROFILES)
+    try:
+        for command in ("demo", "up"):
+            args = build_parser().parse_args([command, "--link", "lte", "--link-profiles", str(example)])
+            _load_link_profiles(args)
+            assert PROFILES["lte"].rate_mbit == 8.0 and PROFILES["lte"].delay_ms == 25.0
+    finally:
+        PROFILES.clear()
+        PROFILES.update(saved)

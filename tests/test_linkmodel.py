@@ -5,18 +5,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shared.linkmodel import (
-    ArrivalClock,
+from shared.control.linkmodel import (
     HysteresisChooser,
     LinkOccupancy,
     OnlineLinkEstimator,
     fit_link,
     split_costs,
 )
-from shared.model import CUTS
+from shared.transport.probe import ArrivalClock
+from shared.wire.cuts import CUTS
 from tests.linksim import Crossing, simulate
 
-SIZES_KB = [c.payload_bytes / 1024 for c in CUTS]
+SIZES_KB = [c.tensor_bytes() / 1024 for c in CUTS]
 
 
 def _samples(rng: np.random.Generator, t0: float, beta: float, n: int) -> list[tuple[float, float]]:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from shared.model import CUTS, NUM_CUTS, SplitKeypointNet, canonical_keypoints, check_cut, count_parameters
+from shared.model.net import SplitKeypointNet, canonical_keypoints, count_parameters
+from shared.wire.cuts import CUTS, N_CUTS, check_cut
 
 
 @pytest.fixture(scope="module")
@@ -24,7 +25,7 @@ def test_parameter_count_matches_paper() -> None:
     assert 5.05e6 <= n <= 5.07e6, n
 
 
-@pytest.mark.parametrize("k", range(NUM_CUTS))
+@pytest.mark.parametrize("k", range(N_CUTS))
 def test_head_then_tail_equals_forward(net: SplitKeypointNet, k: int) -> None:
     x = torch.randn(3, 1, 256, 256, generator=torch.Generator().manual_seed(k))
     with torch.no_grad():
@@ -39,7 +40,7 @@ def test_cut_table_payloads_match_paper_table() -> None:
     # The paper's Table: 1024, 512, 256, 128, 32, 8, 0.06 kB for blocks 1..5, avgpool, keypoints.
     kib = [c.payload_bytes_fp16 / 1024 for c in CUTS[1:]]
     assert kib == [1024, 512, 256, 128, 32, 8, 0.0625]
-    assert CUTS[0].payload_bytes == 256 * 256
+    assert CUTS[0].tensor_bytes() == 256 * 256
 
 
 def test_untrained_net_predicts_the_canonical_lattice() -> None:

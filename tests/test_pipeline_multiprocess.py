@@ -13,17 +13,17 @@ import numpy as np
 import pytest
 import zenoh
 
-from shared import keys
-from shared.geometry import default_camera
-from shared.launch import Monitor, attach_monitor, demo_tag_map, write_run_config
-from shared.messages import Features, SplitConfig, TagFeature, decode, encode
-from shared.transport import (
+from shared.tools.launch import Monitor, attach_monitor, demo_tag_map, write_run_config
+from shared.transport.session import (
     ZenohSettings,
     declare_tensor_publisher,
     free_tcp_port,
     open_session,
     wait_for_liveliness,
 )
+from shared.vision.geometry import default_camera
+from shared.wire import keys
+from shared.wire.messages import Features, SplitConfig, TagFeature, decode, encode
 from tests.procs import Proc, processes
 
 pytestmark = pytest.mark.multiprocess

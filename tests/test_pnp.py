@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shared.data.synth import pose_facing
-from shared.geometry import GeometryError, default_camera, lattice_in_tag, project
-from shared.metrics import rotation_error_deg
-from shared.pnp import solve_planar_pnp
+from shared.datasets.synth import pose_facing
+from shared.vision.geometry import GeometryError, default_camera, lattice_in_tag, project
+from shared.vision.metrics import rotation_error_deg
+from shared.vision.pnp import solve_planar_pnp
 
 CAM = default_camera()
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shared.detector import DetectorSettings, TagDetector
-from shared.geometry import corners_in_tag, default_camera, project
-from shared.messages import CameraIntrinsics
-from shared.scene import SceneRenderer, look_at, random_room
+from shared.sim.scene import SceneRenderer, look_at, random_room
+from shared.vision.camera import CameraIntrinsics
+from shared.vision.detector import DetectorSettings, TagDetector
+from shared.vision.geometry import corners_in_tag, default_camera, project
 
 
 def test_rendered_tags_decode_with_corners_at_their_projection() -> None:

@@ -8,13 +8,13 @@ from pathlib import Path
 
 import pytest
 
-from shared.data.generate import generate
-from shared.data.shards import load_dataset
-from shared.data.synth import SynthMaker, SynthSettings
-from shared.evaluate import predict_dataset
-from shared.geometry import default_camera
-from shared.train import evaluate_arrays
-from shared.weights import load_model
+from shared.datasets.generate import generate
+from shared.datasets.shards import load_dataset
+from shared.datasets.synth import SynthMaker, SynthSettings
+from shared.model.weights import load_model
+from shared.training.evaluate import predict_dataset
+from shared.training.train import evaluate_arrays
+from shared.vision.geometry import default_camera
 
 MODELS = Path(__file__).resolve().parent.parent / "models"
 SEED, N = 12345, 300

@@ -2,14 +2,20 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from shared.geometry import default_camera, lattice_in_tag, project
-from shared.pnp import solve_planar_pnp
-from shared.scene import look_at
-from shared.slam import MarkerSlam, Observation, SlamSettings, absolute_trajectory_error, umeyama_se3
-from shared.sources import demo_scene, demo_trajectory
+from services.slam.service import SlamNode
+from services.slam.settings import SlamServiceSettings
+from shared.runtime.sources import demo_scene, demo_trajectory
+from shared.sim.scene import look_at
+from shared.slam.marker_slam import MarkerSlam, Observation, SlamSettings, absolute_trajectory_error, umeyama_se3
+from shared.vision.geometry import default_camera, lattice_in_tag, project
+from shared.vision.pnp import solve_planar_pnp
+from shared.vision.tagmap import load_tag_map
 
 CAM = default_camera()
 SCENE = demo_scene()
@@ -117,3 +123,23 @@ def test_umeyama_recovers_a_rigid_transform() -> None:
     t = TRAJ[5]
     moved = (t[:3, :3] @ pts.T).T + t[:3, 3]
     np.testing.assert_allclose(umeyama_se3(pts, moved), t, atol=1e-9)
+
+
+def test_the_map_slam_writes_loads_back_as_a_tag_map(tmp_path: Path) -> None:
+    """map.json is a tag map (it used to carry run statistics that load_tag_map rejects): slam's own
+    output can be fed back as slam's or edge_infer's known map."""
+    node = SlamNode(SlamServiceSettings(run_dir=tmp_path))
+    for i, pose in enumerate(_constant_velocity(20)):
+        node.slam.update(i, i * 33_000_000, [_exact_obs(*v) for v in _visible(pose)])
+    built = node.slam.tag_map()
+    assert len(built) >= 2
+    node.write_outputs(tmp_path)
+    loaded = load_tag_map(tmp_path / "map.json")
+    assert loaded.anchor_tag_id == node.slam.anchor
+    assert {t.id for t in loaded.tags} == set(built)
+    for t in loaded.tags:
+        assert t.size_m == built[t.id][0]
+        np.testing.assert_allclose(np.asarray(t.world_from_tag), built[t.id][1], atol=1e-12)
+    assert json.loads((tmp_path / "slam.json").read_text())["frames"] == 20
+    again = SlamNode(SlamServiceSettings(run_dir=tmp_path, tag_map=tmp_path / "map.json"))
+    assert set(again.slam.known) == {t.id for t in loaded.tags}

@@ -8,12 +8,12 @@ from pathlib import Path
 
 import pytest
 
-from shared import keys
-from shared.launch import write_run_config
-from shared.slam import absolute_trajectory_error
-from shared.sources import read_tum
-from shared.transport import ZenohSettings, free_tcp_port, open_session, wait_for_liveliness
-from shared.viz import merge_recordings, recording_entities
+from shared.slam.marker_slam import absolute_trajectory_error
+from shared.tools.launch import write_run_config
+from shared.transport.session import ZenohSettings, free_tcp_port, open_session, wait_for_liveliness
+from shared.vision.trajectory import read_tum
+from shared.viz.recording import merge_recordings, recording_entities
+from shared.wire import keys
 from tests.procs import Proc, processes
 
 pytestmark = pytest.mark.multiprocess

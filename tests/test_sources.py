@@ -12,12 +12,13 @@ import pytest
 
 from services.camera.service import run as run_camera
 from services.camera.settings import CameraSettings
-from shared import keys
-from shared.geometry import GeometryError, camera_to_yaml, default_camera, make_pose
-from shared.messages import CameraPose, Frame, decode
-from shared.sources import CaptureSource, FolderSource, read_tum, write_tum
-from shared.tags import render_tag, to_uint8
-from shared.transport import ZenohSettings, free_tcp_port, open_session
+from shared.runtime.sources import CaptureSource, FolderSource
+from shared.transport.session import ZenohSettings, free_tcp_port, open_session
+from shared.vision.geometry import GeometryError, camera_to_yaml, default_camera, make_pose
+from shared.vision.tags import render_tag, to_uint8
+from shared.vision.trajectory import read_tum, write_tum
+from shared.wire import keys
+from shared.wire.messages import CameraPose, Frame, decode
 
 CAM = default_camera()
 

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-from shared.data.generate import generate
-from shared.data.synth import SynthMaker, SynthSettings
-from shared.geometry import ROI_MARGIN, default_camera
-from shared.model import SplitKeypointNet, canonical_keypoints
-from shared.train import WING_C, TrainSettings, dihedral, train, wing_loss
-from shared.weights import WeightsError, load_model, save_weights
+from shared.datasets.generate import generate
+from shared.datasets.synth import SynthMaker, SynthSettings
+from shared.model.net import SplitKeypointNet, canonical_keypoints
+from shared.model.weights import WeightsError, load_model, save_weights
+from shared.training.train import WING_C, TrainSettings, dihedral, train, wing_loss
+from shared.vision.geometry import ROI_MARGIN, default_camera
 
 
 def test_wing_loss_values_and_weights() -> None:
@@ -84,3 +84,11 @@ def test_tiny_training_run_writes_weights_and_resumes(tmp_path: Path) -> None:
     again = train(settings.model_copy(update={"epochs": 3}))  # resumes at epoch 2 of the saved plan
     assert len(again["history"]) == 2
     assert (tmp_path / "run" / "curve.jsonl").read_text().count("\n") == 2
+
+
+def test_weights_made_for_another_roi_margin_are_refused(tmp_path: Path) -> None:
+    """The ROI warp that feeds the net uses ROI_MARGIN: a file saying otherwise is another contract
+    (the check used to compare the file's margin with itself)."""
+    save_weights(SplitKeypointNet(roi_margin=0.25), tmp_path / "w")
+    with pytest.raises(WeightsError, match=r"roi_margin is 0\.25"):
+        load_model(tmp_path / "w")

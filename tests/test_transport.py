@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from shared import keys
-from shared.transport import ZenohSettings, build_config
+from shared.transport.session import ZenohSettings, build_config
+from shared.wire import keys
 
 
 def test_shared_memory_and_multicast_off_by_default() -> None:

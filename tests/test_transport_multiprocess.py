@@ -9,15 +9,15 @@ import msgpack
 import numpy as np
 import pytest
 
-from shared import keys
-from shared.messages import Features, TagFeature, encode
-from shared.transport import (
+from shared.transport.session import (
     ZenohSettings,
     declare_tensor_publisher,
     free_tcp_port,
     open_session,
     wait_for_liveliness,
 )
+from shared.wire import keys
+from shared.wire.messages import Features, TagFeature, encode
 from tests.examples import INTRINSICS
 from tests.peers.features_checker import expected_tensor, verdict_key
 from tests.procs import Proc, processes

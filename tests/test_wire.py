@@ -11,7 +11,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from shared.codec import (
+from shared.wire.codec import (
     WIRE_DTYPES,
     ArrayError,
     MalformedFrame,
@@ -21,7 +21,7 @@ from shared.codec import (
     pack,
     unpack,
 )
-from shared.messages import LEGACY_SCHEMAS, SCHEMAS, Features, Frame, SplitConfig, TagFeature, decode, encode
+from shared.wire.messages import LEGACY_SCHEMAS, SCHEMAS, Features, Frame, SplitConfig, TagFeature, decode, encode
 from tests.examples import INTRINSICS, assert_messages_equal, example_messages, golden_name
 
 GOLDEN = Path(__file__).parent / "golden"

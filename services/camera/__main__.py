@@ -2,6 +2,6 @@
 
 from services.camera.service import run
 from services.camera.settings import CameraSettings
-from shared.service_main import service_main
+from shared.runtime.service_main import service_main
 
 raise SystemExit(service_main("camera", CameraSettings, lambda s, z, stop: run(s, session=z, stop=stop)))

@@ -9,11 +9,11 @@ import time
 import zenoh
 
 from services.camera.settings import CameraSettings
-from shared import keys
-from shared.messages import CameraPose, Frame, encode
-from shared.sources import CaptureSource, DemoSource, FolderSource, FrameSource
-from shared.transport import declare_tensor_publisher, encoding_for, wait_for_liveliness
-from shared.viz import make_viz
+from shared.runtime.sources import CaptureSource, DemoSource, FolderSource, FrameSource
+from shared.transport.session import declare_tensor_publisher, encoding_for, wait_for_liveliness
+from shared.viz.recording import make_viz
+from shared.wire import keys
+from shared.wire.messages import CameraPose, Frame, encode
 
 log = logging.getLogger(__name__)
 

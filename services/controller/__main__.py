@@ -2,6 +2,6 @@
 
 from services.controller.service import run
 from services.controller.settings import ControllerSettings
-from shared.service_main import service_main
+from shared.runtime.service_main import service_main
 
 raise SystemExit(service_main("controller", ControllerSettings, lambda s, z, stop: run(s, session=z, stop=stop)))

@@ -19,14 +19,15 @@ from typing import TypeVar
 import zenoh
 
 from services.controller.settings import ControllerSettings
-from shared import keys
-from shared.codec import WireError
-from shared.controller import ControllerSettingsCore, SplitController
-from shared.messages import ComputeProfile, ControllerState, FrameSent, Message, TagPoses, decode, encode
-from shared.probe import ProbeError, Prober, probe_features
-from shared.split_client import SplitQueryError, query_split
-from shared.transport import encoding_for
-from shared.viz import make_viz
+from shared.control.controller import ControllerSettingsCore, SplitController
+from shared.transport.probe import ProbeError, Prober
+from shared.transport.session import encoding_for
+from shared.transport.split_client import SplitQueryError, query_split
+from shared.viz.recording import make_viz
+from shared.wire import keys
+from shared.wire.codec import WireError
+from shared.wire.messages import ComputeProfile, ControllerState, FrameSent, Message, TagPoses, decode, encode
+from shared.wire.sizing import probe_features
 
 log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)

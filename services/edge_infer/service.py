@@ -11,18 +11,17 @@ import torch
 import zenoh
 
 from services.edge_infer.settings import EdgeInferSettings
-from shared import keys
-from shared.codec import WireError
-from shared.compute import ComputeEstimator, tail_per_tag_ms
-from shared.linkmodel import ArrivalClock
-from shared.messages import ComputeProfile, Features, TagPoses, decode, encode
-from shared.perception import TagMapFile, load_tag_map
-from shared.pipeline import edge_step
-from shared.probe import serve_echo
-from shared.profile import calibrate_cumulative_ms, calibrate_pnp_ms, warm_up
-from shared.transport import declare_tensor_publisher, encoding_for
-from shared.viz import make_viz
-from shared.weights import load_model
+from shared.control.compute import ComputeEstimator, tail_per_tag_ms
+from shared.model.profile import calibrate_cumulative_ms, calibrate_pnp_ms, warm_up
+from shared.model.weights import load_model
+from shared.perception.split import edge_step
+from shared.transport.probe import ArrivalClock, serve_echo
+from shared.transport.session import declare_tensor_publisher, encoding_for
+from shared.vision.tagmap import TagMapFile, load_tag_map
+from shared.viz.recording import make_viz
+from shared.wire import keys
+from shared.wire.codec import WireError
+from shared.wire.messages import ComputeProfile, Features, TagPoses, decode, encode
 
 log = logging.getLogger(__name__)
 

@@ -8,8 +8,8 @@ from typing import ClassVar
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
-from shared.messages import PerCut
-from shared.settings import ServiceSettings
+from shared.runtime.settings import ServiceSettings
+from shared.wire.messages import PerCut
 
 
 class EdgeInferSettings(ServiceSettings):

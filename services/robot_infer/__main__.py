@@ -2,6 +2,6 @@
 
 from services.robot_infer.service import run
 from services.robot_infer.settings import RobotInferSettings
-from shared.service_main import service_main
+from shared.runtime.service_main import service_main
 
 raise SystemExit(service_main("robot_infer", RobotInferSettings, lambda s, z, stop: run(s, session=z, stop=stop)))

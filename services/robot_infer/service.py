@@ -11,17 +11,17 @@ import torch
 import zenoh
 
 from services.robot_infer.settings import RobotInferSettings
-from shared import keys
-from shared.codec import WireError
-from shared.compute import ComputeEstimator, head_per_tag_ms
-from shared.detector import TagDetector
-from shared.flow import InFlightWindow
-from shared.messages import ComputeProfile, Features, Frame, FrameSent, SplitConfig, TagPoses, decode, encode
-from shared.pipeline import robot_step
-from shared.profile import calibrate_cumulative_ms, warm_up
-from shared.split_control import SplitState, serve_split
-from shared.transport import declare_latest_subscriber, declare_tensor_publisher, encoding_for, next_sample
-from shared.weights import load_model
+from shared.control.compute import ComputeEstimator, head_per_tag_ms
+from shared.model.profile import calibrate_cumulative_ms, warm_up
+from shared.model.weights import load_model
+from shared.perception.split import robot_step
+from shared.transport.flow import InFlightWindow
+from shared.transport.session import declare_latest_subscriber, declare_tensor_publisher, encoding_for, next_sample
+from shared.transport.split_control import SplitState, serve_split
+from shared.vision.detector import TagDetector
+from shared.wire import keys
+from shared.wire.codec import WireError
+from shared.wire.messages import ComputeProfile, Features, Frame, FrameSent, SplitConfig, TagPoses, decode, encode
 
 log = logging.getLogger(__name__)
 

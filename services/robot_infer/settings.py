@@ -8,9 +8,9 @@ from typing import ClassVar, Literal
 from pydantic import Field, model_validator
 from pydantic_settings import SettingsConfigDict
 
-from shared.detector import DetectorSettings
-from shared.messages import PerCut
-from shared.settings import ServiceSettings
+from shared.runtime.settings import ServiceSettings
+from shared.vision.detector import DetectorSettings
+from shared.wire.messages import PerCut
 
 
 class RobotInferSettings(ServiceSettings):

@@ -1,7 +1,8 @@
 """slam loop: TagPoses -> MarkerSlam -> CameraPose every frame, TagMap on change; files at exit/on request.
 
 Map queryable on `splittag/<robot_id>/map/v1`: a get replies the current TagMap; `?save=1` also
-writes trajectory.tum, map.json (and groundtruth.tum / ate.json when ground truth was seen) now.
+writes trajectory.tum, map.json (a tag map), slam.json (run statistics) and, when ground truth was seen,
+groundtruth.tum / ate.json now.
 """
 
 from __future__ import annotations
@@ -16,14 +17,14 @@ import numpy as np
 import zenoh
 
 from services.slam.settings import SlamServiceSettings
-from shared import keys
-from shared.codec import WireError
-from shared.messages import CameraPose, MapTag, TagMap, TagPoses, decode, encode
-from shared.perception import load_tag_map
-from shared.slam import MarkerSlam, Observation, absolute_trajectory_error
-from shared.sources import write_tum
-from shared.transport import declare_fifo_subscriber, encoding_for, next_sample
-from shared.viz import make_viz
+from shared.slam.marker_slam import MarkerSlam, Observation, absolute_trajectory_error
+from shared.transport.session import declare_fifo_subscriber, encoding_for, next_sample
+from shared.vision.tagmap import load_tag_map, tag_map_from_poses, write_tag_map
+from shared.vision.trajectory import write_tum
+from shared.viz.recording import make_viz
+from shared.wire import keys
+from shared.wire.codec import WireError
+from shared.wire.messages import CameraPose, MapTag, TagMap, TagPoses, decode, encode
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +80,7 @@ class SlamNode:
             return self._map(robot_id)
 
     def write_outputs(self, run_dir: Path) -> dict[str, Any]:
-        """trajectory.tum, map.json, and with ground truth groundtruth.tum + ate.json."""
+        """trajectory.tum, map.json (a tag map), slam.json, and with ground truth groundtruth.tum + ate.json."""
         run_dir.mkdir(parents=True, exist_ok=True)
         with self.lock:
             traj = self.slam.trajectory()
@@ -87,21 +88,8 @@ class SlamNode:
             gt = dict(self.gt)
             state = self.slam.state
         write_tum(run_dir / "trajectory.tum", [(s / 1e9, p) for s, p in traj])
-        (run_dir / "map.json").write_text(
-            json.dumps(
-                {
-                    "anchor_tag_id": self.slam.anchor,
-                    "tags": [
-                        {"id": t, "size_m": size, "world_from_tag": pose.tolist()}
-                        for t, (size, pose) in sorted(tag_map.items())
-                    ],
-                    "frames": state.frames,
-                    "lost_frames": state.lost,
-                    "rejected_ambiguous": state.rejected_ambiguous,
-                },
-                indent=2,
-            )
-        )
+        # map.json is a tag map (loadable as slam's or edge_infer's `tag_map`); run statistics go apart.
+        write_tag_map(run_dir / "map.json", tag_map_from_poses(tag_map, anchor_tag_id=self.slam.anchor))
         out: dict[str, Any] = {
             "frames": state.frames,
             "poses": len(traj),
@@ -109,6 +97,7 @@ class SlamNode:
             "lost_frames": state.lost,
             "rejected_ambiguous": state.rejected_ambiguous,
         }
+        (run_dir / "slam.json").write_text(json.dumps(out, indent=2))
         if gt:
             write_tum(run_dir / "groundtruth.tum", [(s / 1e9, p) for s, p in sorted(gt.items())])
             try:

@@ -8,8 +8,8 @@ from typing import ClassVar
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
-from shared.settings import ServiceSettings
-from shared.slam import SlamSettings
+from shared.runtime.settings import ServiceSettings
+from shared.slam.marker_slam import SlamSettings
 
 
 class SlamServiceSettings(ServiceSettings):

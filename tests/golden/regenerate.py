@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from shared.messages import encode
+from shared.wire.messages import encode
 from tests.examples import example_messages, golden_name
 
 HERE = Path(__file__).parent

@@ -10,10 +10,10 @@ import msgpack
 import numpy as np
 import zenoh
 
-from shared import keys
-from shared.codec import WireError
-from shared.messages import Features, decode
-from shared.transport import ZenohSettings, declare_fifo_subscriber, open_session
+from shared.transport.session import ZenohSettings, declare_fifo_subscriber, open_session
+from shared.wire import keys
+from shared.wire.codec import WireError
+from shared.wire.messages import Features, decode
 
 
 def expected_tensor(seed: int, nbytes: int) -> np.ndarray:

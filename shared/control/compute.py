@@ -1,0 +1,116 @@
+"""Per-split compute estimates C(k) (robot) and E(k) (edge) for the controller.
+
+Each side only ever runs its own part of the network at the k in use, so it cannot time the other
+cuts live. It calibrates per-tag cumulative block times once at start-up (`profile_cuts`, batch 1)
+and scales them by the running median of live / calibrated time at the k in use: CPU contention, a
+slower machine or the gamma slowdown move every cut's estimate together. Pure: no I/O, no clocks.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Sequence
+
+import numpy as np
+
+from shared.wire.cuts import N_CUTS
+from shared.wire.messages import ComputeProfile
+
+# A reference CPU's per-tag cumulative head time at every cut (ms), shaped like the paper network's
+# blocks and above what either CPU kind here takes (AMD EPYC Zen 4 bf16: 8, 17, 26, 35, 38, 39, 40 ms),
+# for tests and scenarios that must not depend on the machine (`emulated_ms_per_tag_by_k`).
+REFERENCE_HEAD_MS_PER_TAG: tuple[float, ...] = (0.0, 10.0, 20.0, 30.0, 40.0, 44.0, 44.0, 45.0)
+
+
+class _RunningMedian:
+    def __init__(self, window: int) -> None:
+        self._values: deque[float] = deque(maxlen=window)
+
+    def add(self, value: float) -> None:
+        self._values.append(value)
+
+    def get(self, default: float) -> float:
+        return float(np.median(self._values)) if self._values else default
+
+
+class ComputeEstimator:
+    """ms per frame for every cut: fixed_ms + tags * per_tag_ms[k] * live_scale.
+
+    `per_tag_ms` is the calibrated per-tag time of this side's network part at each cut (robot: the
+    head up to k; edge: the tail from k plus PnP). `fixed_ms` (robot: detection and ROI warping) is a
+    running median of its own. Frames without tags teach only the fixed part.
+    """
+
+    LEARN_FROM_FRACTION = 0.3
+    SKIP_FIRST = 3  # the first frames after start-up carry one-time costs, not the steady state
+
+    def __init__(self, per_tag_ms: Sequence[float], *, window: int = 30) -> None:
+        if len(per_tag_ms) != N_CUTS or min(per_tag_ms) < 0:
+            raise ValueError(f"need {N_CUTS} non-negative per-tag times, got {list(per_tag_ms)}")
+        self.per_tag_ms = np.asarray(per_tag_ms, np.float64)
+        self._scale = _RunningMedian(window)
+        self._fixed = _RunningMedian(window)
+        self._tags = _RunningMedian(window)
+        self._seen = 0
+        self._stale = 0  # frames since the last scale evidence
+        self._half_life = float(window)
+        self.current_k = 0
+
+    def observe(self, *, k: int, tags: int, network_ms: float, fixed_ms: float = 0.0) -> None:
+        """One frame computed at cut k: `network_ms` in the network part, `fixed_ms` outside it."""
+        self.current_k = k
+        self._tags.add(float(tags))
+        self._fixed.add(max(0.0, fixed_ms))
+        predicted = tags * self.per_tag_ms[k]
+        # Learn the scale only where most of this side's network runs: where little of it runs, the
+        # per-frame overheads (dispatch, tensor conversion, PnP) and the batch-friendly FC layers
+        # dominate, and their ratio says nothing about the convolutions the other cuts would run.
+        if tags and self.per_tag_ms[k] >= self.LEARN_FROM_FRACTION * float(self.per_tag_ms.max()):
+            self._seen += 1
+            if self._seen > self.SKIP_FIRST:
+                self._scale.add(max(0.0, network_ms) / predicted)
+                self._stale = 0
+                return
+        self._stale += 1
+
+    @property
+    def live_scale(self) -> float:
+        """Running median of live / calibrated network time; 1.0 before any evidence, and decaying back
+        towards 1.0 (half-life `window` frames) while the k in use gives no evidence: a scale learnt
+        long ago, perhaps under start-up load, must not decide the other cuts forever."""
+        learnt = self._scale.get(1.0)
+        return 1.0 + (learnt - 1.0) * 0.5 ** (self._stale / self._half_life)
+
+    @property
+    def tags_per_frame(self) -> float:
+        """Running median of tags per frame."""
+        return self._tags.get(0.0)
+
+    def ms_by_k(self, tags: float | None = None) -> list[float]:
+        """Estimated ms per frame at every cut for `tags` tags (default: the running median)."""
+        n = self.tags_per_frame if tags is None else tags
+        fixed = self._fixed.get(0.0)
+        return [float(v) for v in fixed + n * self.per_tag_ms * self.live_scale]
+
+    def message(self, *, robot_id: str, side: str, stamp_nanos: int, factor: float = 1.0) -> ComputeProfile:
+        """The ComputeProfile to publish: ms per frame at every cut, times `factor` (robot: gamma)."""
+        return ComputeProfile(
+            robot_id=robot_id,
+            side=side,  # type: ignore[arg-type]
+            stamp_nanos=stamp_nanos,
+            current_k=self.current_k,
+            tags_per_frame=self.tags_per_frame,
+            live_scale=self.live_scale,
+            ms_by_k=[factor * v for v in self.ms_by_k()],
+        )
+
+
+def head_per_tag_ms(cumulative_ms: Sequence[float]) -> list[float]:
+    """Robot side: the cumulative head time up to each cut is what the robot computes per tag."""
+    return [max(0.0, float(v)) for v in cumulative_ms]
+
+
+def tail_per_tag_ms(cumulative_ms: Sequence[float], pnp_ms: float) -> list[float]:
+    """Edge side: the rest of the network after each cut, plus PnP, per tag."""
+    full = float(cumulative_ms[-1])
+    return [max(0.0, full - float(v)) + pnp_ms for v in cumulative_ms]

@@ -1,0 +1,151 @@
+"""The adaptive split controller's pure core: evidence in, a decision and its explanation out.
+
+Evidence: every frame's and probe's one-way crossing of the uplink (send and arrival stamps, and the
+arrival of the message ahead of it, so waiting in the queue is not mistaken for the link: see
+`OnlineLinkEstimator`), FrameSent notices (probes wait for an idle link), and the ComputeProfiles of
+robot_infer (C(k), gamma included: the slowdown is real) and edge_infer (E(k)).
+Decision: T(k) = C(k) + t0 + beta S(k) + E(k) for every k, argmin with hysteresis (HysteresisChooser).
+The floor t0 is the uplink's: the emulated link (like the paper's probes) delays only the uplink, and
+the pipeline's latency ends at the edge, so frames and probes are timed one way, on the same line.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from shared.control.linkmodel import HysteresisChooser, LinkOccupancy, OnlineLinkEstimator
+from shared.wire.cuts import N_CUTS, CodecName
+from shared.wire.messages import ComputeProfile, ControllerState, FrameSent, LinkStamps
+from shared.wire.sizing import features_payload_bytes
+
+
+@dataclass(frozen=True)
+class ControllerSettingsCore:
+    """Tuning of the decision (the service's settings hold these)."""
+
+    min_gain_ms: float = 3.0
+    min_gain_rel: float = 0.05
+    dwell: int = 2
+    half_life: float = 40.0
+    change_threshold: float = 5.0
+    codec: CodecName = "fp16"
+
+
+class SplitController:
+    """Fuses evidence and decides; `clock` is injectable for tests."""
+
+    def __init__(
+        self, settings: ControllerSettingsCore | None = None, *, clock: Callable[[], float] = time.monotonic
+    ) -> None:
+        self.settings = settings or ControllerSettingsCore()
+        self.link = OnlineLinkEstimator(
+            half_life=self.settings.half_life, cusum_threshold=self.settings.change_threshold
+        )
+        self.chooser = HysteresisChooser(
+            min_gain_ms=self.settings.min_gain_ms, min_gain_rel=self.settings.min_gain_rel, dwell=self.settings.dwell
+        )
+        self.occupancy = LinkOccupancy()
+        self.robot: ComputeProfile | None = None
+        self.edge: ComputeProfile | None = None
+        self._clock = clock
+        self.last_sizes: dict[int, float] = {}  # payload bucket (log2 kB) -> when last seen
+
+    # -- evidence ----------------------------------------------------------------------------------
+    def add_link_sample(self, payload_bytes: int, ms: float) -> None:
+        """A latency sample of a message that found the link idle (a probe's RTT without stamps)."""
+        if ms <= 0 or not np.isfinite(ms):
+            return
+        self.link.add(payload_bytes / 1024.0, ms)
+        self.last_sizes[self._bucket(payload_bytes)] = self._clock()
+
+    def add_crossing(self, payload_bytes: int, link: LinkStamps) -> None:
+        """A frame's or probe's crossing of the uplink, with what was ahead of it (queue-aware)."""
+        self.link.add_crossing(
+            size_kB=payload_bytes / 1024.0,
+            sent_ms=link.sent_nanos / 1e6,
+            received_ms=link.received_nanos / 1e6,
+            previous_received_ms=link.previous_received_nanos / 1e6 if link.previous_received_nanos else None,
+        )
+        self.last_sizes[self._bucket(payload_bytes)] = self._clock()
+
+    def frame_sent(self, msg: FrameSent) -> None:
+        """robot_infer put a frame on the uplink: the link is busy for about beta * size from then."""
+        self.occupancy.sent(
+            sent_ms=msg.sent_nanos / 1e6, size_kB=msg.payload_bytes / 1024.0, beta_ms_per_kB=self.link.beta_ms_per_kB
+        )
+
+    def link_idle(self, now_nanos: int, *, guard_ms: float = 2.0) -> bool:
+        """True when every frame sent so far should have left the robot (a probe now waits for none)."""
+        return self.occupancy.idle(now_nanos / 1e6, guard_ms=guard_ms)
+
+    def add_compute(self, profile: ComputeProfile) -> None:
+        """The latest ComputeProfile of either side."""
+        if profile.side == "robot":
+            self.robot = profile
+        else:
+            self.edge = profile
+
+    @staticmethod
+    def _bucket(payload_bytes: int) -> int:
+        return int(np.log2(max(payload_bytes, 1024) / 1024.0))
+
+    def probe_size_due(self, candidates: list[int], max_age_secs: float) -> int | None:
+        """The candidate probe size whose neighbourhood (log2 kB bucket) was seen longest ago, if that
+        is more than max_age_secs ago. Sizes alternate, so t0 and beta stay identifiable whatever the
+        frames carry, and a rate change shows up in the large probes within a period or two."""
+        now = self._clock()
+        age, size = max((now - self.last_sizes.get(self._bucket(c), -1e9), c) for c in candidates)
+        return size if age >= max_age_secs else None
+
+    # -- decision ----------------------------------------------------------------------------------
+    def tags(self) -> int:
+        """Tags per frame the prediction is for (robot's running median, at least 1)."""
+        n = self.robot.tags_per_frame if self.robot else 1.0
+        return max(1, round(n))
+
+    def payload_kB(self) -> list[float]:
+        """S(k) for the current tag count."""
+        n = self.tags()
+        return [features_payload_bytes(n, k, self.settings.codec) / 1024.0 for k in range(N_CUTS)]
+
+    def predict(self) -> np.ndarray | None:
+        """T(k) for every k, or None while a compute profile is missing."""
+        if self.robot is None or self.edge is None:
+            return None
+        c, e = np.asarray(self.robot.ms_by_k), np.asarray(self.edge.ms_by_k)
+        return c + self.link.t0_ms + self.link.beta_ms_per_kB * np.asarray(self.payload_kB()) + e
+
+    def decide(self, *, robot_id: str, current_k: int, pinned: bool) -> ControllerState:
+        """One decision; the caller applies chosen_k when it differs from current_k (and says so)."""
+        t = self.predict()
+        zeros = [0.0] * N_CUTS
+        if t is None:
+            chosen, best, reason, pred = current_k, current_k, "waiting for the compute profiles of both sides", zeros
+        elif pinned:
+            best = int(np.argmin(t))
+            chosen, reason, pred = current_k, f"pinned at k={current_k} by a user (best would be k={best})", list(t)
+        else:
+            d = self.chooser.choose(t, current_k)
+            chosen, best, reason, pred = d.k, d.best_k, d.reason, list(d.predicted_ms)
+        return ControllerState(
+            robot_id=robot_id,
+            stamp_nanos=time.time_ns(),
+            t0_ms=self.link.t0_ms,
+            beta_ms_per_kB=self.link.beta_ms_per_kB,
+            link_samples=self.link.n,
+            link_changes=self.link.changes,
+            robot_ms_by_k=list(self.robot.ms_by_k) if self.robot else zeros,
+            edge_ms_by_k=list(self.edge.ms_by_k) if self.edge else zeros,
+            payload_kB_by_k=self.payload_kB(),
+            predicted_ms_by_k=[max(0.0, float(v)) for v in pred],
+            current_k=current_k,
+            best_k=best,
+            chosen_k=chosen,
+            pinned=pinned,
+            applied=False,
+            reason=reason,
+        )

@@ -1,0 +1,221 @@
+"""Link model RTT = t0 + beta * S and the split cost T(k) = gamma C(k) + t0 + beta S(k) + E(k).
+
+Pure functions and small classes: the controller service and `splittag link ...` wire them to data.
+Units: milliseconds and kilobytes (1 kB = 1024 bytes, as the paper's table).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+FLOOR_BELOW_KB = 32.0  # the paper: payloads below ~32 kB see the same latency (scheduling floor)
+
+
+@dataclass(frozen=True)
+class LinkFit:
+    """A least-squares fit of RTT against payload size."""
+
+    t0_ms: float  # fitted intercept
+    beta_ms_per_kB: float
+    floor_ms: float  # measured: median RTT of the payloads below FLOOR_BELOW_KB (or of the smallest)
+    rmse_ms: float
+    n: int
+
+
+def fit_link(sizes_kB: Sequence[float], rtts_ms: Sequence[float]) -> LinkFit:
+    """Fit RTT = t0 + beta * S by least squares over all samples; report the measured floor too."""
+    s = np.asarray(sizes_kB, np.float64)
+    r = np.asarray(rtts_ms, np.float64)
+    if len(s) != len(r) or len(s) < 2 or np.ptp(s) == 0:
+        raise ValueError("need >= 2 samples at >= 2 different payload sizes")
+    a = np.column_stack([np.ones_like(s), s])
+    (t0, beta), *_ = np.linalg.lstsq(a, r, rcond=None)
+    small = r[s < FLOOR_BELOW_KB]
+    floor = float(np.median(small)) if len(small) else float(np.median(r[s == s.min()]))
+    rmse = float(np.sqrt(np.mean((a @ np.array([t0, beta]) - r) ** 2)))
+    return LinkFit(float(t0), float(beta), floor, rmse, len(s))
+
+
+class OnlineLinkEstimator:
+    """Robust recursive least squares for the uplink's floor t0 and slope beta, with forgetting.
+
+    The link is a FIFO pipe: a message of S kB sent at p (sender clock) starts crossing once the
+    message ahead of it has arrived, so it arrives at
+
+        a = max(p + t0, a_prev) + beta * S        (a, a_prev: receiver clock)
+
+    where a_prev is the arrival of the message just ahead of it on the same link (any kind: frames
+    and probes share the uplink). An idle link (p + t0 >= a_prev) gives a sample of t0 + beta S from
+    a - p; a busy one only of beta S from a - a_prev, because the floor overlapped with the message
+    ahead. The time a message waited behind others is therefore never read as floor latency
+    (`add_crossing`). Which case a sample is in is decided with the current t0 estimate. A clock
+    offset between sender and receiver enters t0, the same for every sample. `add` takes a plain
+    (size, latency) sample of a message that found the link idle (a probe's round trip).
+
+    Samples whose residual exceeds `gate` robust standard deviations are down-weighted (Huber);
+    a two-sided CUSUM on the clamped, normalised residuals detects a link change, and the estimator
+    then forgets old evidence at once (covariance reset) instead of slowly. While only busy samples
+    arrive t0 is unobserved: its variance grows with the forgetting but is capped at the prior's.
+    """
+
+    RESET_VARIANCE = (400.0, 0.25)  # after a change: t0 within ~20 ms, beta within ~0.5 ms/kB
+    PRIOR_VARIANCE = (1e4, 1.0)
+
+    def __init__(
+        self,
+        *,
+        half_life: float = 50.0,
+        gate: float = 3.0,
+        cusum_drift: float = 0.5,
+        cusum_threshold: float = 8.0,
+        prior_t0_ms: float = 40.0,
+        prior_beta: float = 0.2,
+    ) -> None:
+        self.lam = 0.5 ** (1.0 / half_life)
+        self.gate = gate
+        self.drift, self.threshold = cusum_drift, cusum_threshold
+        self.theta = np.array([prior_t0_ms, prior_beta])
+        self.p = np.diag(list(self.PRIOR_VARIANCE))
+        self.scale = 5.0  # robust residual scale, ms
+        self.n = 0
+        self.busy = 0  # samples that crossed a busy link
+        self._g_pos = self._g_neg = 0.0
+        self.changes = 0
+
+    def add(self, size_kB: float, rtt_ms: float) -> None:
+        """Fuse a (payload, latency) sample of a message that found the link idle."""
+        if not (math.isfinite(size_kB) and math.isfinite(rtt_ms)) or size_kB < 0 or rtt_ms <= 0:
+            return
+        self._fuse(np.array([1.0, size_kB]), rtt_ms)
+
+    def add_crossing(
+        self, *, size_kB: float, sent_ms: float, received_ms: float, previous_received_ms: float | None
+    ) -> None:
+        """Fuse one message's crossing of the link: sent at sent_ms (sender clock), received at
+        received_ms, the message ahead of it received at previous_received_ms (receiver clock; None
+        when unknown). See the class docstring for the model."""
+        values = (size_kB, sent_ms, received_ms, 0.0 if previous_received_ms is None else previous_received_ms)
+        if not all(math.isfinite(v) for v in values) or size_kB < 0:
+            return
+        if previous_received_ms is not None and previous_received_ms > sent_ms + self.t0_ms:
+            if received_ms <= previous_received_ms:
+                return  # out of order: not a FIFO crossing we can explain
+            self.busy += 1
+            self._fuse(np.array([0.0, size_kB]), received_ms - previous_received_ms)
+        elif received_ms > sent_ms:
+            self._fuse(np.array([1.0, size_kB]), received_ms - sent_ms)
+
+    def _fuse(self, x: np.ndarray, y_ms: float) -> None:
+        resid = y_ms - float(x @ self.theta)
+        z = abs(resid) / max(self.scale, 1e-3)
+        if self.n >= 10:
+            zc = max(-self.gate, min(self.gate, resid / max(self.scale, 1e-3)))
+            self._g_pos = max(0.0, self._g_pos + zc - self.drift)
+            self._g_neg = max(0.0, self._g_neg - zc - self.drift)
+            if max(self._g_pos, self._g_neg) > self.threshold:
+                self.p = np.diag(list(self.RESET_VARIANCE))  # the link changed: forget
+                self.changes += 1
+                self._g_pos = self._g_neg = 0.0
+        weight = 1.0 if z <= self.gate or self.n < 10 else self.gate / z
+        px = self.p @ x
+        k = weight * px / (self.lam + weight * float(x @ px))
+        # A link has no negative floor or slope: clamping keeps a half-re-fitted estimate physical
+        # (a negative beta would make the biggest payload look cheapest for a moment).
+        self.theta = np.maximum(self.theta + k * resid, 0.0)
+        self.p = (self.p - np.outer(k, px)) / self.lam
+        # Cap each variance at the prior's (scaling its row and column keeps P positive definite).
+        cap = np.sqrt(np.minimum(1.0, np.asarray(self.PRIOR_VARIANCE) / np.maximum(np.diag(self.p), 1e-300)))
+        self.p = self.p * np.outer(cap, cap)
+        self.scale = 0.95 * self.scale + 0.05 * min(abs(resid), 5 * self.scale) * 1.25
+        self.n += 1
+
+    @property
+    def alarm_level(self) -> float:
+        """How close the change detector is to firing: 0 (quiet) .. 1 (fires)."""
+        return max(self._g_pos, self._g_neg) / self.threshold
+
+    @property
+    def t0_ms(self) -> float:
+        """Current intercept estimate."""
+        return float(self.theta[0])
+
+    @property
+    def beta_ms_per_kB(self) -> float:
+        """Current slope estimate."""
+        return float(self.theta[1])
+
+
+def split_costs(
+    *,
+    compute_ms: ArrayLike,
+    edge_ms: ArrayLike,
+    payload_kB: ArrayLike,
+    t0_ms: float,
+    beta_ms_per_kB: float,
+    gamma: float = 1.0,
+) -> np.ndarray:
+    """T(k) = gamma C(k) + t0 + beta S(k) + E(k) for every split point."""
+    c, e, s = (np.asarray(v, np.float64) for v in (compute_ms, edge_ms, payload_kB))
+    return gamma * c + t0_ms + beta_ms_per_kB * s + e
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What the controller chose and why."""
+
+    k: int
+    best_k: int
+    predicted_ms: tuple[float, ...]
+    reason: str
+
+
+class HysteresisChooser:
+    """argmin T(k), switching only when the best beats the current k by more than
+    max(min_gain_ms, min_gain_rel * T(current)) for `dwell` consecutive decisions."""
+
+    def __init__(self, *, min_gain_ms: float = 2.0, min_gain_rel: float = 0.05, dwell: int = 3) -> None:
+        self.min_gain_ms, self.min_gain_rel, self.dwell = min_gain_ms, min_gain_rel, dwell
+        self._streak = 0
+        self._candidate: int | None = None
+
+    def choose(self, costs: ArrayLike, current: int) -> Decision:
+        """One decision given the predicted T(k) and the k in effect."""
+        t = np.asarray(costs, np.float64)
+        best = int(np.argmin(t))
+        gain = float(t[current] - t[best])
+        needed = max(self.min_gain_ms, self.min_gain_rel * float(t[current]))
+        pred = tuple(float(v) for v in t)
+        if best == current or gain <= needed:
+            self._streak, self._candidate = 0, None
+            why = "already optimal" if best == current else f"gain {gain:.1f} ms <= {needed:.1f} ms"
+            return Decision(current, best, pred, f"keep k={current}: {why}")
+        self._streak = self._streak + 1 if self._candidate == best else 1
+        self._candidate = best
+        if self._streak < self.dwell:
+            return Decision(
+                current, best, pred, f"keep k={current}: k={best} better by {gain:.1f} ms ({self._streak}/{self.dwell})"
+            )
+        self._streak, self._candidate = 0, None
+        return Decision(best, best, pred, f"switch k={current}->{best}: predicted {gain:.1f} ms faster")
+
+
+class LinkOccupancy:
+    """Sender side: when the uplink will have sent everything put on it, predicted from the send times
+    and sizes of the messages and the current beta (the floor delays bytes but does not occupy the
+    sender). Lets a prober wait for an idle link instead of queueing behind, or delaying, frames."""
+
+    def __init__(self) -> None:
+        self.busy_until_ms = 0.0
+
+    def sent(self, *, sent_ms: float, size_kB: float, beta_ms_per_kB: float) -> None:
+        """A message of size_kB left the sender at sent_ms."""
+        self.busy_until_ms = max(self.busy_until_ms, sent_ms) + beta_ms_per_kB * size_kB
+
+    def idle(self, now_ms: float, *, guard_ms: float = 0.0) -> bool:
+        """True when the link is predicted to have drained guard_ms ago."""
+        return now_ms >= self.busy_until_ms + guard_ms

@@ -1,0 +1,120 @@
+"""The whole perception chain as pure functions: stage 1 -> ROIs -> split net -> keypoints -> PnP.
+
+The services call the same pieces split across processes; `splittag detect` and `splittag eval`
+call them in one process.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+
+from shared.model.net import SplitKeypointNet
+from shared.vision.camera import CameraIntrinsics
+from shared.vision.detector import Detection, TagDetector
+from shared.vision.geometry import (
+    Array,
+    corners_in_tag,
+    image_to_roi_homography,
+    keypoints_to_image,
+    lattice_in_tag,
+    warp_roi,
+)
+from shared.vision.pnp import PoseCandidates, solve_planar_pnp
+from shared.vision.tagmap import TagMapFile
+
+
+def extract_rois(image: NDArray[np.uint8], detections: list[Detection]) -> tuple[NDArray[np.uint8], Array]:
+    """ROIs (N,256,256) and their ROI->image homographies (N,3,3) for the detected quads."""
+    rois, homs = [], []
+    for d in detections:
+        h = image_to_roi_homography(d.corners_px)
+        rois.append(warp_roi(image, h))
+        homs.append(np.linalg.inv(h))
+    if not rois:
+        return np.zeros((0, 256, 256), np.uint8), np.zeros((0, 3, 3))
+    return np.stack(rois), np.stack(homs)
+
+
+@torch.no_grad()
+def run_network(
+    model: SplitKeypointNet, rois: NDArray[np.uint8], *, bf16: bool = False, channels_last: bool = True
+) -> NDArray[np.float32]:
+    """Normalised keypoints (N,16,2) for uint8 ROIs (N,256,256)."""
+    if len(rois) == 0:
+        return np.zeros((0, 16, 2), np.float32)
+    x = SplitKeypointNet.normalise_input(torch.from_numpy(np.ascontiguousarray(rois)).unsqueeze(1))
+    if channels_last:
+        x = x.contiguous(memory_format=torch.channels_last)
+    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+        out = model(x).float()
+    return np.asarray(out.numpy(), np.float32)
+
+
+@dataclass(frozen=True)
+class TagResult:
+    """Everything `splittag detect` reports for one tag."""
+
+    detection: Detection
+    tag_size_m: float
+    keypoints_px: Array | None
+    pose: PoseCandidates | None  # from the 16 keypoints (or the corners when no network)
+    corner_pose: PoseCandidates
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON-friendly dict."""
+
+        def pose_json(p: PoseCandidates) -> dict[str, Any]:
+            return {
+                "chosen": {
+                    "R": p.camera_from_tag[:3, :3].tolist(),
+                    "t_m": p.camera_from_tag[:3, 3].tolist(),
+                    "reprojection_error_px": p.reprojection_error_px,
+                },
+                "alternative": {
+                    "R": p.alt_camera_from_tag[:3, :3].tolist(),
+                    "t_m": p.alt_camera_from_tag[:3, 3].tolist(),
+                    "reprojection_error_px": p.alt_reprojection_error_px,
+                },
+            }
+
+        d = self.detection
+        return {
+            "id": d.tag_id,
+            "decision_margin": d.decision_margin,
+            "hamming": d.hamming,
+            "tag_size_m": self.tag_size_m,
+            "apriltag_corners_px": d.corners_px.tolist(),
+            "keypoints_px": None if self.keypoints_px is None else self.keypoints_px.tolist(),
+            "camera_from_tag": None if self.pose is None else pose_json(self.pose),
+            "camera_from_tag_corners_only": pose_json(self.corner_pose),
+        }
+
+
+def perceive(
+    image: NDArray[np.uint8],
+    *,
+    camera: CameraIntrinsics,
+    detector: TagDetector,
+    model: SplitKeypointNet | None,
+    tag_map: TagMapFile,
+) -> list[TagResult]:
+    """Stage 1, the network (if given) and PnP on one grayscale image."""
+    detections = detector.detect(image)
+    rois, homs = extract_rois(image, detections)
+    kps = run_network(model, rois) if model is not None else None
+    out = []
+    for i, d in enumerate(detections):
+        size = tag_map.size_of(d.tag_id)
+        corner_pose = solve_planar_pnp(camera, corners_in_tag(size), d.corners_px)
+        if kps is not None:
+            kp_px = keypoints_to_image(kps[i], homs[i])
+            pose = solve_planar_pnp(camera, lattice_in_tag(size), kp_px)
+        else:
+            kp_px, pose = None, None
+        out.append(TagResult(d, size, kp_px, pose, corner_pose))
+    return out

@@ -1,0 +1,150 @@
+"""Pure cores of robot_infer and edge_infer: one frame in, one message out, no I/O.
+
+Wire dtype per cut: k = 0 sends the ROI pixels (uint8), k = 7 the keypoints (float32), cuts 1..6
+the feature map in the configured codec (fp16 by default, or fp32).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from shared.model.net import SplitKeypointNet
+from shared.perception.single import extract_rois
+from shared.vision.detector import TagDetector
+from shared.vision.geometry import keypoints_to_image, lattice_in_tag
+from shared.vision.pnp import solve_planar_pnp
+from shared.vision.tagmap import TagMapFile
+from shared.wire.cuts import CUTS, CodecName, FeatureShapeError, check_cut, check_tensor
+from shared.wire.messages import Features, Frame, HopTimings, LinkStamps, TagFeature, TagPose, TagPoses
+
+
+@dataclass
+class RobotTimings:
+    """Where the robot's time went for one frame, seconds."""
+
+    detect_secs: float
+    warp_secs: float
+    head_secs: float
+
+    @property
+    def total_secs(self) -> float:
+        """Everything the robot computed."""
+        return self.detect_secs + self.warp_secs + self.head_secs
+
+
+@torch.no_grad()
+def robot_step(
+    frame: Frame,
+    *,
+    detector: TagDetector,
+    model: SplitKeypointNet,
+    k: int,
+    codec: CodecName,
+    bf16: bool = True,
+) -> tuple[list[TagFeature], RobotTimings]:
+    """Stage 1, ROI warping and the network up to cut k for all tags of the frame in one batch."""
+    check_cut(k)
+    t0 = time.perf_counter()
+    detections = detector.detect(frame.image)
+    t1 = time.perf_counter()
+    rois, roi_to_image = extract_rois(frame.image, detections)
+    t2 = time.perf_counter()
+    if k == 0 or not detections:
+        tensors = [r[None] for r in rois]
+    else:
+        x = SplitKeypointNet.normalise_input(torch.from_numpy(rois).unsqueeze(1))
+        x = x.contiguous(memory_format=torch.channels_last)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            z = model.forward_head(x, k)
+        dt = CUTS[k].dtype(codec)
+        tensors = list(np.ascontiguousarray(z.float().contiguous().numpy().astype(dt)))
+    t3 = time.perf_counter()
+    tags = [
+        TagFeature(
+            tag_id=d.tag_id,
+            decision_margin=d.decision_margin,
+            hamming=d.hamming,
+            corners_px=d.corners_px.astype(np.float32),
+            roi_to_image=roi_to_image[i],
+            tensor=tensors[i],
+        )
+        for i, d in enumerate(detections)
+    ]
+    return tags, RobotTimings(t1 - t0, t2 - t1, t3 - t2)
+
+
+@torch.no_grad()
+def edge_step(
+    features: Features,
+    *,
+    model: SplitKeypointNet,
+    tag_map: TagMapFile,
+    receive_nanos: int,
+    previous_receive_nanos: int,
+    payload_bytes: int,
+    bf16: bool = True,
+    min_compute_secs: float = 0.0,
+) -> TagPoses:
+    """Validate, run the tail for the announced k, map keypoints to the image, solve PnP per tag.
+    `receive_nanos`/`previous_receive_nanos`: when this message and the one ahead of it on the uplink
+    arrived (edge clock, 0 = none), stamped where the bytes came in. `min_compute_secs` emulates a
+    slower edge: the step sleeps until it has taken at least that long."""
+    k, codec = features.split_k, features.codec
+    if codec not in ("fp16", "fp32"):
+        raise FeatureShapeError(f"codec {codec!r} is not fp16 or fp32")
+    for tag in features.tags:
+        check_tensor(tag.tensor, k, codec)
+    t0 = time.perf_counter()
+    poses: list[TagPose] = []
+    if features.tags:
+        z = torch.from_numpy(np.stack([np.asarray(t.tensor, np.float32) for t in features.tags]))
+        if k == 0:
+            z = SplitKeypointNet.normalise_input(z)
+        if z.ndim == 4:
+            z = z.contiguous(memory_format=torch.channels_last)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            keypoints = model.forward_tail(z, k).float().numpy()
+        for tag, kp in zip(features.tags, keypoints, strict=True):
+            size = tag_map.size_of(tag.tag_id)
+            kp_px = keypoints_to_image(kp, tag.roi_to_image)
+            cand = solve_planar_pnp(features.intrinsics, lattice_in_tag(size), kp_px)
+            poses.append(
+                TagPose(
+                    tag_id=tag.tag_id,
+                    tag_size_m=size,
+                    keypoints_px=kp_px.astype(np.float32),
+                    corners_px=tag.corners_px,
+                    camera_from_tag=cand.camera_from_tag,
+                    reprojection_error_px=cand.reprojection_error_px,
+                    alt_camera_from_tag=cand.alt_camera_from_tag,
+                    alt_reprojection_error_px=cand.alt_reprojection_error_px,
+                )
+            )
+    edge_secs = time.perf_counter() - t0
+    if edge_secs < min_compute_secs:
+        time.sleep(min_compute_secs - edge_secs)
+        edge_secs = time.perf_counter() - t0
+    done_nanos = time.time_ns()
+    return TagPoses(
+        robot_id=features.robot_id,
+        seq=features.seq,
+        capture_nanos=features.capture_nanos,
+        split_k=k,
+        payload_bytes=payload_bytes,
+        link=LinkStamps(
+            sent_nanos=features.publish_nanos,
+            received_nanos=receive_nanos,
+            previous_received_nanos=previous_receive_nanos,
+        ),
+        timings=HopTimings(
+            robot_compute_secs=features.robot_compute_secs,
+            transport_secs=(receive_nanos - features.publish_nanos) / 1e9,
+            edge_compute_secs=edge_secs,
+            capture_to_pose_secs=(done_nanos - features.capture_nanos) / 1e9,
+        ),
+        tags=poses,
+    )

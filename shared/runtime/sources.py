@@ -1,0 +1,208 @@
+"""Frame sources for the camera service: the demo scene (default), an image folder, a video file,
+a V4L2 camera. Each yields (grayscale image, ground-truth world_from_camera or None)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Final, Protocol
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from tqdm import tqdm
+
+from shared.sim.scene import BoxObject, LightSpec, SceneSpec, look_at, tag_on_wall
+from shared.vision.camera import CameraIntrinsics
+from shared.vision.geometry import (
+    Array,
+    GeometryError,
+    camera_from_yaml,
+    default_camera,
+    lattice_in_tag,
+    project,
+)
+from shared.vision.trajectory import read_tum
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SourceFrame:
+    """One frame from a source."""
+
+    image: NDArray[np.uint8]
+    world_from_camera: Array | None  # ground truth, when the source knows it
+
+
+class FrameSource(Protocol):
+    """What the camera service reads from."""
+
+    camera: CameraIntrinsics
+
+    def frames(self) -> Iterator[SourceFrame]:
+        """Yield frames once through the source."""
+        ...
+
+
+# ----------------------------------------------------------------------------------------------
+# Demo scene
+# ----------------------------------------------------------------------------------------------
+
+
+def demo_scene() -> SceneSpec:
+    """A room with nine 0.2 m tags along one wall and two on the side walls, lit from the ceiling."""
+    room = (8.0, 6.0, 3.0)
+    tags = [
+        tag_on_wall(i, 0.2, wall=0, along_m=-3.2 + 0.8 * i, height_m=1.1 + 0.35 * (i % 2), room_m=room)
+        for i in range(9)
+    ]
+    tags += [
+        tag_on_wall(9, 0.2, wall=1, along_m=-1.5, height_m=1.2, room_m=room),
+        tag_on_wall(10, 0.2, wall=3, along_m=1.5, height_m=1.2, room_m=room),
+    ]
+    objects = [
+        BoxObject(kind="box", pos=[-2.5, -1.5, 0.3], size=[0.4, 0.3, 0.3], rgba=[0.6, 0.3, 0.2, 1]),
+        BoxObject(kind="cylinder", pos=[2.0, -2.0, 0.5], size=[0.25, 0.5, 0.5], rgba=[0.2, 0.4, 0.6, 1]),
+        BoxObject(kind="sphere", pos=[0.5, -2.2, 0.35], size=[0.35, 0.35, 0.35], rgba=[0.7, 0.7, 0.3, 1]),
+    ]
+    lights = [LightSpec(pos=[-2.0, 0.0, 2.9], diffuse=0.5), LightSpec(pos=[2.0, 0.5, 2.9], diffuse=0.45)]
+    return SceneSpec(seed=2026, room_m=room, tags=tags, objects=objects, lights=lights, ambient=0.3, texture_seed=7)
+
+
+def demo_trajectory(n_frames: int) -> list[Array]:
+    """The robot drives along the room 2.2-2.8 m from the tag wall and back (3.6 m each way), camera
+    at 1.2 m, panning +-15 degrees; one closed loop in `n_frames` frames (~5 cm per frame at 150)."""
+    poses = []
+    for i in range(n_frames):
+        phase = 2 * math.pi * i / n_frames
+        x = -1.8 * math.cos(phase)
+        y = 0.5 + 0.3 * math.sin(2 * phase)
+        eye = np.array([x, y, 1.2])
+        yaw = math.radians(15) * math.sin(3 * phase)
+        target = eye + np.array([math.sin(yaw), math.cos(yaw), 0.05])
+        poses.append(look_at(eye, target, roll_rad=math.radians(2) * math.sin(5 * phase)))
+    return poses
+
+
+class DemoSource:
+    """The demo scene rendered with MuJoCo along its trajectory; renders are cached on disk so the
+    stream keeps its rate (first run renders, ~0.15 s per frame on this CPU)."""
+
+    def __init__(self, *, n_frames: int, cache_dir: Path, camera: CameraIntrinsics | None = None) -> None:
+        self.camera = camera or default_camera()
+        self.scene = demo_scene()
+        self.trajectory = demo_trajectory(n_frames)
+        key = hashlib.sha256(
+            json.dumps([self.scene.model_dump(), self.camera.model_dump(), n_frames, "render-v1"]).encode()
+        ).hexdigest()[:16]
+        self.cache = Path(cache_dir) / f"demo-{key}"
+        self._ensure_rendered()
+
+    def _ensure_rendered(self) -> None:
+        missing = [i for i in range(len(self.trajectory)) if not (self.cache / f"{i:05d}.png").is_file()]
+        if not missing:
+            return
+        from shared.sim.scene import SceneRenderer
+
+        self.cache.mkdir(parents=True, exist_ok=True)
+        renderer = SceneRenderer(self.scene, self.camera)
+        try:
+            for i in tqdm(missing, desc="rendering demo scene (cached)", leave=False):
+                tmp = self.cache / f"{i:05d}.tmp.png"
+                cv2.imwrite(str(tmp), renderer.render(self.trajectory[i]))
+                tmp.replace(self.cache / f"{i:05d}.png")
+        finally:
+            renderer.close()
+        (self.cache / "scene.json").write_text(self.scene.model_dump_json(indent=2))
+
+    def gt_keypoints(self, world_from_camera: Array) -> list[Array]:
+        """Exact image keypoints of every tag fully in view from `world_from_camera`."""
+        out = []
+        for tag in self.scene.tags:
+            camera_from_tag = np.linalg.inv(world_from_camera) @ tag.pose()
+            if camera_from_tag[2, 3] <= 0.1 or camera_from_tag[2, 2] <= 0:  # behind, or seen from the back
+                continue
+            px = project(self.camera, camera_from_tag, lattice_in_tag(tag.size_m))
+            if (px >= 0).all() and (px[:, 0] < self.camera.width).all() and (px[:, 1] < self.camera.height).all():
+                out.append(px)
+        return out
+
+    def frames(self) -> Iterator[SourceFrame]:
+        """One pass along the trajectory."""
+        for i, pose in enumerate(self.trajectory):
+            img = cv2.imread(str(self.cache / f"{i:05d}.png"), cv2.IMREAD_GRAYSCALE)
+            if img is None:
+                raise OSError(f"demo cache frame {i} unreadable in {self.cache}")
+            yield SourceFrame(np.ascontiguousarray(img), pose)
+
+
+# ----------------------------------------------------------------------------------------------
+# Folder, video, V4L2
+# ----------------------------------------------------------------------------------------------
+
+IMAGE_SUFFIXES: Final[frozenset[str]] = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".tif", ".tiff"})
+
+
+def expand_paths(paths: list[Path]) -> list[Path]:
+    """Files as given, folders expanded to their image files (sorted)."""
+    out: list[Path] = []
+    for p in paths:
+        if p.is_dir():
+            out += sorted(f for f in p.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)
+        else:
+            out.append(p)
+    return out
+
+
+class FolderSource:
+    """Sorted image files of a folder with a camera_info YAML; optional TUM ground truth (row i = image i)."""
+
+    def __init__(self, folder: Path, camera_info: Path, groundtruth: Path | None = None) -> None:
+
+        self.camera = camera_from_yaml(camera_info)
+        if not Path(folder).is_dir():
+            raise FileNotFoundError(f"no images in {folder}: not a folder")
+        self.files = expand_paths([Path(folder)])
+        if not self.files:
+            raise FileNotFoundError(f"no images in {folder}")
+        self.gt = [p for _, p in read_tum(groundtruth)] if groundtruth else None
+        if self.gt is not None and len(self.gt) != len(self.files):
+            raise GeometryError(f"{groundtruth} has {len(self.gt)} poses for {len(self.files)} images")
+
+    def frames(self) -> Iterator[SourceFrame]:
+        for i, f in enumerate(self.files):
+            img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+            if img is None or img.shape != (self.camera.height, self.camera.width):
+                log.warning("skipping %s: unreadable or not %dx%d", f, self.camera.width, self.camera.height)
+                continue
+            yield SourceFrame(np.ascontiguousarray(img), None if self.gt is None else self.gt[i])
+
+
+class CaptureSource:
+    """A video file or a V4L2 device through OpenCV; frames converted to grayscale."""
+
+    def __init__(self, target: str | int, camera_info: Path) -> None:
+        self.camera = camera_from_yaml(camera_info)
+        self.target = target
+
+    def frames(self) -> Iterator[SourceFrame]:
+        cap = cv2.VideoCapture(self.target)
+        if not cap.isOpened():
+            raise OSError(f"cannot open video source {self.target!r}")
+        try:
+            while True:
+                ok, frame = cap.read()
+                if not ok:
+                    return
+                gray = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if frame.ndim == 3 else frame
+                if gray.shape != (self.camera.height, self.camera.width):
+                    gray = cv2.resize(gray, (self.camera.width, self.camera.height), interpolation=cv2.INTER_AREA)
+                yield SourceFrame(np.ascontiguousarray(gray, np.uint8), None)
+        finally:
+            cap.release()

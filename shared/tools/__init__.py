@@ -1,0 +1,3 @@
+"""Layer 5: operator tools: the `splittag` CLI, the launcher and monitor, link emulation, link probing,
+offline detection.
+"""

@@ -1,0 +1,536 @@
+"""The `splittag` console script: one entry point, one subcommand per capability."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from shared.runtime.logs import setup_logging
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    import json
+
+    from shared.tools.launch import run_pipeline
+
+    summary = run_pipeline(args.config, duration_secs=args.duration, controller=args.controller, link=args.link)
+    print(json.dumps({k: v for k, v in summary.items() if k != "exit_codes"}, indent=2))
+    return 0 if summary.get("frames") else 1
+
+
+def _cmd_up(args: argparse.Namespace) -> int:
+    import json
+
+    from shared.tools.launch import run_pipeline
+
+    summary = run_pipeline(
+        args.config, duration_secs=args.duration, runs_root=args.runs, controller=args.controller, link=args.link
+    )
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+def _cmd_down(args: argparse.Namespace) -> int:
+    import os
+    import signal
+
+    pids = args.runs / "current" / "pids"
+    if not pids.is_file():
+        print(f"no running deployment ({pids} not found)")
+        return 1
+    for line in pids.read_text().split("\n"):
+        if line.strip():
+            name, pid = line.split()
+            try:
+                os.killpg(int(pid), signal.SIGINT)
+                print(f"stopping {name} ({pid})")
+            except ProcessLookupError:
+                print(f"{name} ({pid}) already stopped")
+    return 0
+
+
+def _cmd_split(args: argparse.Namespace) -> int:
+    from shared.transport.split_client import split_query
+
+    print(split_query(args.robot_id, args.connect, k=getattr(args, "k", None), release=args.action == "release"))
+    return 0
+
+
+def _cmd_echo(args: argparse.Namespace) -> int:
+    from shared.tools import echo
+    from shared.transport.session import ZenohSettings
+
+    settings = ZenohSettings(mode="router", listen=args.listen, connect=args.connect)
+    echo.run(settings, robot_id=args.robot_id)
+    return 0
+
+
+def _cmd_data_generate(args: argparse.Namespace) -> int:
+    from shared.datasets.generate import SampleMaker, generate
+    from shared.vision.geometry import camera_from_yaml, default_camera
+
+    camera = camera_from_yaml(args.camera) if args.camera else default_camera()
+    maker: SampleMaker
+    if args.data_command == "synth":
+        from shared.datasets.synth import SynthMaker, SynthSettings
+
+        synth = SynthSettings(seed=args.seed)
+        settings, maker, shard_size = synth.model_dump(mode="json"), SynthMaker(camera, synth), 250
+    else:
+        from shared.datasets.render import RenderMaker, RenderSettings
+
+        render = RenderSettings(seed=args.seed)
+        settings, maker, shard_size = render.model_dump(mode="json"), RenderMaker(camera, render), 200
+    info = generate(
+        args.out,
+        n=args.n,
+        seed=args.seed,
+        kind=args.data_command,
+        settings={"camera": camera.model_dump(), **settings},
+        maker=maker,
+        workers=args.workers,
+        shard_size=shard_size,
+    )
+    _print_info(info)
+    return 0
+
+
+def _print_info(info: dict[str, Any]) -> None:
+    c = info["counts"]
+    print(
+        f"{info['kind']}: {c['samples']} samples ({c['train']} train / {c['test']} test), "
+        f"{c['attempts']} attempts, stage-1 failure rate {100 * c['detector_failure_rate']:.2f} %, "
+        f"{info['last_run']['wall_secs']} s this run"
+    )
+    for key in ("failure_by_distance_m", "failure_by_tilt_deg"):
+        cells = [f"{r['range'][0]}-{r['range'][1] or 'inf'}: {r['failures']}/{r['attempts']}" for r in info[key]]
+        print(f"  {key}: " + ", ".join(cells))
+
+
+def _cmd_data_show(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from shared.datasets.shards import load_dataset
+    from shared.datasets.sheet import contact_sheet, write_sheet
+
+    ds = load_dataset(args.dir)
+    rows = np.random.default_rng(args.seed).choice(len(ds), size=min(args.n, len(ds)), replace=False)
+    a = ds.arrays
+    labels = [f"id {a['tag_id'][i]} {a['distance_m'][i]:.1f}m {a['tilt_deg'][i]:.0f}deg" for i in rows]
+    write_sheet(args.out, contact_sheet(a["roi"][rows], a["keypoints"][rows], labels=labels))
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from shared.training.train import TrainSettings, train
+
+    settings = TrainSettings(
+        data=args.data,
+        out=args.out,
+        init=args.init,
+        epochs=args.epochs,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        warmup_steps=args.warmup_steps,
+        device=args.device,
+        bf16=not args.no_bf16,
+        threads=args.threads,
+        seed=args.seed,
+        eval_samples=args.eval_samples,
+        limit_train=args.limit_train,
+        time_budget_secs=args.time_budget_secs,
+    )
+    result = train(settings)
+    print(f"best test e_px {result['best_e_px']:.3f} px; weights in {args.out / 'best'}")
+    return 0
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    import json
+
+    from shared.datasets.shards import load_dataset
+    from shared.model.weights import load_model
+    from shared.training.evaluate import evaluate, format_report
+
+    model = load_model(args.weights)
+    result = evaluate(model, load_dataset(args.data), split=args.split, bf16=args.bf16, limit=args.limit)
+    print(format_report(result))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=2))
+        print(f"wrote {args.json}")
+    return 0
+
+
+def _cmd_detect(args: argparse.Namespace) -> int:
+    from shared.tools.detect import run_detect
+
+    return run_detect(
+        args.paths,
+        camera_path=args.camera,
+        tag_size_m=args.tag_size,
+        tags_path=args.tags,
+        weights=args.weights,
+        json_path=args.json,
+    )
+
+
+def _cmd_profile(args: argparse.Namespace) -> int:
+    import torch
+
+    from shared.model.net import SplitKeypointNet
+    from shared.model.profile import profile_cuts
+    from shared.model.weights import load_model
+    from shared.wire.cuts import CUTS
+
+    torch.set_num_threads(args.threads)
+    model = load_model(args.weights) if args.weights.exists() else SplitKeypointNet(roi_margin=0.2)
+    timings = profile_cuts(model, variant=args.variant, batch=args.batch, repetitions=args.repetitions)
+    print(
+        f"payload S(k) and cumulative robot compute C(k); {args.variant}, {args.threads} thread(s), "
+        f"batch {args.batch}, median of {args.repetitions}"
+    )
+    print(f"{'k':>2} {'split point':<12} {'S(k) kB':>9} {'C(k) ms':>9}")
+    for cut, t in zip(CUTS, timings, strict=True):
+        print(f"{cut.k:>2} {cut.name:<12} {cut.tensor_bytes() / 1024:>9.2f} {t.median_ms:>9.2f}")
+    return 0
+
+
+def _cmd_link_up(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    from shared.tools.linkemu import LinkEmulator, LinkEmulatorSettings, profile
+
+    emu = LinkEmulator(LinkEmulatorSettings(prefix=args.prefix))
+    emu.up(profile(args.profile))
+    s = emu.settings
+    print(
+        f"link up: robot netns {s.robot_ns} ({s.robot_addr}), edge netns {s.edge_ns} ({s.edge_addr}, "
+        f"reachable from here at {s.mgmt_edge_addr}); profile {args.profile}. "
+        f"Switch with `splittag link set PROFILE`; Ctrl-C tears it down.",
+        flush=True,
+    )
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    stop.wait()
+    emu.down()
+    return 0
+
+
+def _cmd_link_set(args: argparse.Namespace) -> int:
+    from shared.tools.linkemu import LinkEmulationUnavailable, LinkEmulator, LinkEmulatorSettings, profile
+
+    try:
+        LinkEmulator(LinkEmulatorSettings(prefix=args.prefix)).set_profile(profile(args.profile))
+    except (LinkEmulationUnavailable, ValueError) as exc:
+        print(f"error: {exc}")
+        return 1
+    print(f"link profile {args.profile}")
+    return 0
+
+
+def _cmd_link_down(args: argparse.Namespace) -> int:
+    from shared.tools.linkemu import LinkEmulator, LinkEmulatorSettings
+
+    LinkEmulator(LinkEmulatorSettings(prefix=args.prefix)).down()
+    return 0
+
+
+def _probe_here(args: argparse.Namespace) -> list[list[float]]:
+    from shared.tools.linkprobe import probe_payloads, run_probes
+    from shared.transport.probe import Prober
+    from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
+    from shared.wire import keys
+
+    session = open_session(ZenohSettings(mode="client", connect=[args.connect]))
+    try:
+        wait_for_liveliness(session, [keys.alive(args.robot_id, "echo")], timeout_secs=30)
+        prober = Prober(session, keys.echo(args.robot_id))
+        try:
+            return run_probes(prober, probe_payloads(args.tags), repetitions=args.repetitions)
+        finally:
+            prober.close()
+    finally:
+        session.close()
+
+
+def _probe_emulated(args: argparse.Namespace) -> list[list[float]]:
+    import json
+    import subprocess
+    import sys
+    import tempfile
+
+    from shared.tools.linkemu import LinkEmulator, LinkEmulatorSettings, in_netns, profile
+
+    emu_settings = LinkEmulatorSettings(prefix=args.prefix)
+    endpoint = f"tcp/{emu_settings.edge_addr}:7447"
+    with tempfile.TemporaryDirectory() as tmp, LinkEmulator(emu_settings, log_dir=Path(tmp)) as emu:
+        emu.up(profile(args.profile))
+        py = [sys.executable, "-m", "shared.tools.cli"]
+        echo = subprocess.Popen(
+            in_netns(emu_settings.edge_ns, [*py, "echo", "--listen", endpoint, "--robot-id", args.robot_id]),
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            start_new_session=True,
+        )
+        try:
+            raw = Path(tmp) / "samples.json"
+            probe = [*py, "link", "probe", "--connect", endpoint, "--robot-id", args.robot_id]
+            probe += ["--repetitions", str(args.repetitions), "--tags", str(args.tags), "--samples-out", str(raw)]
+            subprocess.run(in_netns(emu_settings.robot_ns, probe), check=True, timeout=3600)
+            samples: list[list[float]] = json.loads(raw.read_text())
+            return samples
+        finally:
+            echo.terminate()
+            echo.wait(timeout=10)
+
+
+def _cmd_link_probe(args: argparse.Namespace) -> int:
+    import json
+
+    from shared.tools.linkprobe import plot_link, report, write_json
+
+    samples = _probe_emulated(args) if args.profile else _probe_here(args)
+    if args.samples_out:
+        args.samples_out.write_text(json.dumps(samples))
+        return 0
+    doc = report(samples, profile=args.profile)
+    print(
+        f"t0 {doc['t0_ms']:.2f} ms (fitted intercept), floor {doc['floor_ms']:.2f} ms (measured), "
+        f"beta {doc['beta_ms_per_kB']:.4f} ms/kB, rmse {doc['rmse_ms']:.2f} ms over {doc['n']} probes"
+    )
+    for m in doc["per_size"]:
+        print(f"  {m['payload_kB']:>9.2f} kB  median {m['rtt_ms_median']:8.2f} ms  p90 {m['rtt_ms_p90']:8.2f} ms")
+    if args.json:
+        write_json(doc, args.json)
+    if args.plot:
+        plot_link(doc, args.plot)
+        print(f"figure: {args.plot}")
+    return 0
+
+
+def _cmd_link_cost(args: argparse.Namespace) -> int:
+    import json
+
+    import torch
+
+    from shared.model.profile import calibrate_cumulative_ms, calibrate_pnp_ms
+    from shared.model.weights import load_model
+    from shared.tools.linkprobe import cost_table, link_fit_of, plot_costs, write_json
+    from shared.wire.cuts import CUTS, tensor_bytes
+
+    torch.set_num_threads(args.threads)
+    fit = link_fit_of(json.loads(args.link.read_text()))
+    cumulative = calibrate_cumulative_ms(load_model(args.weights), bf16=True, repetitions=args.repetitions)
+    pnp = calibrate_pnp_ms()
+    compute = [args.tags * c for c in cumulative]
+    edge = [args.tags * (cumulative[-1] - c + pnp) for c in cumulative]
+    payload = [args.tags * tensor_bytes(c.k, "fp16") / 1024 for c in CUTS]
+    table = cost_table(compute_ms=compute, edge_ms=edge, payload_kB=payload, fit=fit, gammas=args.gamma)
+    print(
+        f"link: t0 {fit.t0_ms:.2f} ms, beta {fit.beta_ms_per_kB:.4f} ms/kB; {args.tags} tag(s), edge as fast as gamma=1"
+    )
+    print(
+        f"{'k':>2} {'split point':<10} {'S kB':>8} {'C ms':>7} {'E ms':>7}"
+        + "".join(f"{'T g=' + format(r['gamma'], 'g'):>10}" for r in table["gammas"])
+    )
+    for k, cut in enumerate(CUTS):
+        stars = "".join(f"{row['T_ms'][k]:>9.1f}{'*' if row['best_k'] == k else ' '}" for row in table["gammas"])
+        print(f"{k:>2} {cut.name:<10} {payload[k]:>8.1f} {compute[k]:>7.1f} {edge[k]:>7.1f}{stars}")
+    if args.json:
+        write_json(table, args.json)
+    if args.plot:
+        plot_costs(table, args.plot)
+        print(f"figure: {args.plot}")
+    return 0
+
+
+def _add_launch_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--controller", action="store_true", help="also run the adaptive split controller")
+    p.add_argument(
+        "--link",
+        metavar="PROFILE",
+        help="run robot and edge sides over the emulated uplink (root): 5g, 5g-pre-tdd, ...",
+    )
+    p.add_argument(
+        "--link-profiles",
+        type=Path,
+        metavar="TOML",
+        help="extra link profiles for --link ([name] rate_mbit, delay_ms, description)",
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of every subcommand."""
+    parser = argparse.ArgumentParser(prog="splittag", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("demo", help="run the whole pipeline on the demo scene with a live line per second")
+    p.add_argument("--config", type=Path, default=Path("deploy/local.toml"))
+    p.add_argument("--duration", type=float, default=30.0)
+    _add_launch_options(p)
+    p.set_defaults(func=_cmd_demo)
+
+    p = sub.add_parser("up", help="start every service (deploy/up.sh); Ctrl-C stops them")
+    p.add_argument("--config", type=Path, default=Path("deploy/local.toml"))
+    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    p.add_argument("--runs", type=Path, default=Path("runs"), help="run folders go under here (RUNS/current links)")
+    _add_launch_options(p)
+    p.set_defaults(func=_cmd_up)
+    p = sub.add_parser("down", help="stop the deployment in RUNS/current (SIGINT to every service)")
+    p.add_argument("--runs", type=Path, default=Path("runs"))
+    p.set_defaults(func=_cmd_down)
+
+    p = sub.add_parser("profile", help="the paper's Table: payload S(k) and cumulative compute C(k) per cut")
+    p.add_argument("--weights", type=Path, default=Path("models"))
+    p.add_argument(
+        "--variant", choices=["fp32", "fp32-channels-last", "bf16-channels-last"], default="bf16-channels-last"
+    )
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--batch", type=int, default=1)
+    p.add_argument("--repetitions", type=int, default=30)
+    p.set_defaults(func=_cmd_profile)
+
+    p = sub.add_parser("split", help="read or set the split index live (Zenoh query)")
+    p.add_argument("action", choices=["get", "set", "release"])
+    p.add_argument("k", type=int, nargs="?", help="split index 0..7 (for set)")
+    p.add_argument("--robot-id", default="robot1")
+    p.add_argument("--connect", default="tcp/127.0.0.1:7447", help="zenoh endpoint to connect to")
+    p.set_defaults(func=_cmd_split)
+
+    p = sub.add_parser("echo", help="run the edge echo queryable for link probes")
+    p.add_argument("--robot-id", default="robot1")
+    p.add_argument("--listen", action="append", default=[], help="zenoh endpoint, repeatable")
+    p.add_argument("--connect", action="append", default=[], help="zenoh endpoint, repeatable")
+    p.set_defaults(func=_cmd_echo)
+
+    link_parser = sub.add_parser("link", help="emulated 5G uplink, link probing and split costs")
+    link_parser.add_argument(
+        "--profiles", type=Path, help="TOML of extra link profiles ([name] rate_mbit, delay_ms, description)"
+    )
+    link = link_parser.add_subparsers(dest="link_command", required=True)
+    p = link.add_parser("up", help="create the robot/edge namespaces with the emulated link (root); Ctrl-C removes")
+    p.add_argument("--profile", default="5g")
+    p.add_argument("--prefix", default="st")
+    p.set_defaults(func=_cmd_link_up)
+    p = link.add_parser("set", help="switch the running emulated link to another profile")
+    p.add_argument("profile")
+    p.add_argument("--prefix", default="st")
+    p.set_defaults(func=_cmd_link_set)
+    p = link.add_parser("down", help="remove the emulated link")
+    p.add_argument("--prefix", default="st")
+    p.set_defaults(func=_cmd_link_down)
+    p = link.add_parser("probe", help="fit RTT = t0 + beta*S from probes at every split point's payload")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--profile", help="probe a fresh emulated link with this profile (root)")
+    where.add_argument("--connect", default="tcp/127.0.0.1:7447", help="or probe the echo behind this endpoint")
+    p.add_argument("--prefix", default="st")
+    p.add_argument("--robot-id", default="robot1")
+    p.add_argument("--repetitions", type=int, default=200)
+    p.add_argument("--tags", type=int, default=1, help="payloads of this many tags per split point")
+    p.add_argument("--json", type=Path)
+    p.add_argument("--plot", type=Path)
+    p.add_argument("--samples-out", type=Path, help=argparse.SUPPRESS)
+    p.set_defaults(func=_cmd_link_probe)
+    p = link.add_parser("cost", help="T(k) per split point for several gamma from measured C, E and a fitted link")
+    p.add_argument("--link", type=Path, required=True, help="JSON written by `splittag link probe`")
+    p.add_argument("--gamma", type=float, nargs="+", default=[1.0, 2.0, 4.0, 8.0])
+    p.add_argument("--tags", type=int, default=1)
+    p.add_argument("--weights", type=Path, default=Path("models"))
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--repetitions", type=int, default=10)
+    p.add_argument("--json", type=Path)
+    p.add_argument("--plot", type=Path)
+    p.set_defaults(func=_cmd_link_cost)
+
+    data = sub.add_parser("data", help="generate and inspect training data").add_subparsers(
+        dest="data_command", required=True
+    )
+    p = data.add_parser("synth", help="synthetic planar-tag data set (paper IV-A2)")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--n", type=int, default=10_000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--camera", type=Path, help="ROS camera_info YAML (default: the paper's camera)")
+    p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    p.set_defaults(func=_cmd_data_generate)
+    p = data.add_parser("render", help="MuJoCo-rendered rooms (replaces the paper's Gazebo set)")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--n", type=int, default=8_000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--camera", type=Path, help="ROS camera_info YAML (default: the paper's camera)")
+    p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    p.set_defaults(func=_cmd_data_generate)
+    p = data.add_parser("show", help="contact sheet of ROIs with ground-truth keypoints")
+    p.add_argument("dir", type=Path)
+    p.add_argument("--n", type=int, default=16)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, default=Path("sheet.png"))
+    p.set_defaults(func=_cmd_data_show)
+
+    p = sub.add_parser("train", help="train the keypoint network (resumes from OUT/last.pt)")
+    p.add_argument("--data", type=Path, action="append", required=True, help="data set folder, repeatable")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--init", type=Path, help="weights folder to start from (fine-tuning)")
+    p.add_argument("--epochs", type=int, default=70)
+    p.add_argument("--batch-size", type=int, default=32)
+    p.add_argument("--lr", type=float, default=3e-4)
+    p.add_argument("--warmup-steps", type=int, default=500)
+    p.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
+    p.add_argument("--no-bf16", action="store_true", help="train in fp32")
+    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--eval-samples", type=int, default=1000)
+    p.add_argument("--limit-train", type=int, default=None)
+    p.add_argument(
+        "--time-budget-secs",
+        type=float,
+        default=None,
+        help="cut the epoch count after epoch 1 so the run fits this budget",
+    )
+    p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("eval", help="keypoint and pose errors of weights on a data set split")
+    p.add_argument("--weights", type=Path, required=True, help="weights folder (model.safetensors + config.json)")
+    p.add_argument("--data", type=Path, required=True)
+    p.add_argument("--split", choices=["train", "test", "all"], default="test")
+    p.add_argument("--json", type=Path)
+    p.add_argument("--bf16", action="store_true", help="bf16 autocast inference (default fp32)")
+    p.add_argument("--limit", type=int, default=None)
+    p.set_defaults(func=_cmd_eval)
+
+    p = sub.add_parser("detect", help="stage 1 + network + PnP on image files or folders")
+    p.add_argument("paths", type=Path, nargs="+")
+    p.add_argument("--camera", type=Path, required=True, help="ROS camera_info YAML")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--tag-size", type=float, default=None, help="tag size in metres (black square side)")
+    g.add_argument("--tags", type=Path, default=None, help="tag map YAML/JSON with per-tag sizes")
+    p.add_argument("--weights", type=Path, default=None, help="weights folder (default: models/)")
+    p.add_argument("--json", type=Path, required=True)
+    p.set_defaults(func=_cmd_detect)
+    return parser
+
+
+def _load_link_profiles(args: argparse.Namespace) -> None:
+    path = getattr(args, "profiles", None) or getattr(args, "link_profiles", None)
+    if path:
+        from shared.tools.linkemu import load_profiles
+
+        load_profiles(path)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Parse arguments and run the chosen subcommand."""
+    args = build_parser().parse_args(argv)
+    setup_logging(f"splittag-{args.command}")
+    _load_link_profiles(args)
+    code: int = args.func(args)
+    return code
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,71 @@
+"""`splittag detect`: the whole perception chain on image files, no services needed."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any, Final
+
+import cv2
+import numpy as np
+
+from shared.model.weights import load_model
+from shared.perception.single import perceive
+from shared.runtime.sources import expand_paths
+from shared.vision.detector import TagDetector
+from shared.vision.geometry import GeometryError, camera_from_yaml
+from shared.vision.tagmap import TagMapFile, load_tag_map
+
+DEFAULT_WEIGHTS: Final[Path] = Path(__file__).resolve().parents[2] / "models"
+
+
+def run_detect(
+    paths: list[Path],
+    *,
+    camera_path: Path,
+    tag_size_m: float | None,
+    tags_path: Path | None,
+    weights: Path | None,
+    json_path: Path,
+) -> int:
+    """Process every image; unreadable ones are reported in the JSON and on stderr. Exit 0 if any ran."""
+    camera = camera_from_yaml(camera_path)
+    tag_map = load_tag_map(tags_path) if tags_path else TagMapFile(default_size_m=tag_size_m or 0.16)
+    model = load_model(weights or DEFAULT_WEIGHTS)
+    detector = TagDetector()
+    images: list[dict[str, Any]] = []
+    errors = 0
+    for path in expand_paths(paths):
+        entry: dict[str, Any] = {"path": str(path)}
+        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) if path.is_file() else None
+        if image is None:
+            entry["error"] = "cannot read image (missing, not an image, or unsupported format)"
+        elif image.shape != (camera.height, camera.width):
+            entry["error"] = (
+                f"image is {image.shape[1]}x{image.shape[0]} but the camera file says {camera.width}x{camera.height}"
+            )
+        else:
+            try:
+                entry["tags"] = [
+                    t.to_json()
+                    for t in perceive(
+                        np.ascontiguousarray(image),
+                        camera=camera,
+                        detector=detector,
+                        model=model,
+                        tag_map=tag_map,
+                    )
+                ]
+            except GeometryError as exc:
+                entry["error"] = str(exc)
+        if "error" in entry:
+            errors += 1
+            print(f"splittag detect: {path}: {entry['error']}", file=sys.stderr)
+        else:
+            print(f"{path}: {len(entry['tags'])} tags " + " ".join(str(t["id"]) for t in entry["tags"]))
+        images.append(entry)
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps({"camera": camera.model_dump(), "images": images}, indent=2))
+    print(f"wrote {json_path} ({len(images) - errors} images processed, {errors} failed)")
+    return 0 if len(images) > errors else 1

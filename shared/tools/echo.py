@@ -1,0 +1,42 @@
+"""The edge-side echo process: a router session with the link-probe queryable and a liveliness token."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+
+from shared.transport.probe import serve_echo
+from shared.transport.session import ZenohSettings, open_session
+from shared.wire import keys
+from shared.wire.codec import DEFAULT_MAX_BYTES
+
+log = logging.getLogger(__name__)
+
+
+def run(
+    zenoh_settings: ZenohSettings,
+    *,
+    robot_id: str,
+    max_bytes: int = DEFAULT_MAX_BYTES,
+    stop: threading.Event | None = None,
+) -> None:
+    """Serve probes until `stop` is set (or SIGINT/SIGTERM when run as the main thread)."""
+    stop = stop or threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: stop.set())
+    session = open_session(zenoh_settings)
+    try:
+        queryable = serve_echo(session, keys.echo(robot_id), max_bytes=max_bytes)
+        # Raw echo: replies at once without decoding, to separate Zenoh's cost from the codec's.
+        raw = session.declare_queryable(keys.echo(robot_id) + "/raw", lambda q: q.reply(q.key_expr, b""))
+        token = session.liveliness().declare_token(keys.alive(robot_id, "echo"))
+        log.info("echo serving %s", keys.echo(robot_id))
+        stop.wait()
+        token.undeclare()
+        raw.undeclare()
+        queryable.undeclare()
+    finally:
+        session.close()
+        log.info("echo stopped")

@@ -1,0 +1,409 @@
+"""Start the services as separate processes, watch the pipeline live, stop everything cleanly.
+
+`splittag up` (and deploy/up.sh) writes runs/<run_id>/: one log per service, the resolved config,
+the demo tag map, `pids`, and `summary.json` at exit. runs/current points at the newest run.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+import zenoh
+
+from shared.runtime.settings import CURRENT_RUN
+from shared.runtime.sources import demo_scene
+from shared.transport.session import ZenohSettings, free_tcp_port, open_session, wait_for_liveliness
+from shared.vision.metrics import translation_error_cm
+from shared.vision.tagmap import TagMapFile, TagSpec
+from shared.viz.recording import merge_recordings
+from shared.wire import keys
+from shared.wire.codec import WireError
+from shared.wire.messages import CameraPose, ControllerState, TagPoses, decode
+
+log = logging.getLogger(__name__)
+SERVICES = ("edge_infer", "slam", "robot_infer", "camera")
+
+
+def demo_tag_map() -> TagMapFile:
+    """Sizes and world poses of the demo scene's tags."""
+    scene = demo_scene()
+    return TagMapFile(
+        default_size_m=0.2,
+        anchor_tag_id=scene.tags[0].id,
+        tags=[TagSpec(id=t.id, size_m=t.size_m, world_from_tag=t.world_from_tag) for t in scene.tags],
+    )
+
+
+def new_run_dir(root: Path = CURRENT_RUN.parent) -> Path:
+    """runs/<timestamp>-<pid>, with runs/current (services' default run_dir) pointing at it."""
+    run = root / time.strftime(f"%Y%m%d-%H%M%S-{os.getpid()}")
+    run.mkdir(parents=True, exist_ok=True)
+    current = root / CURRENT_RUN.name
+    if current.is_symlink() or current.exists():
+        current.unlink()
+    current.symlink_to(run.name)
+    return run
+
+
+@dataclass
+class Service:
+    """One running service process."""
+
+    name: str
+    popen: subprocess.Popen[bytes]
+    log_path: Path
+
+
+def start_service(
+    name: str,
+    config: Path,
+    run_dir: Path,
+    env: dict[str, str] | None = None,
+    *,
+    wrapper: list[str] | None = None,
+) -> Service:
+    """Start `python -m services.<name> --config <config>` in its own process group; `wrapper` prefixes
+    the command line (e.g. `ip netns exec st-robot` to run it on the robot side of the emulated link)."""
+    log_path = run_dir / f"{name}.log"
+    full_env = {**os.environ, "PYTHONUNBUFFERED": "1", "SPLITTAG_RUN_DIR": str(run_dir), **(env or {})}
+    with log_path.open("ab") as out:
+        popen = subprocess.Popen(
+            [*(wrapper or []), sys.executable, "-m", f"services.{name}", "--config", str(config)],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            env=full_env,
+        )
+    return Service(name, popen, log_path)
+
+
+def stop_services(services: list[Service], timeout_secs: float = 15.0) -> dict[str, int | None]:
+    """Stop in reverse start order, one at a time (SIGINT to the process group, SIGKILL after
+    timeout_secs): producers (camera, robot side) finish before the consumers they feed, so nobody
+    blocks sending into a peer that is already gone, and the edge and SLAM see the last frames."""
+    codes: dict[str, int | None] = {}
+    for s in reversed(services):
+        if s.popen.poll() is None:
+            os.killpg(s.popen.pid, signal.SIGINT)
+        try:
+            s.popen.wait(timeout=timeout_secs)
+        except subprocess.TimeoutExpired:
+            log.warning("%s did not stop within %.0f s: its stacks go to its log, then SIGKILL", s.name, timeout_secs)
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(s.popen.pid, signal.SIGUSR1)
+            time.sleep(1.0)
+            os.killpg(s.popen.pid, signal.SIGKILL)
+            s.popen.wait()
+        codes[s.name] = s.popen.returncode
+    return {s.name: codes[s.name] for s in services}
+
+
+@dataclass
+class Monitor:
+    """Subscribes to TagPoses and ground truth; keeps per-frame records and prints a line per second."""
+
+    tag_map: TagMapFile | None
+    records: list[dict[str, Any]] = field(default_factory=list)
+    gt: dict[int, np.ndarray] = field(default_factory=dict)
+    bad: int = 0
+    controller: ControllerState | None = None
+    _recent: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=400))
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def on_poses(self, payload: bytes) -> None:
+        """Record one TagPoses message."""
+        try:
+            msg = decode(payload, TagPoses)
+        except WireError as exc:
+            self.bad += 1
+            log.warning("monitor: bad TagPoses: %s", exc)
+            return
+        rec: dict[str, Any] = {
+            "seq": msg.seq,
+            "capture_nanos": msg.capture_nanos,
+            "k": msg.split_k,
+            "payload_bytes": msg.payload_bytes,
+            "tags": len(msg.tags),
+            "robot_ms": 1e3 * msg.timings.robot_compute_secs,
+            "transport_ms": 1e3 * msg.timings.transport_secs,
+            "edge_ms": 1e3 * msg.timings.edge_compute_secs,
+            "e2e_ms": 1e3 * msg.timings.capture_to_pose_secs,
+            "t": time.monotonic(),
+            "errors_cm": self._errors(msg),
+        }
+        with self._lock:
+            self.records.append(rec)
+            self._recent.append(rec)
+
+    def on_controller(self, payload: bytes) -> None:
+        """Keep the latest controller state for the live line."""
+        try:
+            self.controller = decode(payload, ControllerState)
+        except WireError as exc:
+            self.bad += 1
+            log.warning("monitor: bad ControllerState: %s", exc)
+
+    def on_gt(self, payload: bytes) -> None:
+        """Record one ground-truth camera pose."""
+        try:
+            msg = decode(payload, CameraPose)
+        except WireError:
+            self.bad += 1
+            return
+        with self._lock:
+            self.gt[msg.seq] = msg.world_from_camera
+
+    def _errors(self, msg: TagPoses) -> list[float]:
+        if self.tag_map is None:
+            return []
+        with self._lock:
+            world_from_camera = self.gt.get(msg.seq)
+        if world_from_camera is None:
+            return []
+        poses = {t.id: t.world_from_tag for t in self.tag_map.tags if t.world_from_tag is not None}
+        out = []
+        for tag in msg.tags:
+            if tag.tag_id in poses:
+                true = np.linalg.inv(world_from_camera) @ np.asarray(poses[tag.tag_id])
+                out.append(float(translation_error_cm(tag.camera_from_tag[:3, 3], true[:3, 3])))
+        return out
+
+    def line(self) -> str:
+        """One status line over the last second."""
+        now = time.monotonic()
+        with self._lock:
+            recent = [r for r in self._recent if now - r["t"] <= 1.0]
+        if not recent:
+            return "waiting for TagPoses..."
+        med = {k: float(np.median([r[k] for r in recent])) for k in ("robot_ms", "transport_ms", "edge_ms", "e2e_ms")}
+        errs = [e for r in recent for e in r["errors_cm"]]
+        err = f" e_t {np.median(errs):.2f} cm" if errs else ""
+        return (
+            f"{len(recent):>3} fps  k={recent[-1]['k']}  payload {recent[-1]['payload_bytes'] / 1024:7.1f} kB  "
+            f"robot {med['robot_ms']:6.1f} ms  link {med['transport_ms']:5.1f} ms  edge {med['edge_ms']:5.1f} ms  "
+            f"capture->pose {med['e2e_ms']:6.1f} ms  tags {recent[-1]['tags']}{err}{self._controller_part()}"
+        )
+
+    def _controller_part(self) -> str:
+        c = self.controller
+        if c is None:
+            return ""
+        t = c.predicted_ms_by_k
+        pin = " pinned" if c.pinned else ""
+        return (
+            f"  | controller t0 {c.t0_ms:.1f} ms beta {c.beta_ms_per_kB:.3f} ms/kB "
+            f"best k={c.best_k} ({t[c.best_k]:.0f} ms){pin}"
+        )
+
+    def summary(self) -> dict[str, Any]:
+        """Totals over the whole run."""
+        with self._lock:
+            recs = list(self.records)
+        errs = [e for r in recs for e in r["errors_cm"]]
+        out: dict[str, Any] = {"frames": len(recs), "bad_messages": self.bad}
+        if recs:
+            e2e = [r["e2e_ms"] for r in recs]
+            out.update({"e2e_ms_p50": float(np.percentile(e2e, 50)), "e2e_ms_p99": float(np.percentile(e2e, 99))})
+        if errs:
+            out.update(
+                {
+                    "e_t_cm_median": float(np.median(errs)),
+                    "e_t_cm_mean": float(np.mean(errs)),
+                    "tag_observations": len(errs),
+                }
+            )
+        return out
+
+
+def attach_monitor(session: zenoh.Session, robot_id: str, monitor: Monitor) -> list[Any]:
+    """Subscribe the monitor (callbacks) to TagPoses and ground truth."""
+    return [
+        session.declare_subscriber(keys.ground_truth(robot_id), lambda s: monitor.on_gt(s.payload.to_bytes())),
+        session.declare_subscriber(keys.tag_poses(robot_id), lambda s: monitor.on_poses(s.payload.to_bytes())),
+        session.declare_subscriber(keys.controller(robot_id), lambda s: monitor.on_controller(s.payload.to_bytes())),
+    ]
+
+
+def write_run_config(run_dir: Path, base_config: Path, *, extra: dict[str, dict[str, Any]] | None = None) -> Path:
+    """Copy the TOML config into the run folder, adding the demo tag map and run_dir."""
+    import tomllib
+
+    doc = tomllib.loads(base_config.read_text())
+    tag_map_path = run_dir / "tag_map.yaml"
+    tag_map_path.write_text(yaml.safe_dump(demo_tag_map().model_dump(), sort_keys=False))
+    doc.setdefault("common", {})["run_dir"] = str(run_dir)
+    doc.setdefault("edge_infer", {}).setdefault("tag_map", str(tag_map_path))
+    doc.setdefault("slam", {}).setdefault("tag_map", str(tag_map_path))
+    for section, values in (extra or {}).items():
+        doc.setdefault(section, {}).update(values)
+    out = run_dir / "config.toml"
+    out.write_text(_to_toml(doc))
+    return out
+
+
+def loopback_config(
+    run_dir: Path,
+    *,
+    robot_id: str,
+    rerun: bool = False,
+    image_every: int = 5,
+    fps: float = 15.0,
+    split_k: int = 7,
+    base_config: Path = Path("deploy/local.toml"),
+) -> tuple[Path, int, int]:
+    """deploy/local.toml on free loopback ports (for benchmarks): (run config, edge port, robot port)."""
+    edge, robot = free_tcp_port(), free_tcp_port()
+    extra: dict[str, dict[str, Any]] = {
+        "common": {"robot_id": robot_id, "rerun": {"enabled": rerun, "image_every": image_every}},
+        "edge_infer": {"zenoh": {"mode": "router", "listen": [f"tcp/127.0.0.1:{edge}"]}},
+        "robot_infer": {
+            "split_k": split_k,
+            "zenoh": {"mode": "router", "listen": [f"tcp/127.0.0.1:{robot}"], "connect": [f"tcp/127.0.0.1:{edge}"]},
+        },
+        "camera": {"source": "demo", "fps": fps, "zenoh": {"mode": "client", "connect": [f"tcp/127.0.0.1:{robot}"]}},
+        "slam": {"zenoh": {"mode": "client", "connect": [f"tcp/127.0.0.1:{edge}"]}},
+    }
+    return write_run_config(run_dir, base_config, extra=extra), edge, robot
+
+
+def _to_toml(doc: dict[str, Any], prefix: str = "") -> str:
+    lines, tables = [], []
+    for key, value in doc.items():
+        if isinstance(value, dict):
+            tables.append((key, value))
+        else:
+            lines.append(f"{key} = {json.dumps(value)}")
+    out = "\n".join(lines) + ("\n" if lines else "")
+    for key, value in tables:
+        name = f"{prefix}.{key}" if prefix else key
+        out += f"\n[{name}]\n" + _to_toml(value, name)
+    return out
+
+
+def monitor_settings(config: Path) -> tuple[str, ZenohSettings]:
+    """robot_id and a client session to the edge router, from the run config."""
+    import tomllib
+
+    doc = tomllib.loads(config.read_text())
+    robot_id = doc.get("common", {}).get("robot_id", "robot1")
+    if "connect" in doc.get("monitor", {}):
+        return robot_id, ZenohSettings(mode="client", connect=doc["monitor"]["connect"])
+    edge = doc.get("edge_infer", {}).get("zenoh", {})
+    return robot_id, ZenohSettings(mode="client", connect=edge.get("listen", ["tcp/127.0.0.1:7447"]))
+
+
+def _robot_router(config: Path) -> str:
+    """The robot-side router's endpoint in a deploy TOML (where the controller connects)."""
+    import tomllib
+
+    listen = tomllib.loads(config.read_text()).get("robot_infer", {}).get("zenoh", {}).get("listen", [])
+    return str(listen[0]) if listen else "tcp/127.0.0.1:7448"
+
+
+def run_pipeline(
+    config: Path,
+    *,
+    duration_secs: float | None,
+    services: tuple[str, ...] = SERVICES,
+    extra: dict[str, dict[str, Any]] | None = None,
+    quiet: bool = False,
+    runs_root: Path = Path("runs"),
+    controller: bool = False,
+    link: str | None = None,
+) -> dict[str, Any]:
+    """Start the services, print a live line per second until duration/SIGINT/camera end, stop all.
+
+    `controller` adds the adaptive split controller. `link` (a profile name, root only) runs the robot
+    side (camera, robot_infer, controller) and the edge side (edge_infer, slam) in the namespaces of
+    an emulated uplink with that profile (switch it live with `splittag link set`), rewriting the
+    endpoints: edge router on tcp/0.0.0.0:7447, robot router connecting over the shaped veth.
+    """
+    from shared.tools.linkemu import LinkEmulator, LinkEmulatorSettings, in_netns, profile
+
+    if controller and "controller" not in services:
+        services = (*services, "controller")
+    emu = None
+    wrappers: dict[str, list[str]] = {}
+    if link is not None:
+        emu = LinkEmulator(LinkEmulatorSettings())
+        s = emu.settings
+        extra = {
+            **(extra or {}),
+            "edge_infer": {"zenoh": {"mode": "router", "listen": ["tcp/0.0.0.0:7447"]}},
+            "robot_infer": {
+                "zenoh": {"mode": "router", "listen": ["tcp/127.0.0.1:7448"], "connect": [f"tcp/{s.edge_addr}:7447"]}
+            },
+            "camera": {"zenoh": {"mode": "client", "connect": ["tcp/127.0.0.1:7448"]}},
+            "controller": {"zenoh": {"mode": "client", "connect": ["tcp/127.0.0.1:7448"]}},
+            "slam": {"zenoh": {"mode": "client", "connect": ["tcp/127.0.0.1:7447"]}},
+            "monitor": {"connect": [f"tcp/{s.mgmt_edge_addr}:7447"]},
+        }
+        side = {"camera": s.robot_ns, "robot_infer": s.robot_ns, "controller": s.robot_ns}
+        wrappers = {name: in_netns(side.get(name, s.edge_ns), []) for name in services}
+    elif controller:
+        robot_router = _robot_router(config)
+        extra = {**(extra or {}), "controller": {"zenoh": {"mode": "client", "connect": [robot_router]}}}
+    run_dir = new_run_dir(runs_root)
+    run_config = write_run_config(run_dir, config, extra=extra)
+    robot_id, zs = monitor_settings(run_config)
+    if emu is not None:
+        emu.log_dir = run_dir
+        emu.up(profile(link or "5g"))
+        print(f"emulated link up: profile {link}; `sudo splittag link set PROFILE` switches it live", flush=True)
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    started: list[Service] = []
+    monitor = Monitor(demo_tag_map())
+    try:
+        for name in services:
+            started.append(start_service(name, run_config, run_dir, wrapper=wrappers.get(name)))
+        (run_dir / "pids").write_text("\n".join(f"{s.name} {s.popen.pid}" for s in started) + "\n")
+        session = open_session(zs)
+        subs = attach_monitor(session, robot_id, monitor)
+        wait_for_liveliness(session, [keys.alive(robot_id, s) for s in services], timeout_secs=120)
+        print(f"run {run_dir}: {', '.join(services)} alive; Ctrl-C stops", flush=True)
+        t_end = None if duration_secs is None else time.monotonic() + duration_secs
+        while not stop.wait(1.0):
+            if not quiet:
+                print(monitor.line(), flush=True)
+            if t_end is not None and time.monotonic() > t_end:
+                break
+            if any(s.popen.poll() is not None for s in started if s.name != "camera"):
+                print("a service exited; stopping", flush=True)
+                break
+            camera = next((s for s in started if s.name == "camera"), None)
+            if camera is not None and camera.popen.poll() is not None:
+                time.sleep(1.0)  # let the last frames arrive
+                break
+        for s in subs:
+            s.undeclare()
+        session.close()
+    finally:
+        codes = stop_services(started)
+        if emu is not None:
+            emu.down()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    summary = {**monitor.summary(), "exit_codes": codes, "run_dir": str(run_dir)}
+    recording = merge_recordings(run_dir)
+    if recording is not None:
+        summary["recording"] = str(recording)
+    ate_path = run_dir / "ate.json"
+    if ate_path.is_file():
+        summary["slam"] = json.loads(ate_path.read_text())
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary

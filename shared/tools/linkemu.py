@@ -1,0 +1,364 @@
+"""Emulated robot -> edge uplink: two network namespaces joined by a veth pair, tbf for the rate and a
+user-space delay line (TUN device, shared/tools/delayline.py) for the latency floor.
+
+    robot netns  (10.77.0.1)                                     edge netns (10.77.0.2)
+    app --(ip rule: iif lo, to edge)--> TUN -> delay line -> TUN --forward--> veth [tbf] ======> veth
+    app <------------------------------------------------------------------------------------ veth
+                                                          root netns (10.78.0.1) <== mgmt veth ==> (10.78.0.2)
+
+Only the uplink is shaped, as in the paper's measurement (probes carry the payload up, a tiny reply
+comes back), so RTT(S) = t0 + beta * S with t0 the delay line's floor and beta = 8 bits / rate.
+The management veth lets tools in the root namespace (tests, the demo's monitor) reach the edge
+router without touching the shaped path. TCP in both namespaces uses reno and keeps its window
+across idle gaps (BBR's probing adds latency on a 40 ms link; cubic is not allowed per namespace).
+Shared memory never crosses a namespace (and is off in every splittag session anyway).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from types import TracebackType
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from shared.tools.delayline import control_request
+
+log = logging.getLogger(__name__)
+
+BITS_PER_KB = 8 * 1024
+
+
+class LinkProfile(BaseModel):
+    """One link condition: uplink rate (None = unshaped) and the added one-way floor delay."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    name: str
+    rate_mbit: float | None = Field(default=None, gt=0)
+    delay_ms: float = Field(default=0.0, ge=0, le=10_000)
+    description: str = ""
+
+    @property
+    def beta_ms_per_kB(self) -> float:
+        """The serialisation slope this rate gives: ms per kB (1024 bytes)."""
+        return 0.0 if self.rate_mbit is None else BITS_PER_KB / (self.rate_mbit * 1e6) * 1e3
+
+
+def _rate_for_beta(beta_ms_per_kB: float) -> float:
+    return BITS_PER_KB / (beta_ms_per_kB * 1e-3) / 1e6
+
+
+PROFILES: dict[str, LinkProfile] = {
+    p.name: p
+    for p in (
+        LinkProfile(
+            name="5g",
+            rate_mbit=round(_rate_for_beta(0.18), 2),
+            delay_ms=39.9,
+            description="the paper's measured 5G uplink (IV-B): t0 = 39.9 ms, beta = 0.18 ms/kB",
+        ),
+        LinkProfile(
+            name="5g-pre-tdd",
+            rate_mbit=14.2,
+            delay_ms=39.9,
+            description="the uplink before TDD rebalancing: about 14.2 Mbit/s, same floor",
+        ),
+        LinkProfile(name="unshaped", description="veth at full speed, no added delay"),
+    )
+}
+
+
+def load_profiles(path: Path) -> dict[str, LinkProfile]:
+    """Profiles from a TOML file, one table per profile, e.g.
+
+        [lte-uplink]
+        rate_mbit = 8.0
+        delay_ms = 25.0
+        description = "a congested LTE uplink"
+
+    They add to (or replace) the built-in ones in PROFILES; a bad entry raises a ValueError naming it.
+    """
+    import tomllib
+
+    try:
+        doc = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise ValueError(f"cannot read link profiles from {path}: {exc}") from exc
+    out = {}
+    for name, values in doc.items():
+        if not isinstance(values, dict):
+            raise ValueError(f"{path}: [{name}] must be a table of rate_mbit / delay_ms / description")
+        try:
+            out[name] = LinkProfile(name=name, **values)
+        except ValueError as exc:
+            raise ValueError(f"{path}: profile [{name}]: {exc}") from exc
+    PROFILES.update(out)
+    return out
+
+
+def profile(name: str) -> LinkProfile:
+    """A named profile (built in, or added by load_profiles), or a ValueError listing the names."""
+    try:
+        return PROFILES[name]
+    except KeyError:
+        raise ValueError(f"unknown link profile {name!r}; known: {', '.join(PROFILES)}") from None
+
+
+class LinkEmulatorSettings(BaseModel):
+    """Names and addresses of the emulated link (a prefix keeps parallel emulations apart)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    prefix: str = Field(default="st", pattern=r"^[a-z0-9]{1,6}$")
+    robot_addr: str = "10.77.0.1"
+    edge_addr: str = "10.77.0.2"
+    mgmt_root_addr: str = "10.78.0.1"
+    mgmt_edge_addr: str = "10.78.0.2"
+    mtu: int = Field(default=4000, ge=1280, le=65000)
+    tbf_limit_bytes: int = Field(default=8 * 1024 * 1024, gt=0)  # deep enough that TCP never sees a drop
+
+    @property
+    def robot_ns(self) -> str:
+        return f"{self.prefix}-robot"
+
+    @property
+    def edge_ns(self) -> str:
+        return f"{self.prefix}-edge"
+
+    @property
+    def uplink_dev(self) -> str:
+        return f"{self.prefix}-vr"
+
+    @property
+    def tun_dev(self) -> str:
+        return f"{self.prefix}-tun"
+
+    @property
+    def control_path(self) -> Path:
+        return Path(tempfile.gettempdir()) / f"splittag-{self.prefix}-delay.sock"
+
+
+class LinkEmulationUnavailable(RuntimeError):
+    """Namespaces, veth, TUN or tc cannot be used here (not root, no iproute2, ...)."""
+
+
+def _run(argv: list[str], *, check: bool = True) -> subprocess.CompletedProcess[str]:
+    result = subprocess.run(argv, capture_output=True, text=True, timeout=30)
+    if check and result.returncode != 0:
+        raise RuntimeError(f"{' '.join(argv)} failed: {result.stderr.strip()}")
+    return result
+
+
+def in_netns(ns: str, argv: list[str]) -> list[str]:
+    """argv run inside network namespace `ns`."""
+    return ["ip", "netns", "exec", ns, *argv]
+
+
+def unavailable_reason() -> str | None:
+    """Why link emulation cannot run here, or None when it can."""
+    if os.geteuid() != 0:
+        return "link emulation needs root (network namespaces, veth, TUN, tc)"
+    for tool in ("ip", "tc"):
+        if shutil.which(tool) is None:
+            return f"link emulation needs `{tool}` (iproute2)"
+    if not Path("/dev/net/tun").exists():
+        return "link emulation needs /dev/net/tun"
+    probe = f"stprobe{os.getpid() % 100000}"
+    made = _run(["ip", "netns", "add", probe], check=False)
+    if made.returncode != 0:
+        return f"cannot create a network namespace: {made.stderr.strip()}"
+    _run(["ip", "netns", "del", probe], check=False)
+    return None
+
+
+class LinkEmulator:
+    """Bring the emulated link up (context manager), switch profiles live, tear it down."""
+
+    def __init__(self, settings: LinkEmulatorSettings | None = None, *, log_dir: Path | None = None) -> None:
+        self.settings = settings or LinkEmulatorSettings()
+        self.log_dir = log_dir
+        self.current: LinkProfile | None = None
+        self._delay: subprocess.Popen[bytes] | None = None
+
+    # -- lifecycle -------------------------------------------------------------------------------
+    def up(self, initial: LinkProfile) -> LinkEmulator:
+        """Create namespaces, links, routes and the delay line, then apply `initial`."""
+        reason = unavailable_reason()
+        if reason is not None:
+            raise LinkEmulationUnavailable(reason)
+        s = self.settings
+        self.down()  # leftovers of a crashed run with the same prefix
+        r, e = s.robot_ns, s.edge_ns
+        mr, me, ve = f"{s.prefix}-mr", f"{s.prefix}-me", f"{s.prefix}-ve"
+        try:
+            for argv in (
+                ["ip", "netns", "add", r],
+                ["ip", "netns", "add", e],
+                ["ip", "link", "add", s.uplink_dev, "type", "veth", "peer", "name", ve],
+                ["ip", "link", "set", s.uplink_dev, "netns", r],
+                ["ip", "link", "set", ve, "netns", e],
+                ["ip", "link", "add", mr, "type", "veth", "peer", "name", me],
+                ["ip", "link", "set", me, "netns", e],
+                ["ip", "addr", "add", f"{s.mgmt_root_addr}/30", "dev", mr],
+                ["ip", "link", "set", mr, "up"],
+                *(
+                    in_netns(r, a)
+                    for a in (
+                        ["ip", "link", "set", "lo", "up"],
+                        ["ip", "addr", "add", f"{s.robot_addr}/30", "dev", s.uplink_dev],
+                        ["ip", "link", "set", s.uplink_dev, "mtu", str(s.mtu), "up"],
+                        ["ip", "tuntap", "add", "dev", s.tun_dev, "mode", "tun"],
+                        ["ip", "link", "set", s.tun_dev, "mtu", str(s.mtu), "up"],
+                        # Local traffic to the edge goes into the TUN device (the delay line) ...
+                        [
+                            "ip",
+                            "route",
+                            "add",
+                            f"{s.edge_addr}/32",
+                            "dev",
+                            s.tun_dev,
+                            "src",
+                            s.robot_addr,
+                            "table",
+                            "77",
+                        ],
+                        ["ip", "rule", "add", "iif", "lo", "to", f"{s.edge_addr}/32", "table", "77", "pref", "100"],
+                        # ... and comes back out of it to be forwarded onto the shaped veth.
+                        [
+                            "sysctl",
+                            "-qw",
+                            "net.ipv4.ip_forward=1",
+                            "net.ipv4.conf.all.rp_filter=0",
+                            "net.ipv4.conf.default.rp_filter=0",
+                            f"net.ipv4.conf.{s.tun_dev}.rp_filter=0",
+                            f"net.ipv4.conf.{s.tun_dev}.accept_local=1",
+                            "net.ipv4.tcp_congestion_control=reno",
+                            "net.ipv4.tcp_slow_start_after_idle=0",
+                        ],
+                    )
+                ),
+                *(
+                    in_netns(e, a)
+                    for a in (
+                        ["ip", "link", "set", "lo", "up"],
+                        ["ip", "addr", "add", f"{s.edge_addr}/30", "dev", ve],
+                        ["ip", "link", "set", ve, "mtu", str(s.mtu), "up"],
+                        ["ip", "addr", "add", f"{s.mgmt_edge_addr}/30", "dev", me],
+                        ["ip", "link", "set", me, "up"],
+                        [
+                            "sysctl",
+                            "-qw",
+                            "net.ipv4.tcp_congestion_control=reno",
+                            "net.ipv4.tcp_slow_start_after_idle=0",
+                        ],
+                    )
+                ),
+            ):
+                _run(argv)
+            self._start_delay_line(initial.delay_ms)
+            self.set_profile(initial)
+        except BaseException:
+            self.down()
+            raise
+        return self
+
+    def _start_delay_line(self, delay_ms: float) -> None:
+        s = self.settings
+        s.control_path.unlink(missing_ok=True)
+        out = (self.log_dir / "delayline.log").open("wb") if self.log_dir else subprocess.DEVNULL
+        self._delay = subprocess.Popen(
+            in_netns(
+                s.robot_ns,
+                [
+                    sys.executable,
+                    "-m",
+                    "shared.tools.delayline",
+                    "--tun",
+                    s.tun_dev,
+                    "--delay-ms",
+                    str(delay_ms),
+                    "--control",
+                    str(s.control_path),
+                ],
+            ),
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            cwd=Path(__file__).resolve().parents[2],
+        )
+        deadline = time.monotonic() + 20
+        while not s.control_path.exists():
+            if self._delay.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError("the delay line did not start (see delayline.log)")
+            time.sleep(0.05)
+
+    def set_profile(self, p: LinkProfile) -> None:
+        """Switch the link live: tbf rate on the uplink veth, floor delay in the delay line."""
+        s = self.settings
+        if not s.control_path.exists():
+            raise LinkEmulationUnavailable(
+                f"no emulated link with prefix {s.prefix!r} is up (start one with `splittag link up`)"
+            )
+        if p.rate_mbit is None:
+            _run(in_netns(s.robot_ns, ["tc", "qdisc", "del", "dev", s.uplink_dev, "root"]), check=False)
+        else:
+            burst = s.mtu + 1000  # one packet: a bigger bucket would shave burst/rate off the floor
+            _run(
+                in_netns(
+                    s.robot_ns,
+                    [
+                        "tc",
+                        "qdisc",
+                        "replace",
+                        "dev",
+                        s.uplink_dev,
+                        "root",
+                        "tbf",
+                        "rate",
+                        f"{p.rate_mbit}mbit",
+                        "burst",
+                        str(burst),
+                        "limit",
+                        str(s.tbf_limit_bytes),
+                    ],
+                )
+            )
+        control_request(s.control_path, {"delay_ms": p.delay_ms})
+        self.current = p
+        log.info("link profile %s: rate %s Mbit/s, delay %.1f ms", p.name, p.rate_mbit or "unshaped", p.delay_ms)
+
+    def down(self) -> None:
+        """Remove everything (idempotent)."""
+        s = self.settings
+        if self._delay is not None and self._delay.poll() is None:
+            os.killpg(self._delay.pid, 15)
+            try:
+                self._delay.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                os.killpg(self._delay.pid, 9)
+                self._delay.wait()
+        self._delay = None
+        for ns in (s.robot_ns, s.edge_ns):
+            _run(["ip", "netns", "del", ns], check=False)
+        _run(["ip", "link", "del", f"{s.prefix}-mr"], check=False)
+        s.control_path.unlink(missing_ok=True)
+
+    def __enter__(self) -> LinkEmulator:
+        return self
+
+    def __exit__(self, *exc: tuple[type[BaseException] | None, BaseException | None, TracebackType | None]) -> None:
+        self.down()
+
+    # -- where things run --------------------------------------------------------------------------
+    def netns_of(self, side: str) -> str:
+        """The namespace of the robot side or the edge side."""
+        if side not in ("robot", "edge"):
+            raise ValueError(f"side must be robot or edge, not {side!r}")
+        return self.settings.robot_ns if side == "robot" else self.settings.edge_ns

@@ -1,0 +1,1 @@
+"""Layer 4: training and evaluation of the network."""

@@ -1,0 +1,116 @@
+"""`splittag eval`: keypoint errors (paper's e_px, e_rel) and the pose comparison against the
+classical baseline (PnP on the 4 AprilTag corners), over a whole data set split."""
+
+from __future__ import annotations
+
+import itertools
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from shared.datasets.generate import DISTANCE_BINS_M, TILT_BINS_DEG
+from shared.datasets.shards import Dataset
+from shared.model.net import SplitKeypointNet
+from shared.perception.single import run_network
+from shared.training.train import evaluate_arrays
+from shared.vision.camera import CameraIntrinsics
+from shared.vision.geometry import corners_in_tag, keypoints_to_image, lattice_in_tag
+from shared.vision.metrics import rotation_error_deg, summary, translation_error_cm
+from shared.vision.pnp import solve_planar_pnp
+
+
+def predict_dataset(
+    model: SplitKeypointNet, ds: Dataset, rows: np.ndarray, *, bf16: bool = False, batch: int = 64
+) -> np.ndarray:
+    """Normalised keypoint predictions for the given rows."""
+    out = []
+    for i in tqdm(range(0, len(rows), batch), desc="inference", leave=False):
+        out.append(run_network(model, ds.arrays["roi"][rows[i : i + batch]], bf16=bf16))
+    return np.concatenate(out) if out else np.zeros((0, 16, 2), np.float32)
+
+
+def _binned(values: dict[str, np.ndarray], key: np.ndarray, edges: tuple[float, ...]) -> list[dict[str, Any]]:
+    rows = []
+    for lo, hi in itertools.pairwise(edges):
+        sel = (key >= lo) & (key < hi)
+        row: dict[str, Any] = {"range": [lo, hi if hi < 1e8 else None], "n": int(sel.sum())}
+        for name, v in values.items():
+            row[name] = summary(v[sel]) if sel.any() else None
+        rows.append(row)
+    return rows
+
+
+def pose_comparison(camera: CameraIntrinsics, ds: Dataset, rows: np.ndarray, pred: np.ndarray) -> dict[str, Any]:
+    """e_t (cm) and e_r (deg) of PnP on the 16 predicted keypoints vs on the 4 AprilTag corners."""
+    a = ds.arrays
+    n = len(rows)
+    et = {"keypoints": np.zeros(n), "corners": np.zeros(n)}
+    er = {"keypoints": np.zeros(n), "corners": np.zeros(n)}
+    wrong = {"keypoints": np.zeros(n, bool), "corners": np.zeros(n, bool)}
+    for j, i in enumerate(rows):
+        size = float(a["tag_size_m"][i])
+        gt = a["camera_from_tag"][i]
+        kp_px = keypoints_to_image(pred[j], a["roi_to_image"][i])
+        for name, cand in (
+            ("keypoints", solve_planar_pnp(camera, lattice_in_tag(size), kp_px)),
+            ("corners", solve_planar_pnp(camera, corners_in_tag(size), a["corners_px"][i])),
+        ):
+            et[name][j] = translation_error_cm(cand.camera_from_tag[:3, 3], gt[:3, 3])
+            er[name][j] = rotation_error_deg(cand.camera_from_tag[:3, :3], gt[:3, :3])
+            wrong[name][j] = rotation_error_deg(cand.alt_camera_from_tag[:3, :3], gt[:3, :3]) < er[name][j]
+    values = {
+        "e_t_cm_keypoints": et["keypoints"],
+        "e_t_cm_corners": et["corners"],
+        "e_r_deg_keypoints": er["keypoints"],
+        "e_r_deg_corners": er["corners"],
+    }
+    return {
+        "overall": {k: summary(v) for k, v in values.items()},
+        "by_distance_m": _binned(values, a["distance_m"][rows], DISTANCE_BINS_M),
+        "by_tilt_deg": _binned(values, a["tilt_deg"][rows], TILT_BINS_DEG),
+        "wrong_branch_rate": {k: float(v.mean()) for k, v in wrong.items()},
+        "different_branch_rate": float((wrong["keypoints"] != wrong["corners"]).mean()),
+    }
+
+
+def evaluate(
+    model: SplitKeypointNet, ds: Dataset, *, split: str = "test", bf16: bool = False, limit: int | None = None
+) -> dict[str, Any]:
+    """Everything `splittag eval` writes to its JSON."""
+    rows = ds.split(split)[:limit]
+    pred = predict_dataset(model, ds, rows, bf16=bf16)
+    keypoint_metrics = evaluate_arrays(pred, ds.arrays["keypoints"][rows])
+    camera = CameraIntrinsics.model_validate(ds.info["settings"]["camera"])
+    return {
+        **keypoint_metrics,
+        "data": str(ds.root),
+        "split": split,
+        "kind": ds.info.get("kind"),
+        "pose": pose_comparison(camera, ds, rows, pred),
+    }
+
+
+def format_report(result: dict[str, Any]) -> str:
+    """Human-readable summary of an evaluation."""
+    lines = [
+        f"{result['kind']} {result['split']} split, {result['n']} samples ({result['data']})",
+        f"  e_px  = {result['e_px_mean']:.3f} px  (sigma {result['e_px_std']:.3f})",
+        f"  e_rel = {result['e_rel_mean']:.3f} %   (sigma {result['e_rel_std']:.3f})",
+        "  pose vs ground truth      mean   median    p90",
+    ]
+    ov = result["pose"]["overall"]
+    for key, label in [
+        ("e_t_cm_keypoints", "e_t cm, 16 keypoints"),
+        ("e_t_cm_corners", "e_t cm, 4 corners"),
+        ("e_r_deg_keypoints", "e_r deg, 16 keypoints"),
+        ("e_r_deg_corners", "e_r deg, 4 corners"),
+    ]:
+        s = ov[key]
+        lines.append(f"  {label:<24}{s['mean']:>6.2f} {s['median']:>8.2f} {s['p90']:>6.2f}")
+    wb = result["pose"]["wrong_branch_rate"]
+    lines.append(
+        f"  wrong IPPE branch: keypoints {100 * wb['keypoints']:.1f} %, corners {100 * wb['corners']:.1f} %;"
+        f" methods on different branches {100 * result['pose']['different_branch_rate']:.1f} %"
+    )
+    return "\n".join(lines)

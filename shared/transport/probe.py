@@ -1,0 +1,114 @@
+"""Link probing: an echo queryable on the edge and a client that times round trips.
+
+A probe is a real `Features` message of the requested size (one tag whose fp16 tensor fills the
+payload), so its cost includes the codec; the echo decodes and validates it and replies with a
+tiny `ProbeAck`, so only the uplink carries the payload, as in the paper's measurement.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import zenoh
+
+from shared.transport.session import encoding_for
+from shared.wire.codec import WireError
+from shared.wire.messages import Features, LinkStamps, ProbeAck, decode, encode
+
+log = logging.getLogger(__name__)
+
+
+def serve_echo(
+    session: zenoh.Session, key: str, *, max_bytes: int, arrivals: ArrivalClock | None = None
+) -> zenoh.Queryable[None]:
+    """Declare the echo queryable: decode each probe, reply a ProbeAck with the probe's link stamps
+    (errors are replied, not raised). `arrivals` is shared with whatever else arrives on the same
+    uplink (edge_infer's Features), so a probe's stamps say what was ahead of it."""
+    enc = encoding_for(ProbeAck.SCHEMA)
+    arrivals = arrivals or ArrivalClock()
+
+    def on_query(query: zenoh.Query) -> None:
+        received, previous = arrivals.stamp()
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        error = ""
+        link = None
+        try:
+            probe = decode(payload, Features, max_bytes=max_bytes)
+            link = LinkStamps(sent_nanos=probe.publish_nanos, received_nanos=received, previous_received_nanos=previous)
+        except WireError as exc:
+            error = str(exc)
+            log.warning("echo: rejected probe of %d bytes: %s", len(payload), exc)
+        ack = ProbeAck(received_bytes=len(payload), decoded_ok=not error, error=error, link=link)
+        query.reply(query.key_expr, encode(ack), encoding=enc)
+
+    return session.declare_queryable(key, on_query)
+
+
+class ArrivalClock:
+    """Receiver side of one link: stamps each arriving message and returns the previous arrival, so
+    every message can say what was ahead of it (thread-safe: subscribers and queryables stamp on
+    Zenoh's threads). Stamp where the bytes arrive, before any queue of the receiver's own."""
+
+    def __init__(self, clock: Callable[[], int] = time.time_ns) -> None:
+        self._clock = clock
+        self._last = 0
+        self._lock = threading.Lock()
+
+    def stamp(self) -> tuple[int, int]:
+        """(received_nanos, previous_received_nanos); the previous is 0 for the first message."""
+        with self._lock:
+            now = self._clock()
+            previous, self._last = self._last, max(self._last, now)
+            return now, previous
+
+
+class ProbeError(RuntimeError):
+    """A probe got no reply, an error reply, or an ack saying the payload was rejected."""
+
+
+@dataclass(frozen=True)
+class ProbeResult:
+    """One timed round trip."""
+
+    payload_bytes: int
+    rtt_secs: float
+    link: LinkStamps | None  # the probe's one-way stamps (None from an echo that predates them)
+
+
+class Prober:
+    """Sends probes through one Zenoh querier and times each round trip on one clock."""
+
+    def __init__(self, session: zenoh.Session, key: str, *, timeout_secs: float = 10.0) -> None:
+        self._querier = session.declare_querier(
+            key,
+            timeout=timeout_secs,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            target=zenoh.QueryTarget.ALL,
+        )
+        self._enc = encoding_for(Features.SCHEMA)
+
+    def round_trip(self, payload: bytes) -> ProbeResult:
+        """Send `payload` (wire bytes of a Features message) and wait for the echo's ack."""
+        start = time.perf_counter()
+        replies = self._querier.get(payload=payload, encoding=self._enc)
+        ack: ProbeAck | None = None
+        for reply in replies:
+            if reply.ok is None:
+                err = reply.err.payload.to_string() if reply.err is not None else "?"
+                raise ProbeError(f"echo replied an error: {err}")
+            ack = decode(reply.ok.payload.to_bytes(), ProbeAck)
+            break
+        rtt = time.perf_counter() - start
+        if ack is None:
+            raise ProbeError("no reply from the echo queryable (is the edge running?)")
+        if not ack.decoded_ok or ack.received_bytes != len(payload):
+            raise ProbeError(f"echo rejected the probe: {ack.error or ack.received_bytes}")
+        return ProbeResult(payload_bytes=len(payload), rtt_secs=rtt, link=ack.link)
+
+    def close(self) -> None:
+        """Undeclare the querier."""
+        self._querier.undeclare()

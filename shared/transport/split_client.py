@@ -1,0 +1,35 @@
+"""Client side of the split protocol (what `splittag split get|set|release` does)."""
+
+from __future__ import annotations
+
+import zenoh
+
+from shared.transport.session import ZenohSettings, open_session
+from shared.wire import keys
+from shared.wire.messages import SplitConfig, decode
+
+
+class SplitQueryError(RuntimeError):
+    """The robot refused the request or did not answer."""
+
+
+def query_split(session: zenoh.Session, robot_id: str, *, params: str = "", timeout_secs: float = 5.0) -> SplitConfig:
+    """One get on splittag/<robot_id>/split[?params]; returns the reply's SplitConfig."""
+    selector = keys.split(robot_id) + (f"?{params}" if params else "")
+    for reply in session.get(selector, timeout=timeout_secs):
+        if reply.ok is not None:
+            return decode(reply.ok.payload.to_bytes(), SplitConfig)
+        err = reply.err.payload.to_string() if reply.err is not None else "unknown error"
+        raise SplitQueryError(err)
+    raise SplitQueryError(f"no reply on {selector} (is robot_infer running?)")
+
+
+def split_query(robot_id: str, connect: str, *, k: int | None, release: bool) -> str:
+    """CLI helper: get, set or release; returns a printable line."""
+    session = open_session(ZenohSettings(mode="client", connect=[connect]))
+    try:
+        params = "release=1" if release else (f"k={k}" if k is not None else "")
+        cfg = query_split(session, robot_id, params=params)
+        return f"k={cfg.k} codec={cfg.codec} pinned={cfg.pinned} source={cfg.source}"
+    finally:
+        session.close()

@@ -1,0 +1,114 @@
+"""The split index as shared state, and the Zenoh query protocol that reads and sets it.
+
+Protocol on `splittag/<robot_id>/split` (any Zenoh client can use it):
+- get with no parameters and no payload -> reply: the current SplitConfig (msgpack, schema
+  splittag/SplitConfig/v1).
+- get with selector parameters `k=<0..7>` (optionally `codec=fp16|fp32`) -> sets it (pinned, source
+  "user") and replies the applied SplitConfig.
+- `release=1` unpins (the controller may change k again); `source=controller` marks a controller
+  decision, which is refused while a person's setting is pinned.
+- a SplitConfig payload is the same request written as a message (k, codec, source; `pinned` false
+  from a user means release): it goes through the same rules, so it cannot skip the pin.
+- anything invalid -> an error reply (UTF-8 text saying what was wrong); nothing changes.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+import zenoh
+
+from shared.transport.session import encoding_for
+from shared.wire.codec import WireError
+from shared.wire.messages import SplitConfig, decode, encode
+
+log = logging.getLogger(__name__)
+
+
+class SplitRequestError(ValueError):
+    """A split query that cannot be applied."""
+
+
+class SplitState:
+    """Thread-safe current SplitConfig; every change bumps `revision`."""
+
+    def __init__(self, initial: SplitConfig) -> None:
+        self._lock = threading.Lock()
+        self._config = initial
+        self.revision = 0
+
+    def get(self) -> SplitConfig:
+        """The current config."""
+        with self._lock:
+            return self._config
+
+    def apply(self, params: dict[str, str], payload: bytes | None) -> SplitConfig:
+        """Apply a request (see module docstring); raises SplitRequestError and changes nothing if invalid."""
+        unknown = set(params) - {"k", "codec", "release", "source"}
+        if unknown:
+            raise SplitRequestError(f"unknown parameters {sorted(unknown)}; use k, codec, release, source")
+        if payload:
+            if params:
+                raise SplitRequestError("give the request as parameters or as a SplitConfig payload, not both")
+            params = _params_from_payload(payload)
+        with self._lock:
+            cur = self._config
+            if params:
+                source = params.get("source", "user")
+                if source not in ("user", "controller"):
+                    raise SplitRequestError(f"source must be user or controller, got {source!r}")
+                k = cur.k
+                if "k" in params:
+                    try:
+                        k = int(params["k"])
+                    except ValueError:
+                        raise SplitRequestError(f"k must be an integer 0..7, got {params['k']!r}") from None
+                    if not 0 <= k <= 7:
+                        raise SplitRequestError(f"k must be in 0..7, got {k}")
+                codec = params.get("codec", cur.codec)
+                if codec not in ("fp16", "fp32"):
+                    raise SplitRequestError(f"codec must be fp16 or fp32, got {codec!r}")
+                release = params.get("release", "0") in ("1", "true", "yes")
+                if source == "controller" and cur.pinned and not release:
+                    raise SplitRequestError(f"k is pinned at {cur.k} by a user; the controller may not change it")
+                pinned = source == "user" and not release and ("k" in params or "codec" in params)
+                new = SplitConfig(k=k, codec=codec, pinned=pinned, source=source)  # type: ignore[arg-type]
+            else:
+                return cur
+            if new != cur:
+                self._config = new
+                self.revision += 1
+                log.info("split set to k=%d codec=%s pinned=%s (%s)", new.k, new.codec, new.pinned, new.source)
+            return new
+
+
+def _params_from_payload(payload: bytes) -> dict[str, str]:
+    """A SplitConfig payload as the equivalent parameters (its `source` default counts as user)."""
+    try:
+        req = decode(payload, SplitConfig)
+    except WireError as exc:
+        raise SplitRequestError(f"payload is not a valid SplitConfig: {exc}") from exc
+    source = "controller" if req.source == "controller" else "user"
+    params = {"k": str(req.k), "codec": req.codec, "source": source}
+    if source == "user" and not req.pinned:
+        params["release"] = "1"
+    return params
+
+
+def serve_split(session: zenoh.Session, key: str, state: SplitState) -> zenoh.Queryable[None]:
+    """Declare the split queryable."""
+    enc = encoding_for(SplitConfig.SCHEMA)
+
+    def on_query(query: zenoh.Query) -> None:
+        params = dict(query.parameters)  # type: ignore[call-overload]
+        payload = query.payload.to_bytes() if query.payload is not None else None
+        try:
+            applied = state.apply(params, payload)
+        except SplitRequestError as exc:
+            log.warning("split request refused: %s", exc)
+            query.reply_err(str(exc).encode())
+            return
+        query.reply(query.key_expr, encode(applied), encoding=enc)
+
+    return session.declare_queryable(key, on_query)

@@ -1,0 +1,250 @@
+"""Rerun logging: one recording per run shared by every service (same recording id), each process
+saving `<service>.rrd` in the run folder; the launcher merges them into `recording.rrd` at exit.
+Everything is on the `capture_time` timeline so processes line up. Off by default: `NullViz`.
+
+Entity paths (what the viewer shows):
+- `camera/image`                       the mono8 frame (every `image_every`-th)
+- `camera/image/keypoints_gt`          ground-truth keypoints (demo scene), blue
+- `camera/image/keypoints`             the 16 predicted keypoints per tag, yellow
+- `camera/image/tag_quads`             AprilTag quads (stage 1), green
+- `latency/{robot_compute,transport,edge_compute,capture_to_pose}_ms`, `link/payload_kB`, `split/k`
+- `world/camera`                       SLAM camera pose (with a pinhole frustum)
+- `world/trajectory`, `world/groundtruth`  SLAM trajectory and ground truth, 3D line strips
+- `world/tags`                         tag map as flat boxes with their ids
+- `controller/...`                     controller state, when one runs
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from shared.vision.camera import CameraIntrinsics
+from shared.vision.geometry import Array
+from shared.wire.messages import TagPoses
+
+log = logging.getLogger(__name__)
+
+
+TRAJECTORY_PERIOD_NANOS = 1_000_000_000
+
+
+class RerunSettings(BaseModel):
+    """Rerun logging of one service."""
+
+    model_config = ConfigDict(extra="forbid")
+    enabled: bool = False
+    recording_id: str = ""  # empty: the run folder's name, shared by every service of the run
+    image_every: int = Field(default=1, ge=1)
+    jpeg_quality: int = Field(default=80, ge=10, le=100)
+
+
+class Viz(Protocol):
+    """What services log; implemented by RerunViz and NullViz."""
+
+    def image(self, capture_nanos: int, image: np.ndarray, camera: CameraIntrinsics, seq: int) -> None: ...
+    def keypoints_gt(self, capture_nanos: int, points_px: list[Array]) -> None: ...
+    def tag_poses(self, msg: TagPoses) -> None: ...
+    def camera_pose(self, capture_nanos: int, world_from_camera: Array, camera: CameraIntrinsics | None) -> None: ...
+    def trajectory(self, capture_nanos: int, path: str, positions: Array) -> None: ...
+    def tag_map(self, capture_nanos: int, tags: dict[int, tuple[float, Array]]) -> None: ...
+    def scalars(self, capture_nanos: int, values: dict[str, float]) -> None: ...
+    def close(self) -> None: ...
+
+
+class NullViz:
+    """Logging off: every call is a no-op."""
+
+    def image(self, capture_nanos: int, image: np.ndarray, camera: CameraIntrinsics, seq: int) -> None:
+        """No-op."""
+
+    def keypoints_gt(self, capture_nanos: int, points_px: list[Array]) -> None:
+        """No-op."""
+
+    def tag_poses(self, msg: TagPoses) -> None:
+        """No-op."""
+
+    def camera_pose(self, capture_nanos: int, world_from_camera: Array, camera: CameraIntrinsics | None) -> None:
+        """No-op."""
+
+    def trajectory(self, capture_nanos: int, path: str, positions: Array) -> None:
+        """No-op."""
+
+    def tag_map(self, capture_nanos: int, tags: dict[int, tuple[float, Array]]) -> None:
+        """No-op."""
+
+    def scalars(self, capture_nanos: int, values: dict[str, float]) -> None:
+        """No-op."""
+
+    def close(self) -> None:
+        """No-op."""
+
+
+class RerunViz:
+    """Logs to `<run_dir>/<service>.rrd` under the run's shared recording id."""
+
+    def __init__(self, settings: RerunSettings, *, service: str, run_dir: Path) -> None:
+        import rerun as rr
+
+        self._rr: Any = rr
+        self.settings = settings
+        run_dir.mkdir(parents=True, exist_ok=True)
+        self.rec = rr.RecordingStream("splittag", recording_id=settings.recording_id or run_dir.name)
+        self.rec.save(run_dir / f"{service}.rrd")
+        self._time_set = False
+        self._trajectory_logged: dict[str, int] = {}
+
+    def _at(self, capture_nanos: int) -> None:
+        self.rec.set_time("capture_time", timestamp=capture_nanos / 1e9)
+
+    def image(self, capture_nanos: int, image: np.ndarray, camera: CameraIntrinsics, seq: int) -> None:
+        """The frame (subsampled by image_every)."""
+        if seq % self.settings.image_every:
+            return
+        self._at(capture_nanos)
+        # JPEG keeps a run's recording small (~60 kB instead of 0.9 MB per frame) for ~4 ms per frame.
+        import cv2
+
+        ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.settings.jpeg_quality])
+        if ok:
+            self.rec.log("camera/image", self._rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg"))
+
+    def keypoints_gt(self, capture_nanos: int, points_px: list[Array]) -> None:
+        """Ground-truth keypoints of the tags in view."""
+        if not points_px:
+            return
+        self._at(capture_nanos)
+        pts = np.concatenate(points_px)
+        self.rec.log("camera/image/keypoints_gt", self._rr.Points2D(pts + 0.5, colors=[60, 120, 255], radii=2.5))
+
+    def tag_poses(self, msg: TagPoses) -> None:
+        """Keypoints, quads, per-hop latency, payload and k of one frame."""
+        rr = self._rr
+        self._at(msg.capture_nanos)
+        # Rerun's 2D space puts pixel centres at +0.5; our convention has them at integers.
+        if msg.tags:
+            kps = np.concatenate([t.keypoints_px for t in msg.tags]) + 0.5
+            self.rec.log("camera/image/keypoints", rr.Points2D(kps, colors=[255, 210, 0], radii=2.0))
+            quads = [np.vstack([t.corners_px, t.corners_px[:1]]) + 0.5 for t in msg.tags]
+            self.rec.log(
+                "camera/image/tag_quads",
+                rr.LineStrips2D(quads, colors=[0, 220, 0], labels=[str(t.tag_id) for t in msg.tags]),
+            )
+        else:
+            self.rec.log("camera/image/keypoints", rr.Clear(recursive=False))
+        t = msg.timings
+        self.scalars(
+            msg.capture_nanos,
+            {
+                "latency/robot_compute_ms": 1e3 * t.robot_compute_secs,
+                "latency/transport_ms": 1e3 * t.transport_secs,
+                "latency/edge_compute_ms": 1e3 * t.edge_compute_secs,
+                "latency/capture_to_pose_ms": 1e3 * t.capture_to_pose_secs,
+                "link/payload_kB": msg.payload_bytes / 1024,
+                "split/k": float(msg.split_k),
+            },
+        )
+
+    def camera_pose(self, capture_nanos: int, world_from_camera: Array, camera: CameraIntrinsics | None) -> None:
+        """SLAM camera pose (and its frustum)."""
+        rr = self._rr
+        self._at(capture_nanos)
+        self.rec.log(
+            "world/camera", rr.Transform3D(translation=world_from_camera[:3, 3], mat3x3=world_from_camera[:3, :3])
+        )
+        if camera is not None:
+            self.rec.log(
+                "world/camera",
+                rr.Pinhole(
+                    image_from_camera=camera.matrix(),
+                    resolution=[camera.width, camera.height],
+                    image_plane_distance=0.3,
+                ),
+            )
+
+    def trajectory(self, capture_nanos: int, path: str, positions: Array) -> None:
+        """A whole 3D trajectory as one line strip (re-logged as it grows)."""
+        if len(positions) < 2:
+            return
+        # The strip is re-logged whole, so its cost grows with the run: once per second of capture time.
+        if capture_nanos - self._trajectory_logged.get(path, -(10**18)) < TRAJECTORY_PERIOD_NANOS:
+            return
+        self._trajectory_logged[path] = capture_nanos
+        self._at(capture_nanos)
+        colour = [255, 120, 0] if path.endswith("trajectory") else [60, 120, 255]
+        self.rec.log(path, self._rr.LineStrips3D([positions], colors=colour, radii=0.01))
+
+    def tag_map(self, capture_nanos: int, tags: dict[int, tuple[float, Array]]) -> None:
+        """Tags as flat boxes with their ids."""
+        if not tags:
+            return
+        self._at(capture_nanos)
+        ids = sorted(tags)
+        centres = [tags[i][1][:3, 3] for i in ids]
+        quats = []
+        from scipy.spatial.transform import Rotation
+
+        for i in ids:
+            quats.append(self._rr.Quaternion(xyzw=Rotation.from_matrix(tags[i][1][:3, :3]).as_quat()))
+        halves = [[tags[i][0] / 2, tags[i][0] / 2, 0.005] for i in ids]
+        self.rec.log(
+            "world/tags",
+            self._rr.Boxes3D(
+                centers=centres, half_sizes=halves, quaternions=quats, labels=[str(i) for i in ids], colors=[0, 220, 0]
+            ),
+        )
+
+    def scalars(self, capture_nanos: int, values: dict[str, float]) -> None:
+        """Time series values."""
+        self._at(capture_nanos)
+        for path, value in values.items():
+            self.rec.log(path, self._rr.Scalars([value]))
+
+    def close(self) -> None:
+        """Flush and close the .rrd file."""
+        self.rec.flush()
+        self.rec.disconnect()
+
+
+def make_viz(settings: RerunSettings, *, service: str, run_dir: Path) -> Viz:
+    """RerunViz when enabled, else NullViz."""
+    if not settings.enabled:
+        return NullViz()
+    return RerunViz(settings, service=service, run_dir=run_dir)
+
+
+def merge_recordings(run_dir: Path) -> Path | None:
+    """Merge the services' .rrd files of a run into recording.rrd (the rerun CLI ships with rerun-sdk)."""
+    import shutil
+    import subprocess
+    import sys
+
+    parts = sorted(p for p in run_dir.glob("*.rrd") if p.name != "recording.rrd")
+    if not parts:
+        return None
+    exe = shutil.which("rerun") or str(Path(sys.executable).parent / "rerun")
+    out = run_dir / "recording.rrd"
+    with out.open("wb") as f:
+        done = subprocess.run([exe, "rrd", "merge", *map(str, parts)], stdout=f, stderr=subprocess.PIPE, check=False)
+    if done.returncode != 0:
+        log.warning("rerun rrd merge failed: %s", done.stderr.decode(errors="replace")[-500:])
+        return None
+    for p in parts:
+        p.unlink()
+    return out
+
+
+def recording_entities(path: Path) -> set[str]:
+    """Entity paths stored in an .rrd file (read back with the rerun CLI's `rrd stats`)."""
+    import re
+    import shutil
+    import subprocess
+    import sys
+
+    exe = shutil.which("rerun") or str(Path(sys.executable).parent / "rerun")
+    done = subprocess.run([exe, "rrd", "stats", str(path)], capture_output=True, text=True, check=True)
+    return {m.group(1) for m in re.finditer(r"^(/[A-Za-z0-9_/]+)", done.stdout, re.MULTILINE)}

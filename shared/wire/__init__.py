@@ -1,0 +1,3 @@
+"""Layer 1: what travels between processes: the msgpack codec, versioned message schemas, key
+expressions, the cut table.
+"""

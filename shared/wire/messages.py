@@ -1,0 +1,437 @@
+"""Versioned message schemas that travel over Zenoh, and their encode/decode functions.
+
+Every message is a frozen pydantic model with a schema id `splittag/<Name>/v<N>`. On the wire a
+message is a msgpack map `{"schema": id, "body": {...}}`; arrays inside the body are
+`{dtype, shape, data}` maps (see `shared.wire.codec`). Decoding checks, in order: size limit, msgpack
+well-formedness, envelope, schema id and version, array framing, then the model's own field
+checks (dtypes, shapes, finiteness, ranges). Any failure is a `WireError` subclass whose message
+says what was received; nothing is defaulted silently.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Annotated, Any, ClassVar, Final, Literal, TypeVar
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    GetCoreSchemaHandler,
+    ValidationError,
+    model_validator,
+)
+from pydantic_core import core_schema
+
+from shared.vision.camera import CameraIntrinsics
+from shared.wire.codec import (
+    DEFAULT_MAX_BYTES,
+    ArrayError,
+    MalformedFrame,
+    SchemaError,
+    pack,
+    unpack,
+    wire_dtype_name,
+)
+from shared.wire.cuts import N_CUTS, CodecName
+
+# ----------------------------------------------------------------------------------------------
+# Array fields
+# ----------------------------------------------------------------------------------------------
+
+
+def _all_finite(value: np.ndarray) -> bool:
+    if value.dtype.itemsize == 2:
+        # float16: an all-ones exponent is inf or NaN; integer bit test is ~2.5x faster than isfinite.
+        return not bool(((value.view(np.uint16) & 0x7C00) == 0x7C00).any())
+    return bool(np.isfinite(value).all())
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """Pydantic metadata that validates an ndarray field: allowed dtypes, shape, finiteness."""
+
+    dtypes: tuple[str, ...]
+    shape: tuple[int | None, ...] | None = None  # None entries match any size
+    ndims: tuple[int, ...] | None = None  # alternative to `shape` when only ndim is fixed
+    finite: bool = True
+
+    def validate(self, value: Any) -> np.ndarray:
+        if not isinstance(value, np.ndarray):
+            raise ValueError(f"expected an ndarray, got {type(value).__name__}")
+        try:
+            name = wire_dtype_name(value.dtype)
+        except ArrayError as exc:
+            raise ValueError(str(exc)) from exc
+        if name not in self.dtypes:
+            raise ValueError(f"dtype {name} not allowed here (allowed: {', '.join(self.dtypes)})")
+        if self.shape is not None and (
+            value.ndim != len(self.shape)
+            or any(w is not None and w != got for w, got in zip(self.shape, value.shape, strict=True))
+        ):
+            want = tuple("*" if w is None else w for w in self.shape)
+            raise ValueError(f"shape {value.shape} does not match {want}")
+        if self.ndims is not None and value.ndim not in self.ndims:
+            raise ValueError(f"ndim {value.ndim} not in {self.ndims} (shape {value.shape})")
+        if self.finite and value.dtype.kind == "f" and not _all_finite(value):
+            bad = int(np.size(value) - np.count_nonzero(np.isfinite(value)))
+            raise ValueError(f"{bad} non-finite values (NaN or inf) in a {name} array")
+        return value
+
+    def __get_pydantic_core_schema__(self, source: Any, handler: GetCoreSchemaHandler) -> core_schema.CoreSchema:
+        return core_schema.no_info_plain_validator_function(
+            self.validate,
+            serialization=core_schema.plain_serializer_function_ser_schema(lambda v: v),
+        )
+
+
+F32 = ("float32",)
+F64 = ("float64",)
+Image8 = Annotated[NDArray[np.uint8], ArraySpec(("uint8",), shape=(None, None))]
+Points2D = Annotated[NDArray[np.float32], ArraySpec(F32, shape=(None, 2))]
+Corners = Annotated[NDArray[np.float32], ArraySpec(F32, shape=(4, 2))]
+Keypoints16 = Annotated[NDArray[np.float32], ArraySpec(F32, shape=(16, 2))]
+Homography = Annotated[NDArray[np.float64], ArraySpec(F64, shape=(3, 3))]
+Pose4x4 = Annotated[NDArray[np.float64], ArraySpec(F64, shape=(4, 4))]
+# Split tensors: ROI pixels (k=0, uint8), feature maps (k=1..5), pooled/keypoints (k=6,7).
+SplitTensor = Annotated[NDArray[Any], ArraySpec(("float16", "float32", "uint8", "int8"), ndims=(1, 2, 3))]
+
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+NonNegFloat = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
+RobotId = Annotated[str, Field(pattern=r"^[A-Za-z0-9_\-]{1,64}$")]
+SplitIndex = Annotated[int, Field(ge=0, le=N_CUTS - 1)]
+
+
+class WireModel(BaseModel):
+    """Base for everything inside a message: frozen, strict, no unknown fields."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, arbitrary_types_allowed=True)
+
+
+class Message(WireModel):
+    """A top-level message with a versioned schema id."""
+
+    SCHEMA: ClassVar[str]
+
+
+# ----------------------------------------------------------------------------------------------
+# Schemas
+# ----------------------------------------------------------------------------------------------
+
+
+class Frame(Message):
+    """One mono8 camera image with its intrinsics and capture time."""
+
+    SCHEMA: ClassVar[str] = "splittag/Frame/v1"
+    robot_id: RobotId
+    seq: int = Field(ge=0)
+    capture_nanos: int = Field(ge=0)
+    intrinsics: CameraIntrinsics
+    image: Image8
+
+    @model_validator(mode="after")
+    def _image_matches_intrinsics(self) -> Frame:
+        h, w = self.image.shape
+        if (w, h) != (self.intrinsics.width, self.intrinsics.height):
+            raise ValueError(f"image is {w}x{h} but intrinsics say {self.intrinsics.width}x{self.intrinsics.height}")
+        return self
+
+
+class TagFeature(WireModel):
+    """One detected tag's stage-1 result and the split tensor computed from its ROI."""
+
+    tag_id: int = Field(ge=0)
+    decision_margin: FiniteFloat
+    hamming: int = Field(ge=0)
+    corners_px: Corners
+    roi_to_image: Homography
+    tensor: SplitTensor
+
+
+class Features(Message):
+    """Everything robot_infer computed for one frame at split k (possibly zero tags)."""
+
+    SCHEMA: ClassVar[str] = "splittag/Features/v1"
+    robot_id: RobotId
+    seq: int = Field(ge=0)
+    capture_nanos: int = Field(ge=0)
+    publish_nanos: int = Field(ge=0)
+    split_k: SplitIndex
+    codec: CodecName
+    intrinsics: CameraIntrinsics
+    robot_compute_secs: NonNegFloat
+    tags: list[TagFeature]
+
+
+class HopTimings(WireModel):
+    """Per-hop latency of one frame, seconds."""
+
+    robot_compute_secs: NonNegFloat
+    transport_secs: FiniteFloat  # may be slightly negative across hosts with imperfect clocks
+    edge_compute_secs: NonNegFloat
+    capture_to_pose_secs: FiniteFloat
+
+
+class TagPose(WireModel):
+    """One tag's keypoints and pose; both PnP branches are kept for the SLAM ambiguity guard."""
+
+    tag_id: int = Field(ge=0)
+    tag_size_m: float = Field(gt=0, allow_inf_nan=False)
+    keypoints_px: Keypoints16
+    corners_px: Corners
+    camera_from_tag: Pose4x4
+    reprojection_error_px: NonNegFloat
+    alt_camera_from_tag: Pose4x4
+    alt_reprojection_error_px: NonNegFloat
+
+
+class LinkStamps(WireModel):
+    """How one message crossed the uplink: sent on the sender's clock, received on the receiver's,
+    and when the message just ahead of it on the same link was received (0: none since the receiver
+    started). With these the link estimator tells the link's own time from waiting behind others."""
+
+    sent_nanos: int = Field(ge=0)
+    received_nanos: int = Field(ge=0)
+    previous_received_nanos: int = Field(ge=0)
+
+
+class TagPoses(Message):
+    """Edge output for one frame: the tags' poses, the frame's per-hop timings and its link stamps
+    (None only in messages upgraded from v1)."""
+
+    SCHEMA: ClassVar[str] = "splittag/TagPoses/v2"
+    robot_id: RobotId
+    seq: int = Field(ge=0)
+    capture_nanos: int = Field(ge=0)
+    split_k: SplitIndex
+    payload_bytes: int = Field(ge=0)
+    timings: HopTimings
+    link: LinkStamps | None
+    tags: list[TagPose]
+
+
+class TagPosesV1(Message):
+    """TagPoses before the link stamps; still decoded (as a v2 TagPoses with link None)."""
+
+    SCHEMA: ClassVar[str] = "splittag/TagPoses/v1"
+    robot_id: RobotId
+    seq: int = Field(ge=0)
+    capture_nanos: int = Field(ge=0)
+    split_k: SplitIndex
+    payload_bytes: int = Field(ge=0)
+    timings: HopTimings
+    tags: list[TagPose]
+
+    def upgrade(self) -> TagPoses:
+        """The same content as the current schema."""
+        return TagPoses(**{name: getattr(self, name) for name in TagPosesV1.model_fields}, link=None)
+
+
+class CameraPose(Message):
+    """SLAM (or ground-truth) camera pose for one frame."""
+
+    SCHEMA: ClassVar[str] = "splittag/CameraPose/v1"
+    robot_id: RobotId
+    seq: int = Field(ge=0)
+    capture_nanos: int = Field(ge=0)
+    world_from_camera: Pose4x4
+    status: Literal["tracking", "lost", "ground_truth"]
+    tags_used: int = Field(ge=0)
+
+
+class MapTag(WireModel):
+    """One tag in the map."""
+
+    tag_id: int = Field(ge=0)
+    size_m: float = Field(gt=0, allow_inf_nan=False)
+    world_from_tag: Pose4x4
+    observations: int = Field(ge=0)
+
+
+class TagMap(Message):
+    """The SLAM map: tag poses in the world frame anchored at `anchor_tag_id`."""
+
+    SCHEMA: ClassVar[str] = "splittag/TagMap/v1"
+    robot_id: RobotId
+    revision: int = Field(ge=0)
+    anchor_tag_id: int = Field(ge=0)
+    tags: list[MapTag]
+
+
+class SplitConfig(Message):
+    """Where the CNN is cut (k in 0..7) and how the tensor is encoded."""
+
+    SCHEMA: ClassVar[str] = "splittag/SplitConfig/v1"
+    k: SplitIndex
+    codec: CodecName
+    pinned: bool  # True when a person set k; the controller leaves it alone until released
+    source: Literal["default", "user", "controller"]
+
+
+class ProbeAck(Message):
+    """The edge echo's tiny reply to a link probe (so the probe loads only the uplink), with the
+    probe's link stamps (None only in messages upgraded from v1)."""
+
+    SCHEMA: ClassVar[str] = "splittag/ProbeAck/v2"
+    received_bytes: int = Field(ge=0)
+    decoded_ok: bool
+    error: str
+    link: LinkStamps | None
+
+
+class ProbeAckV1(Message):
+    """ProbeAck before the link stamps; still decoded (as a v2 ProbeAck with link None)."""
+
+    SCHEMA: ClassVar[str] = "splittag/ProbeAck/v1"
+    received_bytes: int = Field(ge=0)
+    decoded_ok: bool
+    error: str
+
+    def upgrade(self) -> ProbeAck:
+        """The same content as the current schema."""
+        return ProbeAck(**{name: getattr(self, name) for name in ProbeAckV1.model_fields}, link=None)
+
+
+class FrameSent(Message):
+    """robot_infer put one Features message on the uplink (tiny, robot-local: lets the controller
+    keep its probes out of a busy link)."""
+
+    SCHEMA: ClassVar[str] = "splittag/FrameSent/v1"
+    robot_id: RobotId
+    seq: int = Field(ge=0)
+    sent_nanos: int = Field(ge=0)
+    payload_bytes: int = Field(ge=0)
+
+
+PerCut = Annotated[list[NonNegFloat], Field(min_length=N_CUTS, max_length=N_CUTS)]
+
+
+class ComputeProfile(Message):
+    """One side's compute estimate for every split point, ms per frame at `tags_per_frame` tags.
+
+    robot: C(k), everything the robot computes when cutting at k (stage 1 + head), gamma included;
+    edge: E(k), everything the edge computes (tail + PnP). A start-up calibration per block, scaled by
+    the running median of live measurements at the k in use. Published at most once per second.
+    """
+
+    SCHEMA: ClassVar[str] = "splittag/ComputeProfile/v1"
+    robot_id: RobotId
+    side: Literal["robot", "edge"]
+    stamp_nanos: int = Field(ge=0)
+    current_k: SplitIndex
+    tags_per_frame: NonNegFloat
+    live_scale: NonNegFloat  # live / calibrated time at current_k (1.0 until measured)
+    ms_by_k: PerCut
+
+
+class ControllerState(Message):
+    """What the adaptive split controller believes, predicts and did (one per decision)."""
+
+    SCHEMA: ClassVar[str] = "splittag/ControllerState/v1"
+    robot_id: RobotId
+    stamp_nanos: int = Field(ge=0)
+    t0_ms: FiniteFloat
+    beta_ms_per_kB: FiniteFloat
+    link_samples: int = Field(ge=0)
+    link_changes: int = Field(ge=0)
+    robot_ms_by_k: PerCut
+    edge_ms_by_k: PerCut
+    payload_kB_by_k: PerCut
+    predicted_ms_by_k: PerCut
+    current_k: SplitIndex
+    best_k: SplitIndex
+    chosen_k: SplitIndex
+    pinned: bool
+    applied: bool  # True when this decision changed the split through the split query
+    reason: str
+
+
+MESSAGE_TYPES: Final[tuple[type[Message], ...]] = (
+    Frame,
+    Features,
+    TagPoses,
+    CameraPose,
+    TagMap,
+    SplitConfig,
+    ProbeAck,
+    ComputeProfile,
+    ControllerState,
+    FrameSent,
+)
+SCHEMAS: Final[dict[str, type[Message]]] = {m.SCHEMA: m for m in MESSAGE_TYPES}
+# Older versions still accepted: each has `upgrade()` to the current message of its name.
+LEGACY_SCHEMAS: Final[dict[str, type[TagPosesV1] | type[ProbeAckV1]]] = {m.SCHEMA: m for m in (TagPosesV1, ProbeAckV1)}
+_CURRENT_BY_NAME: Final[dict[str, type[Message]]] = {m.SCHEMA.rpartition("/")[0]: m for m in MESSAGE_TYPES}
+ENVELOPE_KEYS: Final[frozenset[str]] = frozenset({"schema", "body"})
+
+M = TypeVar("M", bound=Message)
+
+
+# ----------------------------------------------------------------------------------------------
+# Encode / decode
+# ----------------------------------------------------------------------------------------------
+
+
+def encode(message: Message) -> bytes:
+    """Serialise a message to its wire bytes (msgpack envelope with the schema id)."""
+    body = message.model_dump(mode="python", round_trip=True)
+    return pack({"schema": message.SCHEMA, "body": body})
+
+
+def _schema_error(schema: Any) -> SchemaError:
+    if not isinstance(schema, str):
+        return SchemaError(f"schema id must be a string, got {type(schema).__name__}")
+    name, _, version = schema.rpartition("/")
+    known_versions = sorted(s for s in (*SCHEMAS, *LEGACY_SCHEMAS) if s.rpartition("/")[0] == name)
+    if known_versions:
+        return SchemaError(f"unsupported version {version!r} of {name} (supported: {', '.join(known_versions)})")
+    return SchemaError(f"unknown schema id {schema!r} (known: {', '.join(SCHEMAS)})")
+
+
+def _require_all_fields(model: type[WireModel], body: Any, where: str) -> None:
+    """Missing fields are errors even where a model could default them: no silent defaults."""
+    if not isinstance(body, dict):
+        raise SchemaError(f"{where}: expected a map, got {type(body).__name__}")
+    missing = [name for name in model.model_fields if name not in body]
+    if missing:
+        raise SchemaError(f"{where}: missing fields {missing}")
+
+
+def decode(
+    payload: bytes | bytearray | memoryview,
+    expected: type[M] | Sequence[type[Message]] | None = None,
+    *,
+    max_bytes: int = DEFAULT_MAX_BYTES,
+) -> Any:
+    """Decode wire bytes into a message, checking everything (see module docstring).
+
+    `expected` restricts which message types are acceptable; arrays in the result view `payload`.
+    """
+    doc = unpack(payload, max_bytes=max_bytes)
+    if not isinstance(doc, dict) or doc.keys() != ENVELOPE_KEYS:
+        got = sorted(doc) if isinstance(doc, dict) else type(doc).__name__
+        raise MalformedFrame(f"expected an envelope map with keys schema and body, got {got}")
+    schema = doc["schema"]
+    legacy = LEGACY_SCHEMAS.get(schema) if isinstance(schema, str) else None
+    model = legacy or (SCHEMAS.get(schema) if isinstance(schema, str) else None)
+    if model is None:
+        raise _schema_error(schema)
+    current = _CURRENT_BY_NAME[schema.rpartition("/")[0]] if legacy is not None else model
+    if expected is not None:
+        allowed = (expected,) if isinstance(expected, type) else tuple(expected)
+        if current not in allowed:
+            names = ", ".join(m.SCHEMA for m in allowed)
+            raise SchemaError(f"received {schema} where {names} was expected")
+    _require_all_fields(model, doc["body"], schema)
+    try:
+        if legacy is not None:
+            return legacy.model_validate(doc["body"]).upgrade()
+        return model.model_validate(doc["body"])
+    except ValidationError as exc:
+        details = "; ".join(
+            f"{'.'.join(str(p) for p in err['loc']) or '<body>'}: {err['msg']}" for err in exc.errors(include_url=False)
+        )
+        raise SchemaError(f"invalid {schema}: {details}") from None
