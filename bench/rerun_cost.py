@@ -72,6 +72,7 @@ def logging_cpu_ms_per_frame(frames: int, image_every: int) -> dict[str, float]:
                 capture_nanos=t_ns,
                 split_k=7,
                 payload_bytes=1400,
+                intrinsics=cam,
                 link=LinkStamps(sent_nanos=t_ns, received_nanos=t_ns + 1_000_000, previous_received_nanos=0),
                 timings=HopTimings(
                     robot_compute_secs=0.09, transport_secs=0.001, edge_compute_secs=0.002, capture_to_pose_secs=0.1

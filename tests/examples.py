@@ -103,6 +103,7 @@ def example_messages() -> dict[str, Message]:
         capture_nanos=1_700_000_000_123_456_789,
         split_k=3,
         payload_bytes=4242,
+        intrinsics=INTRINSICS,
         link=LinkStamps(
             sent_nanos=1_700_000_000_140_000_000,
             received_nanos=1_700_000_000_181_000_000,

@@ -12,7 +12,7 @@ from shared.slam.marker_slam import absolute_trajectory_error
 from shared.tools.launch import write_run_config
 from shared.transport.session import ZenohSettings, free_tcp_port, open_session, wait_for_liveliness
 from shared.vision.trajectory import read_tum
-from shared.viz.recording import merge_recordings, recording_entities
+from shared.viz.recording import merge_recordings, recording_components, recording_entities
 from shared.wire import keys
 from tests.procs import Proc, processes
 
@@ -92,3 +92,5 @@ connect = ["tcp/127.0.0.1:{robot}"]
         assert recording is not None
         missing = EXPECTED_ENTITIES - recording_entities(recording)
         assert not missing, f"entities missing from the recording: {sorted(missing)}"
+        # The SLAM camera's frustum (a pinhole from the intrinsics TagPoses now carry) is in it too.
+        assert {"Pinhole:image_from_camera", "Pinhole:resolution"} <= recording_components(recording)

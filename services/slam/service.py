@@ -136,6 +136,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
     token = session.liveliness().declare_token(keys.alive(rid, "slam"))
     viz = make_viz(settings.rerun, service="slam", run_dir=settings.run_dir)
     rejected = 0
+    camera = None  # the frustum is logged with the pose whenever the intrinsics change (once, normally)
     try:
         while (sample := next_sample(poses_sub, stop)) is not None:
             try:
@@ -147,7 +148,9 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
             cam, tag_map = node.on_poses(msg)
             cam_pub.put(encode(cam))
             if cam.status == "tracking":
-                viz.camera_pose(cam.capture_nanos, cam.world_from_camera, None)
+                new_camera = msg.intrinsics if msg.intrinsics != camera else None
+                camera = msg.intrinsics or camera
+                viz.camera_pose(cam.capture_nanos, cam.world_from_camera, new_camera)
             if tag_map is not None:
                 map_pub.put(encode(tag_map))
                 viz.tag_map(cam.capture_nanos, {t.tag_id: (t.size_m, t.world_from_tag) for t in tag_map.tags})

@@ -135,6 +135,7 @@ def edge_step(
         capture_nanos=features.capture_nanos,
         split_k=k,
         payload_bytes=payload_bytes,
+        intrinsics=features.intrinsics,
         link=LinkStamps(
             sent_nanos=features.publish_nanos,
             received_nanos=receive_nanos,

@@ -238,13 +238,26 @@ def merge_recordings(run_dir: Path) -> Path | None:
     return out
 
 
-def recording_entities(path: Path) -> set[str]:
-    """Entity paths stored in an .rrd file (read back with the rerun CLI's `rrd stats`)."""
-    import re
+def _rrd_stats(path: Path) -> str:
+    """The rerun CLI's `rrd stats` report of an .rrd file."""
     import shutil
     import subprocess
     import sys
 
     exe = shutil.which("rerun") or str(Path(sys.executable).parent / "rerun")
-    done = subprocess.run([exe, "rrd", "stats", str(path)], capture_output=True, text=True, check=True)
-    return {m.group(1) for m in re.finditer(r"^(/[A-Za-z0-9_/]+)", done.stdout, re.MULTILINE)}
+    return subprocess.run([exe, "rrd", "stats", str(path)], capture_output=True, text=True, check=True).stdout
+
+
+def recording_entities(path: Path) -> set[str]:
+    """Entity paths stored in an .rrd file."""
+    import re
+
+    return {m.group(1) for m in re.finditer(r"^(/[A-Za-z0-9_/]+)", _rrd_stats(path), re.MULTILINE)}
+
+
+def recording_components(path: Path) -> set[str]:
+    """Components stored in an .rrd file, as `Archetype:field` (e.g. `Pinhole:image_from_camera`)."""
+    import re
+
+    section = _rrd_stats(path).partition("Num chunks per component")[2]
+    return {m.group(1) for m in re.finditer(r"^([A-Za-z0-9]+:[A-Za-z0-9_]+): \d+$", section, re.MULTILINE)}

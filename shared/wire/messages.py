@@ -199,8 +199,8 @@ class LinkStamps(WireModel):
 
 
 class TagPoses(Message):
-    """Edge output for one frame: the tags' poses, the frame's per-hop timings and its link stamps
-    (None only in messages upgraded from v1)."""
+    """Edge output for one frame: the tags' poses, the frame's per-hop timings, its link stamps and the
+    camera intrinsics the poses were solved with (both None only in messages upgraded from v1)."""
 
     SCHEMA: ClassVar[str] = "splittag/TagPoses/v2"
     robot_id: RobotId
@@ -210,6 +210,7 @@ class TagPoses(Message):
     payload_bytes: int = Field(ge=0)
     timings: HopTimings
     link: LinkStamps | None
+    intrinsics: CameraIntrinsics | None
     tags: list[TagPose]
 
 
@@ -227,7 +228,7 @@ class TagPosesV1(Message):
 
     def upgrade(self) -> TagPoses:
         """The same content as the current schema."""
-        return TagPoses(**{name: getattr(self, name) for name in TagPosesV1.model_fields}, link=None)
+        return TagPoses(**{name: getattr(self, name) for name in TagPosesV1.model_fields}, link=None, intrinsics=None)
 
 
 class CameraPose(Message):
