@@ -28,6 +28,7 @@ import numpy as np
 import zenoh
 
 from bench.machine import cpu_label
+from shared.control.linkmodel import split_costs
 from shared.tools.launch import Monitor, attach_monitor, start_service, stop_services
 from shared.tools.linkemu import PROFILES, LinkEmulator, LinkEmulatorSettings, LinkProfile, in_netns, unavailable_reason
 from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
@@ -132,11 +133,12 @@ class Run:
 
 def true_costs(state: ControllerState, p: LinkProfile) -> np.ndarray:
     """T(k) from the measured C, E, S in a controller state and the profile's nominal link."""
-    return (
-        np.asarray(state.robot_ms_by_k)
-        + p.delay_ms
-        + p.beta_ms_per_kB * np.asarray(state.payload_kB_by_k)
-        + np.asarray(state.edge_ms_by_k)
+    return split_costs(
+        compute_ms=state.robot_ms_by_k,
+        edge_ms=state.edge_ms_by_k,
+        payload_kB=state.payload_kB_by_k,
+        t0_ms=p.delay_ms,
+        beta_ms_per_kB=p.beta_ms_per_kB,
     )
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shared.control.controller import ControllerSettingsCore, SplitController
+from shared.control.controller import ControllerTuning, SplitController
 from shared.wire.messages import ComputeProfile, Features, decode, encode
 from shared.wire.sizing import features_payload_bytes, probe_features
 
@@ -45,7 +45,7 @@ def test_payload_bytes_are_exact_wire_sizes() -> None:
 
 def test_decision_follows_the_link_and_respects_pinning() -> None:
     clock = FakeClock()
-    core = SplitController(ControllerSettingsCore(dwell=1), clock=clock)
+    core = SplitController(ControllerTuning(dwell=1), clock=clock)
     state = core.decide(robot_id="r1", current_k=7, pinned=False)
     assert state.chosen_k == 7 and "waiting" in state.reason
     # A slow robot (C grows fast with k) and an edge that does the rest: cheap link -> k = 0.

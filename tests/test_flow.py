@@ -60,3 +60,18 @@ def test_zero_capacity_disables_and_bad_values_raise() -> None:
         InFlightWindow(-1)
     with pytest.raises(ValueError, match="timeout"):
         InFlightWindow(1, timeout_secs=0)
+
+
+def test_an_answer_that_arrives_before_put_returns_frees_its_credit() -> None:
+    """Zenoh can deliver the TagPoses on another thread while put() is still returning: the credit must
+    already be recorded, or the answer is 'unknown' and the credit is held until it expires."""
+    w = InFlightWindow(1, timeout_secs=2.0, clock=FakeClock())
+    w.send(5, lambda: w.done(5))  # the fastest edge: it answers inside put()
+    assert w.in_flight == 0 and w.has_credit()
+
+    def failing_put() -> None:
+        raise ConnectionError("session closed")
+
+    with pytest.raises(ConnectionError):
+        w.send(6, failing_put)
+    assert w.in_flight == 0

@@ -19,7 +19,7 @@ from typing import TypeVar
 import zenoh
 
 from services.controller.settings import ControllerSettings
-from shared.control.controller import ControllerSettingsCore, SplitController
+from shared.control.controller import SplitController
 from shared.transport.probe import ProbeError, Prober
 from shared.transport.session import encoding_for
 from shared.transport.split_client import SplitQueryError, query_split
@@ -81,16 +81,7 @@ def _probe_loop(
 def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading.Event) -> None:
     """Decide until `stop` is set."""
     rid = settings.robot_id
-    core = SplitController(
-        ControllerSettingsCore(
-            min_gain_ms=settings.min_gain_ms,
-            min_gain_rel=settings.min_gain_rel,
-            dwell=settings.dwell,
-            half_life=settings.half_life_samples,
-            change_threshold=settings.change_threshold,
-            codec=settings.codec,
-        )
-    )
+    core = SplitController(settings)
     lock = threading.Lock()
     rejected = 0
 

@@ -2,31 +2,26 @@
 
 from __future__ import annotations
 
-from typing import ClassVar, Literal
+from typing import ClassVar
 
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
+from shared.control.controller import ControllerTuning
 from shared.runtime.settings import ServiceSettings
 
 
-class ControllerSettings(ServiceSettings):
-    """How often to decide and probe, and how reluctant to switch."""
+class ControllerSettings(ServiceSettings, ControllerTuning):
+    """How often to decide and probe; how reluctant to switch comes from ControllerTuning (the core's)."""
 
     SERVICE: ClassVar[str] = "controller"
     model_config = SettingsConfigDict(**{**ServiceSettings.model_config, "env_prefix": "SPLITTAG_CONTROLLER_"})
 
     enabled: bool = True  # False: estimate and publish state, never change k (an observer)
     decide_period_secs: float = Field(default=0.1, gt=0)
-    min_gain_ms: float = Field(default=3.0, ge=0)  # switch only for at least this much ...
-    min_gain_rel: float = Field(default=0.05, ge=0)  # ... and this fraction of T(current)
-    dwell: int = Field(default=2, ge=1)  # consecutive decisions that must agree before a switch
-    half_life_samples: float = Field(default=40.0, gt=1)  # forgetting of the link estimator
-    change_threshold: float = Field(default=5.0, gt=0)  # CUSUM threshold (robust sigmas) for a link change
     probe_period_secs: float = Field(default=0.15, gt=0)  # at most one routine probe per period ...
     probe_max_age_secs: float = Field(default=0.3, gt=0)  # ... at a size not seen for this long
     probe_busy_max_wait_secs: float = Field(default=2.0, gt=0)  # probe a link busy this long anyway
     # Two sizes pin both t0 and beta even while frames carry almost nothing (k = 7); small enough
     # to occupy the 14.2 Mbit/s uplink for at most ~37 ms.
     probe_sizes_bytes: list[int] = Field(default_factory=lambda: [16 * 1024, 64 * 1024])
-    codec: Literal["fp16", "fp32"] = "fp16"  # the codec robot_infer uses at cuts 1..6 (payload sizes)

@@ -88,10 +88,8 @@ def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading
                     tags=tags,
                 )
             )
-            # The credit is taken before the put: the answer can arrive before put() returns.
-            window.sent(frame.seq)
             sent_nanos = time.time_ns()
-            pub.put(wire)
+            window.send(frame.seq, lambda: pub.put(wire))  # noqa: B023 (called at once)
             sent_pub.put(encode(FrameSent(robot_id=rid, seq=frame.seq, sent_nanos=sent_nanos, payload_bytes=len(wire))))
             processed += 1
             estimator.observe(

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import ClassVar, Literal
+from typing import ClassVar
 
 from pydantic import Field, model_validator
 from pydantic_settings import SettingsConfigDict
 
 from shared.runtime.settings import ServiceSettings
 from shared.vision.detector import DetectorSettings
+from shared.wire.cuts import CodecName
 from shared.wire.messages import PerCut
 
 
@@ -21,7 +22,7 @@ class RobotInferSettings(ServiceSettings):
 
     weights: Path = Path("models")
     split_k: int = Field(default=7, ge=0, le=7)
-    codec: Literal["fp16", "fp32"] = "fp16"
+    codec: CodecName = "fp16"
     detector: DetectorSettings = Field(default_factory=DetectorSettings)
     bf16: bool = True
     threads: int = Field(default=1, ge=1)

@@ -13,37 +13,39 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
-from shared.control.linkmodel import HysteresisChooser, LinkOccupancy, OnlineLinkEstimator
+from shared.control.linkmodel import HysteresisChooser, LinkOccupancy, OnlineLinkEstimator, split_costs
 from shared.wire.cuts import N_CUTS, CodecName
 from shared.wire.messages import ComputeProfile, ControllerState, FrameSent, LinkStamps
 from shared.wire.sizing import features_payload_bytes
 
 
-@dataclass(frozen=True)
-class ControllerSettingsCore:
-    """Tuning of the decision (the service's settings hold these)."""
+class ControllerTuning(BaseModel):
+    """How the controller estimates and decides: the one home of these defaults (the service's
+    settings inherit them, so TOML and environment set them by the same names)."""
 
-    min_gain_ms: float = 3.0
-    min_gain_rel: float = 0.05
-    dwell: int = 2
-    half_life: float = 40.0
-    change_threshold: float = 5.0
-    codec: CodecName = "fp16"
+    model_config = ConfigDict(frozen=True)
+
+    min_gain_ms: float = Field(default=3.0, ge=0)  # switch only for at least this much ...
+    min_gain_rel: float = Field(default=0.05, ge=0)  # ... and this fraction of T(current)
+    dwell: int = Field(default=2, ge=1)  # consecutive decisions that must agree before a switch
+    half_life_samples: float = Field(default=40.0, gt=1)  # forgetting of the link estimator
+    change_threshold: float = Field(default=5.0, gt=0)  # CUSUM threshold (robust sigmas) for a link change
+    codec: CodecName = "fp16"  # the codec robot_infer uses at cuts 1..6 (payload sizes)
 
 
 class SplitController:
     """Fuses evidence and decides; `clock` is injectable for tests."""
 
     def __init__(
-        self, settings: ControllerSettingsCore | None = None, *, clock: Callable[[], float] = time.monotonic
+        self, settings: ControllerTuning | None = None, *, clock: Callable[[], float] = time.monotonic
     ) -> None:
-        self.settings = settings or ControllerSettingsCore()
+        self.settings = settings or ControllerTuning()
         self.link = OnlineLinkEstimator(
-            half_life=self.settings.half_life, cusum_threshold=self.settings.change_threshold
+            half_life=self.settings.half_life_samples, cusum_threshold=self.settings.change_threshold
         )
         self.chooser = HysteresisChooser(
             min_gain_ms=self.settings.min_gain_ms, min_gain_rel=self.settings.min_gain_rel, dwell=self.settings.dwell
@@ -116,8 +118,13 @@ class SplitController:
         """T(k) for every k, or None while a compute profile is missing."""
         if self.robot is None or self.edge is None:
             return None
-        c, e = np.asarray(self.robot.ms_by_k), np.asarray(self.edge.ms_by_k)
-        return c + self.link.t0_ms + self.link.beta_ms_per_kB * np.asarray(self.payload_kB()) + e
+        return split_costs(
+            compute_ms=self.robot.ms_by_k,  # gamma is already in the robot's profile
+            edge_ms=self.edge.ms_by_k,
+            payload_kB=self.payload_kB(),
+            t0_ms=self.link.t0_ms,
+            beta_ms_per_kB=self.link.beta_ms_per_kB,
+        )
 
     def decide(self, *, robot_id: str, current_k: int, pinned: bool) -> ControllerState:
         """One decision; the caller applies chosen_k when it differs from current_k (and says so)."""

@@ -9,8 +9,9 @@ from typing import Literal
 import numpy as np
 import torch
 
+from shared.model.infer import autocast, prepare, run_head, run_tail
 from shared.model.net import SplitKeypointNet
-from shared.wire.cuts import CUTS
+from shared.wire.cuts import CUTS, INPUT_SIZE
 
 Variant = Literal["fp32", "fp32-channels-last", "bf16-channels-last"]
 VARIANTS: tuple[Variant, ...] = ("fp32", "fp32-channels-last", "bf16-channels-last")
@@ -41,10 +42,8 @@ def profile_cuts(
         times = []
         for i in range(warmup + repetitions):
             t0 = time.perf_counter()
-            z = SplitKeypointNet.normalise_input(x)
-            if cl:
-                z = z.contiguous(memory_format=torch.channels_last)
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=variant.startswith("bf16")):
+            z = prepare(x, 0, channels_last=cl)
+            with autocast(bf16=variant.startswith("bf16")):
                 model.forward_head(z, cut.k)
             if i >= warmup:
                 times.append((time.perf_counter() - t0) * 1e3)
@@ -84,7 +83,9 @@ def warm_up(model: SplitKeypointNet, *, bf16: bool, max_batch: int = 6) -> None:
     and the first frame with a new tag count would otherwise take several times longer (and teach
     the compute estimator a wrong scale)."""
     for n in range(1, max_batch + 1):
-        x = SplitKeypointNet.normalise_input(torch.zeros((n, 1, 256, 256), dtype=torch.uint8))
-        x = x.contiguous(memory_format=torch.channels_last)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            model.forward_tail(model.forward_head(x, 0), 0)
+        run_tail(
+            model,
+            run_head(model, torch.zeros((n, 1, INPUT_SIZE, INPUT_SIZE), dtype=torch.uint8), 0, bf16=bf16),
+            0,
+            bf16=bf16,
+        )

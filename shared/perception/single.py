@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
+from shared.model.infer import keypoints
 from shared.model.net import SplitKeypointNet
 from shared.vision.camera import CameraIntrinsics
 from shared.vision.detector import Detection, TagDetector
@@ -47,12 +48,8 @@ def run_network(
     """Normalised keypoints (N,16,2) for uint8 ROIs (N,256,256)."""
     if len(rois) == 0:
         return np.zeros((0, 16, 2), np.float32)
-    x = SplitKeypointNet.normalise_input(torch.from_numpy(np.ascontiguousarray(rois)).unsqueeze(1))
-    if channels_last:
-        x = x.contiguous(memory_format=torch.channels_last)
-    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-        out = model(x).float()
-    return np.asarray(out.numpy(), np.float32)
+    rois_u8 = torch.from_numpy(np.ascontiguousarray(rois)).unsqueeze(1)
+    return np.asarray(keypoints(model, rois_u8, bf16=bf16, channels_last=channels_last).numpy(), np.float32)
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from shared.model.infer import run_head, run_tail
 from shared.model.net import SplitKeypointNet
 from shared.perception.single import extract_rois
 from shared.vision.detector import TagDetector
@@ -56,12 +57,9 @@ def robot_step(
     if k == 0 or not detections:
         tensors = [r[None] for r in rois]
     else:
-        x = SplitKeypointNet.normalise_input(torch.from_numpy(rois).unsqueeze(1))
-        x = x.contiguous(memory_format=torch.channels_last)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            z = model.forward_head(x, k)
+        z = run_head(model, torch.from_numpy(rois).unsqueeze(1), k, bf16=bf16)
         dt = CUTS[k].dtype(codec)
-        tensors = list(np.ascontiguousarray(z.float().contiguous().numpy().astype(dt)))
+        tensors = list(np.ascontiguousarray(z.contiguous().numpy().astype(dt)))
     t3 = time.perf_counter()
     tags = [
         TagFeature(
@@ -102,12 +100,7 @@ def edge_step(
     poses: list[TagPose] = []
     if features.tags:
         z = torch.from_numpy(np.stack([np.asarray(t.tensor, np.float32) for t in features.tags]))
-        if k == 0:
-            z = SplitKeypointNet.normalise_input(z)
-        if z.ndim == 4:
-            z = z.contiguous(memory_format=torch.channels_last)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            keypoints = model.forward_tail(z, k).float().numpy()
+        keypoints = run_tail(model, z, k, bf16=bf16).numpy()
         for tag, kp in zip(features.tags, keypoints, strict=True):
             size = tag_map.size_of(tag.tag_id)
             kp_px = keypoints_to_image(kp, tag.roi_to_image)

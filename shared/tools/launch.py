@@ -79,7 +79,7 @@ def start_service(
     """Start `python -m services.<name> --config <config>` in its own process group; `wrapper` prefixes
     the command line (e.g. `ip netns exec st-robot` to run it on the robot side of the emulated link)."""
     log_path = run_dir / f"{name}.log"
-    full_env = {**os.environ, "PYTHONUNBUFFERED": "1", "SPLITTAG_RUN_DIR": str(run_dir), **(env or {})}
+    full_env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
     with log_path.open("ab") as out:
         popen = subprocess.Popen(
             [*(wrapper or []), sys.executable, "-m", f"services.{name}", "--config", str(config)],

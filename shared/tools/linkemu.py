@@ -184,7 +184,6 @@ class LinkEmulator:
     def __init__(self, settings: LinkEmulatorSettings | None = None, *, log_dir: Path | None = None) -> None:
         self.settings = settings or LinkEmulatorSettings()
         self.log_dir = log_dir
-        self.current: LinkProfile | None = None
         self._delay: subprocess.Popen[bytes] | None = None
 
     # -- lifecycle -------------------------------------------------------------------------------
@@ -331,7 +330,6 @@ class LinkEmulator:
                 )
             )
         control_request(s.control_path, {"delay_ms": p.delay_ms})
-        self.current = p
         log.info("link profile %s: rate %s Mbit/s, delay %.1f ms", p.name, p.rate_mbit or "unshaped", p.delay_ms)
 
     def down(self) -> None:
@@ -355,10 +353,3 @@ class LinkEmulator:
 
     def __exit__(self, *exc: tuple[type[BaseException] | None, BaseException | None, TracebackType | None]) -> None:
         self.down()
-
-    # -- where things run --------------------------------------------------------------------------
-    def netns_of(self, side: str) -> str:
-        """The namespace of the robot side or the edge side."""
-        if side not in ("robot", "edge"):
-            raise ValueError(f"side must be robot or edge, not {side!r}")
-        return self.settings.robot_ns if side == "robot" else self.settings.edge_ns

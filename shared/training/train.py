@@ -26,6 +26,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from shared.datasets.shards import Dataset, load_dataset
+from shared.model.infer import forward_train, keypoints
 from shared.model.net import SplitKeypointNet, canonical_keypoints
 from shared.model.weights import load_model, save_weights
 from shared.vision.geometry import ROI_MARGIN, ROI_SIZE
@@ -142,16 +143,7 @@ def _to_device(ds: Dataset, rows: np.ndarray, device: torch.device) -> tuple[Ten
 @torch.no_grad()
 def predict(model: SplitKeypointNet, rois_u8: Tensor, *, bf16: bool, channels_last: bool, batch: int = 128) -> Tensor:
     """Keypoints (N,16,2) for uint8 ROIs (N,1,S,S) already on the model's device."""
-    model.eval()
-    outs = []
-    dev = rois_u8.device.type
-    for i in range(0, len(rois_u8), batch):
-        x = SplitKeypointNet.normalise_input(rois_u8[i : i + batch])
-        if channels_last:
-            x = x.contiguous(memory_format=torch.channels_last)
-        with torch.autocast(dev, dtype=torch.bfloat16, enabled=bf16):
-            outs.append(model(x).float())
-    return torch.cat(outs)
+    return keypoints(model, rois_u8, bf16=bf16, channels_last=channels_last, batch=batch)
 
 
 def evaluate_arrays(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
@@ -223,11 +215,7 @@ def train(settings: TrainSettings) -> dict[str, Any]:
             roi, kp = train_roi[idx], train_kp[idx]
             if settings.augment_dihedral:
                 roi, kp = dihedral(roi, kp, int(torch.randint(0, 8, (1,), generator=gen)))
-            x = SplitKeypointNet.normalise_input(roi)
-            if settings.channels_last:
-                x = x.contiguous(memory_format=torch.channels_last)
-            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=settings.bf16):
-                pred = model(x)
+            pred = forward_train(model, roi, bf16=settings.bf16, channels_last=settings.channels_last)
             loss = wing_loss(pred, kp)
             opt.zero_grad(set_to_none=True)
             loss.backward()

@@ -64,6 +64,17 @@ class InFlightWindow:
         with self._cond:
             self._sent[seq] = self._clock()
 
+    def send(self, seq: int, put: Callable[[], None]) -> None:
+        """Take frame seq's credit, then put it on the wire. In this order: the answer can arrive (and
+        return the credit) before `put` returns; recorded after, it would find nothing to return and the
+        credit would be held until it expires. A `put` that raises returns the credit."""
+        self.sent(seq)
+        try:
+            put()
+        except BaseException:
+            self.done(seq)
+            raise
+
     def done(self, seq: int) -> None:
         """TagPoses for `seq` arrived: return its credit (unknown seqs are ignored)."""
         with self._cond:

@@ -31,12 +31,11 @@ class SplitRequestError(ValueError):
 
 
 class SplitState:
-    """Thread-safe current SplitConfig; every change bumps `revision`."""
+    """Thread-safe current SplitConfig."""
 
     def __init__(self, initial: SplitConfig) -> None:
         self._lock = threading.Lock()
         self._config = initial
-        self.revision = 0
 
     def get(self) -> SplitConfig:
         """The current config."""
@@ -78,7 +77,6 @@ class SplitState:
                 return cur
             if new != cur:
                 self._config = new
-                self.revision += 1
                 log.info("split set to k=%d codec=%s pinned=%s (%s)", new.k, new.codec, new.pinned, new.source)
             return new
 

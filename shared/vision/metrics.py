@@ -2,14 +2,10 @@
 
 from __future__ import annotations
 
-from typing import Final
-
 import numpy as np
 from numpy.typing import NDArray
 
 from shared.vision.geometry import ROI_SIZE
-
-K: Final[int] = 16
 
 
 def e_px(pred_norm: NDArray[np.floating], gt_norm: NDArray[np.floating]) -> NDArray[np.float64]:
