@@ -29,8 +29,10 @@ import zenoh
 
 from bench.machine import cpu_label
 from shared.control.linkmodel import split_costs
+from shared.tools import topology as topo
 from shared.tools.launch import Monitor, attach_monitor, start_service, stop_services
 from shared.tools.linkemu import PROFILES, LinkEmulator, LinkEmulatorSettings, LinkProfile, in_netns, unavailable_reason
+from shared.tools.topology import Topology
 from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
 from shared.transport.split_client import query_split
 from shared.wire import keys
@@ -72,39 +74,19 @@ def write_config(
     compute: EmulatedCompute | None = None,
 ) -> Path:
     """The services' TOML for the two namespaces (compute: fixed profiles instead of this CPU's)."""
-    robot_extra = f"emulated_ms_per_tag_by_k = {compute.robot_ms_per_tag_by_k}" if compute else ""
-    edge_extra = f"emulated_ms_per_tag_by_k = {compute.edge_ms_per_tag_by_k}" if compute else ""
-    cfg = tmp / "emulated.toml"
-    cfg.write_text(f"""
-[common]
-robot_id = "{ROBOT}"
-run_dir = "{tmp}"
-[common.rerun]
-enabled = false
-[edge_infer]
-{edge_extra}
-[edge_infer.zenoh]
-mode = "router"
-listen = ["tcp/0.0.0.0:7447"]
-[robot_infer]
-split_k = 7
-gamma = {gamma}
-{robot_extra}
-[robot_infer.zenoh]
-mode = "router"
-listen = ["tcp/127.0.0.1:7448"]
-connect = ["tcp/{emu.edge_addr}:7447"]
-[camera]
-fps = {fps}
-loop = true
-[camera.zenoh]
-mode = "client"
-connect = ["tcp/127.0.0.1:7448"]
-[controller.zenoh]
-mode = "client"
-connect = ["tcp/127.0.0.1:7448"]
-""")
-    return cfg
+    topology = Topology.emulated_link(edge_addr=emu.edge_addr, mgmt_edge_addr=emu.mgmt_edge_addr)
+    robot: dict[str, Any] = {"split_k": 7, "gamma": gamma}
+    edge: dict[str, Any] = {}
+    if compute is not None:
+        robot["emulated_ms_per_tag_by_k"] = compute.robot_ms_per_tag_by_k
+        edge["emulated_ms_per_tag_by_k"] = compute.edge_ms_per_tag_by_k
+    extra = {
+        "common": {"robot_id": ROBOT, "run_dir": str(tmp), "rerun": {"enabled": False}},
+        "robot_infer": robot,
+        "edge_infer": edge,
+        "camera": {"fps": fps, "loop": True},
+    }
+    return topo.write_config(tmp / "emulated.toml", topology=topology, extra=extra)
 
 
 @dataclass
@@ -163,7 +145,11 @@ def stream(
     started = [start_service("edge_infer", cfg, tmp, wrapper=edge)]
     run = Run(Monitor(None))
     session = open_session(
-        ZenohSettings(mode="client", connect=[f"tcp/{s.mgmt_edge_addr}:7447"], connect_timeout_secs=90)
+        ZenohSettings(
+            mode="client",
+            connect=[Topology.emulated_link(edge_addr=s.edge_addr, mgmt_edge_addr=s.mgmt_edge_addr).edge_router],
+            connect_timeout_secs=90,
+        )
     )
     lock = threading.Lock()
 

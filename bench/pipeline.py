@@ -38,13 +38,13 @@ def main() -> None:
     args = ap.parse_args()
     print(f"CPU: {cpu_label()}", flush=True)
     tmp = Path(tempfile.mkdtemp(prefix="splittag-bench-"))
-    cfg, _, robot = loopback_config(
+    cfg, topology = loopback_config(
         tmp, robot_id=ROBOT, rerun=args.rerun, image_every=args.rerun_image_every, fps=args.fps
     )
     services = [start_service(n, cfg, tmp) for n in ("edge_infer", "robot_infer", "camera")]
     rows = []
     try:
-        session = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{robot}"]))
+        session = open_session(ZenohSettings(mode="client", connect=[topology.robot_router]))
         monitor = Monitor(demo_tag_map())
         subs = attach_monitor(session, ROBOT, monitor)
         wait_for_liveliness(

@@ -104,12 +104,12 @@ def logging_cpu_ms_per_frame(frames: int, image_every: int) -> dict[str, float]:
 
 def throughput(args: argparse.Namespace, rerun: bool, tmp: Path) -> tuple[float, float, float]:
     """(fps, e2e p50 ms, robot+edge compute ms per frame) of one run with Rerun on or off."""
-    cfg, _, robot = loopback_config(
+    cfg, topology = loopback_config(
         tmp, robot_id=ROBOT, rerun=rerun, image_every=args.image_every, fps=args.fps, split_k=args.k
     )
     services = [start_service(n, cfg, tmp) for n in SERVICES]
     try:
-        session = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{robot}"]))
+        session = open_session(ZenohSettings(mode="client", connect=[topology.robot_router]))
         monitor = Monitor(demo_tag_map())
         subs = attach_monitor(session, ROBOT, monitor)
         wait_for_liveliness(session, [keys.alive(ROBOT, s) for s in SERVICES], timeout_secs=120)

@@ -11,7 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from shared.transport.session import ZenohSettings, free_tcp_port, open_session, wait_for_liveliness
+from shared.tools.topology import Topology, write_config
+from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
 from shared.wire import keys
 from tests.procs import REPO
 
@@ -29,15 +30,12 @@ def _alive(pid: int) -> bool:
 
 
 def test_up_then_down_stops_every_service(tmp_path: Path) -> None:
-    edge, robot = free_tcp_port(), free_tcp_port()
-    cfg = tmp_path / "deploy.toml"
-    cfg.write_text(
-        (REPO / "deploy" / "local.toml")
-        .read_text()
-        .replace("127.0.0.1:7447", f"127.0.0.1:{edge}")
-        .replace("127.0.0.1:7448", f"127.0.0.1:{robot}")
-        .replace('robot_id = "robot1"', 'robot_id = "deploy1"')
-        .replace("fps = 15.0", "fps = 2.0")
+    topology = Topology.loopback()
+    cfg = write_config(
+        tmp_path / "deploy.toml",
+        base=REPO / "deploy" / "local.toml",
+        topology=topology,
+        extra={"common": {"robot_id": "deploy1"}, "camera": {"fps": 2.0}},
     )
     runs = tmp_path / "runs"
     log = (tmp_path / "up.log").open("wb")
@@ -48,7 +46,7 @@ def test_up_then_down_stops_every_service(tmp_path: Path) -> None:
         stderr=subprocess.STDOUT,
         start_new_session=True,
     )
-    session = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{edge}"], connect_timeout_secs=60))
+    session = open_session(ZenohSettings(mode="client", connect=[topology.edge_router], connect_timeout_secs=60))
     try:
         wait_for_liveliness(session, [keys.alive("deploy1", s) for s in SERVICES], timeout_secs=120)
         pids_file = runs / "current" / "pids"

@@ -14,17 +14,18 @@ import pytest
 import zenoh
 
 from shared.tools.launch import Monitor, attach_monitor, demo_tag_map, write_run_config
+from shared.tools.topology import Topology
 from shared.transport.session import (
     ZenohSettings,
     declare_tensor_publisher,
-    free_tcp_port,
     open_session,
     wait_for_liveliness,
 )
 from shared.vision.geometry import default_camera
 from shared.wire import keys
 from shared.wire.messages import Features, SplitConfig, TagFeature, decode, encode
-from tests.procs import Proc, processes
+from tests.conftest import DeployConfig
+from tests.procs import Service, processes, start_process
 
 pytestmark = pytest.mark.multiprocess
 
@@ -33,49 +34,25 @@ FPS = 2.0  # well under what robot_infer sustains even on a loaded 2-core machin
 MEDIAN_E_T_CM_MAX = 2.0
 
 
-def _config(tmp: Path, edge_port: int, robot_port: int, *, max_frames: int) -> Path:
-    base = tmp / "base.toml"
-    base.write_text(f"""
-[common]
-robot_id = "{ROBOT}"
-[edge_infer.zenoh]
-mode = "router"
-listen = ["tcp/127.0.0.1:{edge_port}"]
-[robot_infer]
-split_k = 7
-[robot_infer.zenoh]
-mode = "router"
-listen = ["tcp/127.0.0.1:{robot_port}"]
-connect = ["tcp/127.0.0.1:{edge_port}"]
-[camera]
-fps = {FPS}
-max_frames = {max_frames}
-loop = true
-[camera.zenoh]
-mode = "client"
-connect = ["tcp/127.0.0.1:{robot_port}"]
-""")
-    run = tmp / "run"
-    run.mkdir(exist_ok=True)
-    return write_run_config(run, base)
-
-
 @pytest.fixture
-def pipeline(tmp_path: Path) -> Iterator[tuple[Path, list[Proc], zenoh.Session, Monitor, int]]:
-    edge_port, robot_port = free_tcp_port(), free_tcp_port()
-    cfg = _config(tmp_path, edge_port, robot_port, max_frames=0)
+def pipeline(
+    tmp_path: Path, deploy_config: DeployConfig
+) -> Iterator[tuple[Path, list[Service], zenoh.Session, Monitor, Topology]]:
+    cfg, topology = deploy_config(
+        {"common": {"robot_id": ROBOT}, "robot_infer": {"split_k": 7}, "camera": {"fps": FPS, "loop": True}}
+    )
     with processes(tmp_path) as procs:
-        procs.append(Proc("edge_infer", ["-m", "services.edge_infer", "--config", str(cfg)], tmp_path))
-        procs.append(Proc("robot_infer", ["-m", "services.robot_infer", "--config", str(cfg)], tmp_path))
+        procs.append(start_process("edge_infer", ["-m", "services.edge_infer", "--config", str(cfg)], tmp_path))
+        procs.append(start_process("robot_infer", ["-m", "services.robot_infer", "--config", str(cfg)], tmp_path))
         # The monitor joins the robot-side router, which survives an edge restart.
-        session = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{robot_port}"]))
+        session = open_session(ZenohSettings(mode="client", connect=[topology.robot_router]))
         monitor = Monitor(demo_tag_map())
         subs = attach_monitor(session, ROBOT, monitor)
         try:
             wait_for_liveliness(
                 session, [keys.alive(ROBOT, "edge_infer"), keys.alive(ROBOT, "robot_infer")], timeout_secs=90
             )
-            yield cfg, procs, session, monitor, robot_port
+            yield cfg, procs, session, monitor, topology
         finally:
             for s in subs:
                 s.undeclare()
@@ -104,7 +81,7 @@ def _split(session: zenoh.Session, params: str = "") -> tuple[SplitConfig | None
 def test_every_frame_yields_poses_within_tolerance(pipeline: tuple, tmp_path: Path) -> None:
     cfg, procs, _, monitor, _ = pipeline
     cam_env = {"SPLITTAG_CAMERA_MAX_FRAMES": "60", "SPLITTAG_CAMERA_LOOP": "false"}
-    camera = Proc("camera", ["-m", "services.camera", "--config", str(cfg)], tmp_path, env=cam_env)
+    camera = start_process("camera", ["-m", "services.camera", "--config", str(cfg)], tmp_path, env=cam_env)
     procs.append(camera)
     _wait(lambda: len(monitor.records) >= 60, 120, "60 TagPoses messages")
     seqs = sorted(r["seq"] for r in monitor.records)
@@ -119,7 +96,7 @@ def test_every_frame_yields_poses_within_tolerance(pipeline: tuple, tmp_path: Pa
 
 def test_split_changes_live_bad_input_and_edge_restart(pipeline: tuple, tmp_path: Path) -> None:
     cfg, procs, session, monitor, _ = pipeline
-    procs.append(Proc("camera", ["-m", "services.camera", "--config", str(cfg)], tmp_path))
+    procs.append(start_process("camera", ["-m", "services.camera", "--config", str(cfg)], tmp_path))
     _wait(lambda: len(monitor.records) >= 3, 60, "first poses")
     current, err = _split(session)
     assert err is None
@@ -185,19 +162,19 @@ def test_split_changes_live_bad_input_and_edge_restart(pipeline: tuple, tmp_path
     edge.popen.wait()
     time.sleep(2.0)
     mark = len(monitor.records)
-    procs.append(Proc("edge_infer_2", ["-m", "services.edge_infer", "--config", str(cfg)], tmp_path))
+    procs.append(start_process("edge_infer_2", ["-m", "services.edge_infer", "--config", str(cfg)], tmp_path))
     _wait(lambda: len(monitor.records) >= mark + 5, 90, "poses after the edge restart")
     assert all(r["k"] == 5 for r in monitor.records[mark:])
 
 
 def test_two_host_profile_on_loopback(tmp_path: Path) -> None:
     """deploy/two_host.toml as shipped: edge on 127.0.0.2, robot on 127.0.0.3, each its own endpoint."""
-    cfg = write_run_config(tmp_path, Path("deploy/two_host.toml"))
+    cfg = write_run_config(tmp_path, Path("deploy/two_host.toml"))  # its own endpoints, as shipped
     env = {"SPLITTAG_CAMERA_FPS": "2", "SPLITTAG_CAMERA_MAX_FRAMES": "8", "SPLITTAG_CAMERA_LOOP": "false"}
     with processes(tmp_path) as procs:
         for name in ("edge_infer", "robot_infer"):
-            procs.append(Proc(name, ["-m", f"services.{name}", "--config", str(cfg)], tmp_path, env=env))
-        session = open_session(ZenohSettings(mode="client", connect=["tcp/127.0.0.2:7447"]))
+            procs.append(start_process(name, ["-m", f"services.{name}", "--config", str(cfg)], tmp_path, env=env))
+        session = open_session(ZenohSettings(mode="client", connect=[Topology.from_config(cfg).edge_router]))
         monitor = Monitor(demo_tag_map())
         subs = attach_monitor(session, "robot1", monitor)
         try:
@@ -206,7 +183,7 @@ def test_two_host_profile_on_loopback(tmp_path: Path) -> None:
             wait_for_liveliness(
                 session, [keys.alive("robot1", "edge_infer"), keys.alive("robot1", "robot_infer")], timeout_secs=90
             )
-            procs.append(Proc("camera", ["-m", "services.camera", "--config", str(cfg)], tmp_path, env=env))
+            procs.append(start_process("camera", ["-m", "services.camera", "--config", str(cfg)], tmp_path, env=env))
             _wait(lambda: len(monitor.records) >= 8, 120, "8 TagPoses through the two-host profile")
             assert {r["k"] for r in monitor.records} == {5}
             robot_log = next(p for p in procs if p.name == "robot_infer").log_text()

@@ -9,12 +9,12 @@ from pathlib import Path
 import pytest
 
 from shared.slam.marker_slam import absolute_trajectory_error
-from shared.tools.launch import write_run_config
-from shared.transport.session import ZenohSettings, free_tcp_port, open_session, wait_for_liveliness
+from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
 from shared.vision.trajectory import read_tum
 from shared.viz.recording import merge_recordings, recording_components, recording_entities
 from shared.wire import keys
-from tests.procs import Proc, processes
+from tests.conftest import DeployConfig
+from tests.procs import processes, start_process
 
 pytestmark = pytest.mark.multiprocess
 
@@ -36,47 +36,25 @@ EXPECTED_ENTITIES = {
 }
 
 
-def test_demo_scene_slam_trajectory_and_recording(tmp_path: Path) -> None:
-    edge, robot = free_tcp_port(), free_tcp_port()
-    base = tmp_path / "base.toml"
-    base.write_text(f"""
-[common]
-robot_id = "{ROBOT}"
-[common.rerun]
-enabled = true
-[edge_infer.zenoh]
-mode = "router"
-listen = ["tcp/127.0.0.1:{edge}"]
-[slam.zenoh]
-mode = "client"
-connect = ["tcp/127.0.0.1:{edge}"]
-[robot_infer.zenoh]
-mode = "router"
-listen = ["tcp/127.0.0.1:{robot}"]
-connect = ["tcp/127.0.0.1:{edge}"]
-[camera]
-fps = 10.0
-max_frames = 150
-loop = false
-wait_for = ["robot_infer", "slam"]
-[camera.zenoh]
-mode = "client"
-connect = ["tcp/127.0.0.1:{robot}"]
-""")
-    run = tmp_path / "run"
-    run.mkdir()
-    cfg = write_run_config(run, base)
+def test_demo_scene_slam_trajectory_and_recording(tmp_path: Path, deploy_config: DeployConfig) -> None:
+    cfg, topology = deploy_config(
+        {
+            "common": {"robot_id": ROBOT, "rerun": {"enabled": True}},
+            "camera": {"fps": 10.0, "max_frames": 150, "loop": False, "wait_for": ["robot_infer", "slam"]},
+        }
+    )
+    run = cfg.parent
     with processes(tmp_path) as procs:
         for name in ("edge_infer", "slam", "robot_infer"):
-            procs.append(Proc(name, ["-m", f"services.{name}", "--config", str(cfg)], tmp_path))
-        session = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{edge}"]))
+            procs.append(start_process(name, ["-m", f"services.{name}", "--config", str(cfg)], tmp_path))
+        session = open_session(ZenohSettings(mode="client", connect=[topology.edge_router]))
         try:
             wait_for_liveliness(
                 session, [keys.alive(ROBOT, s) for s in ("edge_infer", "slam", "robot_infer")], timeout_secs=90
             )
         finally:
             session.close()
-        camera = Proc("camera", ["-m", "services.camera", "--config", str(cfg)], tmp_path)
+        camera = start_process("camera", ["-m", "services.camera", "--config", str(cfg)], tmp_path)
         procs.append(camera)
         camera.popen.wait(timeout=120)
         time.sleep(3.0)  # the last frames drain through the pipeline

@@ -20,7 +20,7 @@ from shared.wire import keys
 from shared.wire.messages import Features, TagFeature, encode
 from tests.examples import INTRINSICS
 from tests.peers.features_checker import expected_tensor, verdict_key
-from tests.procs import Proc, processes
+from tests.procs import processes, start_process
 
 pytestmark = pytest.mark.multiprocess
 
@@ -32,7 +32,7 @@ def test_one_mebibyte_tensor_crosses_bit_exact(tmp_path: Path) -> None:
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     with processes(tmp_path) as procs:
         procs.append(
-            Proc(
+            start_process(
                 "checker",
                 [
                     "-m",

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from shared.runtime.logs import setup_logging
+from shared.tools.topology import EDGE_PORT, Topology
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -268,7 +269,7 @@ def _probe_emulated(args: argparse.Namespace) -> list[list[float]]:
     from shared.tools.linkemu import LinkEmulator, LinkEmulatorSettings, in_netns, profile
 
     emu_settings = LinkEmulatorSettings(prefix=args.prefix)
-    endpoint = f"tcp/{emu_settings.edge_addr}:7447"
+    endpoint = f"tcp/{emu_settings.edge_addr}:{EDGE_PORT}"
     with tempfile.TemporaryDirectory() as tmp, LinkEmulator(emu_settings, log_dir=Path(tmp)) as emu:
         emu.up(profile(args.profile))
         py = [sys.executable, "-m", "shared.tools.cli"]
@@ -400,7 +401,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("action", choices=["get", "set", "release"])
     p.add_argument("k", type=int, nargs="?", help="split index 0..7 (for set)")
     p.add_argument("--robot-id", default="robot1")
-    p.add_argument("--connect", default="tcp/127.0.0.1:7447", help="zenoh endpoint to connect to")
+    p.add_argument("--connect", default=Topology().edge_router, help="zenoh endpoint to connect to")
     p.set_defaults(func=_cmd_split)
 
     p = sub.add_parser("echo", help="run the edge echo queryable for link probes")
@@ -428,7 +429,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = link.add_parser("probe", help="fit RTT = t0 + beta*S from probes at every split point's payload")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--profile", help="probe a fresh emulated link with this profile (root)")
-    where.add_argument("--connect", default="tcp/127.0.0.1:7447", help="or probe the echo behind this endpoint")
+    where.add_argument("--connect", default=Topology().edge_router, help="or probe the echo behind this endpoint")
     p.add_argument("--prefix", default="st")
     p.add_argument("--robot-id", default="robot1")
     p.add_argument("--repetitions", type=int, default=200)

@@ -15,6 +15,7 @@ import subprocess
 import sys
 import threading
 import time
+import tomllib
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,7 +27,8 @@ import zenoh
 
 from shared.runtime.settings import CURRENT_RUN
 from shared.runtime.sources import demo_scene
-from shared.transport.session import ZenohSettings, free_tcp_port, open_session, wait_for_liveliness
+from shared.tools.topology import Topology, merge, write_config
+from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
 from shared.vision.metrics import translation_error_cm
 from shared.vision.tagmap import TagMapFile, TagSpec
 from shared.viz.recording import merge_recordings
@@ -35,6 +37,7 @@ from shared.wire.codec import WireError
 from shared.wire.messages import CameraPose, ControllerState, TagPoses, decode
 
 log = logging.getLogger(__name__)
+REPO = Path(__file__).resolve().parents[2]
 SERVICES = ("edge_infer", "slam", "robot_infer", "camera")
 
 
@@ -61,11 +64,58 @@ def new_run_dir(root: Path = CURRENT_RUN.parent) -> Path:
 
 @dataclass
 class Service:
-    """One running service process."""
+    """One running process (a service or a helper) in its own process group, output in its log."""
 
     name: str
     popen: subprocess.Popen[bytes]
     log_path: Path
+
+    def stop(self, timeout_secs: float = 15.0) -> int | None:
+        """SIGINT to the process group; after timeout_secs its thread stacks go to its log (faulthandler
+        on SIGUSR1 in every service) and it gets SIGKILL. Returns the exit code."""
+        if self.popen.poll() is None:
+            os.killpg(self.popen.pid, signal.SIGINT)
+        try:
+            self.popen.wait(timeout=timeout_secs)
+        except subprocess.TimeoutExpired:
+            log.warning(
+                "%s did not stop within %.0f s: its stacks go to its log, then SIGKILL", self.name, timeout_secs
+            )
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(self.popen.pid, signal.SIGUSR1)
+            time.sleep(1.0)
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.popen.pid, signal.SIGKILL)
+            self.popen.wait()
+        return self.popen.returncode
+
+    def log_text(self) -> str:
+        """Everything the process printed so far."""
+        return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
+
+
+def start_process(
+    name: str,
+    argv: list[str],
+    log_dir: Path,
+    env: dict[str, str] | None = None,
+    *,
+    wrapper: list[str] | None = None,
+) -> Service:
+    """Start `python <argv>` from the repository root in its own process group, output appended to
+    log_dir/<name>.log; `wrapper` prefixes the command line (e.g. `ip netns exec st-robot`)."""
+    log_path = log_dir / f"{name}.log"
+    full_env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
+    with log_path.open("ab") as out:
+        popen = subprocess.Popen(
+            [*(wrapper or []), sys.executable, *argv],
+            cwd=REPO,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            env=full_env,
+        )
+    return Service(name, popen, log_path)
 
 
 def start_service(
@@ -76,39 +126,15 @@ def start_service(
     *,
     wrapper: list[str] | None = None,
 ) -> Service:
-    """Start `python -m services.<name> --config <config>` in its own process group; `wrapper` prefixes
-    the command line (e.g. `ip netns exec st-robot` to run it on the robot side of the emulated link)."""
-    log_path = run_dir / f"{name}.log"
-    full_env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
-    with log_path.open("ab") as out:
-        popen = subprocess.Popen(
-            [*(wrapper or []), sys.executable, "-m", f"services.{name}", "--config", str(config)],
-            stdout=out,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-            env=full_env,
-        )
-    return Service(name, popen, log_path)
+    """Start `python -m services.<name> --config <config>` (see start_process)."""
+    return start_process(name, ["-m", f"services.{name}", "--config", str(config)], run_dir, env, wrapper=wrapper)
 
 
 def stop_services(services: list[Service], timeout_secs: float = 15.0) -> dict[str, int | None]:
-    """Stop in reverse start order, one at a time (SIGINT to the process group, SIGKILL after
-    timeout_secs): producers (camera, robot side) finish before the consumers they feed, so nobody
-    blocks sending into a peer that is already gone, and the edge and SLAM see the last frames."""
-    codes: dict[str, int | None] = {}
-    for s in reversed(services):
-        if s.popen.poll() is None:
-            os.killpg(s.popen.pid, signal.SIGINT)
-        try:
-            s.popen.wait(timeout=timeout_secs)
-        except subprocess.TimeoutExpired:
-            log.warning("%s did not stop within %.0f s: its stacks go to its log, then SIGKILL", s.name, timeout_secs)
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(s.popen.pid, signal.SIGUSR1)
-            time.sleep(1.0)
-            os.killpg(s.popen.pid, signal.SIGKILL)
-            s.popen.wait()
-        codes[s.name] = s.popen.returncode
+    """Stop in reverse start order, one at a time: producers (camera, robot side) finish before the
+    consumers they feed, so nobody blocks sending into a peer that is already gone, and the edge and
+    SLAM see the last frames."""
+    codes = {s.name: s.stop(timeout_secs) for s in reversed(services)}
     return {s.name: codes[s.name] for s in services}
 
 
@@ -238,21 +264,26 @@ def attach_monitor(session: zenoh.Session, robot_id: str, monitor: Monitor) -> l
     ]
 
 
-def write_run_config(run_dir: Path, base_config: Path, *, extra: dict[str, dict[str, Any]] | None = None) -> Path:
-    """Copy the TOML config into the run folder, adding the demo tag map and run_dir."""
-    import tomllib
-
-    doc = tomllib.loads(base_config.read_text())
+def write_run_config(
+    run_dir: Path,
+    base_config: Path,
+    *,
+    topology: Topology | None = None,
+    extra: dict[str, dict[str, Any]] | None = None,
+) -> Path:
+    """The run's config.toml: the deploy TOML with the demo tag map and run_dir, its endpoints from
+    `topology` when given (shared.tools.topology), then `extra`."""
     tag_map_path = run_dir / "tag_map.yaml"
     tag_map_path.write_text(yaml.safe_dump(demo_tag_map().model_dump(), sort_keys=False))
-    doc.setdefault("common", {})["run_dir"] = str(run_dir)
-    doc.setdefault("edge_infer", {}).setdefault("tag_map", str(tag_map_path))
-    doc.setdefault("slam", {}).setdefault("tag_map", str(tag_map_path))
-    for section, values in (extra or {}).items():
-        doc.setdefault(section, {}).update(values)
-    out = run_dir / "config.toml"
-    out.write_text(_to_toml(doc))
-    return out
+    base = tomllib.loads(base_config.read_text())
+    run_tables = {
+        "common": {"run_dir": str(run_dir)},
+        "edge_infer": {"tag_map": base.get("edge_infer", {}).get("tag_map", str(tag_map_path))},
+        "slam": {"tag_map": base.get("slam", {}).get("tag_map", str(tag_map_path))},
+    }
+    return write_config(
+        run_dir / "config.toml", base=base_config, topology=topology, extra=merge(run_tables, extra or {})
+    )
 
 
 def loopback_config(
@@ -264,54 +295,21 @@ def loopback_config(
     fps: float = 15.0,
     split_k: int = 7,
     base_config: Path = Path("deploy/local.toml"),
-) -> tuple[Path, int, int]:
-    """deploy/local.toml on free loopback ports (for benchmarks): (run config, edge port, robot port)."""
-    edge, robot = free_tcp_port(), free_tcp_port()
+) -> tuple[Path, Topology]:
+    """deploy/local.toml on free loopback ports (for benchmarks): the run config and its topology."""
+    topology = Topology.loopback()
     extra: dict[str, dict[str, Any]] = {
         "common": {"robot_id": robot_id, "rerun": {"enabled": rerun, "image_every": image_every}},
-        "edge_infer": {"zenoh": {"mode": "router", "listen": [f"tcp/127.0.0.1:{edge}"]}},
-        "robot_infer": {
-            "split_k": split_k,
-            "zenoh": {"mode": "router", "listen": [f"tcp/127.0.0.1:{robot}"], "connect": [f"tcp/127.0.0.1:{edge}"]},
-        },
-        "camera": {"source": "demo", "fps": fps, "zenoh": {"mode": "client", "connect": [f"tcp/127.0.0.1:{robot}"]}},
-        "slam": {"zenoh": {"mode": "client", "connect": [f"tcp/127.0.0.1:{edge}"]}},
+        "robot_infer": {"split_k": split_k},
+        "camera": {"source": "demo", "fps": fps},
     }
-    return write_run_config(run_dir, base_config, extra=extra), edge, robot
-
-
-def _to_toml(doc: dict[str, Any], prefix: str = "") -> str:
-    lines, tables = [], []
-    for key, value in doc.items():
-        if isinstance(value, dict):
-            tables.append((key, value))
-        else:
-            lines.append(f"{key} = {json.dumps(value)}")
-    out = "\n".join(lines) + ("\n" if lines else "")
-    for key, value in tables:
-        name = f"{prefix}.{key}" if prefix else key
-        out += f"\n[{name}]\n" + _to_toml(value, name)
-    return out
+    return write_run_config(run_dir, base_config, topology=topology, extra=extra), topology
 
 
 def monitor_settings(config: Path) -> tuple[str, ZenohSettings]:
     """robot_id and a client session to the edge router, from the run config."""
-    import tomllib
-
-    doc = tomllib.loads(config.read_text())
-    robot_id = doc.get("common", {}).get("robot_id", "robot1")
-    if "connect" in doc.get("monitor", {}):
-        return robot_id, ZenohSettings(mode="client", connect=doc["monitor"]["connect"])
-    edge = doc.get("edge_infer", {}).get("zenoh", {})
-    return robot_id, ZenohSettings(mode="client", connect=edge.get("listen", ["tcp/127.0.0.1:7447"]))
-
-
-def _robot_router(config: Path) -> str:
-    """The robot-side router's endpoint in a deploy TOML (where the controller connects)."""
-    import tomllib
-
-    listen = tomllib.loads(config.read_text()).get("robot_infer", {}).get("zenoh", {}).get("listen", [])
-    return str(listen[0]) if listen else "tcp/127.0.0.1:7448"
+    robot_id = tomllib.loads(config.read_text()).get("common", {}).get("robot_id", "robot1")
+    return robot_id, ZenohSettings(mode="client", connect=[Topology.from_config(config).edge_router])
 
 
 def run_pipeline(
@@ -338,27 +336,17 @@ def run_pipeline(
         services = (*services, "controller")
     emu = None
     wrappers: dict[str, list[str]] = {}
+    topology: Topology
     if link is not None:
         emu = LinkEmulator(LinkEmulatorSettings())
         s = emu.settings
-        extra = {
-            **(extra or {}),
-            "edge_infer": {"zenoh": {"mode": "router", "listen": ["tcp/0.0.0.0:7447"]}},
-            "robot_infer": {
-                "zenoh": {"mode": "router", "listen": ["tcp/127.0.0.1:7448"], "connect": [f"tcp/{s.edge_addr}:7447"]}
-            },
-            "camera": {"zenoh": {"mode": "client", "connect": ["tcp/127.0.0.1:7448"]}},
-            "controller": {"zenoh": {"mode": "client", "connect": ["tcp/127.0.0.1:7448"]}},
-            "slam": {"zenoh": {"mode": "client", "connect": ["tcp/127.0.0.1:7447"]}},
-            "monitor": {"connect": [f"tcp/{s.mgmt_edge_addr}:7447"]},
-        }
+        topology = Topology.emulated_link(edge_addr=s.edge_addr, mgmt_edge_addr=s.mgmt_edge_addr)
         side = {"camera": s.robot_ns, "robot_infer": s.robot_ns, "controller": s.robot_ns}
         wrappers = {name: in_netns(side.get(name, s.edge_ns), []) for name in services}
-    elif controller:
-        robot_router = _robot_router(config)
-        extra = {**(extra or {}), "controller": {"zenoh": {"mode": "client", "connect": [robot_router]}}}
+    else:
+        topology = Topology.from_config(config)
     run_dir = new_run_dir(runs_root)
-    run_config = write_run_config(run_dir, config, extra=extra)
+    run_config = write_run_config(run_dir, config, topology=topology, extra=extra)
     robot_id, zs = monitor_settings(run_config)
     if emu is not None:
         emu.log_dir = run_dir
