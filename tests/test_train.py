@@ -92,3 +92,18 @@ def test_weights_made_for_another_roi_margin_are_refused(tmp_path: Path) -> None
     save_weights(SplitKeypointNet(roi_margin=0.25), tmp_path / "w")
     with pytest.raises(WeightsError, match=r"roi_margin is 0\.25"):
         load_model(tmp_path / "w")
+
+
+def test_train_options_are_generated_from_the_settings() -> None:
+    """`splittag train` declares no option of its own: every TrainSettings field, same defaults."""
+    from shared.tools.cli import build_parser
+    from shared.tools.options import model_from_args
+
+    args = build_parser().parse_args(
+        ["train", "--data", "a", "--data", "b", "--out", "o", "--no-bf16", "--epochs", "3", "--device", "cpu"]
+    )
+    got = model_from_args(TrainSettings, args)
+    want = TrainSettings(data=[Path("a"), Path("b")], out=Path("o"), bf16=False, epochs=3)
+    assert got == want
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["train", "--out", "o"])  # --data is required

@@ -8,7 +8,9 @@ from pathlib import Path
 from typing import Any
 
 from shared.runtime.logs import setup_logging
+from shared.tools.options import add_model_options, model_from_args
 from shared.tools.topology import EDGE_PORT, Topology
+from shared.training.settings import TrainSettings
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -126,24 +128,9 @@ def _cmd_data_show(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from shared.training.train import TrainSettings, train
+    from shared.training.train import train
 
-    settings = TrainSettings(
-        data=args.data,
-        out=args.out,
-        init=args.init,
-        epochs=args.epochs,
-        batch_size=args.batch_size,
-        lr=args.lr,
-        warmup_steps=args.warmup_steps,
-        device=args.device,
-        bf16=not args.no_bf16,
-        threads=args.threads,
-        seed=args.seed,
-        eval_samples=args.eval_samples,
-        limit_train=args.limit_train,
-        time_budget_secs=args.time_budget_secs,
-    )
+    settings = model_from_args(TrainSettings, args)
     result = train(settings)
     print(f"best test e_px {result['best_e_px']:.3f} px; weights in {args.out / 'best'}")
     return 0
@@ -474,25 +461,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_data_show)
 
     p = sub.add_parser("train", help="train the keypoint network (resumes from OUT/last.pt)")
-    p.add_argument("--data", type=Path, action="append", required=True, help="data set folder, repeatable")
-    p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--init", type=Path, help="weights folder to start from (fine-tuning)")
-    p.add_argument("--epochs", type=int, default=70)
-    p.add_argument("--batch-size", type=int, default=32)
-    p.add_argument("--lr", type=float, default=3e-4)
-    p.add_argument("--warmup-steps", type=int, default=500)
-    p.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
-    p.add_argument("--no-bf16", action="store_true", help="train in fp32")
-    p.add_argument("--threads", type=int, default=None)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--eval-samples", type=int, default=1000)
-    p.add_argument("--limit-train", type=int, default=None)
-    p.add_argument(
-        "--time-budget-secs",
-        type=float,
-        default=None,
-        help="cut the epoch count after epoch 1 so the run fits this budget",
-    )
+    add_model_options(p, TrainSettings)
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("eval", help="keypoint and pose errors of weights on a data set split")

@@ -16,12 +16,10 @@ import logging
 import math
 import time
 from functools import lru_cache
-from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 from tqdm import tqdm
 
@@ -29,6 +27,7 @@ from shared.datasets.shards import Dataset, load_dataset
 from shared.model.infer import forward_train, keypoints
 from shared.model.net import SplitKeypointNet, canonical_keypoints
 from shared.model.weights import load_model, save_weights
+from shared.training.settings import TrainSettings
 from shared.vision.geometry import ROI_MARGIN, ROI_SIZE
 from shared.vision.metrics import e_px, e_rel
 
@@ -37,32 +36,6 @@ log = logging.getLogger(__name__)
 WING_W = 10.0
 WING_EPS = 2.0
 WING_C = WING_W - WING_W * math.log(1 + WING_W / WING_EPS)
-
-
-class TrainSettings(BaseModel):
-    """Everything that defines a training run; saved as `config.json` beside the checkpoints."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    data: list[Path]
-    out: Path
-    init: Path | None = None  # weights folder to start from (fine-tuning)
-    epochs: int = Field(default=70, ge=1)
-    batch_size: int = Field(default=32, ge=1)
-    lr: float = Field(default=3e-4, gt=0)
-    warmup_steps: int = Field(default=500, ge=0)
-    weight_decay: float = 0.0
-    augment_dihedral: bool = True
-    device: Literal["cpu", "cuda"] = "cpu"
-    bf16: bool = True
-    channels_last: bool = True
-    threads: int | None = None
-    seed: int = 0
-    eval_samples: int = Field(default=1000, ge=1)
-    limit_train: int | None = None
-    # If set, the epoch count is cut after the first epoch so the run fits (the cosine schedule
-    # is re-planned to end with the last epoch that fits).
-    time_budget_secs: float | None = Field(default=None, gt=0)
 
 
 def wing_loss(pred_norm: Tensor, gt_norm: Tensor) -> Tensor:
