@@ -35,6 +35,7 @@ from numpy.typing import NDArray
 
 from bench.machine import cpu_label
 from bench.tagrender import CORNER_INDICES, RenderSettings, Sample, TagTruth, lattice_in_tag, render_sample
+from shared.vision.detector import destroy_detector
 
 FloatArray = NDArray[np.float64]
 PointLayout = Literal["corners4", "lattice16"]
@@ -60,8 +61,8 @@ class AprilTagMethod:
     """AprilTag 3 (pupil-apriltags) as the product's stage 1 runs it: corners only, +0.5 px removed.
 
     The defaults mirror the product's stage-1 settings (quad_decimate 2, refine_edges, sharpening 0.25,
-    hamming <= 1, decision margin >= 20); they are restated here so the bench imports nothing of the
-    product outside `splittag_method`.
+    hamming <= 1, decision margin >= 20); they are restated here so the baseline shares nothing with the
+    product but the workaround that frees pupil-apriltags' detector safely.
     """
 
     # pupil-apriltags reports p0..p3 = BL, BR, TR, TL, with pixel centres at +0.5 against OpenCV's.
@@ -103,16 +104,9 @@ class AprilTagMethod:
         """Free the C detector before its tag family (pupil-apriltags 1.0.4 frees them the other way
         round in __del__, a use-after-free); idempotent."""
         det, self._det = self._det, None
-        ptr = getattr(det, "tag_detector_ptr", None)
-        if det is None or ptr is None:
-            return
-        det.libc.apriltag_detector_destroy.restype = None
-        det.libc.apriltag_detector_destroy(ptr)
-        for family in det.tag_families.values():
-            det.libc.tag36h11_destroy.restype = None
-            det.libc.tag36h11_destroy(family)
-        det.tag_families = {}
-        det.tag_detector_ptr = None
+        if det is not None:
+            # A library workaround, not the product under test: the same safe order the product uses.
+            destroy_detector(det)
 
 
 class SplittagUnavailable(RuntimeError):
