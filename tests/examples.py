@@ -64,7 +64,7 @@ def example_messages() -> dict[str, Message]:
             decision_margin=61.5,
             hamming=0,
             corners_px=corners,
-            roi_to_image=np.arange(9, dtype=np.float64).reshape(3, 3),
+            roi_to_image=np.arange(9, dtype=np.float64).reshape(3, 3) + 10 * np.eye(3),
             tensor=rng.standard_normal((4, 2, 2)).astype(np.float16),
         ),
         TagFeature(

@@ -12,7 +12,14 @@ from services.slam.service import SlamNode
 from services.slam.settings import SlamServiceSettings
 from shared.runtime.sources import demo_scene, demo_trajectory
 from shared.sim.scene import look_at
-from shared.slam.marker_slam import MarkerSlam, Observation, SlamSettings, absolute_trajectory_error, umeyama_se3
+from shared.slam.marker_slam import (
+    MarkerSlam,
+    Observation,
+    SlamInputError,
+    SlamSettings,
+    absolute_trajectory_error,
+    umeyama_se3,
+)
 from shared.vision.geometry import default_camera, lattice_in_tag, project
 from shared.vision.pnp import solve_planar_pnp
 from shared.vision.tagmap import load_tag_map
@@ -143,3 +150,34 @@ def test_the_map_slam_writes_loads_back_as_a_tag_map(tmp_path: Path) -> None:
     assert json.loads((tmp_path / "slam.json").read_text())["frames"] == 20
     again = SlamNode(SlamServiceSettings(run_dir=tmp_path, tag_map=tmp_path / "map.json"))
     assert set(again.slam.known) == {t.id for t in loaded.tags}
+
+
+def test_bad_frames_are_refused_before_they_touch_the_state() -> None:
+    """Each of these used to kill slam (GTSAM errors); now each is a SlamInputError and the next good
+    frame is fused as if nothing had happened."""
+    slam = MarkerSlam(SlamSettings())
+    poses = _constant_velocity(6)
+    for i, pose in enumerate(poses[:3]):
+        assert slam.update(i, i, [_exact_obs(*v) for v in _visible(pose)]).status == "tracking"
+    before = (slam.state.frames, dict(slam.tags), sorted(slam.poses))
+    good = [_exact_obs(*v) for v in _visible(poses[3])]
+    zero = Observation(good[0].tag_id, good[0].size_m, np.zeros((4, 4)), 0.0, np.zeros((4, 4)), 1.0)
+    behind = np.array(good[0].camera_from_tag)
+    behind[2, 3] = -1.0
+    with pytest.raises(SlamInputError, match="already fused"):
+        slam.update(2, 2, good)  # a re-sent TagPoses
+    with pytest.raises(SlamInputError, match="outside"):
+        slam.update(2**56, 3, good)
+    with pytest.raises(SlamInputError, match="rigid"):
+        slam.update(3, 3, [*good, zero])
+    with pytest.raises(SlamInputError, match="in front"):
+        slam.update(3, 3, [Observation(good[0].tag_id, good[0].size_m, behind, 0.0, behind, 1.0)])
+    with pytest.raises(SlamInputError, match="size"):
+        slam.update(3, 3, [Observation(good[0].tag_id, 1e-300, behind, 0.0, behind, 1.0)])
+    assert (slam.state.frames, dict(slam.tags), sorted(slam.poses)) == before
+    res = slam.update(3, 3, good)
+    reference = MarkerSlam(SlamSettings())  # the same frames without the bad ones
+    for i, pose in enumerate(poses[:4]):
+        ref = reference.update(i, i, [_exact_obs(*v) for v in _visible(pose)])
+    assert res.status == "tracking" and res.world_from_camera is not None and ref.world_from_camera is not None
+    np.testing.assert_allclose(res.world_from_camera, ref.world_from_camera, atol=1e-9)

@@ -236,3 +236,25 @@ def test_fuzz_mutated_valid_messages(payload: bytes, flips: list[tuple[int, int]
     _decode_only_typed_errors(bytes(buf[: cut % (len(buf) + 1)]))
     at = cut % (len(buf) + 1)
     _decode_only_typed_errors(bytes(buf[:at]) + insert + bytes(buf[at:]))
+
+
+EVIL_ARRAY = {"dtype": "uint8", "shape": [0, 2**63], "data": b""}  # right byte count (none), impossible shape
+
+
+@pytest.mark.parametrize(
+    ("schema", "path"),
+    [
+        ("splittag/Frame/v1", ("image",)),
+        ("splittag/Features/v1", ("tags", 0, "tensor")),
+        ("splittag/TagPoses/v2", ("tags", 0, "keypoints_px")),
+    ],
+)
+def test_an_impossible_shape_is_a_wire_error_not_a_crash(schema: str, path: tuple[str | int, ...]) -> None:
+    """A 37-byte array {uint8, [0, 2**63], b""} used to escape the decoder as numpy's ValueError."""
+    doc = msgpack.unpackb(encode(EXAMPLES[schema]), raw=False)
+    node = doc["body"]
+    for step in path[:-1]:
+        node = node[step]
+    node[path[-1]] = EVIL_ARRAY
+    with pytest.raises(ArrayError, match="sizes in 0"):
+        decode(msgpack.packb(doc, use_bin_type=True))

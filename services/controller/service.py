@@ -20,12 +20,12 @@ import zenoh
 
 from services.controller.settings import ControllerSettings
 from shared.control.controller import SplitController
+from shared.runtime.guard import InputGuard, serve_stats
 from shared.transport.probe import ProbeError, Prober
 from shared.transport.session import encoding_for
 from shared.transport.split_client import SplitQueryError, query_split
 from shared.viz.recording import make_viz
 from shared.wire import keys
-from shared.wire.codec import WireError
 from shared.wire.messages import ComputeProfile, ControllerState, FrameSent, Message, TagPoses, decode, encode
 from shared.wire.sizing import probe_features
 
@@ -83,21 +83,20 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
     rid = settings.robot_id
     core = SplitController(settings)
     lock = threading.Lock()
-    rejected = 0
+    guard = InputGuard("controller")
+    stats = serve_stats(session, keys.stats(rid, "controller"), guard)
 
     def subscribe(key: str, schema: type[M], handle: Callable[[M], None]) -> zenoh.Subscriber[None]:
         """A callback subscriber that decodes, counts and logs bad messages, and fuses good ones."""
 
-        def on_sample(sample: zenoh.Sample) -> None:
-            nonlocal rejected
-            try:
-                msg = decode(sample.payload.to_bytes(), schema)
-            except WireError as exc:
-                rejected += 1
-                log.warning("rejected %s #%d on %s: %s", schema.__name__, rejected, key, exc)
-                return
+        def fuse(payload: bytes) -> None:
+            msg = decode(payload, schema)
             with lock:
                 handle(msg)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            payload = sample.payload.to_bytes()
+            guard.run(schema.__name__, len(payload), lambda: fuse(payload))
 
         return session.declare_subscriber(key, on_sample)
 
@@ -156,4 +155,5 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
         prober_thread.join(timeout=10)
         prober.close()
         viz.close()
-        log.info("controller: %d switches, %d messages rejected", switches, rejected)
+        stats.undeclare()
+        log.info("controller: %d switches; inputs %s", switches, guard.stats())

@@ -15,12 +15,12 @@ from shared.control.compute import ComputeEstimator, tail_per_tag_ms
 from shared.model.profile import calibrate_cumulative_ms, calibrate_pnp_ms, warm_up
 from shared.model.weights import load_model
 from shared.perception.split import edge_step
+from shared.runtime.guard import InputGuard, serve_stats
 from shared.transport.probe import ArrivalClock, serve_echo
 from shared.transport.session import declare_tensor_publisher, encoding_for
 from shared.vision.tagmap import TagMapFile, load_tag_map
 from shared.viz.recording import make_viz
 from shared.wire import keys
-from shared.wire.codec import WireError
 from shared.wire.messages import ComputeProfile, Features, TagPoses, decode, encode
 
 log = logging.getLogger(__name__)
@@ -67,7 +67,33 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
     )
     token = session.liveliness().declare_token(keys.alive(rid, "edge_infer"))
     viz = make_viz(settings.rerun, service="edge_infer", run_dir=settings.run_dir)
-    rejected = processed = 0
+    guard = InputGuard("edge_infer")
+    stats = serve_stats(session, keys.stats(rid, "edge_infer"), guard)
+
+    def process(received: int, previous: int, payload: bytes) -> None:
+        """One Features message: decode, tail + PnP, TagPoses out (raises on bad input; the guard counts it)."""
+        nonlocal last_profile
+        features = decode(payload, Features, max_bytes=settings.max_payload_bytes)
+        poses = edge_step(
+            features,
+            model=model,
+            tag_map=tag_map,
+            receive_nanos=received,
+            previous_receive_nanos=previous,
+            payload_bytes=len(payload),
+            bf16=settings.bf16,
+            min_compute_secs=len(features.tags) * emulated[features.split_k] / 1e3 if emulated else 0.0,
+        )
+        pub.put(encode(poses))
+        viz.tag_poses(poses)
+        # An emulated edge publishes its fixed profile (reality only pads up to it).
+        live_ms = poses.timings.edge_compute_secs * 1e3
+        network_ms = len(poses.tags) * emulated[poses.split_k] if emulated else live_ms
+        estimator.observe(k=poses.split_k, tags=len(poses.tags), network_ms=network_ms)
+        if time.monotonic() - last_profile >= settings.profile_period_secs:
+            last_profile = time.monotonic()
+            compute_pub.put(encode(estimator.message(robot_id=rid, side="edge", stamp_nanos=time.time_ns())))
+
     log.info("edge_infer ready")
     try:
         while not stop.is_set():
@@ -75,36 +101,12 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
                 received, previous, payload = inbox.get(timeout=0.05)
             except queue.Empty:
                 continue
-            try:
-                features = decode(payload, Features, max_bytes=settings.max_payload_bytes)
-                poses = edge_step(
-                    features,
-                    model=model,
-                    tag_map=tag_map,
-                    receive_nanos=received,
-                    previous_receive_nanos=previous,
-                    payload_bytes=len(payload),
-                    bf16=settings.bf16,
-                    min_compute_secs=len(features.tags) * emulated[features.split_k] / 1e3 if emulated else 0.0,
-                )
-            except WireError as exc:
-                rejected += 1
-                log.warning("rejected features #%d (%d bytes): %s", rejected, len(payload), exc)
-                continue
-            pub.put(encode(poses))
-            viz.tag_poses(poses)
-            processed += 1
-            # An emulated edge publishes its fixed profile (reality only pads up to it).
-            live_ms = poses.timings.edge_compute_secs * 1e3
-            network_ms = len(poses.tags) * emulated[poses.split_k] if emulated else live_ms
-            estimator.observe(k=poses.split_k, tags=len(poses.tags), network_ms=network_ms)
-            if time.monotonic() - last_profile >= settings.profile_period_secs:
-                last_profile = time.monotonic()
-                compute_pub.put(encode(estimator.message(robot_id=rid, side="edge", stamp_nanos=time.time_ns())))
+            guard.run("features", len(payload), lambda: process(received, previous, payload))  # noqa: B023
     finally:
         sub.undeclare()
         token.undeclare()
         if echo is not None:
             echo.undeclare()
         viz.close()
-        log.info("edge_infer: %d frames processed, %d rejected", processed, rejected)
+        stats.undeclare()
+        log.info("edge_infer: %s", guard.stats())

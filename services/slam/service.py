@@ -17,13 +17,14 @@ import numpy as np
 import zenoh
 
 from services.slam.settings import SlamServiceSettings
+from shared.runtime.guard import InputGuard, serve_stats
 from shared.slam.marker_slam import MarkerSlam, Observation, absolute_trajectory_error
 from shared.transport.session import declare_fifo_subscriber, encoding_for, next_sample
+from shared.vision.camera import CameraIntrinsics
 from shared.vision.tagmap import load_tag_map, tag_map_from_poses, write_tag_map
 from shared.vision.trajectory import write_tum
 from shared.viz.recording import make_viz
 from shared.wire import keys
-from shared.wire.codec import WireError
 from shared.wire.messages import CameraPose, MapTag, TagMap, TagPoses, decode, encode
 
 log = logging.getLogger(__name__)
@@ -117,14 +118,16 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
     cam_pub = session.declare_publisher(keys.camera_pose(rid), encoding=encoding_for(CameraPose.SCHEMA))
     map_pub = session.declare_publisher(keys.tag_map(rid), encoding=encoding_for(TagMap.SCHEMA))
 
+    guard = InputGuard("slam")
+
     def on_gt(sample: zenoh.Sample) -> None:
-        try:
-            msg = decode(sample.payload.to_bytes(), CameraPose)
-        except WireError as exc:
-            log.warning("bad ground truth: %s", exc)
-            return
-        with node.lock:
-            node.gt[msg.capture_nanos] = np.asarray(msg.world_from_camera)
+        def keep(payload: bytes) -> None:
+            msg = decode(payload, CameraPose)
+            with node.lock:
+                node.gt[msg.capture_nanos] = np.asarray(msg.world_from_camera)
+
+        payload = sample.payload.to_bytes()
+        guard.run("ground_truth", len(payload), lambda: keep(payload))
 
     def on_map_query(query: zenoh.Query) -> None:
         if query.parameters.get("save") in ("1", "true"):
@@ -135,32 +138,35 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
     queryable = session.declare_queryable(keys.tag_map(rid), on_map_query)
     token = session.liveliness().declare_token(keys.alive(rid, "slam"))
     viz = make_viz(settings.rerun, service="slam", run_dir=settings.run_dir)
-    rejected = 0
-    camera = None  # the frustum is logged with the pose whenever the intrinsics change (once, normally)
+    stats = serve_stats(session, keys.stats(rid, "slam"), guard)
+    camera: CameraIntrinsics | None = None  # the frustum is logged with the pose when the intrinsics change
+
+    def process(payload: bytes) -> None:
+        """One TagPoses: fuse, publish the camera pose (and the map on change), log (raises on bad input)."""
+        nonlocal camera
+        msg = decode(payload, TagPoses)
+        cam, tag_map = node.on_poses(msg)
+        cam_pub.put(encode(cam))
+        if cam.status == "tracking":
+            new_camera = msg.intrinsics if msg.intrinsics != camera else None
+            camera = msg.intrinsics or camera
+            viz.camera_pose(cam.capture_nanos, cam.world_from_camera, new_camera)
+        if tag_map is not None:
+            map_pub.put(encode(tag_map))
+            viz.tag_map(cam.capture_nanos, {t.tag_id: (t.size_m, t.world_from_tag) for t in tag_map.tags})
+        if node.slam.state.frames % 10 == 0:
+            with node.lock:
+                traj = np.array([p[:3, 3] for _, p in node.slam.trajectory()])
+                gt = np.array([p[:3, 3] for _, p in sorted(node.gt.items())])
+            viz.trajectory(cam.capture_nanos, "world/trajectory", traj)
+            viz.trajectory(cam.capture_nanos, "world/groundtruth", gt)
+
     try:
         while (sample := next_sample(poses_sub, stop)) is not None:
-            try:
-                msg = decode(sample.payload.to_bytes(), TagPoses)
-            except WireError as exc:
-                rejected += 1
-                log.warning("rejected TagPoses #%d: %s", rejected, exc)
-                continue
-            cam, tag_map = node.on_poses(msg)
-            cam_pub.put(encode(cam))
-            if cam.status == "tracking":
-                new_camera = msg.intrinsics if msg.intrinsics != camera else None
-                camera = msg.intrinsics or camera
-                viz.camera_pose(cam.capture_nanos, cam.world_from_camera, new_camera)
-            if tag_map is not None:
-                map_pub.put(encode(tag_map))
-                viz.tag_map(cam.capture_nanos, {t.tag_id: (t.size_m, t.world_from_tag) for t in tag_map.tags})
-            if node.slam.state.frames % 10 == 0:
-                with node.lock:
-                    traj = np.array([p[:3, 3] for _, p in node.slam.trajectory()])
-                    gt = np.array([p[:3, 3] for _, p in sorted(node.gt.items())])
-                viz.trajectory(cam.capture_nanos, "world/trajectory", traj)
-                viz.trajectory(cam.capture_nanos, "world/groundtruth", gt)
+            payload = sample.payload.to_bytes()
+            guard.run("tag_poses", len(payload), lambda: process(payload))  # noqa: B023 (called at once)
     finally:
+        stats.undeclare()
         token.undeclare()
         queryable.undeclare()
         gt_sub.undeclare()

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Final
 
 import gtsam
 import numpy as np
@@ -110,6 +111,34 @@ def _rot_deg(a: Array, b: Array) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1, 1))))
 
 
+class SlamInputError(ValueError):
+    """A frame or observation the SLAM core refuses (the state is unchanged)."""
+
+
+MAX_FRAME_INDEX: Final[int] = 2**56 - 1  # gtsam.Symbol keeps 56 bits for the index
+MAX_RANGE_M: Final[float] = 1e3
+
+
+def check_observation(o: Observation) -> None:
+    """Raise SlamInputError unless both pose candidates are rigid transforms of a tag in front of the
+    camera, within MAX_RANGE_M, and the size is a plausible tag size."""
+    if not (math.isfinite(o.size_m) and 1e-3 <= o.size_m <= 10.0):
+        raise SlamInputError(f"tag {o.tag_id}: size {o.size_m} m is not in 1 mm .. 10 m")
+    for name, m in (("camera_from_tag", o.camera_from_tag), ("alt_camera_from_tag", o.alt_camera_from_tag)):
+        m = np.asarray(m, np.float64)
+        r, t = m[:3, :3], m[:3, 3]
+        if (
+            m.shape != (4, 4)
+            or not np.isfinite(m).all()
+            or not np.allclose(m[3], [0, 0, 0, 1])
+            or not np.allclose(r @ r.T, np.eye(3), atol=1e-4)
+            or np.linalg.det(r) < 0
+        ):
+            raise SlamInputError(f"tag {o.tag_id}: {name} is not a rigid transform")
+        if not (t[2] > 0 and np.linalg.norm(t) <= MAX_RANGE_M):
+            raise SlamInputError(f"tag {o.tag_id}: {name} puts the tag at {t.tolist()} m, not in front within range")
+
+
 class MarkerSlam:
     """Incremental marker SLAM (see module docstring)."""
 
@@ -162,13 +191,24 @@ class MarkerSlam:
         gauss = gtsam.noiseModel.Gaussian.Covariance(cov)
         return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(s.huber_k), gauss)
 
+    def _check_input(self, frame: int, observations: list[Observation]) -> None:
+        if not 0 <= frame <= MAX_FRAME_INDEX:
+            raise SlamInputError(f"frame index {frame} is outside 0..2**56-1")
+        if frame in self.stamps or self._estimate.exists(X(frame)):
+            raise SlamInputError(f"frame {frame} was already fused (a repeated message or a restarted camera)")
+        for o in observations:
+            check_observation(o)
+
     def _world_from_tag(self, tag_id: int) -> Array | None:
         if tag_id in self.tags and self._estimate.exists(L(tag_id)):
             return np.asarray(self._estimate.atPose3(L(tag_id)).matrix())
         return None
 
     def update(self, frame: int, stamp_nanos: int, observations: list[Observation]) -> FrameResult:
-        """Fuse one frame's observations; returns the camera pose estimate for it."""
+        """Fuse one frame's observations; returns the camera pose estimate for it. Raises SlamInputError,
+        before touching any state, for a frame it has seen, a frame index GTSAM cannot key, or an
+        observation that is no rigid pose in front of the camera."""
+        self._check_input(frame, observations)
         s = self.settings
         self.state.frames += 1
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()

@@ -6,9 +6,10 @@ from typing import Annotated, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+MAX_PIXELS = 65_536
+DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)  # what cv2.undistortPoints / solvePnP accept
 
 
 class CameraIntrinsics(BaseModel):
@@ -17,14 +18,21 @@ class CameraIntrinsics(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
 
-    width: int = Field(gt=0)
-    height: int = Field(gt=0)
-    fx: float = Field(gt=0, allow_inf_nan=False)
-    fy: float = Field(gt=0, allow_inf_nan=False)
-    cx: FiniteFloat
-    cy: FiniteFloat
+    # Bounded, so that no downstream division or projection can overflow (fx = 1e-300 used to).
+    width: int = Field(gt=0, le=MAX_PIXELS)
+    height: int = Field(gt=0, le=MAX_PIXELS)
+    fx: float = Field(ge=1.0, le=1e6, allow_inf_nan=False)
+    fy: float = Field(ge=1.0, le=1e6, allow_inf_nan=False)
+    cx: float = Field(ge=-1e6, le=1e6, allow_inf_nan=False)
+    cy: float = Field(ge=-1e6, le=1e6, allow_inf_nan=False)
     distortion_model: Literal["plumb_bob", "none"]
-    distortion: list[FiniteFloat]
+    distortion: list[Annotated[float, Field(ge=-1e3, le=1e3, allow_inf_nan=False)]]
+
+    @model_validator(mode="after")
+    def _distortion_opencv_can_use(self) -> CameraIntrinsics:
+        if len(self.distortion) not in DISTORTION_LENGTHS:
+            raise ValueError(f"{len(self.distortion)} distortion coefficients; OpenCV takes {DISTORTION_LENGTHS}")
+        return self
 
     def matrix(self) -> NDArray[np.float64]:
         """The 3x3 camera matrix K."""

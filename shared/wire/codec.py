@@ -28,6 +28,7 @@ _NUMPY_TO_WIRE: Final[dict[str, str]] = {dt.str.lstrip("<>|="): name for name, d
 
 ARRAY_KEYS: Final[frozenset[str]] = frozenset({"dtype", "shape", "data"})
 MAX_NDIM: Final[int] = 8
+MAX_DIM: Final[int] = 2**31 - 1  # per dimension
 MAX_DEPTH: Final[int] = 32
 DEFAULT_MAX_BYTES: Final[int] = 64 * 1024 * 1024
 
@@ -229,9 +230,12 @@ def array_from_wire(doc: Mapping[str, Any]) -> np.ndarray:
     if (
         not isinstance(shape, list)
         or len(shape) > MAX_NDIM
-        or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in shape)
+        or not all(isinstance(d, int) and not isinstance(d, bool) and 0 <= d <= MAX_DIM for d in shape)
     ):
-        raise ArrayError(f"array shape {shape!r} is not a list of at most {MAX_NDIM} sizes >= 0")
+        # Bounded sizes: a zero-length array of shape (0, 2**63) has the right byte count (none) but
+        # numpy cannot even describe it.
+        text = repr(shape) if len(repr(shape)) <= 120 else repr(shape)[:120] + "..."
+        raise ArrayError(f"array shape {text} is not a list of at most {MAX_NDIM} sizes in 0..{MAX_DIM}")
     if not isinstance(data, memoryview | bytes):
         raise ArrayError(f"array data is {type(data).__name__}, expected msgpack bin")
     dtype = WIRE_DTYPES[name]

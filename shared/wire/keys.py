@@ -79,3 +79,8 @@ def echo(robot_id: str) -> str:
 def alive(robot_id: str, service: str) -> str:
     """Liveliness token of one service of one robot."""
     return f"{ROOT}/{_check(robot_id, 'robot id')}/alive/{_check(service, 'service')}"
+
+
+def stats(robot_id: str, service: str) -> str:
+    """Queryable of every service: its input counters (accepted, rejected by reason) as JSON."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/{_check(service, 'service')}/stats"

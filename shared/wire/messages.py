@@ -150,6 +150,14 @@ class TagFeature(WireModel):
     roi_to_image: Homography
     tensor: SplitTensor
 
+    @model_validator(mode="after")
+    def _homography_invertible(self) -> TagFeature:
+        h = np.asarray(self.roi_to_image, np.float64)
+        scale = float(np.abs(h).max())
+        if scale == 0 or abs(float(np.linalg.det(h / scale))) < 1e-12:
+            raise ValueError("roi_to_image is not an invertible homography")
+        return self
+
 
 class Features(Message):
     """Everything robot_infer computed for one frame at split k (possibly zero tags)."""
@@ -179,7 +187,7 @@ class TagPose(WireModel):
     """One tag's keypoints and pose; both PnP branches are kept for the SLAM ambiguity guard."""
 
     tag_id: int = Field(ge=0)
-    tag_size_m: float = Field(gt=0, allow_inf_nan=False)
+    tag_size_m: float = Field(ge=1e-3, le=10.0, allow_inf_nan=False)  # 1 mm .. 10 m
     keypoints_px: Keypoints16
     corners_px: Corners
     camera_from_tag: Pose4x4

@@ -1,0 +1,108 @@
+"""One guarded place per service for its inputs: whatever handling one message raises (bad bytes, a
+geometry the maths cannot take, a state the core refuses) is counted by reason, logged at most once
+per interval with the text truncated, and the service goes on with the next message. The counts are
+served on `splittag/<robot_id>/<service>/stats` (JSON), so a test or an operator can see them."""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import zenoh
+
+from shared.wire import keys
+
+T = TypeVar("T")
+log = logging.getLogger(__name__)
+
+
+class InputGuard:
+    """Counts accepted and rejected inputs of one service; thread-safe (Zenoh callbacks use it too)."""
+
+    def __init__(
+        self,
+        service: str,
+        *,
+        log_every_secs: float = 1.0,
+        max_chars: int = 300,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.service = service
+        self.log_every_secs = log_every_secs
+        self.max_chars = max_chars
+        self._clock = clock
+        self._lock = threading.Lock()
+        self.accepted = 0
+        self.rejected: Counter[str] = Counter()
+        self._last_log = -float("inf")
+        self._unlogged = 0
+
+    def run(self, what: str, payload_bytes: int, handle: Callable[[], T]) -> T | None:
+        """handle() for one `what` message; None (after counting and maybe logging) if it raised."""
+        try:
+            result = handle()
+        except Exception as exc:  # the guard's point: no input may take the service down
+            self.reject(what, payload_bytes, exc)
+            return None
+        with self._lock:
+            self.accepted += 1
+        return result
+
+    def reject(self, what: str, payload_bytes: int, exc: BaseException) -> None:
+        """Count one rejected input; log it unless a line was logged less than log_every_secs ago."""
+        reason = f"{what}: {type(exc).__name__}"
+        now = self._clock()
+        with self._lock:
+            self.rejected[reason] += 1
+            total = sum(self.rejected.values())
+            if now - self._last_log < self.log_every_secs:
+                self._unlogged += 1
+                return
+            skipped, self._unlogged, self._last_log = self._unlogged, 0, now
+        text = str(exc).replace("\n", " ")
+        if len(text) > self.max_chars:
+            text = text[: self.max_chars] + f"... ({len(text)} chars)"
+        more = f" (+{skipped} not logged)" if skipped else ""
+        log.warning(
+            "%s rejected %s #%d (%d bytes): %s: %s%s",
+            self.service,
+            what,
+            total,
+            payload_bytes,
+            type(exc).__name__,
+            text,
+            more,
+        )
+
+    def stats(self) -> dict[str, Any]:
+        """accepted, rejected and rejected by reason."""
+        with self._lock:
+            return {
+                "service": self.service,
+                "accepted": self.accepted,
+                "rejected": sum(self.rejected.values()),
+                "rejected_by_reason": dict(self.rejected),
+            }
+
+
+def serve_stats(session: zenoh.Session, key: str, guard: InputGuard) -> zenoh.Queryable[None]:
+    """A queryable answering the guard's stats as JSON."""
+
+    def on_query(query: zenoh.Query) -> None:
+        query.reply(query.key_expr, json.dumps(guard.stats()).encode(), encoding=zenoh.Encoding.APPLICATION_JSON)
+
+    return session.declare_queryable(key, on_query)
+
+
+def service_stats(session: zenoh.Session, robot_id: str, service: str, *, timeout_secs: float = 5.0) -> dict[str, Any]:
+    """Ask a running service for its input counters (see serve_stats)."""
+    for reply in session.get(keys.stats(robot_id, service), timeout=timeout_secs):
+        if reply.ok is not None:
+            parsed: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
+            return parsed
+    raise TimeoutError(f"no stats from {service} of {robot_id} within {timeout_secs} s")
