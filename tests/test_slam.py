@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,7 @@ from shared.slam.marker_slam import (
 from shared.vision.geometry import default_camera, lattice_in_tag, project
 from shared.vision.pnp import solve_planar_pnp
 from shared.vision.tagmap import load_tag_map
+from shared.wire.messages import HopTimings, TagPose, TagPoses
 
 CAM = default_camera()
 SCENE = demo_scene()
@@ -181,3 +183,49 @@ def test_bad_frames_are_refused_before_they_touch_the_state() -> None:
         ref = reference.update(i, i, [_exact_obs(*v) for v in _visible(pose)])
     assert res.status == "tracking" and res.world_from_camera is not None and ref.world_from_camera is not None
     np.testing.assert_allclose(res.world_from_camera, ref.world_from_camera, atol=1e-9)
+
+
+def _tag_poses(seq: int, stamp: int, pose: np.ndarray) -> TagPoses:
+    tags = [
+        TagPose(
+            tag_id=tag_id,
+            tag_size_m=size,
+            keypoints_px=np.zeros((16, 2), np.float32),
+            corners_px=np.zeros((4, 2), np.float32),
+            camera_from_tag=cft,
+            reprojection_error_px=0.0,
+            alt_camera_from_tag=cft,
+            alt_reprojection_error_px=5.0,
+        )
+        for tag_id, size, cft in _visible(pose)
+    ]
+    timings = HopTimings(robot_compute_secs=0.0, transport_secs=0.0, edge_compute_secs=0.0, capture_to_pose_secs=0.0)
+    return TagPoses(
+        robot_id="r1",
+        seq=seq,
+        capture_nanos=stamp,
+        split_k=7,
+        payload_bytes=0,
+        timings=timings,
+        link=None,
+        intrinsics=None,
+        tags=tags,
+    )
+
+
+def test_a_repeated_message_is_refused_and_a_restarted_camera_goes_on(tmp_path: Path) -> None:
+    """Re-sending a real TagPoses, or restarting the camera (seq from 0 again), used to kill slam."""
+    node = SlamNode(SlamServiceSettings(run_dir=tmp_path))
+    poses = _constant_velocity(20)
+    for i in range(10):
+        assert node.on_poses(_tag_poses(i, 1_000 + i, poses[i]))[0].status == "tracking"
+    with pytest.raises(SlamInputError, match="already fused"):
+        node.on_poses(_tag_poses(5, 1_005, poses[5]))
+    with pytest.raises(SlamInputError, match="out of order"):
+        node.on_poses(_tag_poses(11, 1_003, poses[11]))
+    for i in range(10):  # the camera restarted: seq from 0, later capture times
+        assert node.on_poses(_tag_poses(i, 2_000 + i, poses[10 + i]))[0].status == "tracking"
+    assert node.indexer.sessions == 2
+    assert len(node.slam.trajectory()) == 20
+    with pytest.raises(SlamInputError, match="future"):  # would make every real frame after it look stale
+        node.on_poses(_tag_poses(99, time.time_ns() + 3_600 * 10**9, poses[0]))

@@ -18,7 +18,13 @@ import zenoh
 
 from services.slam.settings import SlamServiceSettings
 from shared.runtime.guard import InputGuard, serve_stats
-from shared.slam.marker_slam import MarkerSlam, Observation, absolute_trajectory_error
+from shared.slam.marker_slam import (
+    FrameIndexer,
+    MarkerSlam,
+    Observation,
+    absolute_trajectory_error,
+    check_observation,
+)
 from shared.transport.session import declare_fifo_subscriber, encoding_for, next_sample
 from shared.vision.camera import CameraIntrinsics
 from shared.vision.tagmap import load_tag_map, tag_map_from_poses, write_tag_map
@@ -43,6 +49,7 @@ class SlamNode:
             if slam_settings.anchor_tag_id is None and tm.anchor_tag_id is not None:
                 slam_settings = slam_settings.model_copy(update={"anchor_tag_id": tm.anchor_tag_id})
         self.slam = MarkerSlam(slam_settings, known_tags=known)
+        self.indexer = FrameIndexer()  # repeated messages and restarted cameras (seq from 0 again)
         self.gt: dict[int, np.ndarray] = {}
         self.revision = 0
         self.last_pose: np.ndarray | None = None
@@ -51,7 +58,11 @@ class SlamNode:
     def on_poses(self, msg: TagPoses) -> tuple[CameraPose, TagMap | None]:
         """Fuse one frame; returns the camera pose message and the map if it should be published."""
         with self.lock:
-            res = self.slam.update(msg.seq, msg.capture_nanos, [Observation.from_message(t) for t in msg.tags])
+            observations = [Observation.from_message(t) for t in msg.tags]
+            for o in observations:
+                check_observation(o)  # before the indexer remembers the frame
+            frame = self.indexer.index(msg.seq, msg.capture_nanos)
+            res = self.slam.update(frame, msg.capture_nanos, observations)
             if res.world_from_camera is not None:
                 self.last_pose = res.world_from_camera
             pose = self.last_pose if self.last_pose is not None else np.eye(4)

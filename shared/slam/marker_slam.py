@@ -20,6 +20,8 @@ with GTSAM's iSAM2. No I/O: the slam service feeds it TagPoses and publishes wha
 from __future__ import annotations
 
 import math
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Final
 
@@ -137,6 +139,55 @@ def check_observation(o: Observation) -> None:
             raise SlamInputError(f"tag {o.tag_id}: {name} is not a rigid transform")
         if not (t[2] > 0 and np.linalg.norm(t) <= MAX_RANGE_M):
             raise SlamInputError(f"tag {o.tag_id}: {name} puts the tag at {t.tolist()} m, not in front within range")
+
+
+class FrameIndexer:
+    """Frame indices for SLAM from what the camera stamps (seq, capture time), per robot.
+
+    A camera numbers its frames from 0 at every start, and a message can arrive twice. Within one
+    camera session the index follows seq (so gaps of dropped frames stay gaps for the motion prior);
+    a seq that goes back while the capture time goes forward is a new camera session, which continues
+    the index after a break wider than any motion prior; a (seq, time) seen before, or a frame older
+    than the last one, is refused."""
+
+    def __init__(
+        self,
+        *,
+        session_break: int = 1_000,
+        remember: int = 4_096,
+        max_future_secs: float = 60.0,
+        clock_nanos: Callable[[], int] = time.time_ns,
+    ) -> None:
+        self.session_break = session_break
+        # A capture time far in the future would make every real frame after it look stale.
+        self.max_future_nanos = int(max_future_secs * 1e9)
+        self._clock_nanos = clock_nanos
+        self._offset = 0
+        self._last: tuple[int, int] | None = None  # (seq, capture_nanos) of the newest frame
+        self._seen: dict[tuple[int, int], int] = {}
+        self._remember = remember
+        self.sessions = 1
+
+    def index(self, seq: int, capture_nanos: int) -> int:
+        """The SLAM frame index for this frame; SlamInputError for a repeated or stale one."""
+        key = (seq, capture_nanos)
+        if capture_nanos > self._clock_nanos() + self.max_future_nanos:
+            raise SlamInputError(f"frame seq {seq} was captured {capture_nanos} ns, in the future beyond the bound")
+        if key in self._seen:
+            raise SlamInputError(f"frame seq {seq} (captured {capture_nanos}) was already fused: a repeated message")
+        if self._last is not None:
+            last_seq, last_time = self._last
+            if capture_nanos <= last_time:
+                raise SlamInputError(f"frame seq {seq} is older than the last one (seq {last_seq}): out of order")
+            if seq <= last_seq:  # the camera restarted: a new session after a break
+                self._offset = self._offset + last_seq + self.session_break - seq
+                self.sessions += 1
+        index = self._offset + seq
+        self._last = key
+        self._seen[key] = index
+        if len(self._seen) > self._remember:
+            self._seen.pop(next(iter(self._seen)))
+        return index
 
 
 class MarkerSlam:
