@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from shared.transport.split_control import SplitRequestError, SplitState
+from shared.transport.split_control import SplitRequestError, SplitState, parse_parameters
 from shared.wire.messages import SplitConfig, encode
 
 
@@ -48,3 +48,46 @@ def test_a_user_payload_is_the_same_request_as_parameters() -> None:
         state.apply({"k": "1"}, encode(SplitConfig(k=4, codec="fp16", pinned=True, source="user")))
     with pytest.raises(SplitRequestError, match="not a valid SplitConfig"):
         state.apply({}, b"\x00garbage")
+
+
+def test_parameters_are_parsed_strictly() -> None:
+    state = _state()
+    state.apply({"k": "3"}, None)
+    assert state.apply({"release": "0"}, None).pinned  # used to unpin
+    assert state.apply({"source": "user"}, None).pinned
+    with pytest.raises(SplitRequestError, match="release must be"):
+        state.apply({"release": "maybe"}, None)
+    with pytest.raises(SplitRequestError, match="unknown"):
+        state.apply({"kk": "3"}, None)
+    assert parse_parameters("k=5;codec=fp32") == {"k": "5", "codec": "fp32"}
+    with pytest.raises(SplitRequestError, match="twice"):
+        parse_parameters("k=5;k=6")
+    with pytest.raises(SplitRequestError, match="no name"):
+        parse_parameters("=5")
+    assert state.get() == SplitConfig(k=3, codec="fp16", pinned=True, source="user")
+
+
+def test_a_wildcard_set_is_refused_over_real_zenoh() -> None:
+    """`splittag/*/split?k=5` used to set every robot's split at once; reading through a wildcard is fine."""
+    from shared.transport.session import ZenohSettings, free_tcp_port, open_session
+    from shared.transport.split_control import serve_split
+    from shared.wire import keys
+    from shared.wire.messages import decode
+
+    port = free_tcp_port()
+    server = open_session(ZenohSettings(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
+    client = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
+    state = _state()
+    queryable = serve_split(server, keys.split("w1"), state)
+    try:
+        errors = [r.err.payload.to_string() for r in client.get("splittag/*/split?k=5", timeout=5) if r.err]
+        assert errors and "wildcard" in errors[0]
+        assert state.get().k == 7
+        ok = [r.ok for r in client.get("splittag/*/split", timeout=5) if r.ok is not None]
+        assert ok and decode(ok[0].payload.to_bytes(), SplitConfig).k == 7
+        ok = [r.ok for r in client.get(keys.split("w1") + "?k=5", timeout=5) if r.ok is not None]
+        assert ok and state.get().k == 5
+    finally:
+        queryable.undeclare()
+        client.close()
+        server.close()

@@ -9,6 +9,8 @@ Protocol on `splittag/<robot_id>/split` (any Zenoh client can use it):
   decision, which is refused while a person's setting is pinned.
 - a SplitConfig payload is the same request written as a message (k, codec, source; `pinned` false
   from a user means release): it goes through the same rules, so it cannot skip the pin.
+- parsed strictly: `release` is 0, 1, true or false (`release=0` keeps a pin), an unknown or
+  repeated parameter is an error, and a set through a wildcard key (`splittag/*/split?k=5`) is refused.
 - anything invalid -> an error reply (UTF-8 text saying what was wrong); nothing changes.
 """
 
@@ -21,6 +23,7 @@ import zenoh
 
 from shared.transport.session import encoding_for
 from shared.wire.codec import WireError
+from shared.wire.cuts import N_CUTS
 from shared.wire.messages import SplitConfig, decode, encode
 
 log = logging.getLogger(__name__)
@@ -53,32 +56,50 @@ class SplitState:
             params = _params_from_payload(payload)
         with self._lock:
             cur = self._config
-            if params:
-                source = params.get("source", "user")
-                if source not in ("user", "controller"):
-                    raise SplitRequestError(f"source must be user or controller, got {source!r}")
-                k = cur.k
-                if "k" in params:
-                    try:
-                        k = int(params["k"])
-                    except ValueError:
-                        raise SplitRequestError(f"k must be an integer 0..7, got {params['k']!r}") from None
-                    if not 0 <= k <= 7:
-                        raise SplitRequestError(f"k must be in 0..7, got {k}")
-                codec = params.get("codec", cur.codec)
-                if codec not in ("fp16", "fp32"):
-                    raise SplitRequestError(f"codec must be fp16 or fp32, got {codec!r}")
-                release = params.get("release", "0") in ("1", "true", "yes")
-                if source == "controller" and cur.pinned and not release:
-                    raise SplitRequestError(f"k is pinned at {cur.k} by a user; the controller may not change it")
-                pinned = source == "user" and not release and ("k" in params or "codec" in params)
-                new = SplitConfig(k=k, codec=codec, pinned=pinned, source=source)  # type: ignore[arg-type]
-            else:
+            if not params:
                 return cur
+            source = params.get("source", "user")
+            if source not in ("user", "controller"):
+                raise SplitRequestError(f"source must be user or controller, got {source!r}")
+            k = cur.k
+            if "k" in params:
+                try:
+                    k = int(params["k"])
+                except ValueError:
+                    raise SplitRequestError(f"k must be an integer 0..{N_CUTS - 1}, got {params['k']!r}") from None
+                if not 0 <= k < N_CUTS:
+                    raise SplitRequestError(f"k must be in 0..{N_CUTS - 1}, got {k}")
+            codec = params.get("codec", cur.codec)
+            if codec not in ("fp16", "fp32"):
+                raise SplitRequestError(f"codec must be fp16 or fp32, got {codec!r}")
+            flag = params.get("release", "0")
+            if flag not in ("0", "1", "true", "false"):
+                raise SplitRequestError(f"release must be 0, 1, true or false, got {flag!r}")
+            release = flag in ("1", "true")
+            sets = "k" in params or "codec" in params
+            if source == "controller" and cur.pinned and not release:
+                raise SplitRequestError(f"k is pinned at {cur.k} by a user; the controller may not change it")
+            if not sets and not release:
+                return cur  # `release=0` (or only a source) changes nothing: a pin stays a pin
+            pinned = source == "user" and not release and sets
+            new = SplitConfig(k=k, codec=codec, pinned=pinned, source=source)  # type: ignore[arg-type]
             if new != cur:
                 self._config = new
                 log.info("split set to k=%d codec=%s pinned=%s (%s)", new.k, new.codec, new.pinned, new.source)
             return new
+
+
+def parse_parameters(text: str) -> dict[str, str]:
+    """`k=5;release=1` -> {"k": "5", "release": "1"}; a repeated or empty key is an error."""
+    out: dict[str, str] = {}
+    for item in filter(None, text.split(";")):
+        key, _, value = item.partition("=")
+        if not key:
+            raise SplitRequestError(f"parameter {item!r} has no name")
+        if key in out:
+            raise SplitRequestError(f"parameter {key} given twice")
+        out[key] = value
+    return out
 
 
 def _params_from_payload(payload: bytes) -> dict[str, str]:
@@ -99,9 +120,11 @@ def serve_split(session: zenoh.Session, key: str, state: SplitState) -> zenoh.Qu
     enc = encoding_for(SplitConfig.SCHEMA)
 
     def on_query(query: zenoh.Query) -> None:
-        params = dict(query.parameters)  # type: ignore[call-overload]
         payload = query.payload.to_bytes() if query.payload is not None else None
         try:
+            params = parse_parameters(str(query.parameters))
+            if (params or payload) and any(c in str(query.key_expr) for c in "*$"):
+                raise SplitRequestError(f"{query.key_expr} names robots by a wildcard: set one robot's split at a time")
             applied = state.apply(params, payload)
         except SplitRequestError as exc:
             log.warning("split request refused: %s", exc)
