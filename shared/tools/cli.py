@@ -38,20 +38,44 @@ def _cmd_up(args: argparse.Namespace) -> int:
 def _cmd_down(args: argparse.Namespace) -> int:
     import os
     import signal
+    import time
 
-    pids = args.runs / "current" / "pids"
+    run = args.runs / "current"
+    pids = run / "pids"
     if not pids.is_file():
         print(f"no running deployment ({pids} not found)")
         return 1
-    for line in pids.read_text().split("\n"):
-        if line.strip():
-            name, pid = line.split()
+    services = [line.split() for line in pids.read_text().split("\n") if line.strip()]
+    launcher = run / "launcher.pid"
+    pid = int(launcher.read_text()) if launcher.is_file() else None
+    if pid is not None:
+        # The launcher supervises (it would restart a service stopped behind its back): stop it, and
+        # it stops the services in order.
+        try:
+            os.kill(pid, signal.SIGINT)
+        except ProcessLookupError:
+            pid = None
+    if pid is None:
+        for name, service_pid in services:
             try:
-                os.killpg(int(pid), signal.SIGINT)
-                print(f"stopping {name} ({pid})")
+                os.killpg(int(service_pid), signal.SIGINT)
             except ProcessLookupError:
-                print(f"{name} ({pid}) already stopped")
+                print(f"{name} ({service_pid}) already stopped")
+    for name, service_pid in services:
+        print(f"stopping {name} ({service_pid})")
+    deadline = time.monotonic() + 90
+    while pid is not None and _running(pid) and time.monotonic() < deadline:
+        time.sleep(0.2)
     return 0
+
+
+def _running(pid: int) -> bool:
+    """True while the process exists and is not a zombie waiting for its parent."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return False
+    return fields[0] != "Z"
 
 
 def _cmd_split(args: argparse.Namespace) -> int:

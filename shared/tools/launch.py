@@ -27,6 +27,7 @@ import zenoh
 
 from shared.runtime.settings import CURRENT_RUN
 from shared.runtime.sources import demo_scene
+from shared.tools.supervise import Supervisor
 from shared.tools.topology import Topology, merge, write_config
 from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
 from shared.vision.metrics import translation_error_cm
@@ -356,27 +357,53 @@ def run_pipeline(
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     started: list[Service] = []
     monitor = Monitor(demo_tag_map())
-    try:
-        for name in services:
-            started.append(start_service(name, run_config, run_dir, wrapper=wrappers.get(name)))
+    supervisor = Supervisor()
+    restart_at: dict[str, float] = {}
+
+    def start(name: str) -> Service:
+        service = start_service(name, run_config, run_dir, wrapper=wrappers.get(name))
+        supervisor.started(name)
+        return service
+
+    def write_pids() -> None:
         (run_dir / "pids").write_text("\n".join(f"{s.name} {s.popen.pid}" for s in started) + "\n")
+
+    try:
+        (run_dir / "launcher.pid").write_text(f"{os.getpid()}\n")  # `splittag down` stops the run through it
+        for name in services:
+            started.append(start(name))
+        write_pids()
         session = open_session(zs)
         subs = attach_monitor(session, robot_id, monitor)
         wait_for_liveliness(session, [keys.alive(robot_id, s) for s in services], timeout_secs=120)
         print(f"run {run_dir}: {', '.join(services)} alive; Ctrl-C stops", flush=True)
         t_end = None if duration_secs is None else time.monotonic() + duration_secs
-        while not stop.wait(1.0):
+        finished = False
+        while not finished and not stop.wait(1.0):
             if not quiet:
                 print(monitor.line(), flush=True)
             if t_end is not None and time.monotonic() > t_end:
                 break
-            if any(s.popen.poll() is not None for s in started if s.name != "camera"):
-                print("a service exited; stopping", flush=True)
-                break
-            camera = next((s for s in started if s.name == "camera"), None)
-            if camera is not None and camera.popen.poll() is not None:
-                time.sleep(1.0)  # let the last frames arrive
-                break
+            # Supervision: a dead service is restarted after a backoff; a finished camera ends the run.
+            for i, service in enumerate(started):
+                code = service.popen.poll()
+                if code is None:
+                    continue
+                if service.name not in restart_at:
+                    delay = supervisor.exited(service.name, code)
+                    if delay is None:
+                        print("the camera's source ended; stopping", flush=True)
+                        time.sleep(1.0)  # let the last frames arrive
+                        finished = True
+                        break
+                    n = supervisor.restarts[service.name]
+                    print(f"{service.name} exited ({code}); restart #{n} in {delay:.0f} s", flush=True)
+                    log.warning("%s exited with %s; restart #%d in %.0f s", service.name, code, n, delay)
+                    restart_at[service.name] = time.monotonic() + delay
+                elif time.monotonic() >= restart_at[service.name]:
+                    del restart_at[service.name]
+                    started[i] = start(service.name)
+                    write_pids()
         for s in subs:
             s.undeclare()
         session.close()
