@@ -6,7 +6,7 @@ import threading
 
 import pytest
 
-from shared.transport.flow import InFlightWindow
+from shared.transport.flow import EdgeWatch, InFlightWindow
 
 
 class FakeClock:
@@ -74,4 +74,22 @@ def test_an_answer_that_arrives_before_put_returns_frees_its_credit() -> None:
 
     with pytest.raises(ConnectionError):
         w.send(6, failing_put)
+    assert w.in_flight == 0
+
+
+def test_edge_watch_and_abandoning_the_frames_in_flight() -> None:
+    """Without the edge (token gone, or an answer overdue) the robot works on board; the credits of
+    frames that will never be answered are given back at once instead of after their expiry."""
+    watch = EdgeWatch(answer_timeout_secs=1.5)
+    assert watch.on_board(0.0)  # no edge seen yet
+    watch.edge_up()
+    assert not watch.on_board(1.0) and watch.on_board(1.6)  # an answer 1.6 s late
+    watch.edge_down()
+    assert watch.on_board(0.0) and watch.outages == 1
+    clock = FakeClock()
+    w = InFlightWindow(1, timeout_secs=10.0, clock=clock)
+    w.sent(1)
+    clock.now = 0.7
+    assert w.oldest_age_secs() == pytest.approx(0.7)
+    assert w.acquire(threading.Event(), poll_secs=0.01, abandon=lambda: True)
     assert w.in_flight == 0

@@ -101,6 +101,8 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
         return session.declare_subscriber(key, on_sample)
 
     def on_poses(m: TagPoses) -> None:
+        if m.payload_bytes == 0:
+            return  # computed on board while the edge was gone: nothing crossed the link
         if m.link is not None:
             core.add_crossing(m.payload_bytes, m.link)
         else:  # from an edge that predates link stamps: right only on an idle link

@@ -29,6 +29,11 @@ class RobotInferSettings(ServiceSettings):
     max_in_flight: int = Field(default=2, ge=0)  # frames sent without TagPoses back yet; 0 = no limit
     in_flight_timeout_secs: float = Field(default=2.0, gt=0)  # a frame never answered returns its credit
     profile_period_secs: float = Field(default=1.0, gt=0)  # ComputeProfile C(k) publication period
+    # Without the edge (its liveliness token gone, or an answer this late) the robot runs the whole
+    # chain on board (k = 7 + PnP) and publishes TagPoses itself; back to the split when the edge is.
+    edge_answer_timeout_secs: float = Field(default=1.5, gt=0)
+    tag_map: Path | None = None  # sizes for on-board PnP (as edge_infer's); unknown ids: default_tag_size_m
+    default_tag_size_m: float = Field(default=0.2, gt=0)
     # Emulating another robot CPU. The robot's compute is gamma times a reference: this CPU's own
     # (calibrated at start-up and measured live) or, when set, a fixed per-tag head time at every cut
     # (ms, cumulative up to k), which makes C(k) independent of the CPU the service runs on. Frames

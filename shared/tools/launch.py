@@ -281,6 +281,7 @@ def write_run_config(
         "common": {"run_dir": str(run_dir)},
         "edge_infer": {"tag_map": base.get("edge_infer", {}).get("tag_map", str(tag_map_path))},
         "slam": {"tag_map": base.get("slam", {}).get("tag_map", str(tag_map_path))},
+        "robot_infer": {"tag_map": base.get("robot_infer", {}).get("tag_map", str(tag_map_path))},
     }
     return write_config(
         run_dir / "config.toml", base=base_config, topology=topology, extra=merge(run_tables, extra or {})

@@ -45,8 +45,12 @@ class InFlightWindow:
             self._expire()
             return len(self._sent) < self.capacity
 
-    def acquire(self, stop: threading.Event, *, poll_secs: float = 0.05) -> bool:
-        """Wait for a credit; False once `stop` is set. Expiry is re-checked every poll_secs."""
+    def acquire(
+        self, stop: threading.Event, *, poll_secs: float = 0.05, abandon: Callable[[], bool] | None = None
+    ) -> bool:
+        """Wait for a credit; False once `stop` is set. Expiry is re-checked every poll_secs; when
+        `abandon()` says the answers will not come (the edge is gone), the frames in flight are
+        forgotten and the credit is there at once."""
         if self.capacity == 0:
             return not stop.is_set()
         with self._cond:
@@ -54,8 +58,22 @@ class InFlightWindow:
                 self._expire()
                 if len(self._sent) < self.capacity:
                     return True
+                if abandon is not None and abandon():
+                    self._sent.clear()
+                    return True
                 self._cond.wait(poll_secs)
         return False
+
+    def oldest_age_secs(self) -> float:
+        """How long the oldest unanswered frame has waited (0 when none)."""
+        with self._cond:
+            return self._clock() - min(self._sent.values()) if self._sent else 0.0
+
+    def clear(self) -> None:
+        """Forget every frame in flight (their answers will not come)."""
+        with self._cond:
+            self._sent.clear()
+            self._cond.notify_all()
 
     def sent(self, seq: int) -> None:
         """Record that frame `seq` left the robot."""
@@ -86,3 +104,32 @@ class InFlightWindow:
         """Frames currently in flight."""
         with self._cond:
             return len(self._sent)
+
+
+class EdgeWatch:
+    """Whether the robot must run the whole chain on board: the edge's liveliness token is gone, or a
+    frame sent to it has waited longer than answer_timeout_secs for its answer. Back to the split as
+    soon as the token is there again. Thread-safe (liveliness callbacks run on Zenoh's threads)."""
+
+    def __init__(self, *, answer_timeout_secs: float) -> None:
+        self.answer_timeout_secs = answer_timeout_secs
+        self._alive = False
+        self._lock = threading.Lock()
+        self.outages = 0
+
+    def edge_up(self) -> None:
+        """The edge's liveliness token appeared."""
+        with self._lock:
+            self._alive = True
+
+    def edge_down(self) -> None:
+        """The edge's liveliness token disappeared."""
+        with self._lock:
+            if self._alive:
+                self.outages += 1
+            self._alive = False
+
+    def on_board(self, oldest_in_flight_secs: float) -> bool:
+        """True when frames must not be sent to the edge now."""
+        with self._lock:
+            return not self._alive or oldest_in_flight_secs > self.answer_timeout_secs
