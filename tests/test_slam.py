@@ -24,6 +24,7 @@ from shared.slam.marker_slam import (
 from shared.vision.geometry import default_camera, lattice_in_tag, project
 from shared.vision.pnp import solve_planar_pnp
 from shared.vision.tagmap import load_tag_map
+from shared.vision.trajectory import read_tum
 from shared.wire.messages import HopTimings, TagPose, TagPoses
 
 CAM = default_camera()
@@ -229,3 +230,33 @@ def test_a_repeated_message_is_refused_and_a_restarted_camera_goes_on(tmp_path: 
     assert len(node.slam.trajectory()) == 20
     with pytest.raises(SlamInputError, match="future"):  # would make every real frame after it look stale
         node.on_poses(_tag_poses(99, time.time_ns() + 3_600 * 10**9, poses[0]))
+
+
+def test_a_restarted_slam_resumes_its_map_and_trajectory(tmp_path: Path) -> None:
+    """Killing slam used to lose the map (9 tags became 5) and the next save overwrote trajectory.tum
+    with less; now the checkpoint in run_dir is resumed: same anchor and world frame, the earlier
+    trajectory kept and continued, tags not seen again kept."""
+    settings = SlamServiceSettings(run_dir=tmp_path)
+    first = SlamNode(settings)
+    poses = _constant_velocity(30)
+    for i in range(15):
+        first.on_poses(_tag_poses(i, 1_000 + i, poses[i]))
+    first.write_outputs(tmp_path)  # the last checkpoint before the kill
+    before = load_tag_map(tmp_path / "map.json")
+    second = SlamNode(settings)  # the restarted process
+    assert second.resumed is not None and set(second.slam.known) == {t.id for t in before.tags}
+    for i in range(15, 30):
+        res = second.on_poses(_tag_poses(i, 1_000 + i, poses[i]))[0]
+        assert res.status == "tracking"
+    second.write_outputs(tmp_path)
+    after = load_tag_map(tmp_path / "map.json")
+    assert after.anchor_tag_id == before.anchor_tag_id
+    assert {t.id for t in after.tags} >= {t.id for t in before.tags}
+    stamps = [t for t, _ in read_tum(tmp_path / "trajectory.tum")]
+    assert len(stamps) == 30 and stamps == sorted(stamps)
+    # The world frame did not move: a tag's pose before and after agrees.
+    b = {t.id: np.asarray(t.world_from_tag) for t in before.tags}
+    a = {t.id: np.asarray(t.world_from_tag) for t in after.tags}
+    for tag_id in b:
+        np.testing.assert_allclose(a[tag_id][:3, 3], b[tag_id][:3, 3], atol=1e-6)
+    assert SlamNode(SlamServiceSettings(run_dir=tmp_path, resume=False)).resumed is None

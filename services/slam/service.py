@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import logging
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -27,8 +28,9 @@ from shared.slam.marker_slam import (
 )
 from shared.transport.session import declare_fifo_subscriber, encoding_for, next_sample
 from shared.vision.camera import CameraIntrinsics
+from shared.vision.files import atomic_write_text
 from shared.vision.tagmap import load_tag_map, tag_map_from_poses, write_tag_map
-from shared.vision.trajectory import write_tum
+from shared.vision.trajectory import read_tum, write_tum
 from shared.viz.recording import make_viz
 from shared.wire import keys
 from shared.wire.messages import CameraPose, MapTag, TagMap, TagPoses, decode, encode
@@ -43,11 +45,25 @@ class SlamNode:
         self.settings = settings
         known: dict[int, tuple[float, np.ndarray]] = {}
         slam_settings = settings.slam
-        if settings.tag_map is not None:
-            tm = load_tag_map(settings.tag_map)
-            known = {t.id: (t.size_m, np.asarray(t.world_from_tag)) for t in tm.tags if t.world_from_tag is not None}
-            if slam_settings.anchor_tag_id is None and tm.anchor_tag_id is not None:
-                slam_settings = slam_settings.model_copy(update={"anchor_tag_id": tm.anchor_tag_id})
+        # A restarted slam resumes from its last checkpoint in run_dir: the map it had (as priors, its
+        # anchor fixing the world frame) and the trajectory so far (kept, continued, never shortened).
+        checkpoint = settings.run_dir / "map.json"
+        self.resumed = load_tag_map(checkpoint) if settings.resume and checkpoint.is_file() else None
+        self.previous_trajectory = (
+            read_tum(settings.run_dir / "trajectory.tum")
+            if self.resumed is not None and (settings.run_dir / "trajectory.tum").is_file()
+            else []
+        )
+        for tm in (self.resumed, load_tag_map(settings.tag_map) if settings.tag_map is not None else None):
+            if tm is None:
+                continue  # the configured map (second) wins over the checkpoint
+            known |= {t.id: (t.size_m, np.asarray(t.world_from_tag)) for t in tm.tags if t.world_from_tag is not None}
+            if tm.anchor_tag_id is not None:
+                slam_settings = slam_settings.model_copy(
+                    update={"anchor_tag_id": slam_settings.anchor_tag_id or tm.anchor_tag_id}
+                )
+        if self.resumed is not None:
+            log.info("resuming from %s: %d tags, %d poses", checkpoint, len(known), len(self.previous_trajectory))
         self.slam = MarkerSlam(slam_settings, known_tags=known)
         self.indexer = FrameIndexer()  # repeated messages and restarted cameras (seq from 0 again)
         self.gt: dict[int, np.ndarray] = {}
@@ -99,17 +115,28 @@ class SlamNode:
             tag_map = self.slam.tag_map()
             gt = dict(self.gt)
             state = self.slam.state
-        write_tum(run_dir / "trajectory.tum", [(s / 1e9, p) for s, p in traj])
+        rows = [(s / 1e9, p) for s, p in traj]
+        if self.previous_trajectory:  # a resumed run: the earlier trajectory first, never less
+            last = self.previous_trajectory[-1][0]
+            rows = self.previous_trajectory + [(t, p) for t, p in rows if t > last]
+        write_tum(run_dir / "trajectory.tum", rows)
+        if self.resumed is not None:  # tags of the checkpoint not seen again are kept as they were
+            for t in self.resumed.tags:
+                if t.id not in tag_map and t.world_from_tag is not None:
+                    tag_map[t.id] = (t.size_m, np.asarray(t.world_from_tag))
         # map.json is a tag map (loadable as slam's or edge_infer's `tag_map`); run statistics go apart.
-        write_tag_map(run_dir / "map.json", tag_map_from_poses(tag_map, anchor_tag_id=self.slam.anchor))
+        anchor = (
+            self.slam.anchor if self.slam.anchor is not None else (self.resumed.anchor_tag_id if self.resumed else None)
+        )
+        write_tag_map(run_dir / "map.json", tag_map_from_poses(tag_map, anchor_tag_id=anchor))
         out: dict[str, Any] = {
             "frames": state.frames,
-            "poses": len(traj),
+            "poses": len(rows),
             "tags": len(tag_map),
             "lost_frames": state.lost,
             "rejected_ambiguous": state.rejected_ambiguous,
         }
-        (run_dir / "slam.json").write_text(json.dumps(out, indent=2))
+        atomic_write_text(run_dir / "slam.json", json.dumps(out, indent=2))
         if gt:
             write_tum(run_dir / "groundtruth.tum", [(s / 1e9, p) for s, p in sorted(gt.items())])
             try:
@@ -172,10 +199,14 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
             viz.trajectory(cam.capture_nanos, "world/trajectory", traj)
             viz.trajectory(cam.capture_nanos, "world/groundtruth", gt)
 
+    last_checkpoint = time.monotonic()
     try:
         while (sample := next_sample(poses_sub, stop)) is not None:
             payload = sample.payload.to_bytes()
             guard.run("tag_poses", len(payload), lambda: process(payload))  # noqa: B023 (called at once)
+            if time.monotonic() - last_checkpoint >= settings.checkpoint_period_secs:
+                node.write_outputs(settings.run_dir)  # atomic: a kill never leaves half a file, or less
+                last_checkpoint = time.monotonic()
     finally:
         stats.undeclare()
         token.undeclare()

@@ -45,6 +45,9 @@ class SlamSettings(BaseModel):
     focal_px: float = Field(default=1045.0, gt=0)
     min_pixel_sigma: float = Field(default=0.5, gt=0)
     anchor_sigma: float = 1e-6
+    # Tags whose world pose a tag map (or a resumed checkpoint) gives are priors with this sigma
+    # (rad and m) when first seen, so the map is kept and any mapped tag in view localises the camera.
+    known_tag_sigma: float = Field(default=1e-3, gt=0)
     ambiguity_ratio: float = Field(default=2.0, gt=1)  # alt/chosen error below this = ambiguous
     disagreement_deg: float = Field(default=10.0, gt=0)
     huber_k: float = 1.5
@@ -264,6 +267,18 @@ class MarkerSlam:
         self.state.frames += 1
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         map_changed = False
+        for o in observations:
+            if o.tag_id in self.known and o.tag_id not in self.tags:
+                size, pose = self.known[o.tag_id]
+                anchor = o.tag_id == s.anchor_tag_id or (self.anchor is None and s.anchor_tag_id is None)
+                sigma = s.anchor_sigma if anchor else s.known_tag_sigma
+                graph.add(gtsam.PriorFactorPose3(L(o.tag_id), _pose3(pose), gtsam.noiseModel.Isotropic.Sigma(6, sigma)))
+                values.insert(L(o.tag_id), _pose3(pose))
+                self.tags[o.tag_id] = size
+                self._estimate.insert(L(o.tag_id), _pose3(pose))
+                if anchor:
+                    self.anchor = o.tag_id
+                map_changed = True
         if self.anchor is None and not s.localisation_only:
             chosen = [o for o in observations if s.anchor_tag_id is None or o.tag_id == s.anchor_tag_id]
             if chosen:

@@ -11,6 +11,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from shared.vision.files import atomic_write_text
 from shared.vision.geometry import GeometryError
 
 
@@ -50,7 +51,7 @@ def load_tag_map(path: Path) -> TagMapFile:
 
 def write_tag_map(path: Path, tag_map: TagMapFile) -> None:
     """Write a tag map as JSON (loadable by `load_tag_map`)."""
-    Path(path).write_text(json.dumps(tag_map.model_dump(exclude_none=True), indent=2))
+    atomic_write_text(Path(path), json.dumps(tag_map.model_dump(exclude_none=True), indent=2))
 
 
 def tag_map_from_poses(

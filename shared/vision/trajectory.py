@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from shared.vision.files import atomic_write_text
 from shared.vision.geometry import Array, GeometryError, make_pose
 
 
@@ -31,4 +32,4 @@ def write_tum(path: Path, rows: list[tuple[float, Array]]) -> None:
     for t, pose in rows:
         q = Rotation.from_matrix(pose[:3, :3]).as_quat()
         lines.append(f"{t:.9f} " + " ".join(f"{v:.9f}" for v in (*pose[:3, 3], *q)))
-    Path(path).write_text("\n".join(lines) + "\n")
+    atomic_write_text(Path(path), "\n".join(lines) + "\n")
