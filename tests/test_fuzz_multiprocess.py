@@ -154,6 +154,20 @@ def test_no_message_kills_a_service(tmp_path: Path, deploy_config: DeployConfig)
                     _wait(lambda: sum(_rejected(session, service).values()) >= i + 1, 30, f"{service} reject #{i + 1}")  # noqa: B023
                 pub.undeclare()
 
+            # A ground truth that is no rigid pose (slam writes ground truth out as TUM at each checkpoint).
+            gt_pub = session.declare_publisher(keys.ground_truth(ROBOT))
+            gt_pub.put(
+                _with(
+                    ex["CameraPose"],
+                    ("world_from_camera",),
+                    msgpack.unpackb(
+                        msgpack.packb({"dtype": "float64", "shape": [4, 4], "data": bytes(128)}), raw=False
+                    ),
+                )
+            )
+            _wait(lambda: _rejected(session, "slam").get("ground_truth: GeometryError", 0) >= 1, 30, "gt reject")
+            gt_pub.undeclare()
+
             # 2. A seeded mutation corpus on every input key (bounded in time: no waiting per message).
             corpus = {
                 frames_key: ex["Frame"],

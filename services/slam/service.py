@@ -29,6 +29,7 @@ from shared.slam.marker_slam import (
 from shared.transport.session import declare_fifo_subscriber, encoding_for, next_sample
 from shared.vision.camera import CameraIntrinsics
 from shared.vision.files import atomic_write_text
+from shared.vision.geometry import check_rigid
 from shared.vision.tagmap import load_tag_map, tag_map_from_poses, write_tag_map
 from shared.vision.trajectory import read_tum, write_tum
 from shared.viz.recording import make_viz
@@ -161,6 +162,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
     def on_gt(sample: zenoh.Sample) -> None:
         def keep(payload: bytes) -> None:
             msg = decode(payload, CameraPose)
+            check_rigid(msg.world_from_camera, "ground truth world_from_camera")  # it is written out as TUM
             with node.lock:
                 node.gt[msg.capture_nanos] = np.asarray(msg.world_from_camera)
 
@@ -169,7 +171,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
 
     def on_map_query(query: zenoh.Query) -> None:
         if query.parameters.get("save") in ("1", "true"):
-            node.write_outputs(settings.run_dir)
+            guard.run("save", 0, lambda: node.write_outputs(settings.run_dir))
         query.reply(query.key_expr, encode(node.current_map(rid)), encoding=encoding_for(TagMap.SCHEMA))
 
     gt_sub = session.declare_subscriber(keys.ground_truth(rid), on_gt)
@@ -205,13 +207,14 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
             payload = sample.payload.to_bytes()
             guard.run("tag_poses", len(payload), lambda: process(payload))  # noqa: B023 (called at once)
             if time.monotonic() - last_checkpoint >= settings.checkpoint_period_secs:
-                node.write_outputs(settings.run_dir)  # atomic: a kill never leaves half a file, or less
+                # Atomic: a kill never leaves half a file, or less. A failing write is counted, not fatal.
+                guard.run("checkpoint", 0, lambda: node.write_outputs(settings.run_dir))
                 last_checkpoint = time.monotonic()
     finally:
         stats.undeclare()
         token.undeclare()
         queryable.undeclare()
         gt_sub.undeclare()
-        summary = node.write_outputs(settings.run_dir)
+        summary = guard.run("final save", 0, lambda: node.write_outputs(settings.run_dir))
         log.info("slam outputs in %s: %s", settings.run_dir, summary)
         viz.close()

@@ -271,6 +271,19 @@ def keypoints_to_image(keypoints_norm: Array, roi_to_image: Array) -> Array:
 # ----------------------------------------------------------------------------------------------
 
 
+def check_rigid(m: Array, what: str, *, max_translation_m: float = 1e3) -> None:
+    """Raise GeometryError unless `m` is a finite 4x4 rigid transform (rotation orthonormal and
+    right-handed, bottom row 0 0 0 1) with a translation of at most max_translation_m."""
+    m = np.asarray(m, np.float64)
+    if m.shape != (4, 4) or not np.isfinite(m).all():
+        raise GeometryError(f"{what} is not a finite 4x4 matrix")
+    r = m[:3, :3]
+    if not np.allclose(m[3], [0, 0, 0, 1]) or not np.allclose(r @ r.T, np.eye(3), atol=1e-4) or np.linalg.det(r) < 0:
+        raise GeometryError(f"{what} is not a rigid transform")
+    if np.linalg.norm(m[:3, 3]) > max_translation_m:
+        raise GeometryError(f"{what} translates by more than {max_translation_m} m")
+
+
 def make_pose(rotation: Array, translation: Array | list[float]) -> Array:
     """4x4 rigid transform from a 3x3 rotation and a translation."""
     pose = np.eye(4)
