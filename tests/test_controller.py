@@ -10,14 +10,7 @@ import pytest
 from shared.control.controller import ControllerTuning, SplitController
 from shared.wire.messages import ComputeProfile, Features, decode, encode
 from shared.wire.sizing import features_payload_bytes, probe_features
-
-
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 100.0
-
-    def __call__(self) -> float:
-        return self.now
+from tests.fakes import FakeClock
 
 
 def _profile(side: str, ms: list[float], tags: float = 4.0) -> ComputeProfile:
@@ -44,7 +37,7 @@ def test_payload_bytes_are_exact_wire_sizes() -> None:
 
 
 def test_decision_follows_the_link_and_respects_pinning() -> None:
-    clock = FakeClock()
+    clock = FakeClock(100.0)
     core = SplitController(ControllerTuning(dwell=1), clock=clock)
     state = core.decide(robot_id="r1", current_k=7, pinned=False)
     assert state.chosen_k == 7 and "waiting" in state.reason
@@ -68,7 +61,7 @@ def test_decision_follows_the_link_and_respects_pinning() -> None:
 
 
 def test_probe_sizes_rotate_to_what_was_not_seen() -> None:
-    clock = FakeClock()
+    clock = FakeClock(100.0)
     core = SplitController(clock=clock)
     sizes = [16 * 1024, 64 * 1024]
     assert core.probe_size_due(sizes, 0.3) in sizes

@@ -7,14 +7,7 @@ import threading
 import pytest
 
 from shared.transport.flow import EdgeWatch, InFlightWindow
-
-
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
+from tests.fakes import FakeClock
 
 
 def test_capacity_credits_and_done() -> None:

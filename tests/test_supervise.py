@@ -4,14 +4,7 @@ finished camera ends the deployment."""
 from __future__ import annotations
 
 from shared.tools.supervise import RestartPolicy, Supervisor
-
-
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
+from tests.fakes import FakeClock
 
 
 def test_backoff_doubles_for_quick_deaths_and_resets_after_a_healthy_run() -> None:
