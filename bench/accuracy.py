@@ -113,13 +113,15 @@ class SplittagUnavailable(RuntimeError):
     """The product's perception chain could not be imported or loaded."""
 
 
-def splittag_method(weights_dir: Path) -> Method:
+def splittag_method(weights_dir: Path, *, fuse: bool = True) -> Method:
     """The product's chain (stage 1 -> ROI -> split network) as a "lattice16" method; imports the project here only.
 
-    The tag map's size only affects `perceive`'s own pose, which the bench ignores (it solves the pose
-    from the keypoints with the true size).
+    `fuse=True` is the product's default (the lattice fitted to the network's points and stage 1's
+    corners with the sigmas calibrated into the weights' config.json); `fuse=False` scores the
+    network's 16 points as they are. The tag map's size only affects `perceive`'s own pose, which the
+    bench ignores (it solves the pose from the keypoints with the true size).
     """
-    from shared.model.weights import load_model
+    from shared.model.weights import load_keypoint_fusion, load_model
     from shared.perception.single import perceive
     from shared.vision.camera import CameraIntrinsics
     from shared.vision.detector import TagDetector
@@ -127,6 +129,7 @@ def splittag_method(weights_dir: Path) -> Method:
 
     try:
         model = load_model(Path(weights_dir))
+        fusion = load_keypoint_fusion(Path(weights_dir)) if fuse else None
     except Exception as exc:
         raise SplittagUnavailable(f"cannot load weights from {weights_dir}: {exc}") from exc
     detector = TagDetector()
@@ -143,7 +146,7 @@ def splittag_method(weights_dir: Path) -> Method:
             distortion_model="none",
             distortion=[],
         )
-        results = perceive(image, camera=camera, detector=detector, model=model, tag_map=tag_map)
+        results = perceive(image, camera=camera, detector=detector, model=model, tag_map=tag_map, fusion=fusion)
         return [
             Prediction(int(r.detection.tag_id), np.asarray(r.keypoints_px, np.float64), "lattice16")
             for r in results
@@ -446,7 +449,11 @@ def main() -> None:
     apriltag = AprilTagMethod()
     methods: dict[str, Method] = {"apriltag3 (corners)": apriltag}
     if args.weights is not None:
-        methods["splittag (lattice)"] = splittag_method(args.weights)
+        from shared.model.weights import load_keypoint_fusion
+
+        methods["splittag (network)"] = splittag_method(args.weights, fuse=False)
+        if load_keypoint_fusion(args.weights) is not None:
+            methods["splittag (fused)"] = splittag_method(args.weights)
     t0 = time.perf_counter()
     try:
         table, rows, secs = run(n=args.n, seed=args.seed, settings=settings, methods=methods, workers=args.workers)

@@ -177,3 +177,27 @@ def test_bad_images(image: object, match: str) -> None:
         check_image(image)
     with pytest.raises(GeometryError, match=match):
         TagDetector().detect(image)  # type: ignore[arg-type]
+
+
+def test_nearest_texture_sampling_gives_exact_area_coverage() -> None:
+    """A fronto-parallel tag whose black square's left edge sits at x = 100.3 (pixel i covers
+    [i - 0.5, i + 0.5]): column 100 is 20 % black, to within the 1/8-pixel supersampling."""
+    size_m, px_per_m = 0.16, 1000.0  # 20 px per cell
+    left_px, top_px = 100.3, 60.0  # the black square's top-left corner in the image
+    h = np.array(
+        [[px_per_m, 0, left_px + size_m / 2 * px_per_m], [0, px_per_m, top_px + size_m / 2 * px_per_m], [0, 0, 1]]
+    )
+    canvas = np.ones((260, 300), np.float32)
+    render_tag(
+        canvas,
+        tag_id=0,
+        tag_size_m=size_m,
+        tag_plane_to_image=h,
+        supersample=8,
+        albedo=(0.0, 1.0),
+        texture_sampling="nearest",
+    )
+    # Rows inside the black border (its first cell is black all along the left edge).
+    column = canvas[70:210, 100]
+    np.testing.assert_allclose(column, 0.8, atol=1 / 16)
+    assert (canvas[70:210, 99] == 1.0).all() and (canvas[70:210, 101:118] == 0.0).all()

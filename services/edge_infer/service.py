@@ -13,7 +13,7 @@ import zenoh
 from services.edge_infer.settings import EdgeInferSettings
 from shared.control.compute import ComputeEstimator, tail_per_tag_ms
 from shared.model.profile import calibrate_cumulative_ms, calibrate_pnp_ms, warm_up
-from shared.model.weights import load_model
+from shared.model.weights import load_keypoint_fusion, load_model
 from shared.perception.split import edge_step
 from shared.runtime.guard import InputGuard, serve_stats
 from shared.transport.probe import ArrivalClock, serve_echo
@@ -30,6 +30,7 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
     """Serve until `stop` is set. Malformed or inconsistent Features are rejected, counted and logged."""
     torch.set_num_threads(settings.threads)
     model = load_model(settings.weights)
+    fusion = load_keypoint_fusion(settings.weights) if settings.fuse_corners else None
     warm_up(model, bf16=settings.bf16)
     emulated = settings.emulated_ms_per_tag_by_k
     estimator = ComputeEstimator(
@@ -82,6 +83,7 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
             previous_receive_nanos=previous,
             payload_bytes=len(payload),
             bf16=settings.bf16,
+            fusion=fusion,
             min_compute_secs=len(features.tags) * emulated[features.split_k] / 1e3 if emulated else 0.0,
         )
         pub.put(encode(poses))

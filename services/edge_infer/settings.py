@@ -19,6 +19,9 @@ class EdgeInferSettings(ServiceSettings):
     model_config = SettingsConfigDict(**{**ServiceSettings.model_config, "env_prefix": "SPLITTAG_EDGE_INFER_"})
 
     weights: Path = Path("models")
+    # Fit each tag's 16 points to the network's keypoints and stage 1's corners, weighted by the
+    # sigmas calibrated into the weights' config.json (no calibration there: the network's points).
+    fuse_corners: bool = True
     tag_map: Path | None = None  # YAML/JSON with per-tag sizes; unknown ids use default_tag_size_m
     default_tag_size_m: float = Field(default=0.2, gt=0)
     bf16: bool = True

@@ -13,7 +13,7 @@ import zenoh
 from services.robot_infer.settings import RobotInferSettings
 from shared.control.compute import ComputeEstimator, head_per_tag_ms
 from shared.model.profile import calibrate_cumulative_ms, warm_up
-from shared.model.weights import load_model
+from shared.model.weights import load_keypoint_fusion, load_model
 from shared.perception.split import edge_step, robot_step
 from shared.runtime.guard import InputGuard, serve_stats
 from shared.transport.flow import EdgeWatch, InFlightWindow
@@ -33,6 +33,7 @@ def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading
     """Process frames until `stop` is set."""
     torch.set_num_threads(settings.threads)
     model = load_model(settings.weights)
+    fusion = load_keypoint_fusion(settings.weights) if settings.fuse_corners else None
     warm_up(model, bf16=settings.bf16)
     emulated = settings.emulated_ms_per_tag_by_k
     per_tag_ms = emulated or head_per_tag_ms(calibrate_cumulative_ms(model, bf16=settings.bf16))
@@ -99,6 +100,7 @@ def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading
             previous_receive_nanos=0,
             payload_bytes=0,  # nothing crossed the link
             bf16=settings.bf16,
+            fusion=fusion,
         )
         poses_pub.put(encode(poses.model_copy(update={"link": None})))  # nothing crossed the link
         on_board_frames += 1

@@ -21,6 +21,9 @@ class RobotInferSettings(ServiceSettings):
     model_config = SettingsConfigDict(**{**ServiceSettings.model_config, "env_prefix": "SPLITTAG_ROBOT_INFER_"})
 
     weights: Path = Path("models")
+    # Fit each tag's 16 points to the network's keypoints and stage 1's corners, weighted by the
+    # sigmas calibrated into the weights' config.json (no calibration there: the network's points).
+    fuse_corners: bool = True
     split_k: int = Field(default=7, ge=0, le=7)
     codec: CodecName = "fp16"
     detector: DetectorSettings = Field(default_factory=DetectorSettings)

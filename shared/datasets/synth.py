@@ -2,8 +2,18 @@
 
 Per sample (deterministic from (seed, index)): a random tag36h11 id and size, a distance
 (log-uniform) and a tilt (uniform) sampled independently, a random in-plane rotation and image
-position; the tag is rendered anti-aliased (4x supersampling) over a procedural background,
-then lit, blurred (Gaussian or motion), noised, gamma-corrected and JPEG-compressed. The stage-1
+position; the tag is rendered anti-aliased over a procedural background, optionally crossed by an
+occluder, then degraded like a camera does (`camera_model`):
+
+- "linear" (data sets from v2 on): light falls on the sensor (exposure, lighting gradient,
+  vignetting), optics and motion blur it (defocus disc or Gaussian; linear motion blur up to
+  `max_motion_blur_px` at any angle, centred, so the truth is mid-exposure), the sensor adds shot and
+  read noise, and only then the camera's tone curve (gamma, contrast, brightness) and JPEG apply.
+  A tone curve after blur moves a blurred edge's apparent position; training on it is what teaches
+  the network where the geometric edge is.
+- "display" (the first data sets): gamma before blur, motion blur 3-9 px; it taught the network that
+  a blurred edge's 50 % crossing is the edge, which a real camera's tone curve makes false (the
+  grid's scale bias found by bench/accuracy.py). The stage-1
 detector runs on the rendered image; a sample whose tag it misses is counted as a failure (never
 replaced by ground truth). The detected quad is perturbed (DeepTag's stage-2 strategy), warped to
 the 256x256 ROI, and the 16 keypoints are labelled by exact projection through the same
@@ -13,7 +23,7 @@ homography. Only a window around the tag is materialised; coordinates stay full-
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -53,13 +63,20 @@ class SynthSettings(BaseModel):
     distance_m: tuple[float, float] = (0.3, 6.0)
     max_tilt_deg: float = Field(default=70.0, ge=0, lt=89)
     perturb_frac: float = Field(default=0.06, ge=0, le=0.15)  # of the quad's mean side, per corner
+    # Share of samples whose ROI is warped from stage 1's quad as it is, as at inference; the rest
+    # are perturbed (robustness to a poor or predicted quad). The first data sets perturbed all.
+    p_unperturbed: float = Field(default=0.5, ge=0, le=1)
     roi_margin: float = ROI_MARGIN
-    supersample: int = Field(default=4, ge=1, le=8)
+    supersample: int = Field(default=8, ge=1, le=16)
     p_gaussian_blur: float = 0.5
     p_motion_blur: float = 0.25
     p_jpeg: float = 0.5
     max_noise_sigma: float = 0.03
     detector: DetectorSettings = DetectorSettings()
+    camera_model: Literal["linear", "display"] = "linear"
+    texture_sampling: Literal["nearest", "bilinear"] = "nearest"
+    max_motion_blur_px: float = Field(default=15.0, ge=3)
+    p_occluder: float = Field(default=0.2, ge=0, le=1)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -76,8 +93,111 @@ def _motion_kernel(rng: np.random.Generator) -> NDArray[np.float32]:
     return k / max(1e-6, float(k.sum()))
 
 
+def line_kernel(length_px: float, angle_rad: float) -> NDArray[np.float32]:
+    """Linear motion-blur kernel of `length_px` at `angle_rad`, centred on its middle pixel."""
+    r = math.ceil(length_px / 2) + 1
+    k = np.zeros((2 * r + 1, 2 * r + 1), np.float32)
+    n = max(2, math.ceil(length_px * 4) + 1)
+    for t in np.linspace(-length_px / 2, length_px / 2, n):
+        x, y = r + t * math.cos(angle_rad), r + t * math.sin(angle_rad)
+        ix, iy = math.floor(x), math.floor(y)
+        fx, fy = x - ix, y - iy
+        k[iy, ix] += (1 - fx) * (1 - fy)
+        k[iy, ix + 1] += fx * (1 - fy)
+        k[iy + 1, ix] += (1 - fx) * fy
+        k[iy + 1, ix + 1] += fx * fy
+    return k / float(k.sum())
+
+
+def disc_kernel(radius_px: float) -> NDArray[np.float32]:
+    """Defocus: a uniform disc of `radius_px`, anti-aliased by 8x supersampling."""
+    r = math.ceil(radius_px) + 1
+    f = 8
+    g = (np.arange((2 * r + 1) * f) + 0.5) / f - (r + 0.5)
+    inside = (g[None, :] ** 2 + g[:, None] ** 2 <= radius_px**2).astype(np.float32)
+    k = inside.reshape(2 * r + 1, f, 2 * r + 1, f).mean(axis=(1, 3))
+    return (k / float(k.sum())).astype(np.float32)
+
+
+def augment_linear(rng: np.random.Generator, img: Image, s: SynthSettings) -> NDArray[np.uint8]:
+    """Camera-order degradation of a linear-light image in [0, 1] (see the module doc); returns uint8."""
+    h, w = img.shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    theta = rng.uniform(0, 2 * np.pi)
+    ramp = (xx * math.cos(theta) + yy * math.sin(theta)) / max(h, w) - 0.5
+    gain = float(rng.uniform(0.5, 1.3)) * np.clip(1.0 + rng.uniform(0, 0.8) * ramp, 0.2, None)
+    if rng.random() < 0.4:  # vignetting about a random centre (the window is part of a larger image)
+        cy, cx = rng.uniform(-h, 2 * h), rng.uniform(-w, 2 * w)
+        r2 = ((xx - cx) ** 2 + (yy - cy) ** 2) / float(max(h, w) ** 2 * 4)
+        gain = gain / (1.0 + rng.uniform(0.2, 0.8) * r2) ** 2
+    img = (img * gain).astype(np.float32)
+    u = rng.random()
+    if u < 0.3:
+        img = cv2.filter2D(img, -1, disc_kernel(float(rng.uniform(0.5, 2.5))), borderType=cv2.BORDER_REFLECT)
+    elif u < 0.55:
+        img = cv2.GaussianBlur(img, (0, 0), float(rng.uniform(0.3, 1.5)), borderType=cv2.BORDER_REFLECT)
+    if rng.random() < 0.6:
+        length = float(rng.uniform(0.5, s.max_motion_blur_px))
+        kernel = line_kernel(length, float(rng.uniform(0, 2 * np.pi)))
+        img = cv2.filter2D(img, -1, kernel, borderType=cv2.BORDER_REFLECT)
+    full_well = float(math.exp(rng.uniform(math.log(300.0), math.log(6000.0))))
+    read_sigma = float(rng.uniform(0.5, 3.5)) / 255.0
+    sigma = np.sqrt(np.clip(img, 0, None) / full_well + read_sigma**2)
+    img = img + sigma * rng.standard_normal(img.shape, dtype=np.float32)
+    exponent = float(math.exp(rng.uniform(math.log(1 / 1.8), math.log(1.8))))
+    img = np.clip(img, 0.0, 1.0) ** exponent
+    img = (img - 0.5) * rng.uniform(0.65, 1.25) + 0.5 + rng.uniform(-0.1, 0.1)
+    out = to_uint8(np.clip(img, 0, 1).astype(np.float32))
+    if rng.random() < 0.65:
+        ok, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(40, 96))])
+        assert ok
+        out = np.asarray(cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE), dtype=np.uint8)
+    return out
+
+
+def draw_occluder(rng: np.random.Generator, canvas: Image, corners_px: Array, origin_px: tuple[int, int]) -> None:
+    """A cable (thick line) or a fingertip (ellipse) crossing one of the tag's edges, in place.
+
+    It covers at most a small part of the black square and leaves the outer corners visible (the
+    case a robot meets: a hand or a cable in front of the tag)."""
+    x0, y0 = origin_px
+    q = corners_px - np.array([x0, y0])
+    side = float(np.mean(np.linalg.norm(np.roll(q, -1, 0) - q, axis=1)))
+    e = int(rng.integers(0, 4))
+    a, b = q[e], q[(e + 1) % 4]
+    centre = q.mean(axis=0)
+    t = float(rng.uniform(0.3, 0.7))
+    on_edge = a + t * (b - a)
+    inward = centre - on_edge
+    inward /= max(1e-9, float(np.linalg.norm(inward)))
+    value = float(rng.choice([rng.uniform(0.0, 0.2), rng.uniform(0.6, 1.0)]))
+    sh = 4  # sub-pixel bits for the anti-aliased fill
+    if rng.random() < 0.5:  # cable: a straight band across the edge
+        direction = inward + rng.normal(0, 0.4, 2)
+        direction /= np.linalg.norm(direction)
+        p0 = on_edge - direction * side * 0.6
+        p1 = on_edge + direction * side * rng.uniform(0.05, 0.25)
+        thickness = max(2, round(side * rng.uniform(0.03, 0.08)))
+        pts = np.rint(np.array([p0, p1]) * (1 << sh)).astype(np.int32)
+        cv2.line(canvas, tuple(pts[0]), tuple(pts[1]), value, thickness, cv2.LINE_AA, sh)
+    else:  # fingertip: an ellipse poking in from outside
+        axes = (side * rng.uniform(0.08, 0.18), side * rng.uniform(0.2, 0.4))
+        c = on_edge - inward * axes[1] * rng.uniform(0.3, 0.8)
+        angle = math.degrees(math.atan2(inward[1], inward[0])) + 90
+        cen = tuple(int(v) for v in np.rint(c * (1 << sh)))
+        ax = tuple(int(v) for v in np.rint(np.array(axes) * (1 << sh)))
+        cv2.ellipse(canvas, cen, ax, angle, 0, 360, value, -1, cv2.LINE_AA, sh)
+
+
 def augment(rng: np.random.Generator, img: Image, s: SynthSettings) -> NDArray[np.uint8]:
-    """Lighting gradient, brightness/contrast, gamma, blur, noise, JPEG; returns uint8."""
+    """Degrade a rendered window per `s.camera_model`; returns uint8."""
+    if s.camera_model == "linear":
+        return augment_linear(rng, img, s)
+    return augment_display(rng, img, s)
+
+
+def augment_display(rng: np.random.Generator, img: Image, s: SynthSettings) -> NDArray[np.uint8]:
+    """The first data sets' order: lighting gradient, brightness/contrast, gamma, blur, noise, JPEG."""
     h, w = img.shape
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
     theta = rng.uniform(0, 2 * np.pi)
@@ -181,7 +301,7 @@ def make_sample(
     x1 = int(min(camera.width, math.ceil(border_px[:, 0].max() + pad) + 1))
     y1 = int(min(camera.height, math.ceil(border_px[:, 1].max() + pad) + 1))
     canvas = procedural_background(rng, y1 - y0, x1 - x0)
-    albedo = (float(rng.uniform(0.0, 0.15)), float(rng.uniform(0.8, 1.0)))
+    albedo = (float(rng.uniform(0.0, 0.15)), float(rng.uniform(0.5 if s.camera_model == "linear" else 0.8, 1.0)))
     render_tag(
         canvas,
         tag_id=tag_id,
@@ -190,7 +310,11 @@ def make_sample(
         origin_px=(x0, y0),
         supersample=s.supersample,
         albedo=albedo,
+        texture_sampling=s.texture_sampling,
     )
+    if s.camera_model == "linear" and rng.random() < s.p_occluder:
+        corners_true = project(camera, pose, corners_in_tag(size))
+        draw_occluder(rng, canvas, corners_true, (x0, y0))
     window = augment(rng, canvas, s)
     found = [d for d in detector.detect(window) if d.tag_id == tag_id]
     if not found:
@@ -205,7 +329,7 @@ def make_sample(
         size_m=size,
         tag_id=tag_id,
         index=index,
-        perturb_frac=s.perturb_frac,
+        perturb_frac=0.0 if rng.random() < s.p_unperturbed else s.perturb_frac,
         roi_margin=s.roi_margin,
     ), meta
 

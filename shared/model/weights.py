@@ -14,6 +14,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from shared.model.net import OFFSET_SCALE, SplitKeypointNet
+from shared.vision.fusion import KeypointFusion
 from shared.vision.geometry import ROI_MARGIN, ROI_SIZE
 
 CONFIG_VERSION: Final[str] = "splittag/model-config/v1"
@@ -83,3 +84,36 @@ def load_model(folder: Path, *, device: str = "cpu") -> SplitKeypointNet:
     model = model.to(device).eval()
     # channels_last weights: the bf16 convolutions are ~2.5x faster on this CPU than with NCHW weights.
     return model.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+
+
+def _read_config(folder: Path) -> dict[str, Any]:
+    cfg_path = Path(folder) / "config.json"
+    try:
+        config = json.loads(cfg_path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise WeightsError(f"{cfg_path}: cannot read ({exc})") from exc
+    if not isinstance(config, dict):
+        raise WeightsError(f"{cfg_path}: not a JSON object")
+    return config
+
+
+def load_keypoint_fusion(folder: Path) -> KeypointFusion | None:
+    """The model's calibrated keypoint/corner sigmas (config.json `keypoint_fusion`), or None when the
+    weights were never calibrated (then the network's 16 points are used as they are)."""
+    folder = Path(folder)
+    if folder.is_file():
+        folder = folder.parent
+    block = _read_config(folder).get("keypoint_fusion")
+    if block is None:
+        return None
+    try:
+        return KeypointFusion.model_validate(block)
+    except ValueError as exc:
+        raise WeightsError(f"{folder / 'config.json'}: keypoint_fusion: {exc}") from exc
+
+
+def write_keypoint_fusion(folder: Path, fusion: KeypointFusion) -> None:
+    """Store the calibrated sigmas in the weights folder's config.json (the rest is kept)."""
+    config = _read_config(folder)
+    config["keypoint_fusion"] = fusion.model_dump(mode="json")
+    (Path(folder) / "config.json").write_text(json.dumps(config, indent=2))

@@ -17,6 +17,7 @@ from shared.model.infer import keypoints
 from shared.model.net import SplitKeypointNet
 from shared.vision.camera import CameraIntrinsics
 from shared.vision.detector import Detection, TagDetector
+from shared.vision.fusion import KeypointFusion
 from shared.vision.geometry import (
     Array,
     corners_in_tag,
@@ -99,8 +100,9 @@ def perceive(
     detector: TagDetector,
     model: SplitKeypointNet | None,
     tag_map: TagMapFile,
+    fusion: KeypointFusion | None = None,
 ) -> list[TagResult]:
-    """Stage 1, the network (if given) and PnP on one grayscale image."""
+    """Stage 1, the network (if given) and PnP on one grayscale image; `fusion` as in `edge_step`."""
     detections = detector.detect(image)
     rois, homs = extract_rois(image, detections)
     kps = run_network(model, rois) if model is not None else None
@@ -110,6 +112,8 @@ def perceive(
         corner_pose = solve_planar_pnp(camera, corners_in_tag(size), d.corners_px)
         if kps is not None:
             kp_px = keypoints_to_image(kps[i], homs[i])
+            if fusion is not None:
+                kp_px = fusion.apply(kp_px, d.corners_px, homs[i])
             pose = solve_planar_pnp(camera, lattice_in_tag(size), kp_px)
         else:
             kp_px, pose = None, None

@@ -16,6 +16,7 @@ from shared.model.infer import run_head, run_tail
 from shared.model.net import SplitKeypointNet
 from shared.perception.single import extract_rois
 from shared.vision.detector import TagDetector
+from shared.vision.fusion import KeypointFusion
 from shared.vision.geometry import keypoints_to_image, lattice_in_tag
 from shared.vision.pnp import solve_planar_pnp
 from shared.vision.tagmap import TagMapFile
@@ -86,11 +87,13 @@ def edge_step(
     payload_bytes: int,
     bf16: bool = True,
     min_compute_secs: float = 0.0,
+    fusion: KeypointFusion | None = None,
 ) -> TagPoses:
     """Validate, run the tail for the announced k, map keypoints to the image, solve PnP per tag.
     `receive_nanos`/`previous_receive_nanos`: when this message and the one ahead of it on the uplink
     arrived (edge clock, 0 = none), stamped where the bytes came in. `min_compute_secs` emulates a
-    slower edge: the step sleeps until it has taken at least that long."""
+    slower edge: the step sleeps until it has taken at least that long. `fusion`: fit the lattice to
+    the network's points and the AprilTag corners the robot sent, weighted by their calibrated sigmas."""
     k, codec = features.split_k, features.codec
     if codec not in ("fp16", "fp32"):
         raise FeatureShapeError(f"codec {codec!r} is not fp16 or fp32")
@@ -104,6 +107,8 @@ def edge_step(
         for tag, kp in zip(features.tags, keypoints, strict=True):
             size = tag_map.size_of(tag.tag_id)
             kp_px = keypoints_to_image(kp, tag.roi_to_image)
+            if fusion is not None:
+                kp_px = fusion.apply(kp_px, np.asarray(tag.corners_px, np.float64), tag.roi_to_image)
             cand = solve_planar_pnp(features.intrinsics, lattice_in_tag(size), kp_px)
             poses.append(
                 TagPose(

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import shlex
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -168,6 +170,16 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     from shared.training.evaluate import evaluate, format_report
 
     model = load_model(args.weights)
+    if args.calibrate_fusion:
+        from shared.model.weights import write_keypoint_fusion
+        from shared.training.evaluate import calibrate_fusion
+
+        fusion = calibrate_fusion(
+            model, load_dataset(args.data), split=args.split, limit=args.limit, command=shlex.join(sys.argv[1:])
+        )
+        write_keypoint_fusion(args.weights, fusion)
+        print(f"wrote keypoint_fusion to {args.weights}/config.json: {fusion.model_dump_json()}")
+        return 0
     result = evaluate(model, load_dataset(args.data), split=args.split, bf16=args.bf16, limit=args.limit)
     print(format_report(result))
     if args.json:
@@ -495,6 +507,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", type=Path)
     p.add_argument("--bf16", action="store_true", help="bf16 autocast inference (default fp32)")
     p.add_argument("--limit", type=int, default=None)
+    p.add_argument(
+        "--calibrate-fusion",
+        action="store_true",
+        help="measure the keypoint and corner sigmas on this split and write them into the weights' config.json",
+    )
     p.set_defaults(func=_cmd_eval)
 
     p = sub.add_parser("detect", help="stage 1 + network + PnP on image files or folders")

@@ -10,7 +10,7 @@ from typing import Any, Final
 import cv2
 import numpy as np
 
-from shared.model.weights import load_model
+from shared.model.weights import load_keypoint_fusion, load_model
 from shared.perception.single import perceive
 from shared.runtime.sources import expand_paths
 from shared.vision.detector import TagDetector
@@ -33,6 +33,7 @@ def run_detect(
     camera = camera_from_yaml(camera_path)
     tag_map = load_tag_map(tags_path) if tags_path else TagMapFile(default_size_m=tag_size_m or 0.16)
     model = load_model(weights or DEFAULT_WEIGHTS)
+    fusion = load_keypoint_fusion(weights or DEFAULT_WEIGHTS)
     detector = TagDetector()
     images: list[dict[str, Any]] = []
     errors = 0
@@ -55,6 +56,7 @@ def run_detect(
                         detector=detector,
                         model=model,
                         tag_map=tag_map,
+                        fusion=fusion,
                     )
                 ]
             except GeometryError as exc:

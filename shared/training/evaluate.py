@@ -15,7 +15,8 @@ from shared.model.net import SplitKeypointNet
 from shared.perception.single import run_network
 from shared.training.train import evaluate_arrays
 from shared.vision.camera import CameraIntrinsics
-from shared.vision.geometry import corners_in_tag, keypoints_to_image, lattice_in_tag
+from shared.vision.fusion import KeypointFusion
+from shared.vision.geometry import CORNER_KEYPOINTS, ROI_SIZE, corners_in_tag, keypoints_to_image, lattice_in_tag
 from shared.vision.metrics import rotation_error_deg, summary, translation_error_cm
 from shared.vision.pnp import solve_planar_pnp
 
@@ -89,6 +90,29 @@ def evaluate(
         "kind": ds.info.get("kind"),
         "pose": pose_comparison(camera, ds, rows, pred),
     }
+
+
+def _robust_sigma(errors: np.ndarray) -> float:
+    """Per-coordinate sigma from the median absolute error (1.4826 MAD about zero: unbiased errors)."""
+    return float(1.4826 * np.median(np.abs(errors)))
+
+
+def calibrate_fusion(
+    model: SplitKeypointNet, ds: Dataset, *, split: str = "test", limit: int | None = None, command: str = ""
+) -> KeypointFusion:
+    """Measure the sigmas keypoint fusion weighs by, on a data set split the network was not trained on:
+    the network's per-coordinate error in ROI pixels and stage 1's corners' in image pixels."""
+    rows = ds.split(split)[:limit]
+    if len(rows) == 0:
+        raise ValueError(f"{ds.root}: the {split} split is empty")
+    pred = predict_dataset(model, ds, rows)
+    kp_err_roi = (pred - ds.arrays["keypoints"][rows]) * ROI_SIZE
+    corner_err = ds.arrays["corners_px"][rows] - ds.arrays["keypoints_px"][rows][:, list(CORNER_KEYPOINTS)]
+    return KeypointFusion(
+        keypoint_sigma_roi_px=round(_robust_sigma(kp_err_roi), 4),
+        corner_sigma_px=round(_robust_sigma(corner_err), 4),
+        calibrated_on=f"{ds.root} {split} split, {len(rows)} samples" + (f": {command}" if command else ""),
+    )
 
 
 def format_report(result: dict[str, Any]) -> str:

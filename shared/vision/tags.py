@@ -9,7 +9,7 @@ reports the identity). `tag_cells` returns the canonical orientation.
 from __future__ import annotations
 
 from functools import lru_cache
-from typing import Final
+from typing import Final, Literal
 
 import cv2
 import numpy as np
@@ -61,12 +61,15 @@ def render_tag(
     origin_px: tuple[int, int] = (0, 0),
     supersample: int = 4,
     albedo: tuple[float, float] = (0.08, 0.92),
+    texture_sampling: Literal["nearest", "bilinear"] = "bilinear",
 ) -> None:
     """Paint an anti-aliased tag (white border included) into `canvas` in place (float32 in [0, 1]).
 
     `tag_plane_to_image` maps tag-plane metres (z = 0) to full-image pixels; `canvas` is the window
     of the image whose top-left pixel is `origin_px`. Rendering is supersampled by `supersample`
-    per axis and box-filtered, with exact pixel-centre bookkeeping.
+    per axis and box-filtered, with exact pixel-centre bookkeeping. `texture_sampling="nearest"`
+    keeps the cell edges exactly where the tag's geometry puts them (area coverage up to the
+    supersampling); "bilinear" (the first data sets) softens them by one texel.
     """
     f = supersample
     tex = tag_texture(tag_id).astype(np.float32) / 255.0
@@ -81,7 +84,7 @@ def render_tag(
         tex,
         tex_to_hires,
         (w * f, h * f),
-        flags=cv2.INTER_LINEAR,
+        flags=cv2.INTER_NEAREST if texture_sampling == "nearest" else cv2.INTER_LINEAR,
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=-1.0,
     )
