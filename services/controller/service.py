@@ -24,7 +24,7 @@ from shared.runtime.guard import InputGuard, serve_stats
 from shared.transport.probe import ProbeError, Prober
 from shared.transport.session import encoding_for
 from shared.transport.split_client import SplitQueryError, query_split
-from shared.viz.recording import make_viz
+from shared.viz.recording import Viz, make_viz
 from shared.wire import keys
 from shared.wire.messages import ComputeProfile, ControllerState, FrameSent, Message, TagPoses, decode, encode
 from shared.wire.sizing import probe_features
@@ -78,6 +78,42 @@ def _probe_loop(
                     core.add_link_sample(r.payload_bytes, r.rtt_secs * 1e3)
 
 
+def _decide(
+    settings: ControllerSettings, session: zenoh.Session, core: SplitController, lock: threading.Lock
+) -> tuple[ControllerState, bool] | None:
+    """One decision: read robot_infer's split, choose k, apply it when enabled. None: no split state.
+    Returns the state to publish and whether the split was switched."""
+    rid = settings.robot_id
+    try:
+        split = query_split(session, rid, timeout_secs=2.0)
+    except SplitQueryError as exc:
+        log.debug("no split state: %s", exc)
+        return None
+    with lock:
+        state = core.decide(robot_id=rid, current_k=split.k, pinned=split.pinned)
+    if not settings.enabled or state.chosen_k == split.k:
+        return state, False
+    try:
+        applied = query_split(session, rid, params=f"k={state.chosen_k};source=controller")
+    except SplitQueryError as exc:  # pinned meanwhile, or robot_infer restarting
+        return state.model_copy(update={"reason": f"{state.reason}; refused: {exc}"}), False
+    log.info("split k=%d -> %d: %s", split.k, state.chosen_k, state.reason)
+    return state.model_copy(update={"applied": applied.k == state.chosen_k}), True
+
+
+def _log_state(viz: Viz, state: ControllerState) -> None:
+    viz.scalars(
+        state.stamp_nanos,
+        {
+            "controller/t0_ms": state.t0_ms,
+            "controller/beta_ms_per_kB": state.beta_ms_per_kB,
+            "controller/chosen_k": float(state.chosen_k),
+            "controller/best_k": float(state.best_k),
+            **{f"controller/predicted_ms/k{k}": v for k, v in enumerate(state.predicted_ms_by_k)},
+        },
+    )
+
+
 def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading.Event) -> None:
     """Decide until `stop` is set."""
     rid = settings.robot_id
@@ -124,32 +160,13 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
     log.info("controller ready (enabled=%s)", settings.enabled)
     try:
         while not stop.wait(settings.decide_period_secs):
-            try:
-                split = query_split(session, rid, timeout_secs=2.0)
-            except SplitQueryError as exc:
-                log.debug("no split state: %s", exc)
+            decided = _decide(settings, session, core, lock)
+            if decided is None:
                 continue
-            with lock:
-                state = core.decide(robot_id=rid, current_k=split.k, pinned=split.pinned)
-            if settings.enabled and state.chosen_k != split.k:
-                try:
-                    applied = query_split(session, rid, params=f"k={state.chosen_k};source=controller")
-                    state = state.model_copy(update={"applied": applied.k == state.chosen_k})
-                    switches += 1
-                    log.info("split k=%d -> %d: %s", split.k, state.chosen_k, state.reason)
-                except SplitQueryError as exc:  # pinned meanwhile, or robot_infer restarting
-                    state = state.model_copy(update={"reason": f"{state.reason}; refused: {exc}"})
+            state, switched = decided
+            switches += switched
             pub.put(encode(state))
-            viz.scalars(
-                state.stamp_nanos,
-                {
-                    "controller/t0_ms": state.t0_ms,
-                    "controller/beta_ms_per_kB": state.beta_ms_per_kB,
-                    "controller/chosen_k": float(state.chosen_k),
-                    "controller/best_k": float(state.best_k),
-                    **{f"controller/predicted_ms/k{k}": v for k, v in enumerate(state.predicted_ms_by_k)},
-                },
-            )
+            _log_state(viz, state)
     finally:
         token.undeclare()
         for s in subs:

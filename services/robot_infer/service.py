@@ -14,7 +14,7 @@ from services.robot_infer.settings import RobotInferSettings
 from shared.control.compute import ComputeEstimator, head_per_tag_ms
 from shared.model.profile import calibrate_cumulative_ms, warm_up
 from shared.model.weights import load_keypoint_fusion, load_model
-from shared.perception.split import edge_step, robot_step
+from shared.perception.split import RobotTimings, edge_step, robot_step
 from shared.runtime.guard import InputGuard, serve_stats
 from shared.transport.flow import EdgeWatch, InFlightWindow
 from shared.transport.session import declare_latest_subscriber, declare_tensor_publisher, encoding_for, next_sample
@@ -23,8 +23,18 @@ from shared.vision.detector import TagDetector
 from shared.vision.tagmap import TagMapFile, load_tag_map
 from shared.wire import keys
 from shared.wire.codec import WireError
-from shared.wire.cuts import N_CUTS
-from shared.wire.messages import ComputeProfile, Features, Frame, FrameSent, SplitConfig, TagPoses, decode, encode
+from shared.wire.cuts import N_CUTS, CodecName
+from shared.wire.messages import (
+    ComputeProfile,
+    Features,
+    Frame,
+    FrameSent,
+    SplitConfig,
+    TagFeature,
+    TagPoses,
+    decode,
+    encode,
+)
 
 log = logging.getLogger(__name__)
 
@@ -32,141 +42,161 @@ log = logging.getLogger(__name__)
 def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading.Event) -> None:
     """Process frames until `stop` is set."""
     torch.set_num_threads(settings.threads)
-    model = load_model(settings.weights)
-    fusion = load_keypoint_fusion(settings.weights) if settings.fuse_corners else None
-    warm_up(model, bf16=settings.bf16)
-    emulated = settings.emulated_ms_per_tag_by_k
-    per_tag_ms = emulated or head_per_tag_ms(calibrate_cumulative_ms(model, bf16=settings.bf16))
-    estimator = ComputeEstimator(per_tag_ms)
-    detector = TagDetector(settings.detector)
-    state = SplitState(SplitConfig(k=settings.split_k, codec=settings.codec, pinned=False, source="default"))
-    rid = settings.robot_id
-    sub = declare_latest_subscriber(session, keys.frames(rid))
-    pub = declare_tensor_publisher(session, keys.features(rid), Features.SCHEMA)
-    compute_pub = session.declare_publisher(keys.compute(rid, "robot"), encoding=encoding_for(ComputeProfile.SCHEMA))
-    sent_pub = session.declare_publisher(keys.frame_sent(rid), encoding=encoding_for(FrameSent.SCHEMA))
-    queryable = serve_split(session, keys.split(rid), state)
-    window = InFlightWindow(settings.max_in_flight, timeout_secs=settings.in_flight_timeout_secs)
-
-    def on_poses(sample: zenoh.Sample) -> None:
-        # A bad TagPoses is edge_infer's problem to report; that frame's credit expires on its own.
-        with contextlib.suppress(WireError):
-            window.done(decode(sample.payload.to_bytes(), TagPoses).seq)
-
-    acks = session.declare_subscriber(keys.tag_poses(rid), on_poses) if settings.max_in_flight else None
-    watch = EdgeWatch(answer_timeout_secs=settings.edge_answer_timeout_secs)
-
-    def on_edge(sample: zenoh.Sample) -> None:
-        if sample.kind == zenoh.SampleKind.PUT:
-            watch.edge_up()
-        else:
-            watch.edge_down()
-            window.clear()
-
-    edge_token = session.liveliness().declare_subscriber(keys.alive(rid, "edge_infer"), on_edge, history=True)
-    tag_map = (
-        load_tag_map(settings.tag_map) if settings.tag_map else TagMapFile(default_size_m=settings.default_tag_size_m)
-    )
-    poses_pub = declare_tensor_publisher(session, keys.tag_poses(rid), TagPoses.SCHEMA)
-    on_board_frames = 0
-    token = session.liveliness().declare_token(keys.alive(rid, "robot_infer"))
-    guard = InputGuard("robot_infer")
-    stats = serve_stats(session, keys.stats(rid, "robot_infer"), guard)
-    last_profile = 0.0
-
-    def on_board(frame: Frame) -> None:
-        """The whole chain here (k = 7, PnP) while the edge is gone: TagPoses published by the robot."""
-        nonlocal on_board_frames
-        tags, timings = robot_step(
-            frame, detector=detector, model=model, k=N_CUTS - 1, codec="fp32", bf16=settings.bf16
-        )
-        now = time.time_ns()
-        features = Features(
-            robot_id=rid,
-            seq=frame.seq,
-            capture_nanos=frame.capture_nanos,
-            publish_nanos=now,
-            split_k=N_CUTS - 1,
-            codec="fp32",
-            intrinsics=frame.intrinsics,
-            robot_compute_secs=timings.total_secs,
-            tags=tags,
-        )
-        poses = edge_step(
-            features,
-            model=model,
-            tag_map=tag_map,
-            receive_nanos=now,
-            previous_receive_nanos=0,
-            payload_bytes=0,  # nothing crossed the link
-            bf16=settings.bf16,
-            fusion=fusion,
-        )
-        poses_pub.put(encode(poses.model_copy(update={"link": None})))  # nothing crossed the link
-        on_board_frames += 1
-        if on_board_frames == 1 or on_board_frames % 100 == 0:
-            log.warning("edge unavailable: %d frames computed on board", on_board_frames)
-
-    def process(payload: bytes) -> None:
-        """One frame: decode, stage 1 + head(k), Features out (raises on bad input; the guard counts it)."""
-        nonlocal last_profile
-        frame = decode(payload, Frame, max_bytes=settings.max_payload_bytes)
-        if watch.on_board(window.oldest_age_secs()):
-            window.clear()
-            on_board(frame)
-            return
-        split = state.get()  # changes apply from the next frame; each message says its k
-        tags, timings = robot_step(
-            frame, detector=detector, model=model, k=split.k, codec=split.codec, bf16=settings.bf16
-        )
-        # Emulate the robot's CPU: the latency really grows to gamma x the reference, not just a model.
-        network_ms = len(tags) * per_tag_ms[split.k] if emulated else timings.head_secs * 1e3
-        fixed_secs = timings.detect_secs + timings.warp_secs
-        target = settings.gamma * (fixed_secs + network_ms / 1e3)
-        if target > timings.total_secs:
-            time.sleep(target - timings.total_secs)
-        compute = max(target, timings.total_secs)
-        wire = encode(
-            Features(
-                robot_id=rid,
-                seq=frame.seq,
-                capture_nanos=frame.capture_nanos,
-                publish_nanos=time.time_ns(),
-                split_k=split.k,
-                codec=split.codec,
-                intrinsics=frame.intrinsics,
-                robot_compute_secs=compute,
-                tags=tags,
-            )
-        )
-        sent_nanos = time.time_ns()
-        window.send(frame.seq, lambda: pub.put(wire))
-        sent_pub.put(encode(FrameSent(robot_id=rid, seq=frame.seq, sent_nanos=sent_nanos, payload_bytes=len(wire))))
-        estimator.observe(k=split.k, tags=len(tags), network_ms=network_ms, fixed_ms=fixed_secs * 1e3)
-        if time.monotonic() - last_profile >= settings.profile_period_secs:
-            last_profile = time.monotonic()
-            profile = estimator.message(robot_id=rid, side="robot", stamp_nanos=time.time_ns(), factor=settings.gamma)
-            compute_pub.put(encode(profile))
-
+    node = RobotInfer(settings, session)
     log.info("robot_infer ready: k=%d codec=%s gamma=%.2f", settings.split_k, settings.codec, settings.gamma)
     try:
-        # Take a frame only with a credit in hand: the ring keeps the newest one while the edge catches up.
-        give_up = lambda: watch.on_board(window.oldest_age_secs())  # noqa: E731 (the edge is gone)
-        while window.acquire(stop, abandon=give_up) and (sample := next_sample(sub, stop)) is not None:
-            payload = sample.payload.to_bytes()
-            guard.run("frame", len(payload), lambda: process(payload))  # noqa: B023 (called at once)
+        node.serve(stop)
     finally:
-        detector.close()
-        token.undeclare()
-        if acks is not None:
-            acks.undeclare()
-        queryable.undeclare()
-        stats.undeclare()
-        edge_token.undeclare()
+        node.close()
+
+
+class RobotInfer:
+    """The robot side: its model, split state, flow-control window, edge watch and Zenoh endpoints."""
+
+    def __init__(self, settings: RobotInferSettings, session: zenoh.Session) -> None:
+        self.settings = s = settings
+        self.model = load_model(s.weights)
+        self.fusion = load_keypoint_fusion(s.weights) if s.fuse_corners else None
+        warm_up(self.model, bf16=s.bf16)
+        self.emulated = s.emulated_ms_per_tag_by_k
+        self.per_tag_ms = self.emulated or head_per_tag_ms(calibrate_cumulative_ms(self.model, bf16=s.bf16))
+        self.estimator = ComputeEstimator(self.per_tag_ms)
+        self.detector = TagDetector(s.detector)
+        self.tag_map = load_tag_map(s.tag_map) if s.tag_map else TagMapFile(default_size_m=s.default_tag_size_m)
+        self.state = SplitState(SplitConfig(k=s.split_k, codec=s.codec, pinned=False, source="default"))
+        self.window = InFlightWindow(s.max_in_flight, timeout_secs=s.in_flight_timeout_secs)
+        self.watch = EdgeWatch(answer_timeout_secs=s.edge_answer_timeout_secs)
+        self.guard = InputGuard("robot_infer")
+        self.on_board_frames = 0
+        self.last_profile = 0.0
+        rid = s.robot_id
+        self.sub = declare_latest_subscriber(session, keys.frames(rid))
+        self.pub = declare_tensor_publisher(session, keys.features(rid), Features.SCHEMA)
+        self.poses_pub = declare_tensor_publisher(session, keys.tag_poses(rid), TagPoses.SCHEMA)
+        self.compute_pub = session.declare_publisher(
+            keys.compute(rid, "robot"), encoding=encoding_for(ComputeProfile.SCHEMA)
+        )
+        self.sent_pub = session.declare_publisher(keys.frame_sent(rid), encoding=encoding_for(FrameSent.SCHEMA))
+        self.queryable = serve_split(session, keys.split(rid), self.state)
+        self.acks = session.declare_subscriber(keys.tag_poses(rid), self._on_poses) if s.max_in_flight else None
+        self.edge_token = session.liveliness().declare_subscriber(
+            keys.alive(rid, "edge_infer"), self._on_edge, history=True
+        )
+        self.token = session.liveliness().declare_token(keys.alive(rid, "robot_infer"))
+        self.stats = serve_stats(session, keys.stats(rid, "robot_infer"), self.guard)
+
+    # Zenoh callbacks: bookkeeping only.
+    def _on_poses(self, sample: zenoh.Sample) -> None:
+        # A bad TagPoses is edge_infer's problem to report; that frame's credit expires on its own.
+        with contextlib.suppress(WireError):
+            self.window.done(decode(sample.payload.to_bytes(), TagPoses).seq)
+
+    def _on_edge(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.watch.edge_up()
+        else:
+            self.watch.edge_down()
+            self.window.clear()
+
+    def serve(self, stop: threading.Event) -> None:
+        """Take a frame only with a credit in hand: the ring keeps the newest one while the edge catches up."""
+
+        def give_up() -> bool:  # the edge is gone: stop waiting for credits
+            return self.watch.on_board(self.window.oldest_age_secs())
+
+        while self.window.acquire(stop, abandon=give_up) and (sample := next_sample(self.sub, stop)) is not None:
+            payload = sample.payload.to_bytes()
+            self.guard.run("frame", len(payload), lambda: self.process(payload))  # noqa: B023 (called at once)
+
+    def process(self, payload: bytes) -> None:
+        """One frame: decode, stage 1 + head(k), Features out (raises on bad input; the guard counts it)."""
+        frame = decode(payload, Frame, max_bytes=self.settings.max_payload_bytes)
+        if self.watch.on_board(self.window.oldest_age_secs()):
+            self.window.clear()
+            self.on_board(frame)
+            return
+        split = self.state.get()  # changes apply from the next frame; each message says its k
+        tags, timings = robot_step(
+            frame, detector=self.detector, model=self.model, k=split.k, codec=split.codec, bf16=self.settings.bf16
+        )
+        network_ms, compute_secs = self._pace(split.k, len(tags), timings)
+        wire = encode(self._features(frame, tags, split.k, split.codec, compute_secs))
+        sent_nanos = time.time_ns()
+        self.window.send(frame.seq, lambda: self.pub.put(wire))
+        sent = FrameSent(robot_id=self.settings.robot_id, seq=frame.seq, sent_nanos=sent_nanos, payload_bytes=len(wire))
+        self.sent_pub.put(encode(sent))
+        fixed_ms = (timings.detect_secs + timings.warp_secs) * 1e3
+        self.estimator.observe(k=split.k, tags=len(tags), network_ms=network_ms, fixed_ms=fixed_ms)
+        self._publish_profile()
+
+    def _pace(self, k: int, n_tags: int, timings: RobotTimings) -> tuple[float, float]:
+        """Emulate the robot's CPU: the latency really grows to gamma x the reference, not just a model.
+        Returns (the head's network ms, the frame's robot compute seconds)."""
+        network_ms = n_tags * self.per_tag_ms[k] if self.emulated else timings.head_secs * 1e3
+        target = self.settings.gamma * (timings.detect_secs + timings.warp_secs + network_ms / 1e3)
+        if target > timings.total_secs:
+            time.sleep(target - timings.total_secs)
+        return network_ms, max(target, timings.total_secs)
+
+    def _features(
+        self, frame: Frame, tags: list[TagFeature], k: int, codec: CodecName, compute_secs: float
+    ) -> Features:
+        return Features(
+            robot_id=self.settings.robot_id,
+            seq=frame.seq,
+            capture_nanos=frame.capture_nanos,
+            publish_nanos=time.time_ns(),
+            split_k=k,
+            codec=codec,
+            intrinsics=frame.intrinsics,
+            robot_compute_secs=compute_secs,
+            tags=tags,
+        )
+
+    def _publish_profile(self) -> None:
+        if time.monotonic() - self.last_profile < self.settings.profile_period_secs:
+            return
+        self.last_profile = time.monotonic()
+        profile = self.estimator.message(
+            robot_id=self.settings.robot_id, side="robot", stamp_nanos=time.time_ns(), factor=self.settings.gamma
+        )
+        self.compute_pub.put(encode(profile))
+
+    def on_board(self, frame: Frame) -> None:
+        """The whole chain here (k = 7, PnP) while the edge is gone: TagPoses published by the robot."""
+        k = N_CUTS - 1
+        tags, timings = robot_step(
+            frame, detector=self.detector, model=self.model, k=k, codec="fp32", bf16=self.settings.bf16
+        )
+        features = self._features(frame, tags, k, "fp32", timings.total_secs)
+        poses = edge_step(
+            features,
+            model=self.model,
+            tag_map=self.tag_map,
+            receive_nanos=features.publish_nanos,
+            previous_receive_nanos=0,
+            payload_bytes=0,  # nothing crossed the link
+            bf16=self.settings.bf16,
+            fusion=self.fusion,
+        )
+        self.poses_pub.put(encode(poses.model_copy(update={"link": None})))  # nothing crossed the link
+        self.on_board_frames += 1
+        if self.on_board_frames == 1 or self.on_board_frames % 100 == 0:
+            log.warning("edge unavailable: %d frames computed on board", self.on_board_frames)
+
+    def close(self) -> None:
+        """Undeclare everything and log the run's counts."""
+        self.detector.close()
+        self.token.undeclare()
+        if self.acks is not None:
+            self.acks.undeclare()
+        self.queryable.undeclare()
+        self.stats.undeclare()
+        self.edge_token.undeclare()
         log.info(
             "robot_infer: %s, %d credits expired, %d frames on board in %d edge outages",
-            guard.stats(),
-            window.expired,
-            on_board_frames,
-            watch.outages,
+            self.guard.stats(),
+            self.window.expired,
+            self.on_board_frames,
+            self.watch.outages,
         )

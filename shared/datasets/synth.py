@@ -23,7 +23,7 @@ homography. Only a window around the tag is materialised; coordinates stay full-
 from __future__ import annotations
 
 import math
-from typing import Any, Literal
+from typing import Any, Final, Literal
 
 import cv2
 import numpy as np
@@ -77,6 +77,15 @@ class SynthSettings(BaseModel):
     texture_sampling: Literal["nearest", "bilinear"] = "nearest"
     max_motion_blur_px: float = Field(default=15.0, ge=3)
     p_occluder: float = Field(default=0.2, ge=0, le=1)
+
+
+# What the first data sets (and the first shipped weights' regression check) were generated with.
+FIRST_DATA_SETS: Final[dict[str, Any]] = {
+    "camera_model": "display",
+    "texture_sampling": "bilinear",
+    "supersample": 4,
+    "p_unperturbed": 0.0,
+}
 
 
 # ----------------------------------------------------------------------------------------------

@@ -394,6 +394,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="splittag", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 
+    _add_deploy_commands(sub)
+    _add_control_commands(sub)
+    _add_link_commands(sub)
+    _add_data_commands(sub)
+    _add_model_commands(sub)
+    return parser
+
+
+def _add_deploy_commands(sub: Any) -> None:
+    """demo, up, down: run the services."""
     p = sub.add_parser("demo", help="run the whole pipeline on the demo scene with a live line per second")
     p.add_argument("--config", type=Path, default=Path("deploy/local.toml"))
     p.add_argument("--duration", type=float, default=30.0)
@@ -410,16 +420,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--runs", type=Path, default=Path("runs"))
     p.set_defaults(func=_cmd_down)
 
-    p = sub.add_parser("profile", help="the paper's Table: payload S(k) and cumulative compute C(k) per cut")
-    p.add_argument("--weights", type=Path, default=Path("models"))
-    p.add_argument(
-        "--variant", choices=["fp32", "fp32-channels-last", "bf16-channels-last"], default="bf16-channels-last"
-    )
-    p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--batch", type=int, default=1)
-    p.add_argument("--repetitions", type=int, default=30)
-    p.set_defaults(func=_cmd_profile)
 
+def _add_control_commands(sub: Any) -> None:
+    """split, echo: steer and serve a running deployment."""
     p = sub.add_parser("split", help="read or set the split index live (Zenoh query)")
     p.add_argument("action", choices=["get", "set", "release"])
     p.add_argument("k", type=int, nargs="?", help="split index 0..7 (for set)")
@@ -433,6 +436,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--connect", action="append", default=[], help="zenoh endpoint, repeatable")
     p.set_defaults(func=_cmd_echo)
 
+
+def _add_link_commands(sub: Any) -> None:
+    """link up/set/down/probe/cost: the emulated uplink and what it costs."""
     link_parser = sub.add_parser("link", help="emulated 5G uplink, link probing and split costs")
     link_parser.add_argument(
         "--profiles", type=Path, help="TOML of extra link profiles ([name] rate_mbit, delay_ms, description)"
@@ -472,6 +478,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plot", type=Path)
     p.set_defaults(func=_cmd_link_cost)
 
+
+def _add_data_commands(sub: Any) -> None:
+    """data synth/render/show: training data."""
     data = sub.add_parser("data", help="generate and inspect training data").add_subparsers(
         dest="data_command", required=True
     )
@@ -495,6 +504,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("sheet.png"))
     p.set_defaults(func=_cmd_data_show)
+
+
+def _add_model_commands(sub: Any) -> None:
+    """profile, train, eval, detect: the network."""
+    p = sub.add_parser("profile", help="the paper's Table: payload S(k) and cumulative compute C(k) per cut")
+    p.add_argument("--weights", type=Path, default=Path("models"))
+    p.add_argument(
+        "--variant", choices=["fp32", "fp32-channels-last", "bf16-channels-last"], default="bf16-channels-last"
+    )
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--batch", type=int, default=1)
+    p.add_argument("--repetitions", type=int, default=30)
+    p.set_defaults(func=_cmd_profile)
 
     p = sub.add_parser("train", help="train the keypoint network (resumes from OUT/last.pt)")
     add_model_options(p, TrainSettings)
@@ -523,7 +545,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--weights", type=Path, default=None, help="weights folder (default: models/)")
     p.add_argument("--json", type=Path, required=True)
     p.set_defaults(func=_cmd_detect)
-    return parser
 
 
 def _load_link_profiles(args: argparse.Namespace) -> None:

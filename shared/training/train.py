@@ -15,7 +15,9 @@ import json
 import logging
 import math
 import time
+from dataclasses import dataclass, field
 from functools import lru_cache
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -131,129 +133,163 @@ def evaluate_arrays(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
     }
 
 
+@dataclass
+class _Loop:
+    """A training run's mutable state: what a checkpoint holds."""
+
+    model: SplitKeypointNet
+    opt: torch.optim.Adam
+    sched: torch.optim.lr_scheduler.LambdaLR
+    steps_per_epoch: int
+    epochs: int
+    plan: dict[str, int]
+    epoch: int = 0
+    best: float = math.inf
+    history: list[dict[str, Any]] = field(default_factory=list)
+
+    def set_epochs(self, epochs: int) -> None:
+        """Re-plan the cosine schedule for `epochs` in total."""
+        self.epochs = epochs
+        self.plan["total"] = self.steps_per_epoch * epochs
+
+    def save(self, path: Path) -> None:
+        torch.save(
+            {
+                "model": self.model.state_dict(),
+                "opt": self.opt.state_dict(),
+                "sched": self.sched.state_dict(),
+                "epoch": self.epoch,
+                "epochs": self.epochs,
+                "best": self.best,
+                "history": self.history,
+            },
+            path,
+        )
+
+    def resume(self, path: Path, device: torch.device, max_epochs: int) -> None:
+        ckpt = torch.load(path, map_location=device, weights_only=False)
+        self.model.load_state_dict(ckpt["model"])
+        self.opt.load_state_dict(ckpt["opt"])
+        self.sched.load_state_dict(ckpt["sched"])
+        self.epoch, self.best, self.history = ckpt["epoch"], ckpt["best"], ckpt["history"]
+        self.set_epochs(min(ckpt.get("epochs", max_epochs), max_epochs))  # a smaller --epochs shortens the plan
+        log.info("resumed from %s at epoch %d (best e_px %.3f)", path, self.epoch, self.best)
+
+
+def _load_tensors(settings: TrainSettings, device: torch.device) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """(train ROIs, train keypoints, eval ROIs, eval keypoints) from every data set, on `device`."""
+    sets = [load_dataset(p) for p in settings.data]
+    tr_roi, tr_kp = zip(*(_to_device(ds, ds.split("train"), device) for ds in sets), strict=True)
+    train_roi, train_kp = torch.cat(tr_roi), torch.cat(tr_kp)
+    if settings.limit_train:
+        train_roi, train_kp = train_roi[: settings.limit_train], train_kp[: settings.limit_train]
+    rng = np.random.default_rng(settings.seed)
+    te_rows = [(ds, rng.permutation(ds.split("test"))[: settings.eval_samples]) for ds in sets]
+    te_roi, te_kp = zip(*(_to_device(ds, rows, device) for ds, rows in te_rows), strict=True)
+    return train_roi, train_kp, torch.cat(te_roi), torch.cat(te_kp)
+
+
+def _new_loop(settings: TrainSettings, device: torch.device, n_train: int) -> _Loop:
+    model = (load_model(settings.init) if settings.init else SplitKeypointNet(roi_margin=ROI_MARGIN)).to(device)
+    if settings.channels_last:
+        model = model.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+    opt = torch.optim.Adam(model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
+    steps_per_epoch = n_train // settings.batch_size
+    plan = {"total": steps_per_epoch * settings.epochs}
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: _lr_factor(s, plan["total"], settings.warmup_steps))
+    return _Loop(model, opt, sched, steps_per_epoch, settings.epochs, plan)
+
+
+def _train_epoch(loop: _Loop, settings: TrainSettings, roi_all: Tensor, kp_all: Tensor, gen: torch.Generator) -> float:
+    """One pass over the training tensors; returns the mean training loss."""
+    loop.model.train()
+    perm = torch.randperm(len(roi_all), generator=gen).to(roi_all.device)
+    running, n_loss = 0.0, 0
+    bar = tqdm(range(loop.steps_per_epoch), desc=f"epoch {loop.epoch + 1}/{loop.epochs}", leave=False)
+    for step in bar:
+        idx = perm[step * settings.batch_size : (step + 1) * settings.batch_size]
+        roi, kp = roi_all[idx], kp_all[idx]
+        if settings.augment_dihedral:
+            roi, kp = dihedral(roi, kp, int(torch.randint(0, 8, (1,), generator=gen)))
+        pred = forward_train(loop.model, roi, bf16=settings.bf16, channels_last=settings.channels_last)
+        loss = wing_loss(pred, kp)
+        loop.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        loop.opt.step()
+        loop.sched.step()
+        running += float(loss.detach())
+        n_loss += 1
+        if step % 20 == 0:
+            bar.set_postfix(loss=f"{running / n_loss:.3f}", lr=f"{loop.sched.get_last_lr()[0]:.2e}")
+    return running / max(1, n_loss)
+
+
+def _record_epoch(loop: _Loop, settings: TrainSettings, row: dict[str, Any]) -> None:
+    """Append the epoch's row to the curve, print it, and keep the best weights."""
+    loop.history.append(row)
+    with (settings.out / "curve.jsonl").open("a") as f:
+        f.write(json.dumps(row) + "\n")
+    print(
+        f"epoch {row['epoch']}/{loop.epochs} loss {row['train_loss']:.4f} "
+        f"test e_px {row['e_px_mean']:.3f} (sd {row['e_px_std']:.3f}) "
+        f"e_rel {row['e_rel_mean']:.3f} % [{row['elapsed_secs']} s]",
+        flush=True,
+    )
+    if row["e_px_mean"] < loop.best:
+        loop.best = row["e_px_mean"]
+        metrics = {k: row[k] for k in ("e_px_mean", "e_px_std", "e_rel_mean", "e_rel_std", "n")}
+        save_weights(
+            loop.model,
+            settings.out / "best",
+            extra={"train": json.loads(settings.model_dump_json()), "epoch": row["epoch"], "eval": metrics},
+        )
+
+
 def train(settings: TrainSettings) -> dict[str, Any]:
     """Train (resuming from out/last.pt if present); writes best weights to out/best/."""
     torch.manual_seed(settings.seed)
     if settings.threads:
         torch.set_num_threads(settings.threads)
     device = torch.device(settings.device)
-    out = settings.out
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "config.json").write_text(settings.model_dump_json(indent=2))
-
-    sets = [load_dataset(p) for p in settings.data]
-    train_parts = [(ds, ds.split("train")) for ds in sets]
-    test_parts = [(ds, ds.split("test")) for ds in sets]
-    tr_roi, tr_kp = zip(*(_to_device(ds, rows, device) for ds, rows in train_parts), strict=True)
-    train_roi, train_kp = torch.cat(tr_roi), torch.cat(tr_kp)
-    if settings.limit_train:
-        train_roi, train_kp = train_roi[: settings.limit_train], train_kp[: settings.limit_train]
-    rng = np.random.default_rng(settings.seed)
-    te_rows = [(ds, rng.permutation(rows)[: settings.eval_samples]) for ds, rows in test_parts]
-    te_roi, te_kp = zip(*(_to_device(ds, rows, device) for ds, rows in te_rows), strict=True)
-    test_roi, test_kp = torch.cat(te_roi), torch.cat(te_kp)
+    settings.out.mkdir(parents=True, exist_ok=True)
+    (settings.out / "config.json").write_text(settings.model_dump_json(indent=2))
+    train_roi, train_kp, test_roi, test_kp = _load_tensors(settings, device)
     log.info("train samples %d, eval samples %d, device %s", len(train_roi), len(test_roi), device)
-
-    model = (load_model(settings.init) if settings.init else SplitKeypointNet(roi_margin=ROI_MARGIN)).to(device)
-    if settings.channels_last:
-        model = model.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
-    opt = torch.optim.Adam(model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay)
-    steps_per_epoch = len(train_roi) // settings.batch_size
-    epochs = settings.epochs
-    plan = {"total": steps_per_epoch * epochs}
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: _lr_factor(s, plan["total"], settings.warmup_steps))
-    start_epoch, best = 0, math.inf
-    history: list[dict[str, Any]] = []
-    ckpt_path = out / "last.pt"
+    loop = _new_loop(settings, device, len(train_roi))
+    ckpt_path = settings.out / "last.pt"
     if ckpt_path.is_file():
-        ckpt = torch.load(ckpt_path, map_location=device, weights_only=False)
-        model.load_state_dict(ckpt["model"])
-        opt.load_state_dict(ckpt["opt"])
-        sched.load_state_dict(ckpt["sched"])
-        start_epoch, best, history = ckpt["epoch"], ckpt["best"], ckpt["history"]
-        epochs = min(ckpt.get("epochs", epochs), settings.epochs)  # a smaller --epochs shortens the plan
-        plan["total"] = steps_per_epoch * epochs
-        log.info("resumed from %s at epoch %d (best e_px %.3f)", ckpt_path, start_epoch, best)
-
+        loop.resume(ckpt_path, device, settings.epochs)
+    start_epoch = loop.epoch
     gen = torch.Generator(device="cpu").manual_seed(settings.seed + start_epoch)
     started = time.monotonic()
-    epoch = start_epoch
-    while epoch < epochs:
-        model.train()
-        perm = torch.randperm(len(train_roi), generator=gen).to(device)
-        running, n_loss = 0.0, 0
-        bar = tqdm(range(steps_per_epoch), desc=f"epoch {epoch + 1}/{epochs}", leave=False)
-        for step in bar:
-            idx = perm[step * settings.batch_size : (step + 1) * settings.batch_size]
-            roi, kp = train_roi[idx], train_kp[idx]
-            if settings.augment_dihedral:
-                roi, kp = dihedral(roi, kp, int(torch.randint(0, 8, (1,), generator=gen)))
-            pred = forward_train(model, roi, bf16=settings.bf16, channels_last=settings.channels_last)
-            loss = wing_loss(pred, kp)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            sched.step()
-            running += float(loss.detach())
-            n_loss += 1
-            if step % 20 == 0:
-                bar.set_postfix(loss=f"{running / n_loss:.3f}", lr=f"{sched.get_last_lr()[0]:.2e}")
-        pred = predict(model, test_roi, bf16=settings.bf16, channels_last=settings.channels_last)
+    while loop.epoch < loop.epochs:
+        train_loss = _train_epoch(loop, settings, train_roi, train_kp, gen)
+        pred = predict(loop.model, test_roi, bf16=settings.bf16, channels_last=settings.channels_last)
         metrics = evaluate_arrays(pred.cpu().numpy(), test_kp.cpu().numpy())
         row = {
-            "epoch": epoch + 1,
-            "train_loss": running / max(1, n_loss),
+            "epoch": loop.epoch + 1,
+            "train_loss": train_loss,
             **metrics,
-            "lr": sched.get_last_lr()[0],
+            "lr": loop.sched.get_last_lr()[0],
             "elapsed_secs": round(time.monotonic() - started, 1),
         }
-        history.append(row)
-        with (out / "curve.jsonl").open("a") as f:
-            f.write(json.dumps(row) + "\n")
-        print(
-            f"epoch {epoch + 1}/{epochs} loss {row['train_loss']:.4f} "
-            f"test e_px {metrics['e_px_mean']:.3f} (sd {metrics['e_px_std']:.3f}) "
-            f"e_rel {metrics['e_rel_mean']:.3f} % [{row['elapsed_secs']} s]",
-            flush=True,
-        )
-        if metrics["e_px_mean"] < best:
-            best = metrics["e_px_mean"]
-            save_weights(
-                model,
-                out / "best",
-                extra={"train": json.loads(settings.model_dump_json()), "epoch": epoch + 1, "eval": metrics},
-            )
-        if settings.time_budget_secs and epoch == start_epoch:
+        _record_epoch(loop, settings, row)
+        if settings.time_budget_secs and loop.epoch == start_epoch:
             per_epoch = time.monotonic() - started
             fits = start_epoch + max(1, int(settings.time_budget_secs // per_epoch))
-            if fits < epochs:
+            if fits < loop.epochs:
                 print(
                     f"time budget {settings.time_budget_secs:.0f} s: {per_epoch:.1f} s/epoch, "
-                    f"cutting the schedule from {epochs} to {fits} epochs",
+                    f"cutting the schedule from {loop.epochs} to {fits} epochs",
                     flush=True,
                 )
-                epochs = fits
-                plan["total"] = steps_per_epoch * epochs
-        epoch += 1
-        torch.save(
-            {
-                "model": model.state_dict(),
-                "opt": opt.state_dict(),
-                "sched": sched.state_dict(),
-                "epoch": epoch,
-                "epochs": epochs,
-                "best": best,
-                "history": history,
-            },
-            ckpt_path,
-        )
+                loop.set_epochs(fits)
+        loop.epoch += 1
+        loop.save(ckpt_path)
+    final_eval = loop.history[-1] if loop.history else {}
     save_weights(
-        model,
-        out / "final",
-        extra={
-            "train": json.loads(settings.model_dump_json()),
-            "epoch": epochs,
-            "eval": history[-1] if history else {},
-        },
+        loop.model,
+        settings.out / "final",
+        extra={"train": json.loads(settings.model_dump_json()), "epoch": loop.epochs, "eval": final_eval},
     )
-    return {"best_e_px": best, "history": history, "epochs": epochs}
+    return {"best_e_px": loop.best, "history": loop.history, "epochs": loop.epochs}
