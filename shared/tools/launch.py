@@ -19,7 +19,7 @@ import tomllib
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
@@ -36,6 +36,9 @@ from shared.viz.recording import merge_recordings
 from shared.wire import keys
 from shared.wire.codec import WireError
 from shared.wire.messages import CameraPose, ControllerState, TagPoses, decode
+
+if TYPE_CHECKING:
+    from shared.tools.linkemu import LinkEmulator
 
 log = logging.getLogger(__name__)
 REPO = Path(__file__).resolve().parents[2]
@@ -314,6 +317,79 @@ def monitor_settings(config: Path) -> tuple[str, ZenohSettings]:
     return robot_id, ZenohSettings(mode="client", connect=[Topology.from_config(config).edge_router])
 
 
+class _Services:
+    """The services of one run: started, their pids written, restarted by the supervisor's policy."""
+
+    def __init__(self, run_config: Path, run_dir: Path, wrappers: dict[str, list[str]]) -> None:
+        self.run_config, self.run_dir, self.wrappers = run_config, run_dir, wrappers
+        self.started: list[Service] = []
+        self.supervisor = Supervisor()
+        self.restart_at: dict[str, float] = {}
+
+    def _start(self, name: str) -> Service:
+        service = start_service(name, self.run_config, self.run_dir, wrapper=self.wrappers.get(name))
+        self.supervisor.started(name)
+        return service
+
+    def _write_pids(self) -> None:
+        (self.run_dir / "pids").write_text("\n".join(f"{s.name} {s.popen.pid}" for s in self.started) + "\n")
+
+    def start_all(self, names: tuple[str, ...]) -> None:
+        for name in names:
+            self.started.append(self._start(name))
+        self._write_pids()
+
+    def supervise(self) -> bool:
+        """Restart dead services after their backoff; False when the camera's source has ended the run."""
+        for i, service in enumerate(self.started):
+            code = service.popen.poll()
+            if code is None:
+                continue
+            if service.name not in self.restart_at:
+                delay = self.supervisor.exited(service.name, code)
+                if delay is None:
+                    print("the camera's source ended; stopping", flush=True)
+                    time.sleep(1.0)  # let the last frames arrive
+                    return False
+                n = self.supervisor.restarts[service.name]
+                print(f"{service.name} exited ({code}); restart #{n} in {delay:.0f} s", flush=True)
+                log.warning("%s exited with %s; restart #%d in %.0f s", service.name, code, n, delay)
+                self.restart_at[service.name] = time.monotonic() + delay
+            elif time.monotonic() >= self.restart_at[service.name]:
+                del self.restart_at[service.name]
+                self.started[i] = self._start(service.name)
+                self._write_pids()
+        return True
+
+
+def _placement(
+    config: Path, services: tuple[str, ...], link: str | None
+) -> tuple[Topology, dict[str, list[str]], LinkEmulator | None]:
+    """Where the services run: loopback per the config, or both sides of an emulated uplink."""
+    from shared.tools.linkemu import LinkEmulator, LinkEmulatorSettings, in_netns
+
+    if link is None:
+        return Topology.from_config(config), {}, None
+    emu = LinkEmulator(LinkEmulatorSettings())
+    s = emu.settings
+    topology = Topology.emulated_link(edge_addr=s.edge_addr, mgmt_edge_addr=s.mgmt_edge_addr)
+    side = {"camera": s.robot_ns, "robot_infer": s.robot_ns, "controller": s.robot_ns}
+    return topology, {name: in_netns(side.get(name, s.edge_ns), []) for name in services}, emu
+
+
+def _summarise_run(run_dir: Path, monitor: Monitor, codes: dict[str, int | None]) -> dict[str, Any]:
+    """summary.json: the monitor's figures, exit codes, the merged recording and slam's ATE."""
+    summary = {**monitor.summary(), "exit_codes": codes, "run_dir": str(run_dir)}
+    recording = merge_recordings(run_dir)
+    if recording is not None:
+        summary["recording"] = str(recording)
+    ate_path = run_dir / "ate.json"
+    if ate_path.is_file():
+        summary["slam"] = json.loads(ate_path.read_text())
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
 def run_pipeline(
     config: Path,
     *,
@@ -332,21 +408,11 @@ def run_pipeline(
     an emulated uplink with that profile (switch it live with `splittag link set`), rewriting the
     endpoints: edge router on tcp/0.0.0.0:7447, robot router connecting over the shaped veth.
     """
-    from shared.tools.linkemu import LinkEmulator, LinkEmulatorSettings, in_netns, profile
+    from shared.tools.linkemu import profile
 
     if controller and "controller" not in services:
         services = (*services, "controller")
-    emu = None
-    wrappers: dict[str, list[str]] = {}
-    topology: Topology
-    if link is not None:
-        emu = LinkEmulator(LinkEmulatorSettings())
-        s = emu.settings
-        topology = Topology.emulated_link(edge_addr=s.edge_addr, mgmt_edge_addr=s.mgmt_edge_addr)
-        side = {"camera": s.robot_ns, "robot_infer": s.robot_ns, "controller": s.robot_ns}
-        wrappers = {name: in_netns(side.get(name, s.edge_ns), []) for name in services}
-    else:
-        topology = Topology.from_config(config)
+    topology, wrappers, emu = _placement(config, services, link)
     run_dir = new_run_dir(runs_root)
     run_config = write_run_config(run_dir, config, topology=topology, extra=extra)
     robot_id, zs = monitor_settings(run_config)
@@ -356,70 +422,28 @@ def run_pipeline(
         print(f"emulated link up: profile {link}; `sudo splittag link set PROFILE` switches it live", flush=True)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    started: list[Service] = []
     monitor = Monitor(demo_tag_map())
-    supervisor = Supervisor()
-    restart_at: dict[str, float] = {}
-
-    def start(name: str) -> Service:
-        service = start_service(name, run_config, run_dir, wrapper=wrappers.get(name))
-        supervisor.started(name)
-        return service
-
-    def write_pids() -> None:
-        (run_dir / "pids").write_text("\n".join(f"{s.name} {s.popen.pid}" for s in started) + "\n")
-
+    running = _Services(run_config, run_dir, wrappers)
     try:
         (run_dir / "launcher.pid").write_text(f"{os.getpid()}\n")  # `splittag down` stops the run through it
-        for name in services:
-            started.append(start(name))
-        write_pids()
+        running.start_all(services)
         session = open_session(zs)
         subs = attach_monitor(session, robot_id, monitor)
         wait_for_liveliness(session, [keys.alive(robot_id, s) for s in services], timeout_secs=120)
         print(f"run {run_dir}: {', '.join(services)} alive; Ctrl-C stops", flush=True)
         t_end = None if duration_secs is None else time.monotonic() + duration_secs
-        finished = False
-        while not finished and not stop.wait(1.0):
+        while not stop.wait(1.0):
             if not quiet:
                 print(monitor.line(), flush=True)
-            if t_end is not None and time.monotonic() > t_end:
+            if (t_end is not None and time.monotonic() > t_end) or not running.supervise():
                 break
-            # Supervision: a dead service is restarted after a backoff; a finished camera ends the run.
-            for i, service in enumerate(started):
-                code = service.popen.poll()
-                if code is None:
-                    continue
-                if service.name not in restart_at:
-                    delay = supervisor.exited(service.name, code)
-                    if delay is None:
-                        print("the camera's source ended; stopping", flush=True)
-                        time.sleep(1.0)  # let the last frames arrive
-                        finished = True
-                        break
-                    n = supervisor.restarts[service.name]
-                    print(f"{service.name} exited ({code}); restart #{n} in {delay:.0f} s", flush=True)
-                    log.warning("%s exited with %s; restart #%d in %.0f s", service.name, code, n, delay)
-                    restart_at[service.name] = time.monotonic() + delay
-                elif time.monotonic() >= restart_at[service.name]:
-                    del restart_at[service.name]
-                    started[i] = start(service.name)
-                    write_pids()
-        for s in subs:
-            s.undeclare()
+        for sub in subs:
+            sub.undeclare()
         session.close()
     finally:
-        codes = stop_services(started)
+        codes = stop_services(running.started)
         if emu is not None:
             emu.down()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    summary = {**monitor.summary(), "exit_codes": codes, "run_dir": str(run_dir)}
-    recording = merge_recordings(run_dir)
-    if recording is not None:
-        summary["recording"] = str(recording)
-    ate_path = run_dir / "ate.json"
-    if ate_path.is_file():
-        summary["slam"] = json.loads(ate_path.read_text())
-    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    return summary
+    return _summarise_run(run_dir, monitor, codes)
