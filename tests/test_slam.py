@@ -21,7 +21,7 @@ from shared.slam.marker_slam import (
     absolute_trajectory_error,
     umeyama_se3,
 )
-from shared.vision.geometry import default_camera, lattice_in_tag, project
+from shared.vision.geometry import GeometryError, default_camera, lattice_in_tag, project
 from shared.vision.pnp import solve_planar_pnp
 from shared.vision.tagmap import load_tag_map
 from shared.vision.trajectory import read_tum
@@ -153,6 +153,24 @@ def test_the_map_slam_writes_loads_back_as_a_tag_map(tmp_path: Path) -> None:
     assert json.loads((tmp_path / "slam.json").read_text())["frames"] == 20
     again = SlamNode(SlamServiceSettings(run_dir=tmp_path, tag_map=tmp_path / "map.json"))
     assert set(again.slam.known) == {t.id for t in loaded.tags}
+
+
+@pytest.mark.parametrize(
+    ("pose", "why"),
+    [
+        ([[0.0] * 4] * 4, "not a rigid transform"),  # the all-zero pose that killed slam
+        ([[1, 0, 0, 1e300], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "translates by more than"),
+        ([[1, 0, 0], [0, 1, 0], [0, 0, 1]], "not a finite 4x4"),
+        ([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0]], "world_from_tag"),
+    ],
+)
+def test_a_tag_map_with_a_bad_pose_is_refused_with_its_reason(
+    tmp_path: Path, pose: list[list[float]], why: str
+) -> None:
+    path = tmp_path / "map.json"
+    path.write_text(json.dumps({"tags": [{"id": 3, "size_m": 0.1, "world_from_tag": pose}]}))
+    with pytest.raises(GeometryError, match=why):
+        load_tag_map(path)
 
 
 def test_bad_frames_are_refused_before_they_touch_the_state() -> None:

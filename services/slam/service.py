@@ -58,7 +58,7 @@ class SlamNode:
         for tm in (self.resumed, load_tag_map(settings.tag_map) if settings.tag_map is not None else None):
             if tm is None:
                 continue  # the configured map (second) wins over the checkpoint
-            known |= {t.id: (t.size_m, np.asarray(t.world_from_tag)) for t in tm.tags if t.world_from_tag is not None}
+            known |= {t.id: (t.size_m, pose) for t in tm.tags if (pose := t.pose()) is not None}
             if tm.anchor_tag_id is not None:
                 slam_settings = slam_settings.model_copy(
                     update={"anchor_tag_id": slam_settings.anchor_tag_id or tm.anchor_tag_id}
@@ -123,8 +123,8 @@ class SlamNode:
         write_tum(run_dir / "trajectory.tum", rows)
         if self.resumed is not None:  # tags of the checkpoint not seen again are kept as they were
             for t in self.resumed.tags:
-                if t.id not in tag_map and t.world_from_tag is not None:
-                    tag_map[t.id] = (t.size_m, np.asarray(t.world_from_tag))
+                if t.id not in tag_map and (pose := t.pose()) is not None:
+                    tag_map[t.id] = (t.size_m, pose)
         # map.json is a tag map (loadable as slam's or edge_infer's `tag_map`); run statistics go apart.
         anchor = (
             self.slam.anchor if self.slam.anchor is not None else (self.resumed.anchor_tag_id if self.resumed else None)

@@ -26,6 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from shared.sim.backgrounds import procedural_background
 from shared.vision.camera import CameraIntrinsics
 from shared.vision.geometry import Array, make_pose
+from shared.vision.tagmap import TagSpec
 from shared.vision.tags import BLACK_CELLS, CELLS, NUM_TAG36H11, tag_texture
 
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -33,12 +34,10 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 _CV_FROM_MJ = np.diag([1.0, -1.0, -1.0])
 
 
-class TagPlacement(BaseModel):
-    """A tag in the world."""
+class TagPlacement(TagSpec):
+    """A tag placed in a scene: a tag-map entry whose pose is required."""
 
-    model_config = ConfigDict(extra="forbid")
     id: int = Field(ge=0, lt=NUM_TAG36H11)
-    size_m: float = Field(gt=0)
     world_from_tag: list[list[float]]
 
     def pose(self) -> Array:

@@ -280,7 +280,8 @@ def check_rigid(m: Array, what: str, *, max_translation_m: float = 1e3) -> None:
     r = m[:3, :3]
     if not np.allclose(m[3], [0, 0, 0, 1]) or not np.allclose(r @ r.T, np.eye(3), atol=1e-4) or np.linalg.det(r) < 0:
         raise GeometryError(f"{what} is not a rigid transform")
-    if np.linalg.norm(m[:3, 3]) > max_translation_m:
+    t = m[:3, 3]
+    if np.abs(t).max() > max_translation_m or np.linalg.norm(t) > max_translation_m:  # no overflow on 1e300
         raise GeometryError(f"{what} translates by more than {max_translation_m} m")
 
 

@@ -9,19 +9,31 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from shared.vision.files import atomic_write_text
-from shared.vision.geometry import GeometryError
+from shared.vision.geometry import Array, GeometryError, check_rigid
 
 
 class TagSpec(BaseModel):
-    """One tag of a tag map: its size and (optionally) its pose in the world."""
+    """One tag: its size and (optionally) its pose in the world. The one shape of "a tag with a size
+    and a pose": tag maps, slam's map.json and the simulated scenes' placements all use it."""
 
     model_config = ConfigDict(extra="forbid")
     id: int = Field(ge=0)
-    size_m: float = Field(gt=0)
+    size_m: float = Field(gt=0, le=100)
     world_from_tag: list[list[float]] | None = None
+
+    @field_validator("world_from_tag")
+    @classmethod
+    def _rigid(cls, value: list[list[float]] | None) -> list[list[float]] | None:
+        if value is not None:
+            check_rigid(np.asarray(value, np.float64), "world_from_tag")
+        return value
+
+    def pose(self) -> Array | None:
+        """4x4 world_from_tag, or None when the map gives only the size."""
+        return None if self.world_from_tag is None else np.asarray(self.world_from_tag, np.float64)
 
 
 class TagMapFile(BaseModel):
