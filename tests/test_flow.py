@@ -10,16 +10,20 @@ from shared.transport.flow import EdgeWatch, InFlightWindow
 from tests.fakes import FakeClock
 
 
+def _has_credit(w: InFlightWindow) -> bool:
+    return w.capacity == 0 or w.in_flight < w.capacity
+
+
 def test_capacity_credits_and_done() -> None:
     w = InFlightWindow(2, clock=FakeClock())
-    assert w.has_credit()
+    assert _has_credit(w)
     w.sent(1)
     w.sent(2)
-    assert not w.has_credit() and w.in_flight == 2
+    assert not _has_credit(w) and w.in_flight == 2
     w.done(99)  # unknown: ignored
-    assert not w.has_credit()
+    assert not _has_credit(w)
     w.done(1)
-    assert w.has_credit() and w.in_flight == 1
+    assert _has_credit(w) and w.in_flight == 1
 
 
 def test_unanswered_frames_expire() -> None:
@@ -27,9 +31,9 @@ def test_unanswered_frames_expire() -> None:
     w = InFlightWindow(1, timeout_secs=2.0, clock=clock)
     w.sent(7)
     clock.now = 1.9
-    assert not w.has_credit()
+    assert not _has_credit(w)
     clock.now = 2.1
-    assert w.has_credit()
+    assert _has_credit(w)
     assert w.expired == 1
 
 
@@ -48,7 +52,7 @@ def test_zero_capacity_disables_and_bad_values_raise() -> None:
     w = InFlightWindow(0)
     for s in range(100):
         w.sent(s)
-    assert w.has_credit() and w.in_flight == 0
+    assert _has_credit(w) and w.in_flight == 0
     with pytest.raises(ValueError, match="capacity"):
         InFlightWindow(-1)
     with pytest.raises(ValueError, match="timeout"):
@@ -60,7 +64,7 @@ def test_an_answer_that_arrives_before_put_returns_frees_its_credit() -> None:
     already be recorded, or the answer is 'unknown' and the credit is held until it expires."""
     w = InFlightWindow(1, timeout_secs=2.0, clock=FakeClock())
     w.send(5, lambda: w.done(5))  # the fastest edge: it answers inside put()
-    assert w.in_flight == 0 and w.has_credit()
+    assert w.in_flight == 0 and _has_credit(w)
 
     def failing_put() -> None:
         raise ConnectionError("session closed")

@@ -198,6 +198,8 @@ def test_no_message_kills_a_service(tmp_path: Path, deploy_config: DeployConfig)
                 print(f"{s}: accepted {st['accepted']}, rejected {st['rejected']} {st['rejected_by_reason']}")
             assert stats["slam"]["rejected_by_reason"].get("tag_poses: SlamInputError", 0) >= 3
             assert stats["edge_infer"]["rejected"] >= len(crashes["edge_infer"][1])
+            robot = stats["robot_infer"]  # its flow counters ride on the same stats key
+            assert 0 <= robot["in_flight"] <= 2 and robot["on_board_frames"] >= 0, robot
             dead = {p.name: p.popen.returncode for p in procs if p.popen.poll() is not None}
             assert not dead, f"services died: {dead}"
         finally:

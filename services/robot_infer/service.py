@@ -83,7 +83,16 @@ class RobotInfer:
             keys.alive(rid, "edge_infer"), self._on_edge, history=True
         )
         self.token = session.liveliness().declare_token(keys.alive(rid, "robot_infer"))
-        self.stats = serve_stats(session, keys.stats(rid, "robot_infer"), self.guard)
+        self.stats = serve_stats(session, keys.stats(rid, "robot_infer"), self.guard, self.counters)
+
+    def counters(self) -> dict[str, int]:
+        """Flow and fallback counters, served with the input counters on the stats key."""
+        return {
+            "in_flight": self.window.in_flight,
+            "credits_expired": self.window.expired,
+            "on_board_frames": self.on_board_frames,
+            "edge_outages": self.watch.outages,
+        }
 
     # Zenoh callbacks: bookkeeping only.
     def _on_poses(self, sample: zenoh.Sample) -> None:

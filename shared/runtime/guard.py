@@ -90,11 +90,14 @@ class InputGuard:
             }
 
 
-def serve_stats(session: zenoh.Session, key: str, guard: InputGuard) -> zenoh.Queryable[None]:
-    """A queryable answering the guard's stats as JSON."""
+def serve_stats(
+    session: zenoh.Session, key: str, guard: InputGuard, extra: Callable[[], dict[str, Any]] | None = None
+) -> zenoh.Queryable[None]:
+    """A queryable answering the guard's stats (and the service's own counters, `extra`) as JSON."""
 
     def on_query(query: zenoh.Query) -> None:
-        query.reply(query.key_expr, json.dumps(guard.stats()).encode(), encoding=zenoh.Encoding.APPLICATION_JSON)
+        body = {**guard.stats(), **(extra() if extra is not None else {})}
+        query.reply(query.key_expr, json.dumps(body).encode(), encoding=zenoh.Encoding.APPLICATION_JSON)
 
     return session.declare_queryable(key, on_query)
 

@@ -37,14 +37,6 @@ class InFlightWindow:
             del self._sent[s]
         self.expired += len(stale)
 
-    def has_credit(self) -> bool:
-        """True when another frame may be sent now."""
-        if self.capacity == 0:
-            return True
-        with self._cond:
-            self._expire()
-            return len(self._sent) < self.capacity
-
     def acquire(
         self, stop: threading.Event, *, poll_secs: float = 0.05, abandon: Callable[[], bool] | None = None
     ) -> bool:
@@ -101,8 +93,9 @@ class InFlightWindow:
 
     @property
     def in_flight(self) -> int:
-        """Frames currently in flight."""
+        """Frames currently in flight (expired ones no longer count)."""
         with self._cond:
+            self._expire()
             return len(self._sent)
 
 
