@@ -65,11 +65,13 @@ def _jacobian(params: Array, pts: Array) -> Array:
 
 
 def _dlt(src: Array, dst: Array, weights: Array) -> Array:
-    rows = []
-    for (x, y), (u, v), wt in zip(src, dst, np.sqrt(weights), strict=True):
-        rows.append(wt * np.array([x, y, 1, 0, 0, 0, -u * x, -u * y, -u]))
-        rows.append(wt * np.array([0, 0, 0, x, y, 1, -v * x, -v * y, -v]))
-    _, _, vt = np.linalg.svd(np.asarray(rows))
+    x, y = src[:, 0], src[:, 1]
+    u, v = dst[:, 0], dst[:, 1]
+    one, zero = np.ones_like(x), np.zeros_like(x)
+    wt = np.sqrt(weights)[:, None]
+    rows_u = np.stack([x, y, one, zero, zero, zero, -u * x, -u * y, -u], axis=1) * wt
+    rows_v = np.stack([zero, zero, zero, x, y, one, -v * x, -v * y, -v], axis=1) * wt
+    _, _, vt = np.linalg.svd(np.concatenate([rows_u, rows_v]))
     h = vt[-1]
     if abs(h[8]) < 1e-12:
         raise GeometryError("degenerate homography")
