@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+from shared.transport.access import AccessControlSettings, access_control_config
 from shared.transport.session import ZenohSettings, build_config
 from shared.wire import keys
 
@@ -38,3 +39,18 @@ def test_keys_are_versioned_and_under_root() -> None:
     for bad in ["", "a/b", "*", "a b"]:
         with pytest.raises(ValueError, match="robot id"):
             keys.frames(bad)
+
+
+def test_access_rules_per_role() -> None:
+    """The generated ACL: default deny; only trusted names unrestricted; each role's denials."""
+    acl = access_control_config(AccessControlSettings(enabled=True))
+    assert acl["default_permission"] == "deny"
+    policies = {p["subjects"][0]: set(p["rules"]) for p in acl["policies"]}
+    rules = {r["id"]: r for r in acl["rules"]}
+    assert policies["trusted"] == {"everything"}
+    assert "no-steer" in policies["cameras"] and "no-steer" in policies["slam"]
+    assert "no-steer" not in policies["operators"] and "no-steer" not in policies["controllers"]
+    assert "no-map-query" not in policies["operators"] and "no-map-query" in policies["slam"]
+    assert "splittag/*/tag_poses/**" in rules["operators-no-publish"]["key_exprs"]
+    assert "splittag/*/frame/**" not in rules["cameras-no-publish"]["key_exprs"]
+    assert "splittag/*/controller/**" not in rules["controllers-no-publish"]["key_exprs"]

@@ -81,9 +81,12 @@ def _running(pid: int) -> bool:
 
 
 def _cmd_split(args: argparse.Namespace) -> int:
+    from shared.transport.session import TlsSettings
     from shared.transport.split_client import split_query
 
-    print(split_query(args.robot_id, args.connect, k=getattr(args, "k", None), release=args.action == "release"))
+    tls = TlsSettings.from_dir(args.certs, args.identity) if args.certs else None
+    k, release = getattr(args, "k", None), args.action == "release"
+    print(split_query(args.robot_id, args.connect, k=k, release=release, tls=tls))
     return 0
 
 
@@ -428,6 +431,8 @@ def _add_control_commands(sub: Any) -> None:
     p.add_argument("k", type=int, nargs="?", help="split index 0..7 (for set)")
     p.add_argument("--robot-id", default="robot1")
     p.add_argument("--connect", default=Topology().edge_router, help="zenoh endpoint to connect to")
+    p.add_argument("--certs", type=Path, help="TLS deployments: the certificates folder (deploy/make-certs.sh)")
+    p.add_argument("--identity", default="operator", help="TLS deployments: whose certificate to present")
     p.set_defaults(func=_cmd_split)
 
     p = sub.add_parser("echo", help="run the edge echo queryable for link probes")

@@ -29,7 +29,7 @@ from shared.runtime.settings import CURRENT_RUN
 from shared.runtime.sources import demo_scene
 from shared.tools.supervise import Supervisor
 from shared.tools.topology import Topology, merge, write_config
-from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
+from shared.transport.session import TlsSettings, ZenohSettings, open_session, wait_for_liveliness
 from shared.vision.metrics import translation_error_cm
 from shared.vision.tagmap import TagMapFile, TagSpec
 from shared.viz.recording import merge_recordings
@@ -313,8 +313,11 @@ def loopback_config(
 
 def monitor_settings(config: Path) -> tuple[str, ZenohSettings]:
     """robot_id and a client session to the edge router, from the run config."""
-    robot_id = tomllib.loads(config.read_text()).get("common", {}).get("robot_id", "robot1")
-    return robot_id, ZenohSettings(mode="client", connect=[Topology.from_config(config).edge_router])
+    doc = tomllib.loads(config.read_text())
+    robot_id = doc.get("common", {}).get("robot_id", "robot1")
+    tls_table = doc.get("monitor", {}).get("tls")  # the operator's certificate in a TLS deployment
+    tls = TlsSettings.model_validate(tls_table) if tls_table is not None else None
+    return robot_id, ZenohSettings(mode="client", connect=[Topology.from_config(config).edge_router], tls=tls)
 
 
 class _Services:

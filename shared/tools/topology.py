@@ -34,11 +34,12 @@ class Topology:
     robot_bind: str = "127.0.0.1"  # the robot router listens here (robot-local bus)
     edge_from_robot: str = "127.0.0.1"  # how the robot router reaches the edge router
     edge_from_tools: str = "127.0.0.1"  # how tools (monitor, tests, benches) reach the edge router
+    protocol: str = "tcp"  # "tls" for deploy/secure.toml (every process then needs its certificate)
 
     @classmethod
-    def loopback(cls) -> Topology:
+    def loopback(cls, protocol: str = "tcp") -> Topology:
         """Everything on this host, on free ports (tests and benchmarks run side by side)."""
-        return cls(edge_port=free_tcp_port(), robot_port=free_tcp_port())
+        return cls(edge_port=free_tcp_port(), robot_port=free_tcp_port(), protocol=protocol)
 
     @classmethod
     def emulated_link(cls, *, edge_addr: str, mgmt_edge_addr: str) -> Topology:
@@ -51,14 +52,17 @@ class Topology:
         """The topology a deploy TOML describes (deploy/local.toml, deploy/two_host.toml, ...): the
         edge and robot routers' listen endpoints and the robot router's connect endpoint."""
         doc = tomllib.loads(config.read_text())
+        protocols: set[str] = set()
 
         def endpoint(service: str, field: str, default: tuple[str, int]) -> tuple[str, int]:
             values = doc.get(service, {}).get("zenoh", {}).get(field, [])
             if not values:
                 return default
-            host, _, port = str(values[0]).removeprefix("tcp/").rpartition(":")
-            if not host or not port.isdigit():
-                raise ValueError(f"{config}: [{service}.zenoh] {field} {values[0]!r} is not tcp/HOST:PORT")
+            proto, _, rest = str(values[0]).partition("/")
+            host, _, port = rest.rpartition(":")
+            if proto not in ("tcp", "tls") or not host or not port.isdigit():
+                raise ValueError(f"{config}: [{service}.zenoh] {field} {values[0]!r} is not tcp/ or tls/HOST:PORT")
+            protocols.add(proto)
             return host, int(port)
 
         edge_bind, edge_port = endpoint("edge_infer", "listen", ("127.0.0.1", EDGE_PORT))
@@ -66,29 +70,33 @@ class Topology:
         local = "127.0.0.1" if edge_bind == "0.0.0.0" else edge_bind
         edge_from_robot, _ = endpoint("robot_infer", "connect", (local, edge_port))
         monitor = doc.get("monitor", {}).get("connect", [])
-        edge_from_tools = str(monitor[0]).removeprefix("tcp/").rpartition(":")[0] if monitor else local
-        return cls(edge_port, robot_port, edge_bind, robot_bind, edge_from_robot, edge_from_tools)
+        edge_from_tools = str(monitor[0]).partition("/")[2].rpartition(":")[0] if monitor else local
+        if len(protocols) > 1:
+            raise ValueError(f"{config}: mixes tcp/ and tls/ endpoints; use one protocol for the whole deployment")
+        protocol = protocols.pop() if protocols else "tcp"
+        return cls(edge_port, robot_port, edge_bind, robot_bind, edge_from_robot, edge_from_tools, protocol)
 
     @property
     def edge_router(self) -> str:
         """The edge router's endpoint for tools."""
-        return f"tcp/{self.edge_from_tools}:{self.edge_port}"
+        return f"{self.protocol}/{self.edge_from_tools}:{self.edge_port}"
 
     @property
     def robot_router(self) -> str:
         """The robot router's endpoint (robot side only)."""
-        return f"tcp/{self.robot_bind}:{self.robot_port}"
+        return f"{self.protocol}/{self.robot_bind}:{self.robot_port}"
 
     def zenoh_tables(self) -> dict[str, dict[str, Any]]:
         """The `[<service>.zenoh]` tables (and `[monitor]`) of a run config."""
-        edge_local = f"tcp/{'127.0.0.1' if self.edge_bind == '0.0.0.0' else self.edge_bind}:{self.edge_port}"
+        p = self.protocol
+        edge_local = f"{p}/{'127.0.0.1' if self.edge_bind == '0.0.0.0' else self.edge_bind}:{self.edge_port}"
         return {
-            "edge_infer": {"zenoh": {"mode": "router", "listen": [f"tcp/{self.edge_bind}:{self.edge_port}"]}},
+            "edge_infer": {"zenoh": {"mode": "router", "listen": [f"{p}/{self.edge_bind}:{self.edge_port}"]}},
             "robot_infer": {
                 "zenoh": {
                     "mode": "router",
                     "listen": [self.robot_router],
-                    "connect": [f"tcp/{self.edge_from_robot}:{self.edge_port}"],
+                    "connect": [f"{p}/{self.edge_from_robot}:{self.edge_port}"],
                 }
             },
             "camera": {"zenoh": {"mode": "client", "connect": [self.robot_router]}},

@@ -9,14 +9,51 @@ import threading
 import time
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Literal
+from typing import Final, Literal
 
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field
 
+from shared.transport.access import AccessControlSettings, access_control_config
+
 log = logging.getLogger(__name__)
 
 MSGPACK = "application/msgpack"
+
+
+# The largest legitimate message: a Frame or Features under the codec's 64 MiB cap, plus headers.
+MAX_MESSAGE_BYTES: Final[int] = 64 * 1024 * 1024 + 1024 * 1024
+
+
+class TlsSettings(BaseModel):
+    """Zenoh TLS: this process's certificate and key (its identity: the certificate's common name),
+    and the CA every peer's certificate must chain to. `mutual`: peers must present one too (mTLS),
+    which is what lets the routers' access control know who is asking."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    root_ca_certificate: Path
+    certificate: Path
+    private_key: Path
+    mutual: bool = True
+
+    @classmethod
+    def from_dir(cls, certs_dir: Path, identity: str) -> TlsSettings:
+        """The layout deploy/make-certs.sh writes: ca.pem, <identity>.pem, <identity>.key."""
+        d = Path(certs_dir)
+        return cls(
+            root_ca_certificate=d / "ca.pem", certificate=d / f"{identity}.pem", private_key=d / f"{identity}.key"
+        )
+
+    def check_files(self) -> None:
+        """FileNotFoundError naming the first missing file (before Zenoh reports it less clearly)."""
+        for what, path in (
+            ("root_ca_certificate", self.root_ca_certificate),
+            ("certificate", self.certificate),
+            ("private_key", self.private_key),
+        ):
+            if not Path(path).is_file():
+                raise FileNotFoundError(f"zenoh tls {what} {path} does not exist (deploy/make-certs.sh makes them)")
 
 
 class ZenohSettings(BaseModel):
@@ -32,6 +69,11 @@ class ZenohSettings(BaseModel):
     shared_memory: bool = False
     config_file: Path | None = None  # JSON5; the fields above are applied on top of it
     connect_timeout_secs: float = Field(default=30.0, gt=0)  # open() fails after this long
+    # Larger messages are refused by the transport before they are reassembled (zenoh's default: 1 GiB).
+    max_message_bytes: int = Field(default=MAX_MESSAGE_BYTES, gt=0)
+    tls: TlsSettings | None = None  # needed by tls/ endpoints
+    # Enforced by a router on the messages of the peers and clients it serves (shared.transport.access).
+    access_control: AccessControlSettings = Field(default_factory=AccessControlSettings)
 
 
 def build_config(settings: ZenohSettings) -> zenoh.Config:
@@ -53,6 +95,28 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
         config.insert_json5("connect/exit_on_failure", "true")
     config.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
     config.insert_json5("transport/shared_memory/enabled", json.dumps(settings.shared_memory))
+    config.insert_json5("transport/link/rx/max_message_size", json.dumps(settings.max_message_bytes))
+    uses_tls = any(e.startswith("tls/") for e in (*settings.listen, *settings.connect))
+    if uses_tls and settings.tls is None:
+        raise ValueError("tls/ endpoints need zenoh.tls settings (certificates: deploy/make-certs.sh)")
+    if settings.tls is not None:
+        tls = settings.tls
+        tls.check_files()
+        link = {
+            "root_ca_certificate": str(tls.root_ca_certificate),
+            "listen_certificate": str(tls.certificate),
+            "listen_private_key": str(tls.private_key),
+            "connect_certificate": str(tls.certificate),
+            "connect_private_key": str(tls.private_key),
+            "enable_mtls": tls.mutual,
+            "verify_name_on_connect": True,
+        }
+        for key, value in link.items():
+            config.insert_json5(f"transport/link/tls/{key}", json.dumps(value))
+    if settings.access_control.enabled:
+        if settings.tls is None or not settings.tls.mutual:
+            raise ValueError("access control matches certificate names: it needs zenoh.tls with mutual = true")
+        config.insert_json5("access_control", json.dumps(access_control_config(settings.access_control)))
     return config
 
 

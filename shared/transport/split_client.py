@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import zenoh
 
-from shared.transport.session import ZenohSettings, open_session
+from shared.transport.session import TlsSettings, ZenohSettings, open_session
 from shared.wire import keys
 from shared.wire.messages import SplitConfig, decode
 
@@ -24,9 +24,10 @@ def query_split(session: zenoh.Session, robot_id: str, *, params: str = "", time
     raise SplitQueryError(f"no reply on {selector} (is robot_infer running?)")
 
 
-def split_query(robot_id: str, connect: str, *, k: int | None, release: bool) -> str:
-    """CLI helper: get, set or release; returns a printable line."""
-    session = open_session(ZenohSettings(mode="client", connect=[connect]))
+def split_query(robot_id: str, connect: str, *, k: int | None, release: bool, tls: TlsSettings | None = None) -> str:
+    """CLI helper: get, set or release; returns a printable line. `tls`: the operator's certificate
+    in a TLS deployment (deploy/secure.toml)."""
+    session = open_session(ZenohSettings(mode="client", connect=[connect], tls=tls))
     try:
         params = "release=1" if release else (f"k={k}" if k is not None else "")
         cfg = query_split(session, robot_id, params=params)

@@ -1,0 +1,39 @@
+#!/usr/bin/env bash
+# Make a private CA and one certificate per splittag identity, for Zenoh TLS with mutual
+# authentication (deploy/secure.toml). The common name (CN) of each certificate is the identity the
+# routers' access control matches: edge, robot, camera, slam, controller, operator.
+#
+#   deploy/make-certs.sh [OUT_DIR] [EXTRA_SAN ...]
+#
+# OUT_DIR defaults to certs/. Every certificate is valid for localhost and 127.0.0.1 plus each
+# EXTRA_SAN (an IP address or a DNS name: the edge's address when robot and edge are two hosts).
+# Keep ca.key offline after use: whoever holds it can mint identities.
+set -euo pipefail
+
+out=${1:-certs}
+shift || true
+identities=(edge robot camera slam controller operator)
+days=${SPLITTAG_CERT_DAYS:-825}
+
+mkdir -p "$out"
+umask 077
+san="DNS:localhost,IP:127.0.0.1"
+for extra in "$@"; do
+  if [[ $extra =~ ^[0-9.]+$ || $extra == *:* ]]; then san+=",IP:$extra"; else san+=",DNS:$extra"; fi
+done
+
+if [[ ! -f $out/ca.pem ]]; then
+  openssl req -x509 -newkey ec -pkeyopt ec_paramgen_curve:P-256 -nodes -days "$days" \
+    -subj "/CN=splittag-ca" -keyout "$out/ca.key" -out "$out/ca.pem" 2>/dev/null
+fi
+
+for id in "${identities[@]}"; do
+  openssl req -newkey ec -pkeyopt ec_paramgen_curve:P-256 -nodes -subj "/CN=$id" \
+    -keyout "$out/$id.key" -out "$out/$id.csr" 2>/dev/null
+  printf 'subjectAltName=%s\nextendedKeyUsage=serverAuth,clientAuth\nbasicConstraints=CA:FALSE\n' "$san" > "$out/$id.ext"
+  openssl x509 -req -in "$out/$id.csr" -CA "$out/ca.pem" -CAkey "$out/ca.key" -CAcreateserial \
+    -days "$days" -extfile "$out/$id.ext" -out "$out/$id.pem" 2>/dev/null
+  rm -f "$out/$id.csr" "$out/$id.ext"
+done
+chmod 644 "$out"/*.pem
+echo "certificates for ${identities[*]} in $out/ (CA: $out/ca.pem; SAN $san)"

@@ -1,0 +1,112 @@
+"""Who may do what on splittag's keys: roles by certificate common name, as Zenoh access control.
+
+The routers (edge_infer's and robot_infer's sessions) enforce it on the messages of every peer and
+client they serve; a process is identified by the common name of the certificate it presented over
+mutual TLS. Default deny: a certificate of an unknown name may do nothing. The robot and the edge are
+trusted with everything (the routers forward each other's traffic). The other roles may do
+everything on `splittag/**` except, explicitly denied (deny wins over allow in Zenoh's ACL):
+
+| role | may not |
+| --- | --- |
+| operator (people, `splittag split`, the launcher's monitor) | publish any data |
+| controller | publish data other than its ControllerState; query the map (save) |
+| slam | publish data other than camera poses and its map; query the split (steer) or the map (save) |
+| camera | publish data other than frames and ground truth; query the split or the map |
+
+and no role but the robot and the edge may declare the split, echo or stats queryables (so nobody
+can impersonate robot_infer's split control or the edge's link probe). Zenoh's ACL cannot tell a
+split get from a set (both are queries): steering is allowed to the operator and controller only.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Final
+
+from pydantic import BaseModel, ConfigDict, Field
+
+ALL_MESSAGES: Final[list[str]] = [
+    "put",
+    "delete",
+    "declare_subscriber",
+    "query",
+    "reply",
+    "declare_queryable",
+    "liveliness_token",
+    "liveliness_query",
+    "declare_liveliness_subscriber",
+]
+DATA_KEYS: Final[dict[str, str]] = {
+    "frame": "splittag/*/frame/**",
+    "ground_truth": "splittag/*/ground_truth/**",
+    "features": "splittag/*/features/**",
+    "tag_poses": "splittag/*/tag_poses/**",
+    "frame_sent": "splittag/*/frame_sent/**",
+    "compute": "splittag/*/compute/**",
+    "camera_pose": "splittag/*/camera_pose/**",
+    "map": "splittag/*/map/**",
+    "controller": "splittag/*/controller/**",
+}
+SPLIT_KEY: Final[str] = "splittag/*/split"
+MAP_KEY: Final[str] = "splittag/*/map/v1"
+SERVICE_QUERYABLES: Final[list[str]] = ["splittag/*/split", "splittag/*/echo", "splittag/*/*/stats"]
+# What each restricted role may publish; every other data key is denied to it.
+MAY_PUBLISH: Final[dict[str, set[str]]] = {
+    "operators": set(),
+    "controllers": {"controller"},
+    "slam": {"camera_pose", "map"},
+    "cameras": {"frame", "ground_truth"},
+}
+MAY_STEER: Final[set[str]] = {"operators", "controllers"}
+MAY_SAVE_MAP: Final[set[str]] = {"operators"}
+
+
+class AccessControlSettings(BaseModel):
+    """Certificate common names per role (deploy/make-certs.sh issues one certificate per name)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = False
+    trusted: list[str] = Field(default_factory=lambda: ["edge", "robot"])
+    operators: list[str] = Field(default_factory=lambda: ["operator"])
+    controllers: list[str] = Field(default_factory=lambda: ["controller"])
+    slam: list[str] = Field(default_factory=lambda: ["slam"])
+    cameras: list[str] = Field(default_factory=lambda: ["camera"])
+
+
+def _rule(rule_id: str, permission: str, messages: list[str], keys: list[str], flows: list[str]) -> dict[str, Any]:
+    return {"id": rule_id, "permission": permission, "messages": messages, "flows": flows, "key_exprs": keys}
+
+
+def access_control_config(settings: AccessControlSettings) -> dict[str, Any]:
+    """The `access_control` section of a router's Zenoh config for these roles."""
+    rules = [_rule("everything", "allow", ALL_MESSAGES, ["splittag/**"], ["ingress", "egress"])]
+    rules.append(_rule("no-steer", "deny", ["query"], [SPLIT_KEY], ["ingress"]))
+    rules.append(_rule("no-map-query", "deny", ["query"], [MAP_KEY], ["ingress"]))
+    rules.append(_rule("no-service-queryables", "deny", ["declare_queryable"], SERVICE_QUERYABLES, ["ingress"]))
+    subjects: list[dict[str, Any]] = []
+    policies: list[dict[str, Any]] = []
+
+    def role(role_id: str, names: list[str], rule_ids: list[str]) -> None:
+        if not names:
+            return
+        subjects.append({"id": role_id, "cert_common_names": names})
+        policies.append({"id": f"{role_id}-policy", "rules": rule_ids, "subjects": [role_id]})
+
+    role("trusted", settings.trusted, ["everything"])
+    for name, may in MAY_PUBLISH.items():
+        denied = sorted(set(DATA_KEYS) - may)
+        rule_id = f"{name}-no-publish"
+        rules.append(_rule(rule_id, "deny", ["put", "delete"], [DATA_KEYS[k] for k in denied], ["ingress"]))
+        extra = ["no-service-queryables"]
+        if name not in MAY_STEER:
+            extra.append("no-steer")
+        if name not in MAY_SAVE_MAP:
+            extra.append("no-map-query")
+        role(name, getattr(settings, name), ["everything", rule_id, *extra])
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
+    }

@@ -1,0 +1,177 @@
+"""deploy/secure.toml: every link over mutual TLS, the routers enforcing access control by certificate
+name. The whole pipeline runs under deploy/up.sh with certificates from deploy/make-certs.sh; then
+sessions with other identities try what they must not do, over real Zenoh."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from shared.tools.topology import Topology, write_config
+from shared.transport.session import TlsSettings, ZenohSettings, open_session, wait_for_liveliness
+from shared.transport.split_client import SplitQueryError, query_split
+from shared.wire import keys
+from shared.wire.messages import TagPoses, decode
+from tests.procs import REPO
+
+pytestmark = pytest.mark.multiprocess
+
+ROBOT = "secure1"
+SERVICES = ("camera", "robot_infer", "edge_infer", "slam")
+IDENTITY = {"edge_infer": "edge", "robot_infer": "robot", "camera": "camera", "slam": "slam"}
+
+
+@pytest.fixture(scope="module")
+def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("certs")
+    done = subprocess.run(["bash", "deploy/make-certs.sh", str(out)], cwd=REPO, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    return out
+
+
+def _session(topology: Topology, certs: Path, identity: str) -> zenoh.Session:
+    tls = TlsSettings.from_dir(certs, identity)
+    return open_session(ZenohSettings(mode="client", connect=[topology.edge_router], tls=tls, connect_timeout_secs=60))
+
+
+@contextmanager
+def secure_deployment(tmp_path: Path, certs: Path) -> Iterator[tuple[Topology, zenoh.Session]]:
+    """deploy/up.sh with deploy/secure.toml on free loopback ports; yields an operator session."""
+    topology = Topology.loopback(protocol="tls")
+    per_service = {
+        name: {"zenoh": {"tls": {"certificate": str(certs / f"{who}.pem"), "private_key": str(certs / f"{who}.key")}}}
+        for name, who in IDENTITY.items()
+    }
+    cfg = write_config(
+        tmp_path / "secure.toml",
+        base=REPO / "deploy" / "secure.toml",
+        topology=topology,
+        extra={
+            "common": {
+                "robot_id": ROBOT,
+                "rerun": {"enabled": False},
+                "zenoh": {"tls": {"root_ca_certificate": str(certs / "ca.pem")}},
+            },
+            "camera": {"fps": 3.0},
+            "monitor": {"tls": TlsSettings.from_dir(certs, "operator").model_dump(mode="json")},
+            **per_service,
+        },
+    )
+    log_path = tmp_path / "up.log"
+    with log_path.open("wb") as log:
+        up = subprocess.Popen(
+            ["bash", "deploy/up.sh", "--config", str(cfg), "--runs", str(tmp_path / "runs")],
+            cwd=REPO,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+        operator = _session(topology, certs, "operator")
+        failed = True
+        try:
+            wait_for_liveliness(operator, [keys.alive(ROBOT, s) for s in SERVICES], timeout_secs=150)
+            yield topology, operator
+            failed = False
+        finally:
+            operator.close()
+            if up.poll() is None:
+                os.killpg(up.pid, signal.SIGINT)
+                try:
+                    up.wait(timeout=60)
+                except subprocess.TimeoutExpired:
+                    os.killpg(up.pid, signal.SIGKILL)
+                    up.wait()
+            if failed:
+                print(log_path.read_text(errors="replace"))
+                for f in sorted((tmp_path / "runs").glob("*/*.log")):
+                    print(f"----- {f.name} -----\n{f.read_text(errors='replace')[-4000:]}")
+
+
+def test_only_authorised_identities_steer_and_publish(tmp_path: Path, certs: Path) -> None:
+    with secure_deployment(tmp_path, certs) as (topology, operator):
+        # The pipeline works over TLS: poses reach the operator.
+        seqs: list[int] = []
+        lock = threading.Lock()
+
+        def on_poses(sample: zenoh.Sample) -> None:
+            with lock:
+                seqs.append(decode(sample.payload.to_bytes(), TagPoses).seq)
+
+        sub = operator.declare_subscriber(keys.tag_poses(ROBOT), on_poses)
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline and len(seqs) < 3:
+            time.sleep(0.2)
+        assert len(seqs) >= 3, "no poses over the TLS deployment"
+
+        # The operator steers.
+        assert query_split(operator, ROBOT, params="k=5", timeout_secs=10).k == 5
+
+        # The camera's identity may not: its query is dropped by the edge router; nothing changes.
+        camera = _session(topology, certs, "camera")
+        try:
+            with pytest.raises(SplitQueryError):
+                query_split(camera, ROBOT, params="k=2", timeout_secs=2)
+            assert query_split(operator, ROBOT, timeout_secs=10).k == 5
+
+            # Nor may it publish TagPoses; the same message from the robot's identity goes through.
+            forged = _forged_poses(seq=2**40)
+            camera.put(keys.tag_poses(ROBOT), forged)
+            robot = _session(topology, certs, "robot")
+            try:
+                time.sleep(0.5)  # the robot session's routes
+                robot.put(keys.tag_poses(ROBOT), _forged_poses(seq=2**41))
+                deadline = time.monotonic() + 10
+                while time.monotonic() < deadline and 2**41 not in seqs:
+                    time.sleep(0.1)
+            finally:
+                robot.close()
+            with lock:
+                assert 2**41 in seqs, "the positive control (robot identity) did not arrive"
+                assert 2**40 not in seqs, "the camera identity published TagPoses"
+        finally:
+            camera.close()
+        sub.undeclare()
+
+        # Without a certificate from this CA, or without TLS, no connection at all.
+        stranger = tmp_path / "stranger"
+        subprocess.run(["bash", "deploy/make-certs.sh", str(stranger)], cwd=REPO, check=True, capture_output=True)
+        plain_tcp = topology.edge_router.replace("tls/", "tcp/")
+        for settings in (
+            ZenohSettings(
+                mode="client",
+                connect=[topology.edge_router],
+                tls=TlsSettings.from_dir(stranger, "operator"),
+                connect_timeout_secs=3,
+            ),
+            ZenohSettings(mode="client", connect=[plain_tcp], connect_timeout_secs=3),
+        ):
+            with pytest.raises(zenoh.ZError):
+                open_session(settings).close()
+
+
+def _forged_poses(seq: int) -> bytes:
+    """A schema-valid TagPoses with no tags (what an injector would send)."""
+    from shared.vision.geometry import default_camera
+    from shared.wire.messages import HopTimings, encode
+
+    msg = TagPoses(
+        robot_id=ROBOT,
+        seq=seq,
+        capture_nanos=time.time_ns(),
+        split_k=7,
+        payload_bytes=1,
+        intrinsics=default_camera(),
+        link=None,
+        timings=HopTimings(robot_compute_secs=0, transport_secs=0, edge_compute_secs=0, capture_to_pose_secs=0),
+        tags=[],
+    )
+    return encode(msg)
