@@ -13,6 +13,7 @@ from shared.transport.session import ZenohSettings, open_session, wait_for_livel
 from shared.vision.trajectory import read_tum
 from shared.viz.recording import merge_recordings, recording_components, recording_entities
 from shared.wire import keys
+from shared.wire.messages import TagMap, decode
 from tests.conftest import DeployConfig
 from tests.procs import processes, start_process
 
@@ -58,6 +59,7 @@ def test_demo_scene_slam_trajectory_and_recording(tmp_path: Path, deploy_config:
         procs.append(camera)
         camera.popen.wait(timeout=120)
         time.sleep(3.0)  # the last frames drain through the pipeline
+        _map_queries_are_answered_by_the_main_loop(topology.edge_router, run)
         for p in reversed(procs):
             p.stop()
         est = {round(t * 1e9): p for t, p in read_tum(run / "trajectory.tum")}
@@ -72,3 +74,27 @@ def test_demo_scene_slam_trajectory_and_recording(tmp_path: Path, deploy_config:
         assert not missing, f"entities missing from the recording: {sorted(missing)}"
         # The SLAM camera's frustum (a pinhole from the intrinsics TagPoses now carry) is in it too.
         assert {"Pinhole:image_from_camera", "Pinhole:resolution"} <= recording_components(recording)
+
+
+def _map_queries_are_answered_by_the_main_loop(edge_router: str, run: Path) -> None:
+    """A get returns the map; ?save=1 writes it first; a burst of queries gets answers or a 'busy'
+    error each (queued for slam's main loop, never worked on Zenoh's thread, never left hanging)."""
+    session = open_session(ZenohSettings(mode="client", connect=[edge_router]))
+    try:
+        (run / "map.json").unlink(missing_ok=True)
+        replies = list(session.get(keys.tag_map(ROBOT) + "?save=1", timeout=30))
+        assert len(replies) == 1 and replies[0].ok is not None
+        tag_map = decode(replies[0].ok.payload.to_bytes(), TagMap)
+        assert len(tag_map.tags) >= 2
+        assert (run / "map.json").is_file()
+        handlers = [session.get(keys.tag_map(ROBOT) + "?save=1", timeout=30) for _ in range(12)]
+        outcomes = [
+            "ok" if r.ok is not None else (r.err.payload.to_string() if r.err is not None else "?")
+            for h in handlers
+            for r in h
+        ]
+        print(f"12 queued saves: {outcomes.count('ok')} answered, {len(outcomes) - outcomes.count('ok')} busy")
+        assert len(outcomes) == 12, outcomes
+        assert outcomes.count("ok") >= 4 and all(o == "ok" or "busy" in o for o in outcomes), outcomes
+    finally:
+        session.close()

@@ -7,8 +7,10 @@ groundtruth.tum / ate.json now.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
+import queue
 import threading
 import time
 from pathlib import Path
@@ -26,7 +28,7 @@ from shared.slam.marker_slam import (
     absolute_trajectory_error,
     check_observation,
 )
-from shared.transport.session import declare_fifo_subscriber, encoding_for, next_sample
+from shared.transport.session import declare_fifo_subscriber, encoding_for
 from shared.vision.camera import CameraIntrinsics
 from shared.vision.files import atomic_write_text
 from shared.vision.geometry import check_rigid
@@ -149,6 +151,16 @@ class SlamNode:
         return out
 
 
+class SlamBusyError(RuntimeError):
+    """More map queries pending than slam answers at once."""
+
+
+def _refuse_busy(query: zenoh.Query) -> None:
+    with query:
+        query.reply_err(b"slam is busy: too many map queries pending")
+    raise SlamBusyError("map query refused: too many pending")
+
+
 def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threading.Event) -> None:
     """Serve until `stop`; writes the outputs into run_dir at exit."""
     node = SlamNode(settings)
@@ -169,10 +181,20 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
         payload = sample.payload.to_bytes()
         guard.run("ground_truth", len(payload), lambda: keep(payload))
 
+    # Map gets (and ?save=1) are answered by the main loop, not on Zenoh's thread: a save is ~1 s of work.
+    requests: queue.Queue[zenoh.Query] = queue.Queue(maxsize=settings.max_pending_map_queries)
+
     def on_map_query(query: zenoh.Query) -> None:
-        if query.parameters.get("save") in ("1", "true"):
-            guard.run("save", 0, lambda: node.write_outputs(settings.run_dir))
-        query.reply(query.key_expr, encode(node.current_map(rid)), encoding=encoding_for(TagMap.SCHEMA))
+        try:
+            requests.put_nowait(query)
+        except queue.Full:
+            guard.run("map query", 0, lambda: _refuse_busy(query))
+
+    def answer(query: zenoh.Query) -> None:
+        with query:  # the query is finalised (its asker told "no more replies") on exit
+            if query.parameters.get("save") in ("1", "true"):
+                node.write_outputs(settings.run_dir)
+            query.reply(query.key_expr, encode(node.current_map(rid)), encoding=encoding_for(TagMap.SCHEMA))
 
     gt_sub = session.declare_subscriber(keys.ground_truth(rid), on_gt)
     queryable = session.declare_queryable(keys.tag_map(rid), on_map_query)
@@ -203,9 +225,16 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
 
     last_checkpoint = time.monotonic()
     try:
-        while (sample := next_sample(poses_sub, stop)) is not None:
-            payload = sample.payload.to_bytes()
-            guard.run("tag_poses", len(payload), lambda: process(payload))  # noqa: B023 (called at once)
+        while not stop.is_set():
+            with contextlib.suppress(queue.Empty):
+                query = requests.get_nowait()
+                guard.run("map query", 0, lambda: answer(query))  # noqa: B023 (called at once)
+            sample = poses_sub.try_recv()
+            if sample is None:
+                stop.wait(0.001)
+            else:
+                payload = sample.payload.to_bytes()
+                guard.run("tag_poses", len(payload), lambda: process(payload))  # noqa: B023 (called at once)
             if time.monotonic() - last_checkpoint >= settings.checkpoint_period_secs:
                 # Atomic: a kill never leaves half a file, or less. A failing write is counted, not fatal.
                 guard.run("checkpoint", 0, lambda: node.write_outputs(settings.run_dir))

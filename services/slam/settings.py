@@ -22,4 +22,5 @@ class SlamServiceSettings(ServiceSettings):
     tag_map: Path | None = None  # anchor world pose, and all poses in localisation-only mode
     map_publish_every: int = Field(default=30, ge=1)  # frames; plus whenever a tag is added
     checkpoint_period_secs: float = Field(default=5.0, gt=0)  # map + trajectory written atomically this often
+    max_pending_map_queries: int = Field(default=4, ge=1)  # more are refused (reply_err), counted
     resume: bool = True  # start from run_dir's map.json / trajectory.tum when a previous slam left them
