@@ -66,6 +66,7 @@ def example_messages() -> dict[str, Message]:
             corners_px=corners,
             roi_to_image=np.arange(9, dtype=np.float64).reshape(3, 3) + 10 * np.eye(3),
             tensor=rng.standard_normal((4, 2, 2)).astype(np.float16),
+            edge_width_px=1.5,
         ),
         TagFeature(
             tag_id=9,
@@ -74,6 +75,7 @@ def example_messages() -> dict[str, Message]:
             corners_px=corners,
             roi_to_image=np.eye(3),
             tensor=rng.integers(-128, 127, (2, 3), dtype=np.int8),
+            edge_width_px=1.5,
         ),
     ]
     features = Features(

@@ -11,7 +11,7 @@ from pydantic import ValidationError
 
 from shared.model.net import SplitKeypointNet
 from shared.model.weights import WeightsError, load_keypoint_fusion, save_weights, write_keypoint_fusion
-from shared.vision.fusion import KeypointFusion, fuse_lattice, roi_zoom
+from shared.vision.fusion import KeypointFusion, edge_width_px, fuse_lattice, roi_zoom
 from shared.vision.geometry import CORNER_KEYPOINTS, GeometryError, apply_homography
 
 # A tilted tag: unit lattice -> image.
@@ -78,3 +78,36 @@ def test_calibration_round_trips_through_the_weights_folder(tmp_path: Path) -> N
     (tmp_path / "config.json").write_text(json.dumps(config))
     with pytest.raises(WeightsError, match="keypoint_fusion"):
         load_keypoint_fusion(tmp_path)
+
+
+def _square_roi(blur_sigma: float, contrast: float = 170.0) -> np.ndarray:
+    import cv2
+
+    roi = np.full((256, 256), 200.0, np.float32)
+    roi[51:205, 51:205] = 200.0 - contrast  # the black square where stage 1's quad puts it (margin 0.2)
+    if blur_sigma > 0:
+        roi = np.asarray(cv2.GaussianBlur(roi, (0, 0), blur_sigma), np.float32)
+    return np.clip(roi, 0, 255).astype(np.uint8)
+
+
+def test_edge_width_grows_with_blur_and_scales_to_the_image() -> None:
+    sharp = edge_width_px(_square_roi(0.0), np.eye(3))
+    assert sharp is not None and 0.8 <= sharp <= 1.2
+    measured = [edge_width_px(_square_roi(s), np.eye(3)) for s in (1.0, 2.0, 4.0)]
+    widths = [w for w in measured if w is not None]
+    assert len(widths) == 3 and widths == sorted(widths)
+    # A Gaussian edge: (levels difference) / (steepest gradient) = sqrt(2 pi) sigma.
+    assert widths[1] == pytest.approx(np.sqrt(2 * np.pi) * 2.0, rel=0.1)
+    half = edge_width_px(_square_roi(2.0), np.diag([0.5, 0.5, 1.0]))  # ROI upsampled 2x from the image
+    assert half is not None and half == pytest.approx(widths[1] / 2, rel=1e-6)
+    assert edge_width_px(np.full((256, 256), 128, np.uint8), np.eye(3)) is None  # no edge to measure
+
+
+def test_sigmas_grow_with_the_width() -> None:
+    f = KeypointFusion(
+        keypoint_sigma_roi_px=0.3, keypoint_sigma_per_blur=0.05, corner_sigma_px=0.1, corner_sigma_per_blur=0.1
+    )
+    net_sharp, corner_sharp = f.sigmas_px(np.eye(3), 1.0)
+    net_blur, corner_blur = f.sigmas_px(np.eye(3), 8.0)
+    assert corner_sharp < net_sharp and corner_blur > net_blur  # the corners win when sharp, the net when blurred
+    assert f.sigmas_px(np.eye(3), None) == f.sigmas_px(np.eye(3), f.nominal_width_px)

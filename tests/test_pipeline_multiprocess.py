@@ -145,6 +145,7 @@ def test_split_changes_live_bad_input_and_edge_restart(pipeline: tuple, tmp_path
                 corners_px=np.zeros((4, 2), np.float32),
                 roi_to_image=np.eye(3),
                 tensor=np.zeros((64, 64, 64), np.float16),
+                edge_width_px=1.5,
             )
         ],
     )

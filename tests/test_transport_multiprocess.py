@@ -71,6 +71,7 @@ def test_one_mebibyte_tensor_crosses_bit_exact(tmp_path: Path) -> None:
                         corners_px=np.zeros((4, 2), np.float32),
                         roi_to_image=np.eye(3),
                         tensor=tensor,
+                        edge_width_px=1.5,
                     )
                 ],
             )

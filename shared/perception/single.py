@@ -17,7 +17,7 @@ from shared.model.infer import keypoints
 from shared.model.net import SplitKeypointNet
 from shared.vision.camera import CameraIntrinsics
 from shared.vision.detector import Detection, TagDetector
-from shared.vision.fusion import KeypointFusion
+from shared.vision.fusion import KeypointFusion, edge_width_px
 from shared.vision.geometry import (
     Array,
     corners_in_tag,
@@ -113,7 +113,7 @@ def perceive(
         if kps is not None:
             kp_px = keypoints_to_image(kps[i], homs[i])
             if fusion is not None:
-                kp_px = fusion.apply(kp_px, d.corners_px, homs[i])
+                kp_px = fusion.apply(kp_px, d.corners_px, homs[i], edge_width_px(rois[i], homs[i]))
             pose = solve_planar_pnp(camera, lattice_in_tag(size), kp_px)
         else:
             kp_px, pose = None, None

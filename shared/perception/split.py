@@ -16,7 +16,7 @@ from shared.model.infer import run_head, run_tail
 from shared.model.net import SplitKeypointNet
 from shared.perception.single import extract_rois
 from shared.vision.detector import TagDetector
-from shared.vision.fusion import KeypointFusion
+from shared.vision.fusion import KeypointFusion, edge_width_px
 from shared.vision.geometry import keypoints_to_image, lattice_in_tag
 from shared.vision.pnp import solve_planar_pnp
 from shared.vision.tagmap import TagMapFile
@@ -70,6 +70,7 @@ def robot_step(
             corners_px=d.corners_px.astype(np.float32),
             roi_to_image=roi_to_image[i],
             tensor=tensors[i],
+            edge_width_px=edge_width_px(rois[i], roi_to_image[i]),
         )
         for i, d in enumerate(detections)
     ]
@@ -108,7 +109,8 @@ def edge_step(
             size = tag_map.size_of(tag.tag_id)
             kp_px = keypoints_to_image(kp, tag.roi_to_image)
             if fusion is not None:
-                kp_px = fusion.apply(kp_px, np.asarray(tag.corners_px, np.float64), tag.roi_to_image)
+                corners = np.asarray(tag.corners_px, np.float64)
+                kp_px = fusion.apply(kp_px, corners, tag.roi_to_image, tag.edge_width_px)
             cand = solve_planar_pnp(features.intrinsics, lattice_in_tag(size), kp_px)
             poses.append(
                 TagPose(

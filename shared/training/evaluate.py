@@ -15,8 +15,15 @@ from shared.model.net import SplitKeypointNet
 from shared.perception.single import run_network
 from shared.training.train import evaluate_arrays
 from shared.vision.camera import CameraIntrinsics
-from shared.vision.fusion import KeypointFusion
-from shared.vision.geometry import CORNER_KEYPOINTS, ROI_SIZE, corners_in_tag, keypoints_to_image, lattice_in_tag
+from shared.vision.fusion import KeypointFusion, edge_width_px, roi_zoom
+from shared.vision.geometry import (
+    CORNER_KEYPOINTS,
+    apply_homography,
+    corners_in_tag,
+    keypoints_to_image,
+    lattice_in_tag,
+    roi_square,
+)
 from shared.vision.metrics import rotation_error_deg, summary, translation_error_cm
 from shared.vision.pnp import solve_planar_pnp
 
@@ -97,21 +104,76 @@ def _robust_sigma(errors: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(errors)))
 
 
+def _fit_sigma_model(cells: list[tuple[float, float, float]]) -> tuple[float, float]:
+    """(a, b) with sigma^2 = a^2 x + b^2 y from cells (x, y, measured sigma), non-negative least squares."""
+    from scipy.optimize import nnls
+
+    design = np.array([[x, y] for x, y, _ in cells])
+    target = np.array([s**2 for _, _, s in cells])
+    coef, _ = nnls(design, target)
+    return float(np.sqrt(coef[0])), float(np.sqrt(coef[1]))
+
+
+def _cells(key_a: np.ndarray, key_b: np.ndarray, n_a: int, n_b: int, min_count: int = 20) -> list[np.ndarray]:
+    """Quantile cells over two keys: the sample indices of each cell with enough samples."""
+    out = []
+    qa = np.quantile(key_a, np.linspace(0, 1, n_a + 1))
+    qb = np.quantile(key_b, np.linspace(0, 1, n_b + 1))
+    for i in range(n_a):
+        for j in range(n_b):
+            sel = (key_a >= qa[i]) & (key_a <= qa[i + 1]) & (key_b >= qb[j]) & (key_b <= qb[j + 1])
+            if sel.sum() >= min_count:
+                out.append(np.flatnonzero(sel))
+    return out
+
+
 def calibrate_fusion(
     model: SplitKeypointNet, ds: Dataset, *, split: str = "test", limit: int | None = None, command: str = ""
 ) -> KeypointFusion:
-    """Measure the sigmas keypoint fusion weighs by, on a data set split the network was not trained on:
-    the network's per-coordinate error in ROI pixels and stage 1's corners' in image pixels."""
-    rows = ds.split(split)[:limit]
-    if len(rows) == 0:
-        raise ValueError(f"{ds.root}: the {split} split is empty")
-    pred = predict_dataset(model, ds, rows)
-    kp_err_roi = (pred - ds.arrays["keypoints"][rows]) * ROI_SIZE
-    corner_err = ds.arrays["corners_px"][rows] - ds.arrays["keypoints_px"][rows][:, list(CORNER_KEYPOINTS)]
+    """Measure the sigma models keypoint fusion weighs by, on a split the network was not trained on:
+    samples whose ROI is warped from stage 1's quad as it is (as at inference), each with its edge
+    width; AprilTag's corner error and the network's keypoint error (image pixels) fitted as
+    sigma^2 = sigma_0^2 + (slope * width)^2 (the network's sigma_0 in ROI pixels, times the zoom)."""
+    a = ds.arrays
+    square = roi_square()
+    rows = [
+        int(i)
+        for i in ds.split(split)
+        if np.abs(apply_homography(a["roi_to_image"][i], square) - a["corners_px"][i]).max() < 1e-3
+    ][:limit]
+    if len(rows) < 200:
+        raise ValueError(f"{ds.root}: {len(rows)} unperturbed samples in the {split} split; need >= 200")
+    pred = predict_dataset(model, ds, np.asarray(rows))
+    keep, widths, zooms, net_err, corner_err = [], [], [], [], []
+    for j, i in enumerate(rows):
+        h = a["roi_to_image"][i]
+        width = edge_width_px(a["roi"][i], h)
+        if width is None:
+            continue
+        keep.append(j)
+        widths.append(width)
+        zooms.append(roi_zoom(h))
+        net_err.append(np.abs(keypoints_to_image(pred[j], h) - a["keypoints_px"][i]).ravel())
+        corner_err.append(np.abs(a["corners_px"][i] - a["keypoints_px"][i][list(CORNER_KEYPOINTS)]).ravel())
+    w, z = np.asarray(widths), np.asarray(zooms)
+    # Corners: sigma^2 = c0^2 + c1^2 w^2, cells over the width.
+    corner = np.asarray(corner_err)
+    cells = [(1.0, float(np.median(w[idx]) ** 2), _robust_sigma(corner[idx])) for idx in _cells(w, w, 8, 1)]
+    c0, c1 = _fit_sigma_model(cells)
+    # Network: sigma^2 = n0^2 z^2 + n1^2 w^2, cells over width and zoom.
+    net = np.asarray(net_err)
+    cells = [
+        (float(np.median(z[idx] ** 2)), float(np.median(w[idx]) ** 2), _robust_sigma(net[idx]))
+        for idx in _cells(w, z, 5, 4)
+    ]
+    n0, n1 = _fit_sigma_model(cells)
     return KeypointFusion(
-        keypoint_sigma_roi_px=round(_robust_sigma(kp_err_roi), 4),
-        corner_sigma_px=round(_robust_sigma(corner_err), 4),
-        calibrated_on=f"{ds.root} {split} split, {len(rows)} samples" + (f": {command}" if command else ""),
+        keypoint_sigma_roi_px=round(max(n0, 1e-3), 4),
+        keypoint_sigma_per_blur=round(n1, 4),
+        corner_sigma_px=round(max(c0, 1e-3), 4),
+        corner_sigma_per_blur=round(c1, 4),
+        nominal_width_px=round(float(np.median(w)), 3),
+        calibrated_on=f"{ds.root} {split} split, {len(keep)} unperturbed samples" + (f": {command}" if command else ""),
     )
 
 

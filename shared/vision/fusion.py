@@ -7,17 +7,23 @@ constant in image pixels. `fuse_lattice` fits the homography to both, each point
 1/sigma^2 (Gauss-Newton on the 8 parameters, started from the unweighted least-squares fit), and
 returns the lattice the fitted homography predicts: a large tag (ROI downsampled) leans on the
 corners, a small or blurred one on the network, and the 16 points are always consistent with a plane.
-Pure numpy; microseconds per tag.
+Both sigmas grow with the image's blur, AprilTag's much faster (its corners come from edges fitted
+in the image): `edge_width_px` measures how wide the tag's border edge is (contrast over the steepest
+gradient across it, in image pixels) from the ROI, on the robot, and the Features carry it; the
+calibrated model is sigma^2 = sigma_0^2 + (slope * width)^2 per estimate. Pure numpy; well under a
+millisecond per tag.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
+from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from shared.vision.geometry import CORNER_KEYPOINTS, LATTICE_FRACTIONS, Array, GeometryError
+from shared.vision.geometry import CORNER_KEYPOINTS, LATTICE_FRACTIONS, Array, GeometryError, roi_square
 
 _UNIT_LATTICE: Array = np.array([[x, y] for y in LATTICE_FRACTIONS for x in LATTICE_FRACTIONS], np.float64)
 
@@ -120,20 +126,70 @@ def fuse_lattice(
     return FusedLattice(fitted, h / h[2, 2], resid)
 
 
+def _edge_profiles(
+    n_along: int = 9, half_px: float = 9.0, step_px: float = 0.5
+) -> tuple[NDArray[np.float32], NDArray[np.float32], float]:
+    """ROI sample points of profiles across the black square's four edges, outside -> inside."""
+    lo, hi = roi_square()[0, 0], roi_square()[2, 0]
+    offs = np.arange(-half_px, half_px + 1e-9, step_px)
+    xs, ys = [], []
+    for t in np.linspace(0.2, 0.8, n_along):
+        pos = lo + t * (hi - lo)
+        along = np.full_like(offs, pos)
+        for x, y in ((along, lo + offs), (hi - offs, along), (along, hi - offs), (lo + offs, along)):
+            xs.append(x)
+            ys.append(y)
+    return np.asarray(xs, np.float32), np.asarray(ys, np.float32), step_px
+
+
+_PROFILES = _edge_profiles()
+
+
+def edge_width_px(roi: NDArray[np.uint8], roi_to_image: Array) -> float | None:
+    """How wide the tag's border edge is in the image, pixels: the median over 36 profiles across
+    the black square's edges of (outer - inner level) / steepest gradient, scaled by the ROI's zoom.
+    About 1 for a sharp edge; grows with motion blur and defocus. None when the ROI shows no edge
+    (no contrast: occluded, saturated). The ROI must be warped from stage 1's quad (as at inference)."""
+    xs, ys, step = _PROFILES
+    prof = cv2.remap(np.asarray(roi, np.float32), xs, ys, cv2.INTER_LINEAR)
+    outer, inner = np.median(prof[:, :5], axis=1), np.median(prof[:, -5:], axis=1)
+    contrast = outer - inner
+    steepest = np.abs(np.diff(prof, axis=1)).max(axis=1) / step
+    ok = (contrast > 10.0) & (steepest > 0)
+    if ok.sum() < 6:
+        return None
+    return float(np.median(contrast[ok] / steepest[ok]) * roi_zoom(roi_to_image))
+
+
 class KeypointFusion(BaseModel):
     """How much to trust each estimate, calibrated per model (config.json's `keypoint_fusion`).
 
-    `keypoint_sigma_roi_px`: the network's per-coordinate error in ROI pixels (scaled to image pixels
-    by the ROI's zoom per tag); `corner_sigma_px`: AprilTag's refined corners' error in image pixels.
+    The network's per-coordinate sigma is sqrt((keypoint_sigma_roi_px * zoom)^2 + (keypoint_sigma_per_blur
+    * width)^2) in image pixels (zoom: image pixels per ROI pixel), AprilTag's corners'
+    sqrt(corner_sigma_px^2 + (corner_sigma_per_blur * width)^2); width = `edge_width_px`, or
+    `nominal_width_px` when the robot did not measure it.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     keypoint_sigma_roi_px: float = Field(gt=0, le=100)
+    keypoint_sigma_per_blur: float = Field(default=0.0, ge=0, le=10)
     corner_sigma_px: float = Field(gt=0, le=100)
+    corner_sigma_per_blur: float = Field(default=0.0, ge=0, le=10)
+    nominal_width_px: float = Field(default=2.0, gt=0, le=100)
     calibrated_on: str = Field(default="", max_length=500, description="data and command the sigmas come from")
 
-    def apply(self, keypoints_px: Array, corners_px: Array, roi_to_image: Array) -> Array:
+    def sigmas_px(self, roi_to_image: Array, width_px: float | None) -> tuple[float, float]:
+        """(network keypoint sigma, stage-1 corner sigma) in image pixels for one tag."""
+        w = self.nominal_width_px if width_px is None else width_px
+        zoom = roi_zoom(roi_to_image)
+        net = float(np.hypot(self.keypoint_sigma_roi_px * zoom, self.keypoint_sigma_per_blur * w))
+        corner = float(np.hypot(self.corner_sigma_px, self.corner_sigma_per_blur * w))
+        return net, corner
+
+    def apply(
+        self, keypoints_px: Array, corners_px: Array, roi_to_image: Array, width_px: float | None = None
+    ) -> Array:
         """The fused 16 lattice points in image pixels for one tag."""
-        sigma = self.keypoint_sigma_roi_px * roi_zoom(roi_to_image)
-        return fuse_lattice(keypoints_px, sigma, corners_px, self.corner_sigma_px).keypoints_px
+        net, corner = self.sigmas_px(roi_to_image, width_px)
+        return fuse_lattice(keypoints_px, net, corners_px, corner).keypoints_px

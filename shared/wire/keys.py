@@ -30,8 +30,8 @@ def ground_truth(robot_id: str) -> str:
 
 
 def features(robot_id: str) -> str:
-    """Features v1: robot_infer -> edge_infer (the split tensor crosses the link here)."""
-    return f"{ROOT}/{_check(robot_id, 'robot id')}/features/v1"
+    """Features v2: robot_infer -> edge_infer (the split tensor crosses the link here)."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/features/v2"
 
 
 def tag_poses(robot_id: str) -> str:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Annotated, Any, ClassVar, Final, Literal, TypeVar
+from typing import Annotated, Any, ClassVar, Final, Literal, Self, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -140,8 +140,8 @@ class Frame(Message):
         return self
 
 
-class TagFeature(WireModel):
-    """One detected tag's stage-1 result and the split tensor computed from its ROI."""
+class TagFeatureV1(WireModel):
+    """One detected tag's stage-1 result and the split tensor computed from its ROI (Features v1)."""
 
     tag_id: int = Field(ge=0)
     decision_margin: FiniteFloat
@@ -151,7 +151,7 @@ class TagFeature(WireModel):
     tensor: SplitTensor
 
     @model_validator(mode="after")
-    def _homography_invertible(self) -> TagFeature:
+    def _homography_invertible(self) -> Self:
         h = np.asarray(self.roi_to_image, np.float64)
         scale = float(np.abs(h).max())
         if scale == 0 or abs(float(np.linalg.det(h / scale))) < 1e-12:
@@ -159,8 +159,30 @@ class TagFeature(WireModel):
         return self
 
 
+class TagFeature(TagFeatureV1):
+    """TagFeatureV1 plus how blurred the tag's border is in the image (shared.vision.fusion.edge_width_px,
+    image pixels; None when the robot could not measure it): keypoint fusion weighs by it."""
+
+    edge_width_px: float | None = Field(ge=0, le=1000, allow_inf_nan=False)
+
+
 class Features(Message):
     """Everything robot_infer computed for one frame at split k (possibly zero tags)."""
+
+    SCHEMA: ClassVar[str] = "splittag/Features/v2"
+    robot_id: RobotId
+    seq: int = Field(ge=0)
+    capture_nanos: int = Field(ge=0)
+    publish_nanos: int = Field(ge=0)
+    split_k: SplitIndex
+    codec: CodecName
+    intrinsics: CameraIntrinsics
+    robot_compute_secs: NonNegFloat
+    tags: list[TagFeature]
+
+
+class FeaturesV1(Message):
+    """Features before the edge width; still decoded (as v2 with edge_width_px None)."""
 
     SCHEMA: ClassVar[str] = "splittag/Features/v1"
     robot_id: RobotId
@@ -171,7 +193,13 @@ class Features(Message):
     codec: CodecName
     intrinsics: CameraIntrinsics
     robot_compute_secs: NonNegFloat
-    tags: list[TagFeature]
+    tags: list[TagFeatureV1]
+
+    def upgrade(self) -> Features:
+        """The same content as the current schema."""
+        fields = {name: getattr(self, name) for name in FeaturesV1.model_fields if name != "tags"}
+        tags = [TagFeature(**dict(t), edge_width_px=None) for t in self.tags]
+        return Features(**fields, tags=tags)
 
 
 class HopTimings(WireModel):
@@ -372,7 +400,9 @@ MESSAGE_TYPES: Final[tuple[type[Message], ...]] = (
 )
 SCHEMAS: Final[dict[str, type[Message]]] = {m.SCHEMA: m for m in MESSAGE_TYPES}
 # Older versions still accepted: each has `upgrade()` to the current message of its name.
-LEGACY_SCHEMAS: Final[dict[str, type[TagPosesV1] | type[ProbeAckV1]]] = {m.SCHEMA: m for m in (TagPosesV1, ProbeAckV1)}
+LEGACY_SCHEMAS: Final[dict[str, type[TagPosesV1] | type[ProbeAckV1] | type[FeaturesV1]]] = {
+    m.SCHEMA: m for m in (TagPosesV1, ProbeAckV1, FeaturesV1)
+}
 _CURRENT_BY_NAME: Final[dict[str, type[Message]]] = {m.SCHEMA.rpartition("/")[0]: m for m in MESSAGE_TYPES}
 ENVELOPE_KEYS: Final[frozenset[str]] = frozenset({"schema", "body"})
 

@@ -24,6 +24,7 @@ def probe_features(tensor_bytes: int, *, robot_id: str = "probe", seq: int = 0) 
         corners_px=np.zeros((4, 2), np.float32),
         roi_to_image=np.eye(3),
         tensor=tensor,
+        edge_width_px=1.0,  # a measured width (a float), as real Features carry
     )
     now = time.time_ns()
     return Features(
