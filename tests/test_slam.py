@@ -5,7 +5,9 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
+from typing import cast
 
+import gtsam
 import numpy as np
 import pytest
 
@@ -19,9 +21,10 @@ from shared.slam.marker_slam import (
     SlamInputError,
     SlamSettings,
     absolute_trajectory_error,
+    check_observation,
     umeyama_se3,
 )
-from shared.vision.geometry import GeometryError, default_camera, lattice_in_tag, project
+from shared.vision.geometry import GeometryError, default_camera, lattice_in_tag, make_pose, project
 from shared.vision.pnp import solve_planar_pnp
 from shared.vision.tagmap import load_tag_map
 from shared.vision.trajectory import read_tum
@@ -278,3 +281,22 @@ def test_a_restarted_slam_resumes_its_map_and_trajectory(tmp_path: Path) -> None
     for tag_id in b:
         np.testing.assert_allclose(a[tag_id][:3, 3], b[tag_id][:3, 3], atol=1e-6)
     assert SlamNode(SlamServiceSettings(run_dir=tmp_path, resume=False)).resumed is None
+
+
+def test_observation_noise_uses_the_cameras_focal_length() -> None:
+    """The same tag pose seen by a long lens (more pixels per metre) is a sharper measurement; the
+    focal length comes from the message's intrinsics, the settings' only for v1 messages."""
+    slam = MarkerSlam(SlamSettings())
+    pose = make_pose(np.eye(3), [0.1, 0.0, 2.0])
+
+    def sigmas(focal: float | None) -> np.ndarray:
+        obs = Observation(1, 0.15, pose, 0.8, pose, 2.0, focal)
+        robust = cast(gtsam.noiseModel.Robust, slam.noise(obs))
+        cov = np.asarray(cast(gtsam.noiseModel.Gaussian, robust.noise()).covariance())
+        return np.sqrt(np.diag(cov))
+
+    wide, long = sigmas(500.0), sigmas(2000.0)
+    assert (long < wide).all()
+    np.testing.assert_allclose(sigmas(None), sigmas(SlamSettings().focal_px))
+    with pytest.raises(SlamInputError, match="focal"):
+        check_observation(Observation(1, 0.15, pose, 0.8, pose, 2.0, 0.0))

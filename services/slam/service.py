@@ -77,7 +77,8 @@ class SlamNode:
     def on_poses(self, msg: TagPoses) -> tuple[CameraPose, TagMap | None]:
         """Fuse one frame; returns the camera pose message and the map if it should be published."""
         with self.lock:
-            observations = [Observation.from_message(t) for t in msg.tags]
+            focal = None if msg.intrinsics is None else (msg.intrinsics.fx + msg.intrinsics.fy) / 2
+            observations = [Observation.from_message(t, focal) for t in msg.tags]
             for o in observations:
                 check_observation(o)  # before the indexer remembers the frame
             frame = self.indexer.index(msg.seq, msg.capture_nanos)

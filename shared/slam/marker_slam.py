@@ -42,7 +42,7 @@ class SlamSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
     anchor_tag_id: int | None = None  # None: the first tag seen
     localisation_only: bool = False
-    focal_px: float = Field(default=1045.0, gt=0)
+    focal_px: float = Field(default=1045.0, gt=0)  # only for observations whose message had no intrinsics (v1)
     min_pixel_sigma: float = Field(default=0.5, gt=0)
     anchor_sigma: float = 1e-6
     # Tags whose world pose a tag map (or a resumed checkpoint) gives are priors with this sigma
@@ -72,10 +72,11 @@ class Observation:
     reprojection_error_px: float
     alt_camera_from_tag: Array
     alt_reprojection_error_px: float
+    focal_px: float | None = None  # the camera's focal length when the message said (else the settings')
 
     @staticmethod
-    def from_message(tag: TagPose) -> Observation:
-        """From a TagPoses entry."""
+    def from_message(tag: TagPose, focal_px: float | None = None) -> Observation:
+        """From a TagPoses entry (and its message's intrinsics' focal length)."""
         return Observation(
             tag.tag_id,
             tag.tag_size_m,
@@ -83,6 +84,7 @@ class Observation:
             tag.reprojection_error_px,
             np.asarray(tag.alt_camera_from_tag),
             tag.alt_reprojection_error_px,
+            focal_px,
         )
 
 
@@ -129,6 +131,8 @@ def check_observation(o: Observation) -> None:
     camera, within MAX_RANGE_M, and the size is a plausible tag size."""
     if not (math.isfinite(o.size_m) and 1e-3 <= o.size_m <= 10.0):
         raise SlamInputError(f"tag {o.tag_id}: size {o.size_m} m is not in 1 mm .. 10 m")
+    if o.focal_px is not None and not (math.isfinite(o.focal_px) and 1.0 <= o.focal_px <= 1e6):
+        raise SlamInputError(f"tag {o.tag_id}: focal length {o.focal_px} px is not in 1 .. 1e6")
     for name, m in (("camera_from_tag", o.camera_from_tag), ("alt_camera_from_tag", o.alt_camera_from_tag)):
         m = np.asarray(m, np.float64)
         r, t = m[:3, :3], m[:3, 3]
@@ -233,8 +237,9 @@ class MarkerSlam:
         normal = obs.camera_from_tag[:3, 2]
         cos_tilt = max(0.2, abs(float(np.dot(normal, t / d))))
         px = max(s.min_pixel_sigma, obs.reprojection_error_px)
-        size_px = s.focal_px * obs.size_m / d
-        lateral = d * px / s.focal_px
+        focal = obs.focal_px if obs.focal_px is not None else s.focal_px
+        size_px = focal * obs.size_m / d
+        lateral = d * px / focal
         depth = s.depth_sigma_scale * d * px / size_px / cos_tilt
         rot = s.rotation_sigma_scale * px / size_px / cos_tilt
         cov_t_cam = np.diag([lateral**2, lateral**2, depth**2])
