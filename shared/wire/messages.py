@@ -117,18 +117,23 @@ class Message(WireModel):
     SCHEMA: ClassVar[str]
 
 
+class FrameMessage(Message):
+    """A message about one camera frame: whose, which one, when it was captured (these fields first)."""
+
+    robot_id: RobotId
+    seq: int = Field(ge=0)
+    capture_nanos: int = Field(ge=0)
+
+
 # ----------------------------------------------------------------------------------------------
 # Schemas
 # ----------------------------------------------------------------------------------------------
 
 
-class Frame(Message):
+class Frame(FrameMessage):
     """One mono8 camera image with its intrinsics and capture time."""
 
     SCHEMA: ClassVar[str] = "splittag/Frame/v1"
-    robot_id: RobotId
-    seq: int = Field(ge=0)
-    capture_nanos: int = Field(ge=0)
     intrinsics: CameraIntrinsics
     image: Image8
 
@@ -166,13 +171,10 @@ class TagFeature(TagFeatureV1):
     edge_width_px: float | None = Field(ge=0, le=1000, allow_inf_nan=False)
 
 
-class Features(Message):
+class Features(FrameMessage):
     """Everything robot_infer computed for one frame at split k (possibly zero tags)."""
 
     SCHEMA: ClassVar[str] = "splittag/Features/v2"
-    robot_id: RobotId
-    seq: int = Field(ge=0)
-    capture_nanos: int = Field(ge=0)
     publish_nanos: int = Field(ge=0)
     split_k: SplitIndex
     codec: CodecName
@@ -181,13 +183,10 @@ class Features(Message):
     tags: list[TagFeature]
 
 
-class FeaturesV1(Message):
+class FeaturesV1(FrameMessage):
     """Features before the edge width; still decoded (as v2 with edge_width_px None)."""
 
     SCHEMA: ClassVar[str] = "splittag/Features/v1"
-    robot_id: RobotId
-    seq: int = Field(ge=0)
-    capture_nanos: int = Field(ge=0)
     publish_nanos: int = Field(ge=0)
     split_k: SplitIndex
     codec: CodecName
@@ -234,14 +233,11 @@ class LinkStamps(WireModel):
     previous_received_nanos: int = Field(ge=0)
 
 
-class TagPoses(Message):
+class TagPoses(FrameMessage):
     """Edge output for one frame: the tags' poses, the frame's per-hop timings, its link stamps and the
     camera intrinsics the poses were solved with (both None only in messages upgraded from v1)."""
 
     SCHEMA: ClassVar[str] = "splittag/TagPoses/v2"
-    robot_id: RobotId
-    seq: int = Field(ge=0)
-    capture_nanos: int = Field(ge=0)
     split_k: SplitIndex
     payload_bytes: int = Field(ge=0)
     timings: HopTimings
@@ -250,13 +246,10 @@ class TagPoses(Message):
     tags: list[TagPose]
 
 
-class TagPosesV1(Message):
+class TagPosesV1(FrameMessage):
     """TagPoses before the link stamps; still decoded (as a v2 TagPoses with link None)."""
 
     SCHEMA: ClassVar[str] = "splittag/TagPoses/v1"
-    robot_id: RobotId
-    seq: int = Field(ge=0)
-    capture_nanos: int = Field(ge=0)
     split_k: SplitIndex
     payload_bytes: int = Field(ge=0)
     timings: HopTimings
@@ -267,13 +260,10 @@ class TagPosesV1(Message):
         return TagPoses(**{name: getattr(self, name) for name in TagPosesV1.model_fields}, link=None, intrinsics=None)
 
 
-class CameraPose(Message):
+class CameraPose(FrameMessage):
     """SLAM (or ground-truth) camera pose for one frame."""
 
     SCHEMA: ClassVar[str] = "splittag/CameraPose/v1"
-    robot_id: RobotId
-    seq: int = Field(ge=0)
-    capture_nanos: int = Field(ge=0)
     world_from_camera: Pose4x4
     status: Literal["tracking", "lost", "ground_truth"]
     tags_used: int = Field(ge=0)
