@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import shlex
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -320,7 +320,7 @@ def _probe_emulated(args: argparse.Namespace) -> list[list[float]]:
 def _cmd_link_probe(args: argparse.Namespace) -> int:
     import json
 
-    from shared.tools.linkprobe import plot_link, report, write_json
+    from shared.tools.linkprobe import plot_link, report
 
     samples = _probe_emulated(args) if args.profile else _probe_here(args)
     if args.samples_out:
@@ -333,11 +333,7 @@ def _cmd_link_probe(args: argparse.Namespace) -> int:
     )
     for m in doc["per_size"]:
         print(f"  {m['payload_kB']:>9.2f} kB  median {m['rtt_ms_median']:8.2f} ms  p90 {m['rtt_ms_p90']:8.2f} ms")
-    if args.json:
-        write_json(doc, args.json)
-    if args.plot:
-        plot_link(doc, args.plot)
-        print(f"figure: {args.plot}")
+    _write_outputs(args, doc, plot_link)
     return 0
 
 
@@ -348,7 +344,7 @@ def _cmd_link_cost(args: argparse.Namespace) -> int:
 
     from shared.model.profile import calibrate_cumulative_ms, calibrate_pnp_ms
     from shared.model.weights import load_model
-    from shared.tools.linkprobe import cost_table, link_fit_of, plot_costs, write_json
+    from shared.tools.linkprobe import cost_table, link_fit_of, plot_costs
     from shared.wire.cuts import CUTS, tensor_bytes
 
     torch.set_num_threads(args.threads)
@@ -369,12 +365,19 @@ def _cmd_link_cost(args: argparse.Namespace) -> int:
     for k, cut in enumerate(CUTS):
         stars = "".join(f"{row['T_ms'][k]:>9.1f}{'*' if row['best_k'] == k else ' '}" for row in table["gammas"])
         print(f"{k:>2} {cut.name:<10} {payload[k]:>8.1f} {compute[k]:>7.1f} {edge[k]:>7.1f}{stars}")
-    if args.json:
-        write_json(table, args.json)
-    if args.plot:
-        plot_costs(table, args.plot)
-        print(f"figure: {args.plot}")
+    _write_outputs(args, table, plot_costs)
     return 0
+
+
+def _write_outputs(args: argparse.Namespace, doc: dict[str, Any], plot: Callable[[dict[str, Any], Path], None]) -> None:
+    """--json and --plot of the link commands."""
+    from shared.tools.linkprobe import write_json
+
+    if args.json:
+        write_json(doc, args.json)
+    if args.plot:
+        plot(doc, args.plot)
+        print(f"figure: {args.plot}")
 
 
 def _add_launch_options(p: argparse.ArgumentParser) -> None:
