@@ -106,9 +106,9 @@ def _cmd_data_generate(args: argparse.Namespace) -> int:
     camera = camera_from_yaml(args.camera) if args.camera else default_camera()
     maker: SampleMaker
     if args.data_command == "synth":
-        from shared.datasets.synth import SynthMaker, SynthSettings
+        from shared.datasets.synth import FIRST_DATA_SETS, SynthMaker, SynthSettings
 
-        synth = SynthSettings(seed=args.seed)
+        synth = SynthSettings(seed=args.seed, **(FIRST_DATA_SETS if args.generator == "first" else {}))
         settings, maker, shard_size = synth.model_dump(mode="json"), SynthMaker(camera, synth), 250
     else:
         from shared.datasets.render import RenderMaker, RenderSettings
@@ -496,6 +496,12 @@ def _add_data_commands(sub: Any) -> None:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--n", type=int, default=10_000)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--generator",
+        choices=["current", "first"],
+        default="current",
+        help="first: the first data sets' settings (display-order degradations, all ROIs perturbed)",
+    )
     p.add_argument("--camera", type=Path, help="ROS camera_info YAML (default: the paper's camera)")
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     p.set_defaults(func=_cmd_data_generate)
