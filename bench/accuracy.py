@@ -8,7 +8,8 @@ motion blur, distance, tilt and occlusion.
 
     .venv/bin/python -m bench.accuracy --n 600 --seed 0 [--json out.json] [--weights models] [--workers 2]
 
-Metrics per method and bin: detection % (right id), corner error (px, per corner), e_t (cm), e_r (deg),
+Metrics per method and bin: detection % (right id), corner error (px, per corner), keypoint error over the 16
+lattice points (kp16, px; a corners4 method's lattice is its corners' homography), e_t (cm), e_r (deg),
 the lattice's signed scale bias (least-squares scale of the predicted 16 points about their centroid
 against the truth's, in %; a corners4 method's lattice is its corners' homography), wrong ids (a
 decoded tag on a true tag with another id) and ghosts (a decoded tag where there is none).
@@ -340,6 +341,7 @@ def _pair(s: dict[str, float | None], digits: int) -> str:
 _COLUMNS: Final[list[tuple[str, int]]] = [
     ("det %", 6),
     ("corner px", 11),
+    ("kp16 px", 11),
     ("e_t cm", 11),
     ("e_r deg", 11),
     ("scale %", 7),
@@ -354,6 +356,7 @@ def _cells(summary: dict[str, Any]) -> list[str]:
     return [
         "-" if det is None else f"{det:.1f}",
         _pair(summary["corner_err_px"], 2),
+        _pair(summary["lattice_err_px"], 2),
         _pair(summary["e_t_cm"], 2),
         _pair(summary["e_r_deg"], 2),
         "-" if scale is None else f"{scale:+.2f}",
