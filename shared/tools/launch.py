@@ -144,12 +144,19 @@ def stop_services(services: list[Service], timeout_secs: float = 15.0) -> dict[s
 
 @dataclass
 class Monitor:
-    """Subscribes to TagPoses and ground truth; keeps per-frame records and prints a line per second."""
+    """Subscribes to TagPoses and ground truth; keeps per-frame records and prints a line per second.
+
+    `max_records` bounds the records a long deployment keeps (the oldest half is dropped when full; the
+    summary then covers the newest ones, `frames_total` counts all); ground truth is kept for the newest
+    `max_ground_truth` frames (a pose arrives well within that of its frame's ground truth)."""
 
     tag_map: TagMapFile | None
     records: list[dict[str, Any]] = field(default_factory=list)
     gt: dict[int, np.ndarray] = field(default_factory=dict)
     bad: int = 0
+    max_records: int | None = None
+    max_ground_truth: int = 3000
+    frames_total: int = 0
     controller: ControllerState | None = None
     _recent: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=400))
     _lock: threading.Lock = field(default_factory=threading.Lock)
@@ -178,6 +185,9 @@ class Monitor:
         with self._lock:
             self.records.append(rec)
             self._recent.append(rec)
+            self.frames_total += 1
+            if self.max_records is not None and len(self.records) > self.max_records:
+                del self.records[: len(self.records) // 2]
 
     def on_controller(self, payload: bytes) -> None:
         """Keep the latest controller state for the live line."""
@@ -196,6 +206,8 @@ class Monitor:
             return
         with self._lock:
             self.gt[msg.seq] = msg.world_from_camera
+            while len(self.gt) > self.max_ground_truth:
+                del self.gt[next(iter(self.gt))]  # the oldest (insertion order)
 
     def _errors(self, msg: TagPoses) -> list[float]:
         if self.tag_map is None:
@@ -244,7 +256,7 @@ class Monitor:
         with self._lock:
             recs = list(self.records)
         errs = [e for r in recs for e in r["errors_cm"]]
-        out: dict[str, Any] = {"frames": len(recs), "bad_messages": self.bad}
+        out: dict[str, Any] = {"frames": len(recs), "frames_total": self.frames_total, "bad_messages": self.bad}
         if recs:
             e2e = [r["e2e_ms"] for r in recs]
             out.update({"e2e_ms_p50": float(np.percentile(e2e, 50)), "e2e_ms_p99": float(np.percentile(e2e, 99))})
@@ -425,7 +437,7 @@ def run_pipeline(
         print(f"emulated link up: profile {link}; `sudo splittag link set PROFILE` switches it live", flush=True)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    monitor = Monitor(demo_tag_map())
+    monitor = Monitor(demo_tag_map(), max_records=200_000)  # a deployment may run for days
     running = _Services(run_config, run_dir, wrappers)
     try:
         (run_dir / "launcher.pid").write_text(f"{os.getpid()}\n")  # `splittag down` stops the run through it
