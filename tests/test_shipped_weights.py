@@ -10,7 +10,7 @@ import pytest
 
 from shared.datasets.generate import generate
 from shared.datasets.shards import load_dataset
-from shared.datasets.synth import FIRST_DATA_SETS, SynthMaker, SynthSettings
+from shared.datasets.synth import SynthMaker, SynthSettings
 from shared.model.weights import load_model
 from shared.training.evaluate import predict_dataset
 from shared.training.train import evaluate_arrays
@@ -18,8 +18,8 @@ from shared.vision.geometry import default_camera
 
 MODELS = Path(__file__).resolve().parent.parent / "models"
 SEED, N = 12345, 300
-# The generator settings the shipped weights' regression figure was measured with.
-GENERATOR = FIRST_DATA_SETS
+# The generator settings the shipped weights' regression figure was measured with (the current ones).
+GENERATOR: dict[str, object] = {}
 
 
 def reported_e_px() -> float:
