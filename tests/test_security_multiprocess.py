@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from shared.runtime.guard import service_stats
 from shared.tools.topology import Topology, write_config
 from shared.transport.session import TlsSettings, ZenohSettings, open_session, wait_for_liveliness
 from shared.transport.split_client import SplitQueryError, query_split
@@ -111,6 +112,9 @@ def test_only_authorised_identities_steer_and_publish(tmp_path: Path, certs: Pat
         while time.monotonic() < deadline and len(seqs) < 3:
             time.sleep(0.2)
         assert len(seqs) >= 3, "no poses over the TLS deployment"
+
+        # slam's stats queryable (declared through the edge router's ACL) answers the operator.
+        assert "accepted" in service_stats(operator, ROBOT, "slam", timeout_secs=10)
 
         # The operator steers.
         assert query_split(operator, ROBOT, params="k=5", timeout_secs=10).k == 5

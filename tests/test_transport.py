@@ -54,3 +54,8 @@ def test_access_rules_per_role() -> None:
     assert "splittag/*/tag_poses/**" in rules["operators-no-publish"]["key_exprs"]
     assert "splittag/*/frame/**" not in rules["cameras-no-publish"]["key_exprs"]
     assert "splittag/*/controller/**" not in rules["controllers-no-publish"]["key_exprs"]
+    # Each role may serve only its own queryables: slam its map and stats, nobody the split.
+    assert "splittag/*/slam/stats" not in rules["slam-no-serve"]["key_exprs"]
+    assert "splittag/*/map/v1" not in rules["slam-no-serve"]["key_exprs"]
+    assert "splittag/*/split" in rules["slam-no-serve"]["key_exprs"]
+    assert "splittag/*/slam/stats" in rules["cameras-no-serve"]["key_exprs"]

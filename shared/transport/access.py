@@ -13,8 +13,9 @@ everything on `splittag/**` except, explicitly denied (deny wins over allow in Z
 | slam | publish data other than camera poses and its map; query the split (steer) or the map (save) |
 | camera | publish data other than frames and ground truth; query the split or the map |
 
-and no role but the robot and the edge may declare the split, echo or stats queryables (so nobody
-can impersonate robot_infer's split control or the edge's link probe). Zenoh's ACL cannot tell a
+and each role may declare only its own queryables (slam its map and stats, the controller its
+stats): nobody can impersonate robot_infer's split control, the edge's link probe or another
+service's map or stats. Zenoh's ACL cannot tell a
 split get from a set (both are queries): steering is allowed to the operator and controller only.
 """
 
@@ -48,7 +49,22 @@ DATA_KEYS: Final[dict[str, str]] = {
 }
 SPLIT_KEY: Final[str] = "splittag/*/split"
 MAP_KEY: Final[str] = "splittag/*/map/v1"
-SERVICE_QUERYABLES: Final[list[str]] = ["splittag/*/split", "splittag/*/echo", "splittag/*/*/stats"]
+# The queryables the services declare; a role may declare only its own (MAY_SERVE).
+SERVICE_QUERYABLES: Final[dict[str, str]] = {
+    "split": "splittag/*/split",
+    "echo": "splittag/*/echo",
+    "map": MAP_KEY,
+    "robot_infer_stats": "splittag/*/robot_infer/stats",
+    "edge_infer_stats": "splittag/*/edge_infer/stats",
+    "slam_stats": "splittag/*/slam/stats",
+    "controller_stats": "splittag/*/controller/stats",
+}
+MAY_SERVE: Final[dict[str, set[str]]] = {
+    "operators": set(),
+    "controllers": {"controller_stats"},
+    "slam": {"map", "slam_stats"},
+    "cameras": set(),
+}
 # What each restricted role may publish; every other data key is denied to it.
 MAY_PUBLISH: Final[dict[str, set[str]]] = {
     "operators": set(),
@@ -82,7 +98,6 @@ def access_control_config(settings: AccessControlSettings) -> dict[str, Any]:
     rules = [_rule("everything", "allow", ALL_MESSAGES, ["splittag/**"], ["ingress", "egress"])]
     rules.append(_rule("no-steer", "deny", ["query"], [SPLIT_KEY], ["ingress"]))
     rules.append(_rule("no-map-query", "deny", ["query"], [MAP_KEY], ["ingress"]))
-    rules.append(_rule("no-service-queryables", "deny", ["declare_queryable"], SERVICE_QUERYABLES, ["ingress"]))
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
 
@@ -97,7 +112,10 @@ def access_control_config(settings: AccessControlSettings) -> dict[str, Any]:
         denied = sorted(set(DATA_KEYS) - may)
         rule_id = f"{name}-no-publish"
         rules.append(_rule(rule_id, "deny", ["put", "delete"], [DATA_KEYS[k] for k in denied], ["ingress"]))
-        extra = ["no-service-queryables"]
+        serve_id = f"{name}-no-serve"
+        not_theirs = [SERVICE_QUERYABLES[q] for q in sorted(set(SERVICE_QUERYABLES) - MAY_SERVE[name])]
+        rules.append(_rule(serve_id, "deny", ["declare_queryable"], not_theirs, ["ingress"]))
+        extra = [serve_id]
         if name not in MAY_STEER:
             extra.append("no-steer")
         if name not in MAY_SAVE_MAP:
