@@ -264,3 +264,12 @@ def test_an_impossible_shape_is_a_wire_error_not_a_crash(schema: str, path: tupl
     node[path[-1]] = EVIL_ARRAY
     with pytest.raises(ArrayError, match="sizes in 0"):
         decode(msgpack.packb(doc, use_bin_type=True))
+
+
+@pytest.mark.parametrize("width", [float("nan"), float("inf"), -1.0, 1e9])
+def test_an_impossible_edge_width_is_refused(width: float) -> None:
+    """Features v2's per-tag edge width (the fusion's blur measure) must be finite and 0..1000 px."""
+    doc = msgpack.unpackb(encode(EXAMPLES[Features.SCHEMA]), raw=False)
+    doc["body"]["tags"][0]["edge_width_px"] = width
+    with pytest.raises(WireError, match="edge_width_px"):
+        decode(pack(doc), Features)

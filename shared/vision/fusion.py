@@ -30,11 +30,10 @@ _UNIT_LATTICE: Array = np.array([[x, y] for y in LATTICE_FRACTIONS for x in LATT
 
 @dataclass(frozen=True)
 class FusedLattice:
-    """The fitted lattice (16, 2) in image pixels, its homography from the unit lattice, and the
-    weighted RMS residual of the inputs (in sigmas: about 1 when the sigmas are right)."""
+    """The fitted lattice (16, 2) in image pixels and the weighted RMS residual of the inputs (in
+    sigmas: about 1 when the sigmas are right)."""
 
     keypoints_px: Array
-    unit_to_image: Array
     residual_sigmas: float
 
 
@@ -58,8 +57,7 @@ def _project(params: Array, pts: Array) -> tuple[Array, Array]:
     return np.stack([u, v], axis=1), w
 
 
-def _jacobian(params: Array, pts: Array) -> Array:
-    uv, w = _project(params, pts)
+def _jacobian(uv: Array, w: Array, pts: Array) -> Array:
     x, y = pts[:, 0], pts[:, 1]
     n = len(pts)
     jac = np.zeros((2 * n, 8))
@@ -111,9 +109,9 @@ def fuse_lattice(
     params = _dlt(s_all, d_n, w)
     sw = np.repeat(np.sqrt(w), 2)
     for _ in range(iterations):
-        uv, _ = _project(params, s_all)
+        uv, wp = _project(params, s_all)
         r = (uv - d_n).ravel() * sw
-        jac = _jacobian(params, s_all) * sw[:, None]
+        jac = _jacobian(uv, wp, s_all) * sw[:, None]
         step, *_ = np.linalg.lstsq(jac, -r, rcond=None)
         params = params + step
         if float(np.abs(step).max()) < 1e-12:
@@ -123,7 +121,7 @@ def fuse_lattice(
     norm = np.array([[scale, 0, centre[0]], [0, scale, centre[1]], [0, 0, 1.0]])
     h = norm @ np.append(params, 1.0).reshape(3, 3)
     fitted, _ = _project((h / h[2, 2]).ravel()[:8], _UNIT_LATTICE)
-    return FusedLattice(fitted, h / h[2, 2], resid)
+    return FusedLattice(fitted, resid)
 
 
 def _edge_profiles(
