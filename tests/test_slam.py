@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 from typing import cast
 
+import cv2
 import gtsam
 import numpy as np
 import pytest
@@ -33,6 +34,7 @@ from shared.wire.messages import HopTimings, TagPose, TagPoses
 CAM = default_camera()
 SCENE = demo_scene()
 TRAJ = demo_trajectory(60)
+SCENE_TAGS = {t.id: t.pose() for t in SCENE.tags}
 
 
 def _visible(world_from_camera: np.ndarray) -> list[tuple[int, float, np.ndarray]]:
@@ -109,20 +111,94 @@ def test_noisy_measurements_beat_frame_by_frame_pnp() -> None:
     assert slam_ate < pnp_ate
 
 
-def test_ambiguous_observation_disagreeing_with_the_map_is_rejected() -> None:
+def _flip(camera_from_tag: np.ndarray, axis: tuple[float, float, float] = (1.0, 0.0, 0.0)) -> np.ndarray:
+    """The other IPPE branch, caricatured: the tag tilted by 0.5 rad about an axis in its plane (which
+    axis depends on the view, as the real mirror branch does)."""
+    tilt = make_pose(cv2.Rodrigues(0.5 * np.array(axis))[0], [0.0, 0.0, 0.0])
+    return camera_from_tag @ tilt
+
+
+def test_an_ambiguous_view_takes_the_branch_the_map_agrees_with() -> None:
+    """The chosen IPPE branch is wrong but the other fits almost as well: the map decides, the
+    observation is used with the right branch, the camera pose is exact."""
     anchor = SCENE.tags[3]
     slam = MarkerSlam(SlamSettings(anchor_tag_id=anchor.id), known_tags={anchor.id: (anchor.size_m, anchor.pose())})
     wfc = TRAJ[0]
     vis = _visible(wfc)
     assert len(vis) >= 3
     slam.update(0, 0, [_exact_obs(*v) for v in vis])
-    flipped = vis[1][2].copy()
-    flip = np.diag([1.0, -1.0, -1.0, 1.0])  # a wrong branch: rotated 180 degrees about x
-    wrong = Observation(vis[1][0], vis[1][1], flipped @ flip, 0.5, flipped, 0.6)
-    res = slam.update(1, 1, [_exact_obs(*vis[0]), wrong, _exact_obs(*vis[2])])
-    assert res.rejected_ambiguous == 1
+    right = vis[1][2]
+    ambiguous = Observation(vis[1][0], vis[1][1], _flip(right), 0.05, right, 0.06)
+    assert slam.is_ambiguous(ambiguous)
+    res = slam.update(1, 1, [_exact_obs(*vis[0]), ambiguous, _exact_obs(*vis[2])])
+    assert res.rejected_ambiguous == 0 and res.tags_used == 3
     assert res.world_from_camera is not None
     assert np.linalg.norm(res.world_from_camera[:3, 3] - wfc[:3, 3]) < 1e-3
+
+
+def test_a_view_that_fits_no_branch_is_rejected() -> None:
+    anchor = SCENE.tags[3]
+    slam = MarkerSlam(SlamSettings(anchor_tag_id=anchor.id), known_tags={anchor.id: (anchor.size_m, anchor.pose())})
+    wfc = TRAJ[0]
+    vis = _visible(wfc)
+    slam.update(0, 0, [_exact_obs(*v) for v in vis])
+    wrong = _flip(_flip(vis[1][2]))  # 57 degrees off, and its "other branch" 29 degrees off
+    outlier = Observation(vis[1][0], vis[1][1], wrong, 0.05, _flip(vis[1][2]), 0.06)
+    res = slam.update(1, 1, [_exact_obs(*vis[0]), outlier, _exact_obs(*vis[2])])
+    assert res.rejected_ambiguous == 1 and res.tags_used == 2
+    assert res.world_from_camera is not None
+    assert np.linalg.norm(res.world_from_camera[:3, 3] - wfc[:3, 3]) < 1e-3
+
+
+def test_a_new_tag_seen_ambiguously_waits_for_a_second_view() -> None:
+    """A new tag enters the map only from an unambiguous view, or once a second view agrees with one
+    of the first view's two branches; the map then holds the right branch."""
+    poses = _constant_velocity(6)
+    slam = MarkerSlam(SlamSettings())
+    vis0 = _visible(poses[0])
+    common = sorted(set.intersection(*({v[0] for v in _visible(p)} for p in poses[:3])))
+    assert len(common) >= 2
+    anchor_id, newcomer = common[:2]
+    slam.update(0, 0, [_exact_obs(*v) for v in vis0 if v[0] == anchor_id])
+    truth = slam._world_from_tag(anchor_id)
+    assert truth is not None
+    for i in (1, 2):
+        vis = {v[0]: v for v in _visible(poses[i])}
+        a, n = vis[anchor_id], vis[newcomer]
+        # ambiguous, with the wrong branch chosen in the first view and the right one in the second
+        chosen, other = (_flip(n[2]), n[2]) if i == 1 else (n[2], _flip(n[2], (0.0, 1.0, 0.0)))
+        res = slam.update(i, i, [_exact_obs(*a), Observation(newcomer, n[1], chosen, 0.05, other, 0.06)])
+        if i == 1:
+            assert newcomer not in slam.tags and res.rejected_ambiguous == 1
+        else:
+            assert newcomer in slam.tags and res.tags_used == 2
+    world_from_newcomer = slam._world_from_tag(newcomer)
+    assert world_from_newcomer is not None
+    true_rel = np.linalg.inv(SCENE_TAGS[anchor_id]) @ SCENE_TAGS[newcomer]
+    est_rel = np.linalg.inv(truth) @ world_from_newcomer
+    np.testing.assert_allclose(est_rel, true_rel, atol=1e-6)
+
+
+def test_memory_stays_bounded_and_the_trajectory_whole() -> None:
+    """Frames older than the window leave the graph (priors keep what they taught the map): the
+    graph's size stops growing, the trajectory keeps every frame, exact data stays exact."""
+    n = 100
+    poses = _constant_velocity(n)
+    slam = MarkerSlam(SlamSettings(window_frames=20))
+    sizes = []
+    for i, pose in enumerate(poses):
+        assert slam.update(i, 1_000 + i, [_exact_obs(*v) for v in _visible(pose)]).status == "tracking"
+        sizes.append(slam.isam.getFactorsUnsafe().size())
+    assert len(slam.poses) <= 20
+    assert max(sizes[50:]) <= max(sizes[:30])
+    traj = slam.trajectory()
+    assert [s for s, _ in traj] == [1_000 + i for i in range(n)]
+    assert slam.anchor is not None
+    anchor_truth = SCENE_TAGS[slam.anchor]
+    for (_, est), truth in zip(traj, poses, strict=True):
+        np.testing.assert_allclose(anchor_truth @ est, truth, atol=1e-6)
+    with pytest.raises(SlamInputError, match="already fused"):
+        slam.update(5, 1_005, [])  # a frame that left the graph long ago is still known as fused
 
 
 def test_localisation_only_needs_a_map() -> None:

@@ -101,11 +101,13 @@ def perceive(
     model: SplitKeypointNet | None,
     tag_map: TagMapFile,
     fusion: KeypointFusion | None = None,
+    bf16: bool = False,
 ) -> list[TagResult]:
-    """Stage 1, the network (if given) and PnP on one grayscale image; `fusion` as in `edge_step`."""
+    """Stage 1, the network (if given) and PnP on one grayscale image; `fusion` as in `edge_step`,
+    `bf16` as the services run the network (fp32 by default, as `splittag detect` and `eval`)."""
     detections = detector.detect(image)
     rois, homs = extract_rois(image, detections)
-    kps = run_network(model, rois) if model is not None else None
+    kps = run_network(model, rois, bf16=bf16) if model is not None else None
     out = []
     for i, d in enumerate(detections):
         size = tag_map.size_of(d.tag_id)

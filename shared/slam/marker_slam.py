@@ -27,6 +27,7 @@ from typing import Final
 
 import gtsam
 import numpy as np
+from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from shared.vision.geometry import Array
@@ -48,7 +49,10 @@ class SlamSettings(BaseModel):
     # Tags whose world pose a tag map (or a resumed checkpoint) gives are priors with this sigma
     # (rad and m) when first seen, so the map is kept and any mapped tag in view localises the camera.
     known_tag_sigma: float = Field(default=1e-3, gt=0)
-    ambiguity_ratio: float = Field(default=2.0, gt=1)  # alt/chosen error below this = ambiguous
+    ambiguity_ratio: float = Field(default=2.0, gt=1)  # alt / max(chosen, keypoint sigma) below this = ambiguous
+    keypoint_sigma_px: float = Field(
+        default=0.05, gt=0
+    )  # the fused keypoints' median error (bench/accuracy: p50 0.05 px)
     disagreement_deg: float = Field(default=10.0, gt=0)
     huber_k: float = 1.5
     relinearize_threshold: float = 0.01
@@ -57,9 +61,16 @@ class SlamSettings(BaseModel):
     rotation_sigma_scale: float = 3.0
     depth_sigma_scale: float = 0.3
     # Smooth-motion prior between consecutive frames (no odometry): sigma per frame of gap.
-    motion_sigma_m: float = Field(default=0.03, gt=0)
-    motion_sigma_deg: float = Field(default=1.5, gt=0)
-    motion_max_gap_frames: int = 15
+    # Constant-velocity prior between a frame and the last one with a pose: sigma per frame of gap
+    # (velocity noise) plus per frame squared (acceleration); it also bridges frames with only new tags.
+    motion_sigma_m: float = Field(default=0.002, gt=0)
+    motion_sigma_deg: float = Field(default=0.05, gt=0)
+    motion_accel_m: float = Field(default=0.002, ge=0)
+    motion_accel_deg: float = Field(default=0.1, ge=0)
+    motion_max_gap_frames: int = Field(default=30, ge=1)
+    anchor_wait_frames: int = Field(default=15, ge=0)  # frames to wait for an unambiguous anchor view
+    # Frames kept in the graph; then older frames are marginalised into priors (bounded memory).
+    window_frames: int = Field(default=300, ge=3)
 
 
 @dataclass(frozen=True)
@@ -197,55 +208,100 @@ class FrameIndexer:
         return index
 
 
+@dataclass
+class _Pending:
+    """A new tag seen only ambiguously so far: its two world-pose hypotheses from that view."""
+
+    frame: int
+    hypotheses: tuple[Array, Array]
+
+
 class MarkerSlam:
     """Incremental marker SLAM (see module docstring)."""
 
     def __init__(self, settings: SlamSettings, known_tags: dict[int, tuple[float, Array]] | None = None) -> None:
         self.settings = settings
-        params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(settings.relinearize_threshold)
-        self.isam = gtsam.ISAM2(params)
         self.known = known_tags or {}  # id -> (size, world_from_tag) from a tag map
         self.tags: dict[int, float] = {}  # ids in the graph -> size
-        self.poses: dict[int, Array] = {}  # frame index -> current estimate
-        self.stamps: dict[int, int] = {}
+        self.poses: dict[int, Array] = {}  # frame index -> estimate, for the frames still in the graph
+        self.stamps: dict[int, int] = {}  # frame index -> stamp, for the frames still in the graph
+        # Frames marginalised out of the graph (memory stays bounded): stamps and final poses, compact.
+        self._done_stamps = np.zeros(0, np.int64)
+        self._done_poses = np.zeros((0, 4, 4))
+        self._done_count = 0
+        self._last_done_frame = -1
         self.state = SlamState()
         self.anchor: int | None = None
-        self._estimate = gtsam.Values()
+        self._pending: dict[int, _Pending] = {}
+        self._new_isam()
         if settings.localisation_only:
             if not self.known:
                 raise ValueError("localisation-only mode needs a tag map with world poses")
             graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
             for tag_id, (size, pose) in self.known.items():
-                graph.add(
-                    gtsam.PriorFactorPose3(
-                        L(tag_id), _pose3(pose), gtsam.noiseModel.Isotropic.Sigma(6, settings.anchor_sigma)
-                    )
-                )
+                graph.add(gtsam.PriorFactorPose3(L(tag_id), _pose3(pose), self._iso(settings.anchor_sigma)))
                 values.insert(L(tag_id), _pose3(pose))
                 self.tags[tag_id] = size
             self.isam.update(graph, values)
             self._estimate = self.isam.calculateEstimate()
 
+    def _new_isam(self) -> None:
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.settings.relinearize_threshold)
+        self.isam = gtsam.ISAM2(params)
+        self._estimate = gtsam.Values()
+
+    @staticmethod
+    def _iso(sigma: float) -> gtsam.noiseModel.Base:
+        return gtsam.noiseModel.Isotropic.Sigma(6, sigma)
+
     # ------------------------------------------------------------------------------------------
 
-    def noise(self, obs: Observation) -> gtsam.noiseModel.Base:
-        """Robust Gaussian noise of one observation, in the tag frame (rotation first, as GTSAM)."""
+    def is_ambiguous(self, obs: Observation) -> bool:
+        """Both IPPE branches explain the points within the keypoint noise: the tag's tilt is unsure."""
+        floor = max(self.settings.keypoint_sigma_px, obs.reprojection_error_px)
+        return obs.alt_reprojection_error_px < self.settings.ambiguity_ratio * floor
+
+    def noise(self, obs: Observation, camera_from_tag: Array | None = None) -> gtsam.noiseModel.Base:
+        """Robust Gaussian noise of one observation, in the tag frame (rotation first, as GTSAM).
+
+        Position from the viewing geometry (pixel noise to lateral d / f and depth d^2 / (f s)); rotation
+        a base term plus, about the axis that turns this IPPE branch into the other, the angle between
+        them scaled by keypoint noise / the other branch's reprojection error: a tag whose two branches
+        fit almost equally well (small, far, blurred) tells its position, barely its tilt."""
         s = self.settings
-        t = obs.camera_from_tag[:3, 3]
+        m = obs.camera_from_tag if camera_from_tag is None else camera_from_tag
+        other = (
+            obs.alt_camera_from_tag
+            if camera_from_tag is None or camera_from_tag is obs.camera_from_tag
+            else obs.camera_from_tag
+        )
+        mine_err, other_err = (
+            (obs.reprojection_error_px, obs.alt_reprojection_error_px)
+            if other is obs.alt_camera_from_tag
+            else (obs.alt_reprojection_error_px, obs.reprojection_error_px)
+        )
+        t = m[:3, 3]
         d = max(0.05, float(np.linalg.norm(t)))
-        normal = obs.camera_from_tag[:3, 2]
+        normal = m[:3, 2]
         cos_tilt = max(0.2, abs(float(np.dot(normal, t / d))))
-        px = max(s.min_pixel_sigma, obs.reprojection_error_px)
+        px = max(s.min_pixel_sigma, mine_err)
         focal = obs.focal_px if obs.focal_px is not None else s.focal_px
         size_px = focal * obs.size_m / d
         lateral = d * px / focal
         depth = s.depth_sigma_scale * d * px / size_px / cos_tilt
         rot = s.rotation_sigma_scale * px / size_px / cos_tilt
         cov_t_cam = np.diag([lateral**2, lateral**2, depth**2])
-        r = obs.camera_from_tag[:3, :3]
+        r = m[:3, :3]
         cov = np.zeros((6, 6))
         cov[:3, :3] = np.eye(3) * rot**2
+        omega = np.asarray(gtsam.Rot3.Logmap(gtsam.Rot3(r.T @ np.asarray(other)[:3, :3])))
+        angle = float(np.linalg.norm(omega))
+        if angle > 1e-9:
+            axis = omega / angle
+            kp = max(s.keypoint_sigma_px, mine_err)
+            flip_sigma = min(angle, angle * kp / max(other_err - mine_err, 1e-6))
+            cov[:3, :3] += flip_sigma**2 * np.outer(axis, axis)
         cov[3:, 3:] = r.T @ cov_t_cam @ r
         gauss = gtsam.noiseModel.Gaussian.Covariance(cov)
         return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(s.huber_k), gauss)
@@ -253,7 +309,7 @@ class MarkerSlam:
     def _check_input(self, frame: int, observations: list[Observation]) -> None:
         if not 0 <= frame <= MAX_FRAME_INDEX:
             raise SlamInputError(f"frame index {frame} is outside 0..2**56-1")
-        if frame in self.stamps or self._estimate.exists(X(frame)):
+        if frame in self.stamps or frame <= self._last_done_frame or self._estimate.exists(X(frame)):
             raise SlamInputError(f"frame {frame} was already fused (a repeated message or a restarted camera)")
         for o in observations:
             check_observation(o)
@@ -263,6 +319,76 @@ class MarkerSlam:
             return np.asarray(self._estimate.atPose3(L(tag_id)).matrix())
         return None
 
+    def _add_tag(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        tag_id: int,
+        size: float,
+        pose: Array,
+        sigma: float | None,
+    ) -> None:
+        if sigma is not None:
+            graph.add(gtsam.PriorFactorPose3(L(tag_id), _pose3(pose), self._iso(sigma)))
+        values.insert(L(tag_id), _pose3(pose))
+        self.tags[tag_id] = size
+        self._estimate.insert(L(tag_id), _pose3(pose))
+
+    def _seed_map(
+        self, observations: list[Observation], graph: gtsam.NonlinearFactorGraph, values: gtsam.Values
+    ) -> bool:
+        """Known tags in view enter as priors; the first anchor fixes the world frame. Returns whether
+        the map changed."""
+        s = self.settings
+        changed = False
+        for o in observations:
+            if o.tag_id in self.known and o.tag_id not in self.tags:
+                size, pose = self.known[o.tag_id]
+                anchor = o.tag_id == s.anchor_tag_id or (self.anchor is None and s.anchor_tag_id is None)
+                self._add_tag(graph, values, o.tag_id, size, pose, s.anchor_sigma if anchor else s.known_tag_sigma)
+                if anchor:
+                    self.anchor = o.tag_id
+                changed = True
+        if self.anchor is None and not s.localisation_only:
+            chosen = [o for o in observations if s.anchor_tag_id is None or o.tag_id == s.anchor_tag_id]
+            # The anchor's view sets the first camera pose: wait a little for an unambiguous one.
+            clear = [o for o in chosen if not self.is_ambiguous(o)]
+            if clear or (chosen and self.state.frames > s.anchor_wait_frames):
+                a = min(clear or chosen, key=lambda o: o.reprojection_error_px)
+                pose = self.known[a.tag_id][1] if a.tag_id in self.known else np.eye(4)
+                self.anchor = a.tag_id
+                self._add_tag(graph, values, a.tag_id, a.size_m, pose, s.anchor_sigma)
+                changed = True
+        return changed
+
+    def _velocity(self) -> tuple[int, Array, Array] | None:
+        """(last frame, its pose, per-frame twist) from the last two frames with a pose, when recent."""
+        done = sorted(self.poses)
+        if len(done) < 2:
+            return None
+        a, b = done[-2], done[-1]
+        delta = np.linalg.inv(self.poses[a]) @ self.poses[b]
+        twist = np.asarray(gtsam.Pose3.Logmap(_pose3(delta))) / (b - a)
+        return b, self.poses[b], twist
+
+    def predict(self, frame: int) -> Array | None:
+        """Constant-velocity camera pose for `frame`, when the last pose is at most the bridging gap old."""
+        v = self._velocity()
+        if v is None or not 0 < frame - v[0] <= self.settings.motion_max_gap_frames:
+            return None
+        last, pose, twist = v
+        return pose @ np.asarray(gtsam.Pose3.Expmap(twist * (frame - last)).matrix())
+
+    def _choose_branch(self, o: Observation, world_from_tag: Array, reference: Array | None) -> Array:
+        """The branch of a mapped tag's observation: its chosen one, unless ambiguous and the other one
+        agrees better with the reference camera pose (the motion prediction or the other tags)."""
+        if reference is None or not self.is_ambiguous(o):
+            return o.camera_from_tag
+        predicted = np.linalg.inv(reference) @ world_from_tag
+        if _rot_deg(o.alt_camera_from_tag, predicted) < _rot_deg(o.camera_from_tag, predicted):
+            return o.alt_camera_from_tag
+        return o.camera_from_tag
+
     def update(self, frame: int, stamp_nanos: int, observations: list[Observation]) -> FrameResult:
         """Fuse one frame's observations; returns the camera pose estimate for it. Raises SlamInputError,
         before touching any state, for a frame it has seen, a frame index GTSAM cannot key, or an
@@ -271,62 +397,47 @@ class MarkerSlam:
         s = self.settings
         self.state.frames += 1
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        map_changed = False
-        for o in observations:
-            if o.tag_id in self.known and o.tag_id not in self.tags:
-                size, pose = self.known[o.tag_id]
-                anchor = o.tag_id == s.anchor_tag_id or (self.anchor is None and s.anchor_tag_id is None)
-                sigma = s.anchor_sigma if anchor else s.known_tag_sigma
-                graph.add(gtsam.PriorFactorPose3(L(o.tag_id), _pose3(pose), gtsam.noiseModel.Isotropic.Sigma(6, sigma)))
-                values.insert(L(o.tag_id), _pose3(pose))
-                self.tags[o.tag_id] = size
-                self._estimate.insert(L(o.tag_id), _pose3(pose))
-                if anchor:
-                    self.anchor = o.tag_id
-                map_changed = True
-        if self.anchor is None and not s.localisation_only:
-            chosen = [o for o in observations if s.anchor_tag_id is None or o.tag_id == s.anchor_tag_id]
-            if chosen:
-                a = min(chosen, key=lambda o: o.reprojection_error_px)
-                self.anchor = a.tag_id
-                pose = self.known[a.tag_id][1] if a.tag_id in self.known else np.eye(4)
-                graph.add(
-                    gtsam.PriorFactorPose3(
-                        L(a.tag_id), _pose3(pose), gtsam.noiseModel.Isotropic.Sigma(6, s.anchor_sigma)
-                    )
-                )
-                values.insert(L(a.tag_id), _pose3(pose))
-                self.tags[a.tag_id] = a.size_m
-                self._estimate.insert(L(a.tag_id), _pose3(pose))
-                map_changed = True
-        # Camera initial guess from the known tags in view (median position of the per-tag guesses).
-        guesses = []
-        for o in observations:
-            wt = self._world_from_tag(o.tag_id)
-            if wt is not None:
-                guesses.append((o, wt @ np.linalg.inv(o.camera_from_tag)))
-        if not guesses:
+        map_changed = self._seed_map(observations, graph, values)
+        predicted = self.predict(frame)
+        mapped = [(o, wt) for o in observations if (wt := self._world_from_tag(o.tag_id)) is not None]
+        # Camera initial guess: each mapped tag's view (branch chosen against the prediction or, without
+        # one, against the unambiguous views), the one nearest the median position wins.
+        reference = predicted
+        if reference is None:
+            clear = [wt @ np.linalg.inv(o.camera_from_tag) for o, wt in mapped if not self.is_ambiguous(o)]
+            if clear:
+                centre = np.median(np.array([g[:3, 3] for g in clear]), axis=0)
+                reference = min(clear, key=lambda g: float(np.linalg.norm(g[:3, 3] - centre)))
+        branches = {o.tag_id: self._choose_branch(o, wt, reference) for o, wt in mapped}
+        guesses = [wt @ np.linalg.inv(branches[o.tag_id]) for o, wt in mapped]
+        if guesses:
+            centre = np.median(np.array([g[:3, 3] for g in guesses]), axis=0)
+            init = min(guesses, key=lambda g: float(np.linalg.norm(g[:3, 3] - centre)))
+        elif predicted is not None and not s.localisation_only:
+            init = predicted  # only new tags in view, shortly after the last pose: bridge with the motion
+        else:
             self.state.lost += 1
             return FrameResult(None, "lost", 0, 0, map_changed)
-        centre = np.median(np.array([g[:3, 3] for _, g in guesses]), axis=0)
-        init = min(guesses, key=lambda og: np.linalg.norm(og[1][:3, 3] - centre))[1]
         used, rejected = 0, 0
         for o in observations:
             wt = self._world_from_tag(o.tag_id)
             if wt is not None:
-                ambiguous = o.alt_reprojection_error_px < s.ambiguity_ratio * max(1e-6, o.reprojection_error_px)
-                predicted = np.linalg.inv(init) @ wt
-                if ambiguous and len(guesses) > 1 and _rot_deg(o.camera_from_tag, predicted) > s.disagreement_deg:
-                    rejected += 1
+                measured = branches[o.tag_id]
+                if len(guesses) > 1 and _rot_deg(measured, np.linalg.inv(init) @ wt) > s.disagreement_deg:
+                    rejected += 1  # disagrees with the other tags in view in either branch: an outlier
                     continue
             elif s.localisation_only:
                 continue
             else:
-                new = init @ o.camera_from_tag
-                values.insert(L(o.tag_id), _pose3(new))
+                admitted = self._admit_new_tag(o, frame, init)
+                if admitted is None:
+                    rejected += 1  # ambiguous and not yet disambiguated by a second view
+                    continue
+                measured = admitted
+                values.insert(L(o.tag_id), _pose3(init @ measured))
                 self.tags[o.tag_id] = o.size_m
                 map_changed = True
-            graph.add(gtsam.BetweenFactorPose3(X(frame), L(o.tag_id), _pose3(o.camera_from_tag), self.noise(o)))
+            graph.add(gtsam.BetweenFactorPose3(X(frame), L(o.tag_id), _pose3(measured), self.noise(o, measured)))
             self.state.observations[o.tag_id] = self.state.observations.get(o.tag_id, 0) + 1
             used += 1
         self.state.rejected_ambiguous += rejected
@@ -334,33 +445,120 @@ class MarkerSlam:
             self.state.lost += 1
             return FrameResult(None, "lost", 0, rejected, map_changed)
         values.insert(X(frame), _pose3(init))
-        graph_motion = self._motion_factor(frame)
-        if graph_motion is not None:
-            graph.add(graph_motion)
+        motion = self._motion_factor(frame)
+        if motion is not None:
+            graph.add(motion)
+        elif not guesses:
+            # Only new tags and no motion factor could be made: nothing ties this frame to the map.
+            for key in list(values.keys()):
+                if key != X(frame) and gtsam.Symbol(key).chr() == ord("l"):
+                    self.tags.pop(gtsam.Symbol(key).index(), None)
+            self.state.lost += 1
+            return FrameResult(None, "lost", 0, rejected, map_changed)
         self.isam.update(graph, values)
         self._estimate = self.isam.calculateEstimate()
         pose = np.asarray(self._estimate.atPose3(X(frame)).matrix())
         self.poses[frame] = pose
         self.stamps[frame] = stamp_nanos
+        self._refresh_window()
+        if len(self.poses) >= s.window_frames:
+            self._marginalise_old_frames()
         return FrameResult(pose, "tracking", used, rejected, map_changed)
 
-    def _motion_factor(self, frame: int) -> gtsam.BetweenFactorPose3 | None:
-        """Constant-velocity prior: the last frame-to-frame motion predicts this one (no odometry)."""
+    def _admit_new_tag(self, o: Observation, frame: int, world_from_camera: Array) -> Array | None:
+        """The branch a new tag enters the map with, or None while it is ambiguous: then both world-pose
+        hypotheses are kept, and a later view (within the bridging gap) that agrees with exactly one
+        of them decides."""
+        s = self.settings
+        if not self.is_ambiguous(o):
+            self._pending.pop(o.tag_id, None)
+            return o.camera_from_tag
+        now = (world_from_camera @ o.camera_from_tag, world_from_camera @ o.alt_camera_from_tag)
+        before = self._pending.get(o.tag_id)
+        if before is None or frame - before.frame > s.motion_max_gap_frames:
+            self._pending[o.tag_id] = _Pending(frame, now)
+            return None
+        # Disagreement of each current branch with the closest earlier hypothesis.
+        score = [min(_rot_deg(h, p) for p in before.hypotheses) for h in now]
+        best = int(np.argmin(score))
+        if score[best] < s.disagreement_deg / 2 and score[1 - best] > s.disagreement_deg:
+            self._pending.pop(o.tag_id, None)
+            return (o.camera_from_tag, o.alt_camera_from_tag)[best]
+        self._pending[o.tag_id] = _Pending(frame, now)
+        return None
+
+    def _refresh_window(self) -> None:
+        for f in self.poses:
+            self.poses[f] = np.asarray(self._estimate.atPose3(X(f)).matrix())
+
+    def _motion_factor(self, frame: int) -> gtsam.CustomFactor | None:
+        """Constant-velocity prior over the last two frames with a pose and this one (no odometry):
+        their twists per frame agree up to an acceleration noise that grows with the gaps. A three-pose
+        factor, so the velocity is estimated with the poses rather than frozen from noisy estimates."""
         s = self.settings
         done = sorted(self.poses)
-        if not done or not 0 < frame - done[-1] <= s.motion_max_gap_frames:
+        if len(done) < 2 or not 0 < frame - done[-1] <= s.motion_max_gap_frames:
             return None
-        prev = done[-1]
-        gap = frame - prev
-        if len(done) < 2 or done[-1] - done[-2] != gap:
-            return None  # velocity unknown: no prior rather than a biased one
-        delta = np.linalg.inv(self.poses[done[-2]]) @ self.poses[prev]
-        sig = np.array([math.radians(s.motion_sigma_deg)] * 3 + [s.motion_sigma_m] * 3) * gap
-        return gtsam.BetweenFactorPose3(X(prev), X(frame), _pose3(delta), gtsam.noiseModel.Diagonal.Sigmas(sig))
+        a, b = done[-2], done[-1]
+        if b - a > s.motion_max_gap_frames:
+            return None
+        g1, g2 = b - a, frame - b
+        span = g2 * (g1 + g2) / 2  # frames^2 over which an acceleration changes the twist
+        rot = math.radians(s.motion_accel_deg) * span + math.radians(s.motion_sigma_deg) * g2
+        pos = s.motion_accel_m * span + s.motion_sigma_m * g2
+        noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([rot] * 3 + [pos] * 3))
+        return gtsam.CustomFactor(noise, [X(a), X(b), X(frame)], _constant_velocity_error(g1, g2))
+
+    def _marginalise_old_frames(self) -> None:
+        """Bound memory: start a fresh graph from the current estimate. Every tag keeps its estimate as a
+        prior with its marginal covariance (the anchor and a localisation map stay fixed); the last two
+        frames keep theirs (the motion prior needs them); older frames are final and leave the graph."""
+        s = self.settings
+        keep = sorted(self.poses)[-2:]
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        for tag_id in self.tags:
+            if not self._estimate.exists(L(tag_id)):
+                continue
+            pose = self._estimate.atPose3(L(tag_id))
+            if tag_id == self.anchor or s.localisation_only:
+                noise = self._iso(s.anchor_sigma)
+            else:
+                noise = gtsam.noiseModel.Gaussian.Covariance(_spd(self.isam.marginalCovariance(L(tag_id))))
+            graph.add(gtsam.PriorFactorPose3(L(tag_id), pose, noise))
+            values.insert(L(tag_id), pose)
+        for f in keep:
+            cov = _spd(self.isam.marginalCovariance(X(f)))
+            graph.add(gtsam.PriorFactorPose3(X(f), _pose3(self.poses[f]), gtsam.noiseModel.Gaussian.Covariance(cov)))
+            values.insert(X(f), _pose3(self.poses[f]))
+        old = [f for f in sorted(self.poses) if f not in keep]
+        self._append_done([self.stamps[f] for f in old], [self.poses[f] for f in old])
+        for f in old:
+            del self.poses[f], self.stamps[f]
+        self._last_done_frame = max(self._last_done_frame, old[-1]) if old else self._last_done_frame
+        self._new_isam()
+        self.isam.update(graph, values)
+        self._estimate = self.isam.calculateEstimate()
+
+    def _append_done(self, stamps: list[int], poses: list[Array]) -> None:
+        n = len(stamps)
+        if n == 0:
+            return
+        need = self._done_count + n
+        if need > len(self._done_stamps):
+            cap = max(need, 2 * len(self._done_stamps), 256)
+            grown_s = np.zeros(cap, np.int64)
+            grown_p = np.zeros((cap, 4, 4))
+            grown_s[: self._done_count] = self._done_stamps[: self._done_count]
+            grown_p[: self._done_count] = self._done_poses[: self._done_count]
+            self._done_stamps, self._done_poses = grown_s, grown_p
+        self._done_stamps[self._done_count : need] = stamps
+        self._done_poses[self._done_count : need] = np.array(poses)
+        self._done_count = need
 
     def trajectory(self) -> list[tuple[int, Array]]:
-        """Smoothed (final) camera poses: (stamp_nanos, world_from_camera) in frame order."""
-        out = []
+        """Camera poses in frame order: (stamp_nanos, world_from_camera); the frames still in the graph
+        are smoothed by every later observation, older ones are as they were when they left it."""
+        out = [(int(self._done_stamps[i]), self._done_poses[i]) for i in range(self._done_count)]
         for frame in sorted(self.stamps):
             if self._estimate.exists(X(frame)):
                 out.append((self.stamps[frame], np.asarray(self._estimate.atPose3(X(frame)).matrix())))
@@ -369,6 +567,37 @@ class MarkerSlam:
     def tag_map(self) -> dict[int, tuple[float, Array]]:
         """Current tag poses: id -> (size, world_from_tag)."""
         return {t: (size, pose) for t, size in self.tags.items() if (pose := self._world_from_tag(t)) is not None}
+
+
+def _constant_velocity_error(
+    g1: int, g2: int
+) -> Callable[[gtsam.CustomFactor, gtsam.Values, list[Array] | None], NDArray[np.float64]]:
+    """Error of poses (A, B, C) taken g1 and g2 frames apart: Log(B^-1 C) - (g2 / g1) Log(A^-1 B), with
+    its Jacobians (GTSAM's chain rule through between and Logmap)."""
+    ratio = g2 / g1
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[Array] | None) -> NDArray[np.float64]:
+        ka, kb, kc = this.keys()
+        pa, pb, pc = values.atPose3(ka), values.atPose3(kb), values.atPose3(kc)
+        h = [np.zeros((6, 6), order="F") for _ in range(6)]
+        d1 = pa.between(pb, h[0], h[1])
+        d2 = pb.between(pc, h[2], h[3])
+        log1 = gtsam.Pose3.Logmap(d1, h[4])
+        log2 = gtsam.Pose3.Logmap(d2, h[5])
+        if jacobians is not None:
+            jacobians[0] = -ratio * h[4] @ h[0]
+            jacobians[1] = h[5] @ h[2] - ratio * h[4] @ h[1]
+            jacobians[2] = h[5] @ h[3]
+        return np.asarray(log2 - ratio * log1, np.float64)
+
+    return error
+
+
+def _spd(cov: Array) -> Array:
+    """A symmetric positive-definite copy of a marginal covariance (tiny jitter against round-off)."""
+    c = np.asarray(cov, np.float64)
+    c = (c + c.T) / 2
+    return c + np.eye(len(c)) * 1e-12
 
 
 def umeyama_se3(src: Array, dst: Array) -> Array:
