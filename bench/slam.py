@@ -36,7 +36,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -381,6 +381,43 @@ def sequence_facts(records: list[FrameRecord]) -> dict[str, float]:
     }
 
 
+def noise_check(records: list[FrameRecord], spec: SequenceSpec) -> dict[str, list[float]]:
+    """How the slam core's observation noise model compares with the observations' true errors: RMS of
+    error / modelled sigma per axis of GTSAM's Pose3 tangent (rotation x, y, z in the tag frame, then
+    translation), over every observation of the sequence. 1 = calibrated, < 1 = the model is
+    pessimistic. The errors are correlated from frame to frame (one tag, similar views, the same
+    blur), which independent Gaussian factors cannot express: the model is deliberately pessimistic."""
+    import gtsam
+
+    from shared.slam.marker_slam import MarkerSlam, Observation, SlamSettings
+
+    slam = MarkerSlam(SlamSettings())
+    tag_map = place_tags_map(spec)
+    focal = (spec.fx + spec.fy) / 2
+    ratios = []
+    for rec in records:
+        for o in rec.splittag:
+            if o.tag_id not in tag_map:
+                continue
+            obs = Observation(
+                o.tag_id,
+                o.size_m,
+                o.camera_from_tag,
+                o.reprojection_error_px,
+                o.alt_camera_from_tag,
+                o.alt_reprojection_error_px,
+                focal,
+            )
+            truth = np.linalg.inv(rec.world_from_camera) @ tag_map[o.tag_id][1]
+            err = np.asarray(gtsam.Pose3.Logmap(gtsam.Pose3(o.camera_from_tag).between(gtsam.Pose3(truth))))
+            robust = cast(gtsam.noiseModel.Robust, slam.noise(obs))
+            cov = np.asarray(cast(gtsam.noiseModel.Gaussian, robust.noise()).covariance())
+            ratios.append(np.abs(err) / np.sqrt(np.diag(cov)))
+    if not ratios:
+        return {"rms_error_over_sigma": []}
+    return {"rms_error_over_sigma": np.sqrt(np.mean(np.square(ratios), axis=0)).round(3).tolist()}
+
+
 def _fmt(v: float | None, digits: int = 2) -> str:
     return "-" if v is None else f"{v:.{digits}f}"
 
@@ -420,8 +457,9 @@ def main() -> None:
         records = perceive_sequence(
             spec, args.weights, workers=args.workers, cache_dir=None if args.no_cache else args.cache_dir
         )
-        facts = sequence_facts(records)
+        facts: dict[str, Any] = dict(sequence_facts(records))
         facts["render_and_perceive_s"] = time.perf_counter() - t0
+        facts["noise_model"] = noise_check(records, spec)
         results[name] = {"facts": facts, "methods": evaluate(records, spec)}
         f = facts
         print(
@@ -429,7 +467,8 @@ def main() -> None:
             f"exposure {spec.exposure_s * 1e3:.0f} ms, "
             f"flicker +-{spec.flicker * 100:.0f} %; {f['tags_in_view_per_frame']:.2f} tags in view per frame, "
             f"blur p50/max {f['blur_p50_px']:.1f}/{f['blur_max_px']:.1f} px; stage-1 recall AprilTag "
-            f"{f['apriltag_recall_pct']:.1f} %, splittag {f['splittag_recall_pct']:.1f} %",
+            f"{f['apriltag_recall_pct']:.1f} %, splittag {f['splittag_recall_pct']:.1f} %; observation error / "
+            f"modelled sigma, RMS per axis (rot x y z, t x y z): {f['noise_model']['rms_error_over_sigma']}",
             flush=True,
         )
     print()

@@ -376,3 +376,20 @@ def test_observation_noise_uses_the_cameras_focal_length() -> None:
     np.testing.assert_allclose(sigmas(None), sigmas(SlamSettings().focal_px))
     with pytest.raises(SlamInputError, match="focal"):
         check_observation(Observation(1, 0.15, pose, 0.8, pose, 2.0, 0.0))
+
+
+def test_after_a_loss_any_mapped_tag_relocalises() -> None:
+    """Frames without tags are lost; the first frame that sees any tag already in the map (not the
+    anchor) gets its pose back, right where it is."""
+    poses = _constant_velocity(80)
+    slam = MarkerSlam(SlamSettings())
+    for i in range(20):
+        slam.update(i, i, [_exact_obs(*v) for v in _visible(poses[i])])
+    assert slam.anchor is not None
+    for i in range(20, 60):  # 40 frames without a tag: longer than the motion prior bridges
+        assert slam.update(i, i, []).status == "lost"
+    vis = [v for v in _visible(poses[60]) if v[0] in slam.tags and v[0] != slam.anchor]
+    assert vis
+    res = slam.update(60, 60, [_exact_obs(*vis[0])])
+    assert res.status == "tracking" and res.world_from_camera is not None
+    np.testing.assert_allclose(SCENE_TAGS[slam.anchor] @ res.world_from_camera, poses[60], atol=1e-6)
