@@ -4,7 +4,9 @@ Starts edge_infer, robot_infer and the demo camera (15 fps, 3-4 tags in view) as
 processes, then for each k sets the split through the Zenoh query, waits for the change to take
 effect, and measures capture->pose latency over a window.
 
-    .venv/bin/python -m bench.pipeline [--fps 15] [--window-secs 10]
+    .venv/bin/python -m bench.pipeline [--fps 15] [--window-secs 10] [--tracking off|on|both]
+
+`--tracking both` runs everything twice, robot_infer's track-then-refine off and then on, in one run.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from shared.tools.launch import Monitor, attach_monitor, demo_tag_map, loopback_
 from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
 from shared.transport.split_client import query_split
 from shared.wire import keys
-from shared.wire.cuts import CUTS
+from shared.wire.cuts import CUTS, CutInfo
 
 ROBOT = "bench"
 
@@ -35,14 +37,29 @@ def main() -> None:
     ap.add_argument("--ks", type=int, nargs="*", default=[c.k for c in CUTS])
     ap.add_argument("--rerun", action="store_true", help="log everything to Rerun (to measure its cost)")
     ap.add_argument("--rerun-image-every", type=int, default=1)
+    ap.add_argument("--tracking", choices=("off", "on", "both"), default="off")
     args = ap.parse_args()
     print(f"CPU: {cpu_label()}", flush=True)
+    modes = {"off": [False], "on": [True], "both": [False, True]}[args.tracking]
+    tables = [(tracking, measure(args, tracking=tracking)) for tracking in modes]
+    for tracking, rows in tables:
+        print_table(args, rows, tracking=tracking)
+
+
+Row = tuple[CutInfo, float, float, float, float, float, float, float, float]
+
+
+def measure(args: argparse.Namespace, *, tracking: bool) -> list[Row]:
+    """Start the services (robot_infer's tracking on or off), sweep k, stop them."""
     tmp = Path(tempfile.mkdtemp(prefix="splittag-bench-"))
     cfg, topology = loopback_config(
         tmp, robot_id=ROBOT, rerun=args.rerun, image_every=args.rerun_image_every, fps=args.fps
     )
-    services = [start_service(n, cfg, tmp) for n in ("edge_infer", "robot_infer", "camera")]
-    rows = []
+    env = {"SPLITTAG_ROBOT_INFER_TRACKING__ENABLED": "true" if tracking else "false"}
+    services = [
+        start_service(n, cfg, tmp, env if n == "robot_infer" else None) for n in ("edge_infer", "robot_infer", "camera")
+    ]
+    rows: list[Row] = []
     try:
         session = open_session(ZenohSettings(mode="client", connect=[topology.robot_router]))
         monitor = Monitor(demo_tag_map())
@@ -77,9 +94,14 @@ def main() -> None:
         session.close()
     finally:
         stop_services(services)
+    return rows
+
+
+def print_table(args: argparse.Namespace, rows: list[Row], *, tracking: bool) -> None:
+    """One table per tracking mode."""
     print(
         f"camera {args.fps} fps, window {args.window_secs} s per k, loopback, 2-core CPU, rerun "
-        f"{'on' if args.rerun else 'off'}; latencies in ms"
+        f"{'on' if args.rerun else 'off'}, tracking {'on' if tracking else 'off'}; latencies in ms"
     )
     print(
         f"{'k':>2} {'cut':<10} {'fps':>6} {'e2e p50':>8} {'e2e p99':>8} {'robot':>7} {'link':>6} {'edge':>6} "

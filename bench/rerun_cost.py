@@ -50,6 +50,7 @@ def logging_cpu_ms_per_frame(frames: int, image_every: int) -> dict[str, float]:
             reprojection_error_px=0.3,
             alt_camera_from_tag=make_pose(np.eye(3), [0.1 * i, 0, 1.5]),
             alt_reprojection_error_px=2.0,
+            tracked=False,
         )
         for i in range(4)
     ]

@@ -43,6 +43,7 @@ import numpy as np
 
 from bench.accuracy import AprilTagMethod, solve_pose
 from bench.machine import cpu_label
+from bench.tagrender import corners_in_tag, project_points
 from bench.tagseq import SEQUENCES, SequenceRenderer, SequenceSpec, place_tags
 
 FloatArray = np.ndarray
@@ -59,6 +60,8 @@ _CACHE_SOURCES = (
     "shared/vision/geometry.py",
     "shared/model/net.py",
     "shared/model/infer.py",
+    "shared/vision/tracking.py",
+    "shared/perception/single.py",
 )
 
 
@@ -85,7 +88,12 @@ class FrameRecord:
     blur_px: dict[int, float]
     apriltag: list[tuple[int, FloatArray]] = field(default_factory=list)  # (id, corners TL TR BR BL)
     splittag: list[TagObservation] = field(default_factory=list)
+    # with track-then-refine: the tags stage 1 missed that the tracker predicted and the gate accepted
+    tracked: list[TagObservation] = field(default_factory=list)
+    tracked_corner_error_px: dict[int, float] = field(default_factory=dict)  # mean corner error vs truth
+    tracking_rejected: int = 0  # predictions the gate (soft decode or keypoint confidence) refused
     perception_ms: float = 0.0
+    tracking_ms: float = 0.0
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -108,50 +116,93 @@ def _init_worker(weights: str) -> None:
     _worker["renderers"] = {}
 
 
-def _perceive(job: tuple[str, int]) -> FrameRecord:
-    from shared.perception.single import perceive
+def _perceive_sequence(name: str) -> list[FrameRecord]:
+    """One sequence, frame after frame (the tracker needs the order): stage 1, the network on its ROIs
+    (bf16, as the services run it) with keypoint fusion and PnP; then track-then-refine for the tags
+    stage 1 missed (prediction, soft-decode gate, the network on the predicted ROI, the keypoint
+    confidence gate); AprilTag 3 alone as the baseline."""
+    from shared.perception.single import extract_rois, run_network
     from shared.vision.camera import CameraIntrinsics
+    from shared.vision.detector import Detection
+    from shared.vision.fusion import edge_width_px
+    from shared.vision.geometry import keypoints_to_image, lattice_in_tag
+    from shared.vision.pnp import solve_planar_pnp
     from shared.vision.tagmap import TagMapFile
+    from shared.vision.tracking import TagTracker, verify_tag
 
-    name, index = job
-    renderers: dict[str, SequenceRenderer] = _worker["renderers"]
-    if name not in renderers:
-        renderers[name] = SequenceRenderer(SEQUENCES[name])
-    r = renderers[name]
+    r = SequenceRenderer(SEQUENCES[name])
     s = r.spec
-    frame = r.render(index)
-    rec = FrameRecord(index, frame.stamp_s, frame.world_from_camera, frame.in_view, frame.blur_px)
-    rec.apriltag = [(p.tag_id, p.points_px) for p in _worker["apriltag"](frame.image, r.k)]
     camera = CameraIntrinsics(
         width=s.width, height=s.height, fx=s.fx, fy=s.fy, cx=s.cx, cy=s.cy, distortion_model="none", distortion=[]
     )
     tag_map = TagMapFile.model_validate(r.tag_map_json())  # the sizes, as a deployment's tag map gives them
-    t0 = time.perf_counter()
-    results = perceive(
-        frame.image,
-        camera=camera,
-        detector=_worker["detector"],
-        model=_worker["model"],
-        tag_map=tag_map,
-        fusion=_worker["fusion"],
-        bf16=True,
+    true_tags = {t.tag_id: t for t in r.tags}
+    tracker = TagTracker()
+    model, fusion, detector = _worker["model"], _worker["fusion"], _worker["detector"]
+    records = []
+    for index in range(s.n_frames):
+        frame = r.render(index)
+        rec = FrameRecord(index, frame.stamp_s, frame.world_from_camera, frame.in_view, frame.blur_px)
+        rec.apriltag = [(p.tag_id, p.points_px) for p in _worker["apriltag"](frame.image, r.k)]
+        t0 = time.perf_counter()
+        detections = detector.detect(frame.image)
+        rois, homs = extract_rois(frame.image, detections)
+        kps = run_network(model, rois, bf16=True)
+        refined: dict[int, FloatArray] = {}
+        for i, d in enumerate(detections):
+            size = tag_map.size_of(d.tag_id)
+            kp = keypoints_to_image(kps[i], homs[i])
+            if fusion is not None:
+                kp = fusion.apply(kp, d.corners_px, homs[i], edge_width_px(rois[i], homs[i]))
+            pose = solve_planar_pnp(camera, lattice_in_tag(size), kp)
+            rec.splittag.append(_observation(d.tag_id, size, pose))
+            refined[d.tag_id] = kp[[0, 3, 15, 12]]
+        rec.perception_ms = (time.perf_counter() - t0) * 1e3
+        t0 = time.perf_counter()
+        predictions = tracker.predict(index, {d.tag_id for d in detections}, (s.width, s.height))
+        accepted = []
+        for p in predictions:
+            verdict = verify_tag(frame.image, p, tracker.settings)
+            if verdict.accepted:
+                accepted.append(Detection(p.tag_id, 0.0, 0, verdict.corners_px))
+            else:
+                rec.tracking_rejected += 1
+        if accepted:
+            rois, homs = extract_rois(frame.image, accepted)
+            kps = run_network(model, rois, bf16=True)
+            for i, d in enumerate(accepted):
+                size = tag_map.size_of(d.tag_id)
+                kp = keypoints_to_image(kps[i], homs[i])
+                pose = solve_planar_pnp(camera, lattice_in_tag(size), kp)
+                if pose.reprojection_error_px > tracker.settings.max_refined_reprojection_px:
+                    rec.tracking_rejected += 1
+                    continue
+                rec.tracked.append(_observation(d.tag_id, size, pose))
+                refined[d.tag_id] = kp[[0, 3, 15, 12]]
+                truth = true_tags.get(d.tag_id)
+                if truth is not None:
+                    true_corners = project_points(
+                        r.k, r.camera_from_tag(frame.world_from_camera, truth), corners_in_tag(truth.size_m)
+                    )
+                    err = float(np.linalg.norm(kp[[0, 3, 15, 12]] - true_corners, axis=1).mean())
+                else:
+                    err = float("inf")
+                rec.tracked_corner_error_px[d.tag_id] = err
+        tracker.update(index, refined, {d.tag_id for d in detections})
+        rec.tracking_ms = (time.perf_counter() - t0) * 1e3
+        records.append(rec)
+    return records
+
+
+def _observation(tag_id: int, size_m: float, pose: Any) -> TagObservation:
+    return TagObservation(
+        int(tag_id),
+        size_m,
+        pose.camera_from_tag,
+        pose.reprojection_error_px,
+        pose.alt_camera_from_tag,
+        pose.alt_reprojection_error_px,
     )
-    rec.perception_ms = (time.perf_counter() - t0) * 1e3
-    for res in results:
-        if res.pose is None:
-            continue
-        p = res.pose
-        rec.splittag.append(
-            TagObservation(
-                int(res.detection.tag_id),
-                res.tag_size_m,
-                p.camera_from_tag,
-                p.reprojection_error_px,
-                p.alt_camera_from_tag,
-                p.alt_reprojection_error_px,
-            )
-        )
-    return rec
 
 
 def _cache_key(spec: SequenceSpec, weights: Path) -> str:
@@ -164,21 +215,35 @@ def _cache_key(spec: SequenceSpec, weights: Path) -> str:
     return h.hexdigest()[:16]
 
 
-def perceive_sequence(spec: SequenceSpec, weights: Path, *, workers: int, cache_dir: Path | None) -> list[FrameRecord]:
-    """Every frame's truth and both methods' output (from the cache when nothing it depends on changed)."""
-    path = cache_dir / f"{spec.name}-{_cache_key(spec, weights)}.pkl" if cache_dir is not None else None
-    if path is not None and path.is_file():
-        records: list[FrameRecord] = pickle.loads(path.read_bytes())
-        return records
-    jobs = [(spec.name, i) for i in range(spec.n_frames)]
-    with multiprocessing.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=(str(weights),)) as pool:
-        records = list(pool.imap(_perceive, jobs, chunksize=4))
-    if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp")
-        tmp.write_bytes(pickle.dumps(records))
-        tmp.replace(path)
-    return records
+def perceive_sequences(
+    specs: list[SequenceSpec], weights: Path, *, workers: int, cache_dir: Path | None
+) -> dict[str, list[FrameRecord]]:
+    """Every frame's truth and both methods' output per sequence, one process per sequence (from the
+    cache when nothing it depends on changed)."""
+    out: dict[str, list[FrameRecord]] = {}
+    paths = {
+        spec.name: (cache_dir / f"{spec.name}-{_cache_key(spec, weights)}.pkl" if cache_dir is not None else None)
+        for spec in specs
+    }
+    todo = []
+    for spec in specs:
+        path = paths[spec.name]
+        if path is not None and path.is_file():
+            out[spec.name] = pickle.loads(path.read_bytes())
+        else:
+            todo.append(spec.name)
+    if todo:
+        ctx = multiprocessing.get_context("spawn")
+        with ctx.Pool(min(workers, len(todo)), initializer=_init_worker, initargs=(str(weights),)) as pool:
+            for name, records in zip(todo, pool.imap(_perceive_sequence, todo), strict=True):
+                out[name] = records
+                path = paths[name]
+                if path is not None:
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    tmp = path.with_suffix(".tmp")
+                    tmp.write_bytes(pickle.dumps(records))
+                    tmp.replace(path)
+    return out
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -234,7 +299,13 @@ def apriltag_known_map(records: list[FrameRecord], tag_map: TagMap, k: FloatArra
 
 
 def splittag_slam(
-    records: list[FrameRecord], spec: SequenceSpec, *, known: TagMap | None, anchor: int | None, localisation_only: bool
+    records: list[FrameRecord],
+    spec: SequenceSpec,
+    *,
+    known: TagMap | None,
+    anchor: int | None,
+    localisation_only: bool,
+    tracking: bool = False,
 ) -> tuple[dict[int, FloatArray], dict[int, FloatArray], dict[str, Any]]:
     """The slam core fed frame by frame: (final trajectory, online poses, counters)."""
     from shared.slam.marker_slam import MarkerSlam, Observation, SlamSettings
@@ -257,8 +328,10 @@ def splittag_slam(
                 o.alt_camera_from_tag,
                 o.alt_reprojection_error_px,
                 focal,
+                tracked,
             )
-            for o in rec.splittag
+            for o, tracked in [(o, False) for o in rec.splittag]
+            + ([(o, True) for o in rec.tracked] if tracking else [])
         ]
         res = slam.update(rec.index, stamp, obs)
         if res.world_from_camera is not None:
@@ -352,6 +425,12 @@ def evaluate(records: list[FrameRecord], spec: SequenceSpec) -> dict[str, dict[s
         "splittag localisation": lambda: splittag_slam(
             records, spec, known=tag_map, anchor=anchor, localisation_only=True
         ),
+        "splittag SLAM, tracking": lambda: splittag_slam(
+            records, spec, known=None, anchor=None, localisation_only=False, tracking=True
+        ),
+        "splittag SLAM + map, tracking": lambda: splittag_slam(
+            records, spec, known=tag_map, anchor=anchor, localisation_only=False, tracking=True
+        ),
     }
     for name, fn in runs.items():
         final, online, extra = fn()
@@ -368,6 +447,10 @@ def sequence_facts(records: list[FrameRecord]) -> dict[str, float]:
     in_view = sum(len(r.in_view) for r in records)
     found = sum(len({i for i, _ in r.apriltag} & set(r.in_view)) for r in records)
     found_st = sum(len({o.tag_id for o in r.splittag} & set(r.in_view)) for r in records)
+    found_tr = sum(len({o.tag_id for o in r.splittag + r.tracked} & set(r.in_view)) for r in records)
+    tracked = [e for r in records for e in r.tracked_corner_error_px.values()]
+    # a tracked tag is false when it is not in the frame or its corners are off by more than 3 px
+    false_tracked = sum(1 for e in tracked if not e <= 3.0)
     blur = [b for r in records for b in r.blur_px.values()]
     return {
         "frames": len(records),
@@ -375,6 +458,13 @@ def sequence_facts(records: list[FrameRecord]) -> dict[str, float]:
         "tags_in_view_per_frame": in_view / len(records),
         "apriltag_recall_pct": 100.0 * found / max(1, in_view),
         "splittag_recall_pct": 100.0 * found_st / max(1, in_view),
+        "tracking_recall_pct": 100.0 * found_tr / max(1, in_view),
+        "tracked_tags": len(tracked),
+        "tracked_false": false_tracked,
+        "tracked_corner_error_p50_px": float(np.median(tracked)) if tracked else 0.0,
+        "tracking_rejected": sum(r.tracking_rejected for r in records),
+        "tracking_ms_p50": float(np.median([r.tracking_ms for r in records])),
+        "tracking_ms_max": float(np.max([r.tracking_ms for r in records])),
         "blur_p50_px": float(np.median(blur)) if blur else 0.0,
         "blur_max_px": float(np.max(blur)) if blur else 0.0,
         "perception_ms_p50": float(np.median([r.perception_ms for r in records])),
@@ -451,14 +541,19 @@ def main() -> None:
     print(f"command: {command}", flush=True)
     results: dict[str, dict[str, Any]] = {}
     t_all = time.perf_counter()
+    t0 = time.perf_counter()
+    perceived = perceive_sequences(
+        [SEQUENCES[n] for n in args.sequences],
+        args.weights,
+        workers=args.workers,
+        cache_dir=None if args.no_cache else args.cache_dir,
+    )
+    perceive_s = time.perf_counter() - t0
     for name in args.sequences:
         spec = SEQUENCES[name]
-        t0 = time.perf_counter()
-        records = perceive_sequence(
-            spec, args.weights, workers=args.workers, cache_dir=None if args.no_cache else args.cache_dir
-        )
+        records = perceived[name]
         facts: dict[str, Any] = dict(sequence_facts(records))
-        facts["render_and_perceive_s"] = time.perf_counter() - t0
+        facts["render_and_perceive_s_all_sequences"] = perceive_s
         facts["noise_model"] = noise_check(records, spec)
         results[name] = {"facts": facts, "methods": evaluate(records, spec)}
         f = facts
@@ -467,7 +562,10 @@ def main() -> None:
             f"exposure {spec.exposure_s * 1e3:.0f} ms, "
             f"flicker +-{spec.flicker * 100:.0f} %; {f['tags_in_view_per_frame']:.2f} tags in view per frame, "
             f"blur p50/max {f['blur_p50_px']:.1f}/{f['blur_max_px']:.1f} px; stage-1 recall AprilTag "
-            f"{f['apriltag_recall_pct']:.1f} %, splittag {f['splittag_recall_pct']:.1f} %; observation error / "
+            f"{f['apriltag_recall_pct']:.1f} %, splittag {f['splittag_recall_pct']:.1f} %, with tracking "
+            f"{f['tracking_recall_pct']:.1f} % ({f['tracked_tags']} tracked, {f['tracked_false']} false, corner error "
+            f"p50 {f['tracked_corner_error_p50_px']:.2f} px, {f['tracking_rejected']} refused by the gates, "
+            f"{f['tracking_ms_p50']:.1f} ms p50 per frame); observation error / "
             f"modelled sigma, RMS per axis (rot x y z, t x y z): {f['noise_model']['rms_error_over_sigma']}",
             flush=True,
         )

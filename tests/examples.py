@@ -67,6 +67,7 @@ def example_messages() -> dict[str, Message]:
             roi_to_image=np.arange(9, dtype=np.float64).reshape(3, 3) + 10 * np.eye(3),
             tensor=rng.standard_normal((4, 2, 2)).astype(np.float16),
             edge_width_px=1.5,
+            tracked=False,
         ),
         TagFeature(
             tag_id=9,
@@ -76,6 +77,7 @@ def example_messages() -> dict[str, Message]:
             roi_to_image=np.eye(3),
             tensor=rng.integers(-128, 127, (2, 3), dtype=np.int8),
             edge_width_px=1.5,
+            tracked=True,
         ),
     ]
     features = Features(
@@ -98,6 +100,7 @@ def example_messages() -> dict[str, Message]:
         reprojection_error_px=0.31,
         alt_camera_from_tag=_pose(2),
         alt_reprojection_error_px=2.5,
+        tracked=True,
     )
     poses = TagPoses(
         robot_id="robot1",

@@ -146,6 +146,7 @@ def test_split_changes_live_bad_input_and_edge_restart(pipeline: tuple, tmp_path
                 roi_to_image=np.eye(3),
                 tensor=np.zeros((64, 64, 64), np.float16),
                 edge_width_px=1.5,
+                tracked=False,
             )
         ],
     )

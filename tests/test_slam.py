@@ -294,6 +294,7 @@ def _tag_poses(seq: int, stamp: int, pose: np.ndarray) -> TagPoses:
             reprojection_error_px=0.0,
             alt_camera_from_tag=cft,
             alt_reprojection_error_px=5.0,
+            tracked=False,
         )
         for tag_id, size, cft in _visible(pose)
     ]

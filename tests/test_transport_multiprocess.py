@@ -72,6 +72,7 @@ def test_one_mebibyte_tensor_crosses_bit_exact(tmp_path: Path) -> None:
                         roi_to_image=np.eye(3),
                         tensor=tensor,
                         edge_width_px=1.5,
+                        tracked=False,
                     )
                 ],
             )

@@ -21,10 +21,30 @@ from shared.wire.codec import (
     pack,
     unpack,
 )
-from shared.wire.messages import LEGACY_SCHEMAS, SCHEMAS, Features, Frame, SplitConfig, TagFeature, decode, encode
+from shared.wire.messages import (
+    LEGACY_SCHEMAS,
+    SCHEMAS,
+    Features,
+    Frame,
+    SplitConfig,
+    TagFeature,
+    TagFeatureV1,
+    TagFeatureV2,
+    TagPoses,
+    TagPoseV2,
+    decode,
+    encode,
+)
 from tests.examples import INTRINSICS, assert_messages_equal, example_messages, golden_name
 
 GOLDEN = Path(__file__).parent / "golden"
+# The per-tag model each legacy version's tags had.
+LEGACY_TAG_TYPES: dict[str, type[TagFeatureV1] | type[TagPoseV2]] = {
+    "splittag/Features/v1": TagFeatureV1,
+    "splittag/Features/v2": TagFeatureV2,
+    "splittag/TagPoses/v1": TagPoseV2,
+    "splittag/TagPoses/v2": TagPoseV2,
+}
 EXAMPLES = example_messages()
 
 
@@ -56,12 +76,21 @@ def test_legacy_golden_bytes_still_decode_as_the_current_version(schema: str) ->
     name = schema.rpartition("/")[0]
     [example] = [m for s, m in EXAMPLES.items() if s.rpartition("/")[0] == name]
     assert type(msg) is type(example) and schema != msg.SCHEMA
-    lacking = {name: None for name in type(example).model_fields if name not in LEGACY_SCHEMAS[schema].model_fields}
+    lacking: dict[str, object] = {
+        name: None for name in type(example).model_fields if name not in LEGACY_SCHEMAS[schema].model_fields
+    }
     expected = example.model_copy(update=lacking)
-    if isinstance(example, Features):  # v1 lacks a field of each tag
-        lacking = {"tags[].edge_width_px": None}
-        tags = [t.model_copy(update={"edge_width_px": None}) for t in example.tags]
-        expected = example.model_copy(update={"tags": tags})
+    if isinstance(example, Features | TagPoses):  # older tags lack fields: tracked (v1, v2), edge width (v1)
+        tag_type = type(example.tags[0])
+        legacy_tag_fields = LEGACY_TAG_TYPES[schema].model_fields
+        tag_lacking: dict[str, object] = {
+            name: (False if name == "tracked" else None)
+            for name in tag_type.model_fields
+            if name not in legacy_tag_fields
+        }
+        lacking |= {f"tags[].{name}": value for name, value in tag_lacking.items()}
+        tags = [t.model_copy(update=tag_lacking) for t in example.tags]
+        expected = expected.model_copy(update={"tags": tags})
     assert lacking, "a legacy schema lacks at least one field of the current one"
     assert_messages_equal(msg, expected)
     assert type(decode(golden, type(example))) is type(example)
@@ -92,6 +121,7 @@ def test_decoded_tensor_views_the_payload_without_copy() -> None:
                     roi_to_image=np.eye(3),
                     tensor=tensor,
                     edge_width_px=1.5,
+                    tracked=False,
                 )
             ],
         }
@@ -185,7 +215,7 @@ def test_size_limit() -> None:
 
 
 def test_unexpected_type_is_refused() -> None:
-    with pytest.raises(SchemaError, match="where splittag/Features/v2 was expected"):
+    with pytest.raises(SchemaError, match="where splittag/Features/v3 was expected"):
         decode(encode(EXAMPLES[Frame.SCHEMA]), Features)
 
 
@@ -251,8 +281,8 @@ EVIL_ARRAY = {"dtype": "uint8", "shape": [0, 2**63], "data": b""}  # right byte 
     ("schema", "path"),
     [
         ("splittag/Frame/v1", ("image",)),
-        ("splittag/Features/v2", ("tags", 0, "tensor")),
-        ("splittag/TagPoses/v2", ("tags", 0, "keypoints_px")),
+        ("splittag/Features/v3", ("tags", 0, "tensor")),
+        ("splittag/TagPoses/v3", ("tags", 0, "keypoints_px")),
     ],
 )
 def test_an_impossible_shape_is_a_wire_error_not_a_crash(schema: str, path: tuple[str | int, ...]) -> None:

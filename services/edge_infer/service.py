@@ -107,6 +107,7 @@ class EdgeInfer:
             payload_bytes=len(payload),
             bf16=s.bf16,
             fusion=self.fusion,
+            tracked_max_reprojection_px=self.settings.tracked_max_reprojection_px,
             min_compute_secs=len(features.tags) * emulated[features.split_k] / 1e3 if emulated else 0.0,
         )
         self.pub.put(encode(poses))

@@ -22,6 +22,8 @@ class EdgeInferSettings(ServiceSettings):
     # Fit each tag's 16 points to the network's keypoints and stage 1's corners, weighted by the
     # sigmas calibrated into the weights' config.json (no calibration there: the network's points).
     fuse_corners: bool = True
+    # A tracked tag (robot_infer's tracking) whose 16 keypoints fit a plane worse than this (RMS px) gets no pose.
+    tracked_max_reprojection_px: float = Field(default=1.0, gt=0)
     tag_map: Path | None = None  # YAML/JSON with per-tag sizes; unknown ids use default_tag_size_m
     default_tag_size_m: float = Field(default=0.2, gt=0)
     bf16: bool = True

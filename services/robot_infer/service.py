@@ -21,6 +21,7 @@ from shared.transport.session import declare_latest_subscriber, declare_tensor_p
 from shared.transport.split_control import SplitState, serve_split
 from shared.vision.detector import TagDetector
 from shared.vision.tagmap import TagMapFile, load_tag_map
+from shared.vision.tracking import TagTracker
 from shared.wire import keys
 from shared.wire.codec import WireError
 from shared.wire.cuts import N_CUTS, CodecName
@@ -62,6 +63,7 @@ class RobotInfer:
         self.per_tag_ms = self.emulated or head_per_tag_ms(calibrate_cumulative_ms(self.model, bf16=s.bf16))
         self.estimator = ComputeEstimator(self.per_tag_ms)
         self.detector = TagDetector(s.detector)
+        self.tracker = TagTracker(s.tracking) if s.tracking.enabled else None
         self.tag_map = load_tag_map(s.tag_map) if s.tag_map else TagMapFile(default_size_m=s.default_tag_size_m)
         self.state = SplitState(SplitConfig(k=s.split_k, codec=s.codec, pinned=False, source="default"))
         self.window = InFlightWindow(s.max_in_flight, timeout_secs=s.in_flight_timeout_secs)
@@ -126,7 +128,13 @@ class RobotInfer:
             return
         split = self.state.get()  # changes apply from the next frame; each message says its k
         tags, timings = robot_step(
-            frame, detector=self.detector, model=self.model, k=split.k, codec=split.codec, bf16=self.settings.bf16
+            frame,
+            detector=self.detector,
+            model=self.model,
+            k=split.k,
+            codec=split.codec,
+            bf16=self.settings.bf16,
+            tracker=self.tracker,
         )
         network_ms, compute_secs = self._pace(split.k, len(tags), timings)
         wire = encode(self._features(frame, tags, split.k, split.codec, compute_secs))
@@ -175,7 +183,13 @@ class RobotInfer:
         """The whole chain here (k = 7, PnP) while the edge is gone: TagPoses published by the robot."""
         k = N_CUTS - 1
         tags, timings = robot_step(
-            frame, detector=self.detector, model=self.model, k=k, codec="fp32", bf16=self.settings.bf16
+            frame,
+            detector=self.detector,
+            model=self.model,
+            k=k,
+            codec="fp32",
+            bf16=self.settings.bf16,
+            tracker=self.tracker,
         )
         _, compute_secs = self._pace(k, len(tags), timings)  # the robot's CPU, as emulated for the split
         features = self._features(frame, tags, k, "fp32", compute_secs)
@@ -187,6 +201,7 @@ class RobotInfer:
             previous_receive_nanos=0,
             payload_bytes=0,  # nothing crossed the link
             bf16=self.settings.bf16,
+            tracked_max_reprojection_px=self.settings.tracking.max_refined_reprojection_px,
             fusion=self.fusion,
         )
         self.poses_pub.put(encode(poses.model_copy(update={"link": None})))  # nothing crossed the link

@@ -10,6 +10,7 @@ from pydantic_settings import SettingsConfigDict
 
 from shared.runtime.settings import ServiceSettings
 from shared.vision.detector import DetectorSettings
+from shared.vision.tracking import TrackingSettings
 from shared.wire.cuts import CodecName
 from shared.wire.messages import PerCut
 
@@ -27,6 +28,8 @@ class RobotInferSettings(ServiceSettings):
     split_k: int = Field(default=7, ge=0, le=7)
     codec: CodecName = "fp16"
     detector: DetectorSettings = Field(default_factory=DetectorSettings)
+    # Track-then-refine for tags stage 1 missed (shared/vision/tracking.py; off by default, see README)
+    tracking: TrackingSettings = Field(default_factory=TrackingSettings)
     bf16: bool = True
     threads: int = Field(default=1, ge=1)
     max_in_flight: int = Field(default=2, ge=0)  # frames sent without TagPoses back yet; 0 = no limit

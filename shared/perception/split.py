@@ -8,20 +8,32 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Final, Protocol
 
 import numpy as np
 import torch
+from numpy.typing import NDArray
 
 from shared.model.infer import run_head, run_tail
 from shared.model.net import SplitKeypointNet
 from shared.perception.single import extract_rois
-from shared.vision.detector import TagDetector
+from shared.vision.detector import Detection
 from shared.vision.fusion import KeypointFusion, edge_width_px
 from shared.vision.geometry import keypoints_to_image, lattice_in_tag
 from shared.vision.pnp import solve_planar_pnp
 from shared.vision.tagmap import TagMapFile
+from shared.vision.tracking import TagTracker, verify_tag
 from shared.wire.cuts import CUTS, CodecName, FeatureShapeError, check_cut, check_tensor
 from shared.wire.messages import Features, Frame, HopTimings, LinkStamps, TagFeature, TagPose, TagPoses
+
+
+class Stage1(Protocol):
+    """What robot_step needs of stage 1: TagDetector, or a test's scripted fake."""
+
+    def detect(self, image: NDArray[np.uint8]) -> list[Detection]: ...
+
+
+_LATTICE_CORNERS: Final[tuple[int, int, int, int]] = (0, 3, 15, 12)  # TL, TR, BR, BL in the 4x4 lattice
 
 
 @dataclass
@@ -38,20 +50,43 @@ class RobotTimings:
         return self.detect_secs + self.warp_secs + self.head_secs
 
 
+def track_missed(frame: Frame, detections: list[Detection], tracker: TagTracker) -> tuple[list[Detection], int]:
+    """Track-then-refine's robot half: quads predicted for the recently seen tags stage 1 missed, kept
+    when the soft decode accepts them (shared.vision.tracking). Runs on the robot at every cut (it
+    needs the image, not the keypoints); returns the accepted ones and how many were refused."""
+    if frame.seq <= tracker.last_frame:
+        tracker.reset()  # the camera restarted: its numbering begins again
+    h, w = frame.image.shape
+    accepted, refused = [], 0
+    for p in tracker.predict(frame.seq, {d.tag_id for d in detections}, (w, h)):
+        verdict = verify_tag(frame.image, p, tracker.settings)
+        if verdict.accepted:
+            accepted.append(Detection(p.tag_id, 0.0, 0, verdict.corners_px))
+        else:
+            refused += 1
+    return accepted, refused
+
+
 @torch.no_grad()
 def robot_step(
     frame: Frame,
     *,
-    detector: TagDetector,
+    detector: Stage1,
     model: SplitKeypointNet,
     k: int,
     codec: CodecName,
     bf16: bool = True,
+    tracker: TagTracker | None = None,
 ) -> tuple[list[TagFeature], RobotTimings]:
-    """Stage 1, ROI warping and the network up to cut k for all tags of the frame in one batch."""
+    """Stage 1, ROI warping and the network up to cut k for all tags of the frame in one batch; with a
+    tracker, also the tags stage 1 missed that it carries and verifies (sent with `tracked` set)."""
     check_cut(k)
     t0 = time.perf_counter()
     detections = detector.detect(frame.image)
+    n_detected = len(detections)
+    if tracker is not None:
+        tracked, _ = track_missed(frame, detections, tracker)
+        detections = detections + tracked
     t1 = time.perf_counter()
     rois, roi_to_image = extract_rois(frame.image, detections)
     t2 = time.perf_counter()
@@ -71,9 +106,21 @@ def robot_step(
             roi_to_image=roi_to_image[i],
             tensor=tensors[i],
             edge_width_px=edge_width_px(rois[i], roi_to_image[i]),
+            tracked=i >= n_detected,
         )
         for i, d in enumerate(detections)
     ]
+    if tracker is not None:
+        # The next prediction starts from the best corners the robot has: the network's own at k = 7,
+        # else stage 1's (detected) and the verified quads (tracked).
+        quads = {}
+        for i, d in enumerate(detections):
+            if k == CUTS[-1].k:
+                kp = np.asarray(tensors[i], np.float64).reshape(16, 2)
+                quads[d.tag_id] = keypoints_to_image(kp, roi_to_image[i])[list(_LATTICE_CORNERS)]
+            else:
+                quads[d.tag_id] = np.asarray(d.corners_px, np.float64)
+        tracker.update(frame.seq, quads, {d.tag_id for d in detections[:n_detected]})
     return tags, RobotTimings(t1 - t0, t2 - t1, t3 - t2)
 
 
@@ -89,12 +136,15 @@ def edge_step(
     bf16: bool = True,
     min_compute_secs: float = 0.0,
     fusion: KeypointFusion | None = None,
+    tracked_max_reprojection_px: float = 1.0,
 ) -> TagPoses:
     """Validate, run the tail for the announced k, map keypoints to the image, solve PnP per tag.
     `receive_nanos`/`previous_receive_nanos`: when this message and the one ahead of it on the uplink
     arrived (edge clock, 0 = none), stamped where the bytes came in. `min_compute_secs` emulates a
     slower edge: the step sleeps until it has taken at least that long. `fusion`: fit the lattice to
-    the network's points and the AprilTag corners the robot sent, weighted by their calibrated sigmas."""
+    the network's points and the AprilTag corners the robot sent, weighted by their calibrated sigmas
+    (not for tracked tags: their corners are predictions). A tracked tag whose 16 keypoints fit a plane
+    worse than `tracked_max_reprojection_px` (RMS) is dropped: the keypoint-confidence gate."""
     k, codec = features.split_k, features.codec
     if codec not in ("fp16", "fp32"):
         raise FeatureShapeError(f"codec {codec!r} is not fp16 or fp32")
@@ -108,10 +158,12 @@ def edge_step(
         for tag, kp in zip(features.tags, keypoints, strict=True):
             size = tag_map.size_of(tag.tag_id)
             kp_px = keypoints_to_image(kp, tag.roi_to_image)
-            if fusion is not None:
+            if fusion is not None and not tag.tracked:
                 corners = np.asarray(tag.corners_px, np.float64)
                 kp_px = fusion.apply(kp_px, corners, tag.roi_to_image, tag.edge_width_px)
             cand = solve_planar_pnp(features.intrinsics, lattice_in_tag(size), kp_px)
+            if tag.tracked and cand.reprojection_error_px > tracked_max_reprojection_px:
+                continue
             poses.append(
                 TagPose(
                     tag_id=tag.tag_id,
@@ -122,6 +174,7 @@ def edge_step(
                     reprojection_error_px=cand.reprojection_error_px,
                     alt_camera_from_tag=cand.alt_camera_from_tag,
                     alt_reprojection_error_px=cand.alt_reprojection_error_px,
+                    tracked=tag.tracked,
                 )
             )
     edge_secs = time.perf_counter() - t0

@@ -71,6 +71,9 @@ class SlamSettings(BaseModel):
     anchor_wait_frames: int = Field(default=15, ge=0)  # frames to wait for an unambiguous anchor view
     # Frames kept in the graph; then older frames are marginalised into priors (bounded memory).
     window_frames: int = Field(default=300, ge=3)
+    # Tags the tracker carried through blur: their quads drift in scale by a few % (bench/slam), so
+    # every sigma of theirs is this much larger.
+    tracked_sigma_scale: float = Field(default=4.0, ge=1)
 
 
 @dataclass(frozen=True)
@@ -84,6 +87,7 @@ class Observation:
     alt_camera_from_tag: Array
     alt_reprojection_error_px: float
     focal_px: float | None = None  # the camera's focal length when the message said (else the settings')
+    tracked: bool = False  # carried by the tracker through frames stage 1 missed (noisier: see settings)
 
     @staticmethod
     def from_message(tag: TagPose, focal_px: float | None = None) -> Observation:
@@ -96,6 +100,7 @@ class Observation:
             np.asarray(tag.alt_camera_from_tag),
             tag.alt_reprojection_error_px,
             focal_px,
+            tag.tracked,
         )
 
 
@@ -303,6 +308,8 @@ class MarkerSlam:
             flip_sigma = min(angle, angle * kp / max(other_err - mine_err, 1e-6))
             cov[:3, :3] += flip_sigma**2 * np.outer(axis, axis)
         cov[3:, 3:] = r.T @ cov_t_cam @ r
+        if obs.tracked:
+            cov *= s.tracked_sigma_scale**2
         gauss = gtsam.noiseModel.Gaussian.Covariance(cov)
         return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(s.huber_k), gauss)
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Final, Protocol
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -127,12 +127,18 @@ class RerunViz:
         self._at(msg.capture_nanos)
         # Rerun's 2D space puts pixel centres at +0.5; our convention has them at integers.
         if msg.tags:
+            # detected tags yellow keypoints / green quads; tracked ones (stage 1 missed them) magenta
             kps = np.concatenate([t.keypoints_px for t in msg.tags]) + 0.5
-            self.rec.log("camera/image/keypoints", rr.Points2D(kps, colors=[255, 210, 0], radii=2.0))
+            kp_colors = np.repeat([TRACKED_RGB if t.tracked else [255, 210, 0] for t in msg.tags], 16, axis=0)
+            self.rec.log("camera/image/keypoints", rr.Points2D(kps, colors=kp_colors, radii=2.0))
             quads = [np.vstack([t.corners_px, t.corners_px[:1]]) + 0.5 for t in msg.tags]
             self.rec.log(
                 "camera/image/tag_quads",
-                rr.LineStrips2D(quads, colors=[0, 220, 0], labels=[str(t.tag_id) for t in msg.tags]),
+                rr.LineStrips2D(
+                    quads,
+                    colors=[TRACKED_RGB if t.tracked else [0, 220, 0] for t in msg.tags],
+                    labels=[f"{t.tag_id} (tracked)" if t.tracked else str(t.tag_id) for t in msg.tags],
+                ),
             )
         else:
             self.rec.log("camera/image/keypoints", rr.Clear(recursive=False))
@@ -208,6 +214,9 @@ class RerunViz:
         """Flush and close the .rrd file."""
         self.rec.flush()
         self.rec.disconnect()
+
+
+TRACKED_RGB: Final[list[int]] = [255, 0, 200]
 
 
 def make_viz(settings: RerunSettings, *, service: str, run_dir: Path) -> Viz:

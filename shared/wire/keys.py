@@ -30,13 +30,13 @@ def ground_truth(robot_id: str) -> str:
 
 
 def features(robot_id: str) -> str:
-    """Features v2: robot_infer -> edge_infer (the split tensor crosses the link here)."""
-    return f"{ROOT}/{_check(robot_id, 'robot id')}/features/v2"
+    """Features v3: robot_infer -> edge_infer (the split tensor crosses the link here)."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/features/v3"
 
 
 def tag_poses(robot_id: str) -> str:
-    """TagPoses v2: edge_infer -> slam, controller, robot_infer (credits)."""
-    return f"{ROOT}/{_check(robot_id, 'robot id')}/tag_poses/v2"
+    """TagPoses v3: edge_infer -> slam, controller, robot_infer (credits)."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/tag_poses/v3"
 
 
 def frame_sent(robot_id: str) -> str:

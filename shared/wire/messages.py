@@ -164,17 +164,24 @@ class TagFeatureV1(WireModel):
         return self
 
 
-class TagFeature(TagFeatureV1):
+class TagFeatureV2(TagFeatureV1):
     """TagFeatureV1 plus how blurred the tag's border is in the image (shared.vision.fusion.edge_width_px,
     image pixels; None when the robot could not measure it): keypoint fusion weighs by it."""
 
     edge_width_px: float | None = Field(ge=0, le=1000, allow_inf_nan=False)
 
 
+class TagFeature(TagFeatureV2):
+    """TagFeatureV2 plus whether stage 1 decoded the tag (False) or the tracker carried it from earlier
+    frames and the soft decode accepted it (True: its corners are a prediction, not a detection)."""
+
+    tracked: bool
+
+
 class Features(FrameMessage):
     """Everything robot_infer computed for one frame at split k (possibly zero tags)."""
 
-    SCHEMA: ClassVar[str] = "splittag/Features/v2"
+    SCHEMA: ClassVar[str] = "splittag/Features/v3"
     publish_nanos: int = Field(ge=0)
     split_k: SplitIndex
     codec: CodecName
@@ -183,8 +190,25 @@ class Features(FrameMessage):
     tags: list[TagFeature]
 
 
+class FeaturesV2(FrameMessage):
+    """Features before tracking; still decoded (as v3 with every tag detected, tracked False)."""
+
+    SCHEMA: ClassVar[str] = "splittag/Features/v2"
+    publish_nanos: int = Field(ge=0)
+    split_k: SplitIndex
+    codec: CodecName
+    intrinsics: CameraIntrinsics
+    robot_compute_secs: NonNegFloat
+    tags: list[TagFeatureV2]
+
+    def upgrade(self) -> Features:
+        """The same content as the current schema."""
+        fields = {name: getattr(self, name) for name in FeaturesV2.model_fields if name != "tags"}
+        return Features(**fields, tags=[TagFeature(**dict(t), tracked=False) for t in self.tags])
+
+
 class FeaturesV1(FrameMessage):
-    """Features before the edge width; still decoded (as v2 with edge_width_px None)."""
+    """Features before the edge width; still decoded (as v3 with edge_width_px None, tracked False)."""
 
     SCHEMA: ClassVar[str] = "splittag/Features/v1"
     publish_nanos: int = Field(ge=0)
@@ -197,7 +221,7 @@ class FeaturesV1(FrameMessage):
     def upgrade(self) -> Features:
         """The same content as the current schema."""
         fields = {name: getattr(self, name) for name in FeaturesV1.model_fields if name != "tags"}
-        tags = [TagFeature(**dict(t), edge_width_px=None) for t in self.tags]
+        tags = [TagFeature(**dict(t), edge_width_px=None, tracked=False) for t in self.tags]
         return Features(**fields, tags=tags)
 
 
@@ -210,7 +234,7 @@ class HopTimings(WireModel):
     capture_to_pose_secs: FiniteFloat
 
 
-class TagPose(WireModel):
+class TagPoseV2(WireModel):
     """One tag's keypoints and pose; both PnP branches are kept for the SLAM ambiguity guard."""
 
     tag_id: int = Field(ge=0)
@@ -221,6 +245,12 @@ class TagPose(WireModel):
     reprojection_error_px: NonNegFloat
     alt_camera_from_tag: Pose4x4
     alt_reprojection_error_px: NonNegFloat
+
+
+class TagPose(TagPoseV2):
+    """TagPoseV2 plus whether the tag was detected by stage 1 (False) or tracked (True; see TagFeature)."""
+
+    tracked: bool
 
 
 class LinkStamps(WireModel):
@@ -237,7 +267,7 @@ class TagPoses(FrameMessage):
     """Edge output for one frame: the tags' poses, the frame's per-hop timings, its link stamps and the
     camera intrinsics the poses were solved with (both None only in messages upgraded from v1)."""
 
-    SCHEMA: ClassVar[str] = "splittag/TagPoses/v2"
+    SCHEMA: ClassVar[str] = "splittag/TagPoses/v3"
     split_k: SplitIndex
     payload_bytes: int = Field(ge=0)
     timings: HopTimings
@@ -246,18 +276,38 @@ class TagPoses(FrameMessage):
     tags: list[TagPose]
 
 
+class TagPosesV2(FrameMessage):
+    """TagPoses before tracking; still decoded (as v3 with every tag detected, tracked False)."""
+
+    SCHEMA: ClassVar[str] = "splittag/TagPoses/v2"
+    split_k: SplitIndex
+    payload_bytes: int = Field(ge=0)
+    timings: HopTimings
+    link: LinkStamps | None
+    intrinsics: CameraIntrinsics | None
+    tags: list[TagPoseV2]
+
+    def upgrade(self) -> TagPoses:
+        """The same content as the current schema."""
+        fields = {name: getattr(self, name) for name in TagPosesV2.model_fields if name != "tags"}
+        return TagPoses(**fields, tags=[TagPose(**dict(t), tracked=False) for t in self.tags])
+
+
 class TagPosesV1(FrameMessage):
-    """TagPoses before the link stamps; still decoded (as a v2 TagPoses with link None)."""
+    """TagPoses before the link stamps; still decoded (as a v3 TagPoses with link and intrinsics None,
+    every tag detected)."""
 
     SCHEMA: ClassVar[str] = "splittag/TagPoses/v1"
     split_k: SplitIndex
     payload_bytes: int = Field(ge=0)
     timings: HopTimings
-    tags: list[TagPose]
+    tags: list[TagPoseV2]
 
     def upgrade(self) -> TagPoses:
         """The same content as the current schema."""
-        return TagPoses(**{name: getattr(self, name) for name in TagPosesV1.model_fields}, link=None, intrinsics=None)
+        fields = {name: getattr(self, name) for name in TagPosesV1.model_fields if name != "tags"}
+        tags = [TagPose(**dict(t), tracked=False) for t in self.tags]
+        return TagPoses(**fields, link=None, intrinsics=None, tags=tags)
 
 
 class CameraPose(FrameMessage):
@@ -390,9 +440,9 @@ MESSAGE_TYPES: Final[tuple[type[Message], ...]] = (
 )
 SCHEMAS: Final[dict[str, type[Message]]] = {m.SCHEMA: m for m in MESSAGE_TYPES}
 # Older versions still accepted: each has `upgrade()` to the current message of its name.
-LEGACY_SCHEMAS: Final[dict[str, type[TagPosesV1] | type[ProbeAckV1] | type[FeaturesV1]]] = {
-    m.SCHEMA: m for m in (TagPosesV1, ProbeAckV1, FeaturesV1)
-}
+LEGACY_SCHEMAS: Final[
+    dict[str, type[TagPosesV1] | type[TagPosesV2] | type[ProbeAckV1] | type[FeaturesV1] | type[FeaturesV2]]
+] = {m.SCHEMA: m for m in (TagPosesV1, TagPosesV2, ProbeAckV1, FeaturesV1, FeaturesV2)}
 _CURRENT_BY_NAME: Final[dict[str, type[Message]]] = {m.SCHEMA.rpartition("/")[0]: m for m in MESSAGE_TYPES}
 ENVELOPE_KEYS: Final[frozenset[str]] = frozenset({"schema", "body"})
 

@@ -25,6 +25,7 @@ def probe_features(tensor_bytes: int, *, robot_id: str = "probe", seq: int = 0) 
         roi_to_image=np.eye(3),
         tensor=tensor,
         edge_width_px=1.0,  # a measured width (a float), as real Features carry
+        tracked=False,
     )
     now = time.time_ns()
     return Features(

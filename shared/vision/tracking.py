@@ -1,0 +1,273 @@
+"""Track-then-refine: carry tags that stage 1 missed from frame to frame (pure; robot_infer wires it).
+
+Stage 1 (AprilTag 3) decodes a tag or loses it; under motion blur it loses half of them. A tag seen a
+moment ago has not gone anywhere, so:
+
+- `TagTracker` keeps each tag's last two quads (black-square corners TL, TR, BR, BL in OpenCV pixels)
+  with their frame numbers. `predict(frame, detected)` proposes a quad for every tag seen within
+  `max_age_frames` that stage 1 did not report now: constant velocity per corner.
+- `verify_tag` is the gate a predicted tag must pass before it is used: the tag region is rectified
+  through the quad (searching small shifts, the prediction's error), every cell's mean intensity is
+  correlated with the tag's own 10x10 pattern and with every other tag36h11 code word in all four
+  rotations, each pattern blurred along the tag's image motion (the exposure time is unknown, so
+  several lengths). It passes when its own pattern correlates well and beats every other candidate by
+  a margin: a soft decode that still works where blur has smeared the bits past a hard decode, and
+  refuses a blank wall, another tag or a rotated view of itself.
+- The verified quad (with the shift that aligned it best) becomes the ROI, the network refines the
+  keypoints, and `update` records the refined corners for the next prediction.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from functools import lru_cache
+from typing import Final
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+from shared.vision.geometry import Array
+from shared.vision.tags import CELLS, NUM_TAG36H11, tag_cells
+
+_PX_PER_CELL: Final[int] = 6
+_SIDE: Final[int] = CELLS * _PX_PER_CELL
+
+
+class TrackingSettings(BaseModel):
+    """When a missed tag is predicted and what it takes to accept it."""
+
+    model_config = ConfigDict(extra="forbid")
+    enabled: bool = False  # off by default: on bench/slam's fast sequence it adds frames but costs accuracy
+    max_age_frames: int = Field(default=8, ge=1)  # predict a tag this many frames after its last sighting
+    # ... and this many after stage 1 last decoded it: under heavy blur the refined quads drift in scale
+    # (a few % in 10-20 frames, measured on bench/slam's fast sequence), so a track must be re-anchored.
+    max_coasting_frames: int = Field(default=12, ge=1)
+    max_tracked_per_frame: int = Field(default=8, ge=0)
+    search_px: float = Field(default=6.0, ge=0)  # shifts searched around the predicted quad (+-, image px)
+    search_step_px: float = Field(default=1.5, gt=0)  # the coarse grid; then a finer one around its best
+    min_correlation: float = Field(default=0.75, gt=0, le=1)  # own pattern vs the rectified cells
+    min_margin: float = Field(default=0.15, ge=0)  # own pattern's correlation minus the best other's
+    min_side_px: float = Field(default=12.0, gt=0)  # smaller predicted quads are not verifiable
+    # The keypoint-confidence gate after the network refined a tracked tag: the 16 points must lie on a
+    # plane's projection (RMS PnP reprojection error), as a sure keypoint set does.
+    max_refined_reprojection_px: float = Field(default=1.0, gt=0)
+
+
+@dataclass
+class _Track:
+    frames: list[int] = field(default_factory=list)
+    quads: list[Array] = field(default_factory=list)
+    last_detected: int = -1
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """A quad predicted for a tag stage 1 missed."""
+
+    tag_id: int
+    corners_px: Array  # (4, 2) TL, TR, BR, BL
+    velocity_px: Array  # (4, 2) per frame
+    age_frames: int  # frames since the last sighting
+
+
+class TagTracker:
+    """Per-tag quads over time (see the module docstring). Frame numbers must increase."""
+
+    def __init__(self, settings: TrackingSettings | None = None) -> None:
+        self.settings = settings or TrackingSettings()
+        self._tracks: dict[int, _Track] = {}
+        self.last_frame = -1  # the newest frame `update` saw
+
+    def predict(self, frame: int, detected: set[int], image_size: tuple[int, int]) -> list[Prediction]:
+        """Quads for the recently seen tags stage 1 missed in `frame`, the freshest first; only those
+        inside the image (width, height) and large enough to verify."""
+        s = self.settings
+        out = []
+        width, height = image_size
+        for tag_id, tr in self._tracks.items():
+            age = frame - tr.frames[-1]
+            if tag_id in detected or not 0 < age <= s.max_age_frames:
+                continue
+            if frame - tr.last_detected > s.max_coasting_frames:
+                continue
+            if len(tr.frames) >= 2:
+                velocity = (tr.quads[-1] - tr.quads[-2]) / (tr.frames[-1] - tr.frames[-2])
+            else:
+                velocity = np.zeros((4, 2))
+            quad = tr.quads[-1] + velocity * age
+            sides = np.linalg.norm(quad - np.roll(quad, 1, axis=0), axis=1)
+            inside = (quad[:, 0] >= 0) & (quad[:, 0] <= width - 1) & (quad[:, 1] >= 0) & (quad[:, 1] <= height - 1)
+            if sides.min() < s.min_side_px or not inside.all():
+                continue
+            out.append(Prediction(tag_id, quad, velocity, age))
+        out.sort(key=lambda p: p.age_frames)
+        return out[: s.max_tracked_per_frame]
+
+    def update(self, frame: int, quads: dict[int, Array], detected: set[int]) -> None:
+        """Record this frame's quads (the refined corners of stage 1's tags, `detected`, and of the
+        verified tracked ones); forget tags unseen for longer than the prediction reaches."""
+        for tag_id, quad in quads.items():
+            tr = self._tracks.setdefault(tag_id, _Track())
+            if tr.frames and frame <= tr.frames[-1]:
+                continue
+            if tag_id in detected:
+                tr.last_detected = frame
+            tr.frames = [*tr.frames[-1:], frame]
+            tr.quads = [*tr.quads[-1:], np.asarray(quad, np.float64).reshape(4, 2)]
+        self.last_frame = max(self.last_frame, frame)
+        horizon = self.settings.max_age_frames
+        for tag_id in [t for t, tr in self._tracks.items() if frame - tr.frames[-1] > horizon]:
+            del self._tracks[tag_id]
+
+    def reset(self) -> None:
+        """Forget every track (a new camera session)."""
+        self._tracks.clear()
+        self.last_frame = -1
+
+
+# ----------------------------------------------------------------------------------------------------
+# The verification gate
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """What the gate found: accepted or not, the scores, and the best-aligned quad."""
+
+    accepted: bool
+    correlation: float  # own pattern
+    best_other: float  # the best other id or rotation
+    corners_px: Array  # the predicted quad moved by the shift that aligned best
+
+
+@lru_cache(maxsize=1)
+def _code_book() -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Every tag36h11 pattern in 4 rotations as zero-mean unit rows (4 * 587, 100), and the id of each
+    row (-1 for the rotations of the tags other than the identity)."""
+    rows, ids = [], []
+    for tag_id in range(NUM_TAG36H11):
+        cells = tag_cells(tag_id).astype(np.float64)
+        for rot in range(4):
+            rows.append(np.rot90(cells, rot).ravel())
+            ids.append(tag_id if rot == 0 else -1 - tag_id)
+    return np.array(rows), np.array(ids)
+
+
+@lru_cache(maxsize=256)
+def _blur_operator(dx_q: int, dy_q: int) -> NDArray[np.float64]:
+    """(100, 100): cell pattern -> cell means of the pattern rendered at _PX_PER_CELL and blurred by a
+    linear motion of (dx, dy) rectified pixels (quantised to half pixels). Blur is shift-invariant, so
+    one blurred cell gives how any cell spreads into its neighbours (the tag's surroundings are taken
+    as the same as its white border)."""
+    dx, dy = dx_q / 2.0, dy_q / 2.0
+    p, n = _PX_PER_CELL, 2 * CELLS - 1
+    canvas = np.zeros((n * p, n * p))
+    canvas[(CELLS - 1) * p : CELLS * p, (CELLS - 1) * p : CELLS * p] = 1.0
+    if math.hypot(dx, dy) >= 0.5:
+        canvas = np.asarray(cv2.filter2D(canvas, -1, _line_kernel(dx, dy), borderType=cv2.BORDER_CONSTANT), np.float64)
+    spread = canvas.reshape(n, p, n, p).mean(axis=(1, 3))  # spread[oy + 9, ox + 9]: into the cell at offset
+    iy, ix = np.divmod(np.arange(CELLS * CELLS), CELLS)
+    return np.asarray(spread[iy[:, None] - iy[None, :] + CELLS - 1, ix[:, None] - ix[None, :] + CELLS - 1], np.float64)
+
+
+def _line_kernel(dx: float, dy: float) -> NDArray[np.float64]:
+    length = math.hypot(dx, dy)
+    half = math.ceil(length / 2) + 1
+    k = np.zeros((2 * half + 1, 2 * half + 1))
+    n = max(2, math.ceil(length * 4))
+    for t in np.linspace(-0.5, 0.5, n):
+        x, y = half + t * dx, half + t * dy
+        ix, iy = math.floor(x), math.floor(y)
+        fx, fy = x - ix, y - iy
+        k[iy, ix] += (1 - fx) * (1 - fy)
+        k[iy, ix + 1] += fx * (1 - fy)
+        k[iy + 1, ix] += (1 - fx) * fy
+        k[iy + 1, ix + 1] += fx * fy
+    return k / k.sum()
+
+
+def _normalise(rows: NDArray[np.float64]) -> NDArray[np.float64]:
+    centred = rows - rows.mean(axis=-1, keepdims=True)
+    return centred / np.maximum(np.linalg.norm(centred, axis=-1, keepdims=True), 1e-9)
+
+
+def _rectify(image: NDArray[np.uint8], corners_px: Array) -> tuple[NDArray[np.float64], Array]:
+    """Cell means (100,) of the 10x10-cell tag region behind the quad, and the rectified-from-image
+    homography."""
+    p = _PX_PER_CELL
+    # black square corners sit at cells 1 and 9 of the 10-cell grid (pixel edges, so -0.5 for centres)
+    dst = np.array([[p, p], [9 * p, p], [9 * p, 9 * p], [p, 9 * p]], np.float32) - 0.5
+    h = cv2.getPerspectiveTransform(np.asarray(corners_px, np.float32), dst)
+    patch = cv2.warpPerspective(image, h, (_SIDE, _SIDE), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    means = patch.astype(np.float64).reshape(CELLS, p, CELLS, p).mean(axis=(1, 3)).ravel()
+    return means, h
+
+
+_DATA: Final[NDArray[np.bool_]] = np.zeros((CELLS, CELLS), bool)
+_DATA[2:-2, 2:-2] = True  # the 6x6 data bits: the borders are the same in every tag
+_DATA_CELLS: Final[NDArray[np.intp]] = np.flatnonzero(_DATA.ravel())
+
+
+def verify_tag(image: NDArray[np.uint8], prediction: Prediction, settings: TrackingSettings | None = None) -> Verdict:
+    """The soft decode of a predicted tag (module docstring): correlations over the 36 data cells of
+    the blurred patterns (all 100 cells blur into them), best over a coarse-to-fine search of shifts
+    and over the blur lengths; every other code word and rotation at the best alignment."""
+    s = settings or TrackingSettings()
+    book, ids = _code_book()
+    own = int(np.flatnonzero(ids == prediction.tag_id)[0])
+    _, h0 = _rectify(image, prediction.corners_px)
+    ops = _blur_candidates(prediction, h0)
+    own_blurred = _normalise(np.stack([(op @ book[own])[_DATA_CELLS] for op in ops]))
+
+    def score_at(shift: Array) -> tuple[float, int]:
+        means, _ = _rectify(image, prediction.corners_px + shift)
+        scores = own_blurred @ _normalise(means[_DATA_CELLS][None, :])[0]
+        k = int(np.argmax(scores))
+        return float(scores[k]), k
+
+    best = (-2.0, 0, np.zeros(2))
+    coarse = np.arange(-s.search_px, s.search_px + 1e-9, s.search_step_px)
+    for dx in coarse:
+        for dy in coarse:
+            sc, k = score_at(np.array([dx, dy]))
+            if sc > best[0]:
+                best = (sc, k, np.array([dx, dy]))
+    fine = np.arange(-s.search_step_px / 2, s.search_step_px / 2 + 1e-9, s.search_step_px / 4)
+    centre = best[2]
+    for dx in fine:
+        for dy in fine:
+            sc, k = score_at(centre + np.array([dx, dy]))
+            if sc > best[0]:
+                best = (sc, k, centre + np.array([dx, dy]))
+    score, k, shift = best
+    quad = prediction.corners_px + shift
+    means, _ = _rectify(image, quad)
+    cand = _normalise(means[_DATA_CELLS][None, :])[0]
+    others = _normalise((book @ ops[k].T)[:, _DATA_CELLS]) @ cand
+    others[own] = -1.0
+    best_other = float(others.max())
+    accepted = score >= s.min_correlation and score - best_other >= s.min_margin
+    return Verdict(accepted, score, best_other, quad)
+
+
+def _blur_candidates(prediction: Prediction, rect_from_image: Array) -> list[NDArray[np.float64]]:
+    """Blur operators for exposures of 0, 1/3, 2/3 and all of the frame interval, along the tag's image
+    motion mapped into the rectified patch."""
+    centre = prediction.corners_px.mean(axis=0)
+    motion = prediction.velocity_px.mean(axis=0)
+    a = _apply(rect_from_image, centre[None, :])[0]
+    b = _apply(rect_from_image, (centre + motion)[None, :])[0]
+    d = b - a
+    ops = []
+    for frac in (0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0):
+        dq = np.round(d * frac * 2).astype(int)
+        dq = np.clip(dq, -2 * _SIDE, 2 * _SIDE)
+        ops.append(_blur_operator(int(dq[0]), int(dq[1])))
+    return ops
+
+
+def _apply(h: Array, pts: Array) -> Array:
+    q = np.column_stack([pts, np.ones(len(pts))]) @ h.T
+    return q[:, :2] / q[:, 2:3]
