@@ -13,6 +13,7 @@ import logging
 import queue
 import threading
 import time
+from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,7 @@ import zenoh
 
 from services.slam.settings import SlamServiceSettings
 from shared.runtime.guard import InputGuard, serve_stats
+from shared.runtime.memory import release_free_memory
 from shared.slam.marker_slam import (
     FrameIndexer,
     MarkerSlam,
@@ -33,12 +35,14 @@ from shared.vision.camera import CameraIntrinsics
 from shared.vision.files import atomic_write_text
 from shared.vision.geometry import check_rigid
 from shared.vision.tagmap import load_tag_map, tag_map_from_poses, write_tag_map
-from shared.vision.trajectory import read_tum, write_tum
+from shared.vision.trajectory import PoseLog, read_tum, write_tum
 from shared.viz.recording import make_viz
 from shared.wire import keys
 from shared.wire.messages import CameraPose, MapTag, TagMap, TagPoses, decode, encode
 
 log = logging.getLogger(__name__)
+
+GT_WAITING_FRAMES = 1024  # ground truth held for frames whose TagPoses have not come yet
 
 
 class SlamNode:
@@ -69,20 +73,33 @@ class SlamNode:
             log.info("resuming from %s: %d tags, %d poses", checkpoint, len(known), len(self.previous_trajectory))
         self.slam = MarkerSlam(slam_settings, known_tags=known)
         self.indexer = FrameIndexer()  # repeated messages and restarted cameras (seq from 0 again)
-        self.gt: dict[int, np.ndarray] = {}
+        # Ground truth (simulated sources): the camera sends it for every frame it captures, slam keeps
+        # it for the frames it gets poses for (a recent window waits for them), compactly.
+        self.gt = PoseLog()
+        self._gt_recent: OrderedDict[int, np.ndarray] = OrderedDict()
         self.revision = 0
         self.last_pose: np.ndarray | None = None
         self.lock = threading.Lock()
 
+    def on_ground_truth(self, capture_nanos: int, world_from_camera: np.ndarray) -> None:
+        """Hold a frame's ground truth until its TagPoses come (bounded: the oldest goes first)."""
+        with self.lock:
+            self._gt_recent[capture_nanos] = world_from_camera
+            while len(self._gt_recent) > GT_WAITING_FRAMES:
+                self._gt_recent.popitem(last=False)
+
     def on_poses(self, msg: TagPoses) -> tuple[CameraPose, TagMap | None]:
         """Fuse one frame; returns the camera pose message and the map if it should be published."""
         with self.lock:
+            truth = self._gt_recent.pop(msg.capture_nanos, None)
             focal = None if msg.intrinsics is None else (msg.intrinsics.fx + msg.intrinsics.fy) / 2
             observations = [Observation.from_message(t, focal) for t in msg.tags]
             for o in observations:
                 check_observation(o)  # before the indexer remembers the frame
             frame = self.indexer.index(msg.seq, msg.capture_nanos)
             res = self.slam.update(frame, msg.capture_nanos, observations)
+            if truth is not None:
+                self.gt.append(msg.capture_nanos, truth)
             if res.world_from_camera is not None:
                 self.last_pose = res.world_from_camera
             pose = self.last_pose if self.last_pose is not None else np.eye(4)
@@ -117,7 +134,7 @@ class SlamNode:
         with self.lock:
             traj = self.slam.trajectory()
             tag_map = self.slam.tag_map()
-            gt = dict(self.gt)
+            gt = dict(self.gt.items())
             state = self.slam.state
         rows = [(s / 1e9, p) for s, p in traj]
         if self.previous_trajectory:  # a resumed run: the earlier trajectory first, never less
@@ -176,8 +193,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
         def keep(payload: bytes) -> None:
             msg = decode(payload, CameraPose)
             check_rigid(msg.world_from_camera, "ground truth world_from_camera")  # it is written out as TUM
-            with node.lock:
-                node.gt[msg.capture_nanos] = np.asarray(msg.world_from_camera)
+            node.on_ground_truth(msg.capture_nanos, np.asarray(msg.world_from_camera))
 
         payload = sample.payload.to_bytes()
         guard.run("ground_truth", len(payload), lambda: keep(payload))
@@ -217,10 +233,10 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
         if tag_map is not None:
             map_pub.put(encode(tag_map))
             viz.tag_map(cam.capture_nanos, {t.tag_id: (t.size_m, t.world_from_tag) for t in tag_map.tags})
-        if node.slam.state.frames % 10 == 0:
+        if settings.rerun.enabled and node.slam.state.frames % 10 == 0:  # O(trajectory): only when drawn
             with node.lock:
                 traj = np.array([p[:3, 3] for _, p in node.slam.trajectory()])
-                gt = np.array([p[:3, 3] for _, p in sorted(node.gt.items())])
+                gt = node.gt.positions()
             viz.trajectory(cam.capture_nanos, "world/trajectory", traj)
             viz.trajectory(cam.capture_nanos, "world/groundtruth", gt)
 
@@ -239,6 +255,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
             if time.monotonic() - last_checkpoint >= settings.checkpoint_period_secs:
                 # Atomic: a kill never leaves half a file, or less. A failing write is counted, not fatal.
                 guard.run("checkpoint", 0, lambda: node.write_outputs(settings.run_dir))
+                release_free_memory()  # the graph marginalised and the checkpoint texts freed: give pages back
                 last_checkpoint = time.monotonic()
     finally:
         stats.undeclare()

@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from shared.vision.geometry import Array
+from shared.vision.trajectory import PoseLog
 from shared.wire.messages import TagPose
 
 X = gtsam.symbol_shorthand.X
@@ -231,9 +232,7 @@ class MarkerSlam:
         self.poses: dict[int, Array] = {}  # frame index -> estimate, for the frames still in the graph
         self.stamps: dict[int, int] = {}  # frame index -> stamp, for the frames still in the graph
         # Frames marginalised out of the graph (memory stays bounded): stamps and final poses, compact.
-        self._done_stamps = np.zeros(0, np.int64)
-        self._done_poses = np.zeros((0, 4, 4))
-        self._done_count = 0
+        self._done = PoseLog()
         self._last_done_frame = -1
         self.state = SlamState()
         self.anchor: int | None = None
@@ -538,7 +537,7 @@ class MarkerSlam:
             graph.add(gtsam.PriorFactorPose3(X(f), _pose3(self.poses[f]), gtsam.noiseModel.Gaussian.Covariance(cov)))
             values.insert(X(f), _pose3(self.poses[f]))
         old = [f for f in sorted(self.poses) if f not in keep]
-        self._append_done([self.stamps[f] for f in old], [self.poses[f] for f in old])
+        self._done.extend([self.stamps[f] for f in old], [self.poses[f] for f in old])
         for f in old:
             del self.poses[f], self.stamps[f]
         self._last_done_frame = max(self._last_done_frame, old[-1]) if old else self._last_done_frame
@@ -546,26 +545,10 @@ class MarkerSlam:
         self.isam.update(graph, values)
         self._estimate = self.isam.calculateEstimate()
 
-    def _append_done(self, stamps: list[int], poses: list[Array]) -> None:
-        n = len(stamps)
-        if n == 0:
-            return
-        need = self._done_count + n
-        if need > len(self._done_stamps):
-            cap = max(need, 2 * len(self._done_stamps), 256)
-            grown_s = np.zeros(cap, np.int64)
-            grown_p = np.zeros((cap, 4, 4))
-            grown_s[: self._done_count] = self._done_stamps[: self._done_count]
-            grown_p[: self._done_count] = self._done_poses[: self._done_count]
-            self._done_stamps, self._done_poses = grown_s, grown_p
-        self._done_stamps[self._done_count : need] = stamps
-        self._done_poses[self._done_count : need] = np.array(poses)
-        self._done_count = need
-
     def trajectory(self) -> list[tuple[int, Array]]:
         """Camera poses in frame order: (stamp_nanos, world_from_camera); the frames still in the graph
         are smoothed by every later observation, older ones are as they were when they left it."""
-        out = [(int(self._done_stamps[i]), self._done_poses[i]) for i in range(self._done_count)]
+        out = self._done.items()
         for frame in sorted(self.stamps):
             if self._estimate.exists(X(frame)):
                 out.append((self.stamps[frame], np.asarray(self._estimate.atPose3(X(frame)).matrix())))

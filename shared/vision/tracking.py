@@ -4,8 +4,9 @@ Stage 1 (AprilTag 3) decodes a tag or loses it; under motion blur it loses half 
 moment ago has not gone anywhere, so:
 
 - `TagTracker` keeps each tag's last two quads (black-square corners TL, TR, BR, BL in OpenCV pixels)
-  with their frame numbers. `predict(frame, detected)` proposes a quad for every tag seen within
-  `max_age_frames` that stage 1 did not report now: constant velocity per corner.
+  with their frame numbers, and its last two stage-1 detections. `predict(frame, detected)` proposes a
+  quad for every tag seen within `max_age_frames` that stage 1 did not report now: the centre at
+  constant velocity, the shape of the last detection scaled at the detections' rate.
 - `verify_tag` is the gate a predicted tag must pass before it is used: the tag region is rectified
   through the quad (searching small shifts, the prediction's error), every cell's mean intensity is
   correlated with the tag's own 10x10 pattern and with every other tag36h11 code word in all four
@@ -58,9 +59,14 @@ class TrackingSettings(BaseModel):
 
 @dataclass
 class _Track:
-    frames: list[int] = field(default_factory=list)
+    frames: list[int] = field(default_factory=list)  # the last two sightings (detected or tracked)
     quads: list[Array] = field(default_factory=list)
-    last_detected: int = -1
+    detected_frames: list[int] = field(default_factory=list)  # the last two stage-1 detections
+    detected_quads: list[Array] = field(default_factory=list)
+
+    @property
+    def last_detected(self) -> int:
+        return self.detected_frames[-1] if self.detected_frames else -1
 
 
 @dataclass(frozen=True)
@@ -93,11 +99,7 @@ class TagTracker:
                 continue
             if frame - tr.last_detected > s.max_coasting_frames:
                 continue
-            if len(tr.frames) >= 2:
-                velocity = (tr.quads[-1] - tr.quads[-2]) / (tr.frames[-1] - tr.frames[-2])
-            else:
-                velocity = np.zeros((4, 2))
-            quad = tr.quads[-1] + velocity * age
+            quad, velocity = self._extrapolate(tr, frame)
             sides = np.linalg.norm(quad - np.roll(quad, 1, axis=0), axis=1)
             inside = (quad[:, 0] >= 0) & (quad[:, 0] <= width - 1) & (quad[:, 1] >= 0) & (quad[:, 1] <= height - 1)
             if sides.min() < s.min_side_px or not inside.all():
@@ -106,6 +108,28 @@ class TagTracker:
         out.sort(key=lambda p: p.age_frames)
         return out[: s.max_tracked_per_frame]
 
+    @staticmethod
+    def _extrapolate(tr: _Track, frame: int) -> tuple[Array, Array]:
+        """The quad at `frame`: its centre at constant velocity from the last two sightings; its shape
+        from the last stage-1 detection, scaled at the rate between the last two detections. Tracked
+        quads move the centre but never the shape: under heavy blur their scale drifts (measured)."""
+        centres = [q.mean(axis=0) for q in tr.quads]
+        if len(tr.frames) >= 2:
+            centre_velocity = (centres[-1] - centres[-2]) / (tr.frames[-1] - tr.frames[-2])
+        else:
+            centre_velocity = np.zeros(2)
+        centre = centres[-1] + centre_velocity * (frame - tr.frames[-1])
+        base = tr.detected_quads[-1] if tr.detected_quads else tr.quads[-1]
+        shape = base - base.mean(axis=0)
+        rate = 0.0
+        if len(tr.detected_frames) >= 2 and 0 < tr.detected_frames[-1] - tr.detected_frames[-2] <= 3:
+            size = [float(np.linalg.norm(q - q.mean(axis=0), axis=1).mean()) for q in tr.detected_quads]
+            rate = (size[-1] / max(size[-2], 1e-9) - 1.0) / (tr.detected_frames[-1] - tr.detected_frames[-2])
+        since = frame - (tr.detected_frames[-1] if tr.detected_frames else tr.frames[-1])
+        quad = centre + shape * (1.0 + rate * since)
+        velocity = np.tile(centre_velocity, (4, 1)) + shape * rate
+        return quad, velocity
+
     def update(self, frame: int, quads: dict[int, Array], detected: set[int]) -> None:
         """Record this frame's quads (the refined corners of stage 1's tags, `detected`, and of the
         verified tracked ones); forget tags unseen for longer than the prediction reaches."""
@@ -113,10 +137,12 @@ class TagTracker:
             tr = self._tracks.setdefault(tag_id, _Track())
             if tr.frames and frame <= tr.frames[-1]:
                 continue
+            q = np.asarray(quad, np.float64).reshape(4, 2)
             if tag_id in detected:
-                tr.last_detected = frame
+                tr.detected_frames = [*tr.detected_frames[-1:], frame]
+                tr.detected_quads = [*tr.detected_quads[-1:], q]
             tr.frames = [*tr.frames[-1:], frame]
-            tr.quads = [*tr.quads[-1:], np.asarray(quad, np.float64).reshape(4, 2)]
+            tr.quads = [*tr.quads[-1:], q]
         self.last_frame = max(self.last_frame, frame)
         horizon = self.settings.max_age_frames
         for tag_id in [t for t, tr in self._tracks.items() if frame - tr.frames[-1] > horizon]:
