@@ -27,7 +27,7 @@ from shared.slam.marker_slam import (
     FrameIndexer,
     MarkerSlam,
     Observation,
-    absolute_trajectory_error,
+    absolute_trajectory_error_arrays,
     check_observation,
 )
 from shared.transport.session import declare_fifo_subscriber, encoding_for
@@ -35,7 +35,7 @@ from shared.vision.camera import CameraIntrinsics
 from shared.vision.files import atomic_write_text
 from shared.vision.geometry import check_rigid
 from shared.vision.tagmap import load_tag_map, tag_map_from_poses, write_tag_map
-from shared.vision.trajectory import PoseLog, read_tum, write_tum
+from shared.vision.trajectory import PoseLog, read_tum, write_tum_arrays
 from shared.viz.recording import make_viz
 from shared.wire import keys
 from shared.wire.messages import CameraPose, MapTag, TagMap, TagPoses, decode, encode
@@ -56,11 +56,14 @@ class SlamNode:
         # anchor fixing the world frame) and the trajectory so far (kept, continued, never shortened).
         checkpoint = settings.run_dir / "map.json"
         self.resumed = load_tag_map(checkpoint) if settings.resume and checkpoint.is_file() else None
-        self.previous_trajectory = (
+        previous = (
             read_tum(settings.run_dir / "trajectory.tum")
             if self.resumed is not None and (settings.run_dir / "trajectory.tum").is_file()
             else []
         )
+        # the resumed run's trajectory, as arrays (seconds, poses): written first, never shortened
+        self.previous_stamps_s = np.array([t for t, _ in previous], np.float64)
+        self.previous_poses = np.array([p for _, p in previous], np.float64).reshape(-1, 4, 4)
         for tm in (self.resumed, load_tag_map(settings.tag_map) if settings.tag_map is not None else None):
             if tm is None:
                 continue  # the configured map (second) wins over the checkpoint
@@ -70,7 +73,7 @@ class SlamNode:
                     update={"anchor_tag_id": slam_settings.anchor_tag_id or tm.anchor_tag_id}
                 )
         if self.resumed is not None:
-            log.info("resuming from %s: %d tags, %d poses", checkpoint, len(known), len(self.previous_trajectory))
+            log.info("resuming from %s: %d tags, %d poses", checkpoint, len(known), len(self.previous_stamps_s))
         self.slam = MarkerSlam(slam_settings, known_tags=known)
         self.indexer = FrameIndexer()  # repeated messages and restarted cameras (seq from 0 again)
         # Ground truth (simulated sources): the camera sends it for every frame it captures, slam keeps
@@ -131,16 +134,19 @@ class SlamNode:
     def write_outputs(self, run_dir: Path) -> dict[str, Any]:
         """trajectory.tum, map.json (a tag map), slam.json, and with ground truth groundtruth.tum + ate.json."""
         run_dir.mkdir(parents=True, exist_ok=True)
+        # Arrays throughout: a long run writes its whole trajectory every few seconds, and a Python
+        # object per pose each time fragments the heap (RSS that only grows).
         with self.lock:
-            traj = self.slam.trajectory()
+            traj_stamps, traj_poses = self.slam.trajectory_arrays()
             tag_map = self.slam.tag_map()
-            gt = dict(self.gt.items())
+            gt_stamps, gt_poses = self.gt.arrays()
             state = self.slam.state
-        rows = [(s / 1e9, p) for s, p in traj]
-        if self.previous_trajectory:  # a resumed run: the earlier trajectory first, never less
-            last = self.previous_trajectory[-1][0]
-            rows = self.previous_trajectory + [(t, p) for t, p in rows if t > last]
-        write_tum(run_dir / "trajectory.tum", rows)
+        stamps_s, poses = traj_stamps / 1e9, traj_poses
+        if len(self.previous_stamps_s):  # a resumed run: the earlier trajectory first, never less
+            newer = stamps_s > self.previous_stamps_s[-1]
+            stamps_s = np.concatenate([self.previous_stamps_s, stamps_s[newer]])
+            poses = np.concatenate([self.previous_poses, poses[newer]])
+        write_tum_arrays(run_dir / "trajectory.tum", stamps_s, poses)
         if self.resumed is not None:  # tags of the checkpoint not seen again are kept as they were
             for t in self.resumed.tags:
                 if t.id not in tag_map and (pose := t.pose()) is not None:
@@ -152,16 +158,18 @@ class SlamNode:
         write_tag_map(run_dir / "map.json", tag_map_from_poses(tag_map, anchor_tag_id=anchor))
         out: dict[str, Any] = {
             "frames": state.frames,
-            "poses": len(rows),
+            "poses": len(stamps_s),
             "tags": len(tag_map),
             "lost_frames": state.lost,
             "rejected_ambiguous": state.rejected_ambiguous,
         }
         atomic_write_text(run_dir / "slam.json", json.dumps(out, indent=2))
-        if gt:
-            write_tum(run_dir / "groundtruth.tum", [(s / 1e9, p) for s, p in sorted(gt.items())])
+        if len(gt_stamps):
+            write_tum_arrays(run_dir / "groundtruth.tum", gt_stamps / 1e9, gt_poses)
             try:
-                ate, n = absolute_trajectory_error(dict(traj), gt)
+                ate, n = absolute_trajectory_error_arrays(
+                    traj_stamps, traj_poses[:, :3, 3], gt_stamps, gt_poses[:, :3, 3]
+                )
                 out.update({"ate_m": ate, "ate_frames": n})
             except ValueError as exc:
                 out["ate_error"] = str(exc)
@@ -235,7 +243,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
             viz.tag_map(cam.capture_nanos, {t.tag_id: (t.size_m, t.world_from_tag) for t in tag_map.tags})
         if settings.rerun.enabled and node.slam.state.frames % 10 == 0:  # O(trajectory): only when drawn
             with node.lock:
-                traj = np.array([p[:3, 3] for _, p in node.slam.trajectory()])
+                traj = node.slam.trajectory_arrays()[1][:, :3, 3]
                 gt = node.gt.positions()
             viz.trajectory(cam.capture_nanos, "world/trajectory", traj)
             viz.trajectory(cam.capture_nanos, "world/groundtruth", gt)

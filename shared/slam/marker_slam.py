@@ -554,6 +554,15 @@ class MarkerSlam:
                 out.append((self.stamps[frame], np.asarray(self._estimate.atPose3(X(frame)).matrix())))
         return out
 
+    def trajectory_arrays(self) -> tuple[Array, Array]:
+        """`trajectory()` as arrays (stamps (n,) ns, poses (n, 4, 4)), without a Python object per pose."""
+        done_stamps, done_poses = self._done.arrays()
+        window = [f for f in sorted(self.stamps) if self._estimate.exists(X(f))]
+        stamps = np.concatenate([done_stamps, np.array([self.stamps[f] for f in window], np.int64)])
+        live = [np.asarray(self._estimate.atPose3(X(f)).matrix()) for f in window]
+        poses = np.concatenate([done_poses, np.array(live, np.float64).reshape(-1, 4, 4)])
+        return stamps, poses
+
     def tag_map(self) -> dict[int, tuple[float, Array]]:
         """Current tag poses: id -> (size, world_from_tag)."""
         return {t: (size, pose) for t, size in self.tags.items() if (pose := self._world_from_tag(t)) is not None}
@@ -607,10 +616,23 @@ def umeyama_se3(src: Array, dst: Array) -> Array:
 def absolute_trajectory_error(est: dict[int, Array], gt: dict[int, Array]) -> tuple[float, int]:
     """ATE RMSE (metres) after SE(3) alignment over the stamps both trajectories share."""
     common = sorted(set(est) & set(gt))
-    if len(common) < 3:
-        raise ValueError(f"need >= 3 matching stamps, have {len(common)}")
-    a = np.array([est[s][:3, 3] for s in common])
-    b = np.array([gt[s][:3, 3] for s in common])
+    return absolute_trajectory_error_arrays(
+        np.array(common, np.int64),
+        np.array([est[s][:3, 3] for s in common]).reshape(-1, 3),
+        np.array(common, np.int64),
+        np.array([gt[s][:3, 3] for s in common]).reshape(-1, 3),
+    )
+
+
+def absolute_trajectory_error_arrays(
+    est_stamps: Array, est_positions: Array, gt_stamps: Array, gt_positions: Array
+) -> tuple[float, int]:
+    """`absolute_trajectory_error` for arrays of stamps (n,) and positions (n, 3)."""
+    _, ie, ig = np.intersect1d(est_stamps, gt_stamps, assume_unique=False, return_indices=True)
+    if len(ie) < 3:
+        raise ValueError(f"need >= 3 matching stamps, have {len(ie)}")
+    a = np.asarray(est_positions)[ie]
+    b = np.asarray(gt_positions)[ig]
     t = umeyama_se3(a, b)
     aligned = (t[:3, :3] @ a.T).T + t[:3, 3]
-    return float(np.sqrt(np.mean(np.sum((aligned - b) ** 2, axis=1)))), len(common)
+    return float(np.sqrt(np.mean(np.sum((aligned - b) ** 2, axis=1)))), len(ie)

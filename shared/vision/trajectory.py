@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
@@ -28,13 +29,25 @@ def read_tum(path: Path) -> list[tuple[float, Array]]:
 
 def write_tum(path: Path, rows: list[tuple[float, Array]]) -> None:
     """Write `t tx ty tz qx qy qz qw` lines (world_from_camera)."""
+    stamps = np.array([t for t, _ in rows], np.float64)
+    poses = np.array([p for _, p in rows], np.float64).reshape(-1, 4, 4)
+    write_tum_arrays(path, stamps, poses)
+
+
+def write_tum_arrays(path: Path, stamps_s: Array, poses: Array) -> None:
+    """`write_tum` for arrays (n,) seconds and (n, 4, 4): vectorised, no Python object per pose (a long
+    run writes its whole trajectory every few seconds)."""
     from scipy.spatial.transform import Rotation
 
-    lines = []
-    for t, pose in rows:
-        q = Rotation.from_matrix(pose[:3, :3]).as_quat()
-        lines.append(f"{t:.9f} " + " ".join(f"{v:.9f}" for v in (*pose[:3, 3], *q)))
-    atomic_write_text(Path(path), "\n".join(lines) + "\n")
+    n = len(stamps_s)
+    if n == 0:
+        atomic_write_text(Path(path), "")
+        return
+    quats = Rotation.from_matrix(poses[:, :3, :3]).as_quat()
+    table = np.column_stack([stamps_s, poses[:, :3, 3], quats])
+    buf = io.StringIO()
+    np.savetxt(buf, table, fmt="%.9f")
+    atomic_write_text(Path(path), buf.getvalue())
 
 
 class PoseLog:
@@ -64,6 +77,11 @@ class PoseLog:
 
     def append(self, stamp: int, pose: Array) -> None:
         self.extend([stamp], [pose])
+
+    def arrays(self) -> tuple[Array, Array]:
+        """(stamps (n,), poses (n, 4, 4)) in stamp order (copies)."""
+        order = np.argsort(self._stamps[: self._n], kind="stable")
+        return self._stamps[order], self._poses[order]
 
     def items(self) -> list[tuple[int, Array]]:
         """(stamp, pose) in stamp order (copies)."""
