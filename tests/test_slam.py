@@ -394,3 +394,18 @@ def test_after_a_loss_any_mapped_tag_relocalises() -> None:
     res = slam.update(60, 60, [_exact_obs(*vis[0])])
     assert res.status == "tracking" and res.world_from_camera is not None
     np.testing.assert_allclose(SCENE_TAGS[slam.anchor] @ res.world_from_camera, poses[60], atol=1e-6)
+
+
+def test_the_pose_log_keeps_poses_compactly_in_stamp_order() -> None:
+    from shared.vision.trajectory import PoseLog
+
+    log = PoseLog()
+    poses = _constant_velocity(50)
+    log.extend([100 + i for i in range(25, 50)], poses[25:])
+    for i in range(25):  # late arrivals: still returned in stamp order
+        log.append(100 + i, poses[i])
+    stamps, back = log.arrays()
+    assert stamps.tolist() == [100 + i for i in range(50)] and len(log) == 50
+    np.testing.assert_allclose(back, np.array(poses), atol=1e-6)
+    per_pose = (log._stamps.nbytes + log._positions.nbytes + log._quats.nbytes) / len(log._stamps)
+    assert per_pose <= 52
