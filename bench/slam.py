@@ -298,6 +298,22 @@ def apriltag_known_map(records: list[FrameRecord], tag_map: TagMap, k: FloatArra
     return out
 
 
+def _slam_observation(o: TagObservation, focal_px: float, *, tracked: bool = False) -> Any:
+    """What the slam service makes of a TagPose (shared.slam.marker_slam.Observation)."""
+    from shared.slam.marker_slam import Observation
+
+    return Observation(
+        o.tag_id,
+        o.size_m,
+        o.camera_from_tag,
+        o.reprojection_error_px,
+        o.alt_camera_from_tag,
+        o.alt_reprojection_error_px,
+        focal_px,
+        tracked,
+    )
+
+
 def splittag_slam(
     records: list[FrameRecord],
     spec: SequenceSpec,
@@ -308,7 +324,7 @@ def splittag_slam(
     tracking: bool = False,
 ) -> tuple[dict[int, FloatArray], dict[int, FloatArray], dict[str, Any]]:
     """The slam core fed frame by frame: (final trajectory, online poses, counters)."""
-    from shared.slam.marker_slam import MarkerSlam, Observation, SlamSettings
+    from shared.slam.marker_slam import MarkerSlam, SlamSettings
 
     settings = SlamSettings(anchor_tag_id=anchor, localisation_only=localisation_only)
     slam = MarkerSlam(settings, known_tags=known)
@@ -320,16 +336,7 @@ def splittag_slam(
         stamp = round(rec.stamp_s * 1e9)
         stamp_to_index[stamp] = rec.index
         obs = [
-            Observation(
-                o.tag_id,
-                o.size_m,
-                o.camera_from_tag,
-                o.reprojection_error_px,
-                o.alt_camera_from_tag,
-                o.alt_reprojection_error_px,
-                focal,
-                tracked,
-            )
+            _slam_observation(o, focal, tracked=tracked)
             for o, tracked in [(o, False) for o in rec.splittag]
             + ([(o, True) for o in rec.tracked] if tracking else [])
         ]
@@ -479,7 +486,7 @@ def noise_check(records: list[FrameRecord], spec: SequenceSpec) -> dict[str, lis
     blur), which independent Gaussian factors cannot express: the model is deliberately pessimistic."""
     import gtsam
 
-    from shared.slam.marker_slam import MarkerSlam, Observation, SlamSettings
+    from shared.slam.marker_slam import MarkerSlam, SlamSettings
 
     slam = MarkerSlam(SlamSettings())
     tag_map = place_tags_map(spec)
@@ -489,15 +496,7 @@ def noise_check(records: list[FrameRecord], spec: SequenceSpec) -> dict[str, lis
         for o in rec.splittag:
             if o.tag_id not in tag_map:
                 continue
-            obs = Observation(
-                o.tag_id,
-                o.size_m,
-                o.camera_from_tag,
-                o.reprojection_error_px,
-                o.alt_camera_from_tag,
-                o.alt_reprojection_error_px,
-                focal,
-            )
+            obs = _slam_observation(o, focal)
             truth = np.linalg.inv(rec.world_from_camera) @ tag_map[o.tag_id][1]
             err = np.asarray(gtsam.Pose3.Logmap(gtsam.Pose3(o.camera_from_tag).between(gtsam.Pose3(truth))))
             robust = cast(gtsam.noiseModel.Robust, slam.noise(obs))

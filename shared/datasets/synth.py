@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from shared.sim.backgrounds import procedural_background
+from shared.vision.blur import line_kernel
 from shared.vision.camera import CameraIntrinsics
 from shared.vision.detector import DetectorSettings, TagDetector
 from shared.vision.geometry import (
@@ -100,22 +101,6 @@ def _motion_kernel(rng: np.random.Generator) -> NDArray[np.float32]:
     rot = cv2.getRotationMatrix2D(((length - 1) / 2, (length - 1) / 2), float(rng.uniform(0, 180)), 1.0)
     k = np.asarray(cv2.warpAffine(k, rot, (length, length)), np.float32)
     return k / max(1e-6, float(k.sum()))
-
-
-def line_kernel(length_px: float, angle_rad: float) -> NDArray[np.float32]:
-    """Linear motion-blur kernel of `length_px` at `angle_rad`, centred on its middle pixel."""
-    r = math.ceil(length_px / 2) + 1
-    k = np.zeros((2 * r + 1, 2 * r + 1), np.float32)
-    n = max(2, math.ceil(length_px * 4) + 1)
-    for t in np.linspace(-length_px / 2, length_px / 2, n):
-        x, y = r + t * math.cos(angle_rad), r + t * math.sin(angle_rad)
-        ix, iy = math.floor(x), math.floor(y)
-        fx, fy = x - ix, y - iy
-        k[iy, ix] += (1 - fx) * (1 - fy)
-        k[iy, ix + 1] += fx * (1 - fy)
-        k[iy + 1, ix] += (1 - fx) * fy
-        k[iy + 1, ix + 1] += fx * fy
-    return k / float(k.sum())
 
 
 def disc_kernel(radius_px: float) -> NDArray[np.float32]:

@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
+from shared.vision.blur import line_kernel
 from shared.vision.geometry import Array
 from shared.vision.tags import CELLS, NUM_TAG36H11, tag_cells
 
@@ -192,26 +193,15 @@ def _blur_operator(dx_q: int, dy_q: int) -> NDArray[np.float64]:
     canvas = np.zeros((n * p, n * p))
     canvas[(CELLS - 1) * p : CELLS * p, (CELLS - 1) * p : CELLS * p] = 1.0
     if math.hypot(dx, dy) >= 0.5:
-        canvas = np.asarray(cv2.filter2D(canvas, -1, _line_kernel(dx, dy), borderType=cv2.BORDER_CONSTANT), np.float64)
+        canvas = np.asarray(
+            cv2.filter2D(
+                canvas, -1, line_kernel(math.hypot(dx, dy), math.atan2(dy, dx)), borderType=cv2.BORDER_CONSTANT
+            ),
+            np.float64,
+        )
     spread = canvas.reshape(n, p, n, p).mean(axis=(1, 3))  # spread[oy + 9, ox + 9]: into the cell at offset
     iy, ix = np.divmod(np.arange(CELLS * CELLS), CELLS)
     return np.asarray(spread[iy[:, None] - iy[None, :] + CELLS - 1, ix[:, None] - ix[None, :] + CELLS - 1], np.float64)
-
-
-def _line_kernel(dx: float, dy: float) -> NDArray[np.float64]:
-    length = math.hypot(dx, dy)
-    half = math.ceil(length / 2) + 1
-    k = np.zeros((2 * half + 1, 2 * half + 1))
-    n = max(2, math.ceil(length * 4))
-    for t in np.linspace(-0.5, 0.5, n):
-        x, y = half + t * dx, half + t * dy
-        ix, iy = math.floor(x), math.floor(y)
-        fx, fy = x - ix, y - iy
-        k[iy, ix] += (1 - fx) * (1 - fy)
-        k[iy, ix + 1] += fx * (1 - fy)
-        k[iy + 1, ix] += (1 - fx) * fy
-        k[iy + 1, ix + 1] += fx * fy
-    return k / k.sum()
 
 
 def _normalise(rows: NDArray[np.float64]) -> NDArray[np.float64]:
