@@ -189,7 +189,7 @@ def test_memory_stays_bounded_and_the_trajectory_whole() -> None:
     for i, pose in enumerate(poses):
         assert slam.update(i, 1_000 + i, [_exact_obs(*v) for v in _visible(pose)]).status == "tracking"
         sizes.append(slam.isam.getFactorsUnsafe().size())
-    assert len(slam.poses) <= 20
+    assert len(slam.stamps) <= 20
     assert max(sizes[50:]) <= max(sizes[:30])
     traj = slam.trajectory()
     assert [s for s, _ in traj] == [1_000 + i for i in range(n)]
@@ -259,7 +259,7 @@ def test_bad_frames_are_refused_before_they_touch_the_state() -> None:
     poses = _constant_velocity(6)
     for i, pose in enumerate(poses[:3]):
         assert slam.update(i, i, [_exact_obs(*v) for v in _visible(pose)]).status == "tracking"
-    before = (slam.state.frames, dict(slam.tags), sorted(slam.poses))
+    before = (slam.state.frames, dict(slam.tags), sorted(slam.stamps))
     good = [_exact_obs(*v) for v in _visible(poses[3])]
     zero = Observation(good[0].tag_id, good[0].size_m, np.zeros((4, 4)), 0.0, np.zeros((4, 4)), 1.0)
     behind = np.array(good[0].camera_from_tag)
@@ -274,7 +274,7 @@ def test_bad_frames_are_refused_before_they_touch_the_state() -> None:
         slam.update(3, 3, [Observation(good[0].tag_id, good[0].size_m, behind, 0.0, behind, 1.0)])
     with pytest.raises(SlamInputError, match="size"):
         slam.update(3, 3, [Observation(good[0].tag_id, 1e-300, behind, 0.0, behind, 1.0)])
-    assert (slam.state.frames, dict(slam.tags), sorted(slam.poses)) == before
+    assert (slam.state.frames, dict(slam.tags), sorted(slam.stamps)) == before
     res = slam.update(3, 3, good)
     reference = MarkerSlam(SlamSettings())  # the same frames without the bad ones
     for i, pose in enumerate(poses[:4]):

@@ -229,7 +229,6 @@ class MarkerSlam:
         self.settings = settings
         self.known = known_tags or {}  # id -> (size, world_from_tag) from a tag map
         self.tags: dict[int, float] = {}  # ids in the graph -> size
-        self.poses: dict[int, Array] = {}  # frame index -> estimate, for the frames still in the graph
         self.stamps: dict[int, int] = {}  # frame index -> stamp, for the frames still in the graph
         # Frames marginalised out of the graph (memory stays bounded): stamps and final poses, compact.
         self._done = PoseLog()
@@ -266,25 +265,19 @@ class MarkerSlam:
         floor = max(self.settings.keypoint_sigma_px, obs.reprojection_error_px)
         return obs.alt_reprojection_error_px < self.settings.ambiguity_ratio * floor
 
-    def noise(self, obs: Observation, camera_from_tag: Array | None = None) -> gtsam.noiseModel.Base:
+    def noise(self, obs: Observation, *, alt: bool = False) -> gtsam.noiseModel.Base:
         """Robust Gaussian noise of one observation, in the tag frame (rotation first, as GTSAM).
 
         Position from the viewing geometry (pixel noise to lateral d / f and depth d^2 / (f s)); rotation
         a base term plus, about the axis that turns this IPPE branch into the other, the angle between
         them scaled by keypoint noise / the other branch's reprojection error: a tag whose two branches
-        fit almost equally well (small, far, blurred) tells its position, barely its tilt."""
+        fit almost equally well (small, far, blurred) tells its position, barely its tilt. `alt`: the
+        observation is used with its other branch."""
         s = self.settings
-        m = obs.camera_from_tag if camera_from_tag is None else camera_from_tag
-        other = (
-            obs.alt_camera_from_tag
-            if camera_from_tag is None or camera_from_tag is obs.camera_from_tag
-            else obs.camera_from_tag
-        )
-        mine_err, other_err = (
-            (obs.reprojection_error_px, obs.alt_reprojection_error_px)
-            if other is obs.alt_camera_from_tag
-            else (obs.alt_reprojection_error_px, obs.reprojection_error_px)
-        )
+        m, other = obs.camera_from_tag, obs.alt_camera_from_tag
+        mine_err, other_err = obs.reprojection_error_px, obs.alt_reprojection_error_px
+        if alt:
+            m, other, mine_err, other_err = other, m, other_err, mine_err
         t = m[:3, 3]
         d = max(0.05, float(np.linalg.norm(t)))
         normal = m[:3, 2]
@@ -367,33 +360,37 @@ class MarkerSlam:
                 changed = True
         return changed
 
-    def _velocity(self) -> tuple[int, Array, Array] | None:
-        """(last frame, its pose, per-frame twist) from the last two frames with a pose, when recent."""
-        done = sorted(self.poses)
+    def _pose(self, frame: int) -> Array:
+        return np.asarray(self._estimate.atPose3(X(frame)).matrix())
+
+    def _motion_frames(self, frame: int) -> tuple[int, int] | None:
+        """The last two frames with a pose, when they and `frame` are within the bridging gap of each
+        other: what the motion prediction and the constant-velocity factor both stand on."""
+        gap = self.settings.motion_max_gap_frames
+        done = sorted(self.stamps)
         if len(done) < 2:
             return None
         a, b = done[-2], done[-1]
-        delta = np.linalg.inv(self.poses[a]) @ self.poses[b]
-        twist = np.asarray(gtsam.Pose3.Logmap(_pose3(delta))) / (b - a)
-        return b, self.poses[b], twist
+        return (a, b) if 0 < frame - b <= gap and b - a <= gap else None
 
     def predict(self, frame: int) -> Array | None:
-        """Constant-velocity camera pose for `frame`, when the last pose is at most the bridging gap old."""
-        v = self._velocity()
-        if v is None or not 0 < frame - v[0] <= self.settings.motion_max_gap_frames:
+        """Constant-velocity camera pose for `frame` from the last two frames with a pose (None beyond
+        the bridging gap)."""
+        ab = self._motion_frames(frame)
+        if ab is None:
             return None
-        last, pose, twist = v
-        return pose @ np.asarray(gtsam.Pose3.Expmap(twist * (frame - last)).matrix())
+        a, b = ab
+        pa, pb = self._pose(a), self._pose(b)
+        twist = np.asarray(gtsam.Pose3.Logmap(_pose3(np.linalg.inv(pa) @ pb))) / (b - a)
+        return pb @ np.asarray(gtsam.Pose3.Expmap(twist * (frame - b)).matrix())
 
-    def _choose_branch(self, o: Observation, world_from_tag: Array, reference: Array | None) -> Array:
-        """The branch of a mapped tag's observation: its chosen one, unless ambiguous and the other one
-        agrees better with the reference camera pose (the motion prediction or the other tags)."""
+    def _use_alt(self, o: Observation, world_from_tag: Array, reference: Array | None) -> bool:
+        """Whether a mapped tag's observation is used with its other branch: only when ambiguous and the
+        other one agrees better with the reference camera pose (the motion prediction or the other tags)."""
         if reference is None or not self.is_ambiguous(o):
-            return o.camera_from_tag
+            return False
         predicted = np.linalg.inv(reference) @ world_from_tag
-        if _rot_deg(o.alt_camera_from_tag, predicted) < _rot_deg(o.camera_from_tag, predicted):
-            return o.alt_camera_from_tag
-        return o.camera_from_tag
+        return _rot_deg(o.alt_camera_from_tag, predicted) < _rot_deg(o.camera_from_tag, predicted)
 
     def update(self, frame: int, stamp_nanos: int, observations: list[Observation]) -> FrameResult:
         """Fuse one frame's observations; returns the camera pose estimate for it. Raises SlamInputError,
@@ -414,8 +411,10 @@ class MarkerSlam:
             if clear:
                 centre = np.median(np.array([g[:3, 3] for g in clear]), axis=0)
                 reference = min(clear, key=lambda g: float(np.linalg.norm(g[:3, 3] - centre)))
-        branches = {o.tag_id: self._choose_branch(o, wt, reference) for o, wt in mapped}
-        guesses = [wt @ np.linalg.inv(branches[o.tag_id]) for o, wt in mapped]
+        alt = {o.tag_id: self._use_alt(o, wt, reference) for o, wt in mapped}
+        guesses = [
+            wt @ np.linalg.inv(o.alt_camera_from_tag if alt[o.tag_id] else o.camera_from_tag) for o, wt in mapped
+        ]
         if guesses:
             centre = np.median(np.array([g[:3, 3] for g in guesses]), axis=0)
             init = min(guesses, key=lambda g: float(np.linalg.norm(g[:3, 3] - centre)))
@@ -428,7 +427,8 @@ class MarkerSlam:
         for o in observations:
             wt = self._world_from_tag(o.tag_id)
             if wt is not None:
-                measured = branches[o.tag_id]
+                use_alt = alt[o.tag_id]
+                measured = o.alt_camera_from_tag if use_alt else o.camera_from_tag
                 if len(guesses) > 1 and _rot_deg(measured, np.linalg.inv(init) @ wt) > s.disagreement_deg:
                     rejected += 1  # disagrees with the other tags in view in either branch: an outlier
                     continue
@@ -439,11 +439,12 @@ class MarkerSlam:
                 if admitted is None:
                     rejected += 1  # ambiguous and not yet disambiguated by a second view
                     continue
-                measured = admitted
+                use_alt = admitted
+                measured = o.alt_camera_from_tag if use_alt else o.camera_from_tag
                 values.insert(L(o.tag_id), _pose3(init @ measured))
                 self.tags[o.tag_id] = o.size_m
                 map_changed = True
-            graph.add(gtsam.BetweenFactorPose3(X(frame), L(o.tag_id), _pose3(measured), self.noise(o, measured)))
+            graph.add(gtsam.BetweenFactorPose3(X(frame), L(o.tag_id), _pose3(measured), self.noise(o, alt=use_alt)))
             self.state.observations[o.tag_id] = self.state.observations.get(o.tag_id, 0) + 1
             used += 1
         self.state.rejected_ambiguous += rejected
@@ -451,34 +452,26 @@ class MarkerSlam:
             self.state.lost += 1
             return FrameResult(None, "lost", 0, rejected, map_changed)
         values.insert(X(frame), _pose3(init))
-        motion = self._motion_factor(frame)
+        motion = self._motion_factor(frame)  # never None when this frame is bridged (same frames as predict)
         if motion is not None:
             graph.add(motion)
-        elif not guesses:
-            # Only new tags and no motion factor could be made: nothing ties this frame to the map.
-            for key in list(values.keys()):
-                if key != X(frame) and gtsam.Symbol(key).chr() == ord("l"):
-                    self.tags.pop(gtsam.Symbol(key).index(), None)
-            self.state.lost += 1
-            return FrameResult(None, "lost", 0, rejected, map_changed)
         self.isam.update(graph, values)
         self._estimate = self.isam.calculateEstimate()
-        pose = np.asarray(self._estimate.atPose3(X(frame)).matrix())
-        self.poses[frame] = pose
+        pose = self._pose(frame)
         self.stamps[frame] = stamp_nanos
-        self._refresh_window()
-        if len(self.poses) >= s.window_frames:
+        if len(self.stamps) >= s.window_frames:
             self._marginalise_old_frames()
         return FrameResult(pose, "tracking", used, rejected, map_changed)
 
-    def _admit_new_tag(self, o: Observation, frame: int, world_from_camera: Array) -> Array | None:
-        """The branch a new tag enters the map with, or None while it is ambiguous: then both world-pose
+    def _admit_new_tag(self, o: Observation, frame: int, world_from_camera: Array) -> bool | None:
+        """The branch a new tag enters the map with (True: the other one), or None while it is ambiguous:
+        then both world-pose
         hypotheses are kept, and a later view (within the bridging gap) that agrees with exactly one
         of them decides."""
         s = self.settings
         if not self.is_ambiguous(o):
             self._pending.pop(o.tag_id, None)
-            return o.camera_from_tag
+            return False
         now = (world_from_camera @ o.camera_from_tag, world_from_camera @ o.alt_camera_from_tag)
         before = self._pending.get(o.tag_id)
         if before is None or frame - before.frame > s.motion_max_gap_frames:
@@ -489,25 +482,19 @@ class MarkerSlam:
         best = int(np.argmin(score))
         if score[best] < s.disagreement_deg / 2 and score[1 - best] > s.disagreement_deg:
             self._pending.pop(o.tag_id, None)
-            return (o.camera_from_tag, o.alt_camera_from_tag)[best]
+            return best == 1
         self._pending[o.tag_id] = _Pending(frame, now)
         return None
-
-    def _refresh_window(self) -> None:
-        for f in self.poses:
-            self.poses[f] = np.asarray(self._estimate.atPose3(X(f)).matrix())
 
     def _motion_factor(self, frame: int) -> gtsam.CustomFactor | None:
         """Constant-velocity prior over the last two frames with a pose and this one (no odometry):
         their twists per frame agree up to an acceleration noise that grows with the gaps. A three-pose
         factor, so the velocity is estimated with the poses rather than frozen from noisy estimates."""
         s = self.settings
-        done = sorted(self.poses)
-        if len(done) < 2 or not 0 < frame - done[-1] <= s.motion_max_gap_frames:
+        ab = self._motion_frames(frame)
+        if ab is None:
             return None
-        a, b = done[-2], done[-1]
-        if b - a > s.motion_max_gap_frames:
-            return None
+        a, b = ab
         g1, g2 = b - a, frame - b
         span = g2 * (g1 + g2) / 2  # frames^2 over which an acceleration changes the twist
         rot = math.radians(s.motion_accel_deg) * span + math.radians(s.motion_sigma_deg) * g2
@@ -520,7 +507,8 @@ class MarkerSlam:
         prior with its marginal covariance (the anchor and a localisation map stay fixed); the last two
         frames keep theirs (the motion prior needs them); older frames are final and leave the graph."""
         s = self.settings
-        keep = sorted(self.poses)[-2:]
+        keep = sorted(self.stamps)[-2:]
+        poses = {f: self._pose(f) for f in self.stamps}
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         for tag_id in self.tags:
             if not self._estimate.exists(L(tag_id)):
@@ -534,12 +522,12 @@ class MarkerSlam:
             values.insert(L(tag_id), pose)
         for f in keep:
             cov = _spd(self.isam.marginalCovariance(X(f)))
-            graph.add(gtsam.PriorFactorPose3(X(f), _pose3(self.poses[f]), gtsam.noiseModel.Gaussian.Covariance(cov)))
-            values.insert(X(f), _pose3(self.poses[f]))
-        old = [f for f in sorted(self.poses) if f not in keep]
-        self._done.extend([self.stamps[f] for f in old], [self.poses[f] for f in old])
+            graph.add(gtsam.PriorFactorPose3(X(f), _pose3(poses[f]), gtsam.noiseModel.Gaussian.Covariance(cov)))
+            values.insert(X(f), _pose3(poses[f]))
+        old = [f for f in sorted(self.stamps) if f not in keep]
+        self._done.extend([self.stamps[f] for f in old], [poses[f] for f in old])
         for f in old:
-            del self.poses[f], self.stamps[f]
+            del self.stamps[f]
         self._last_done_frame = max(self._last_done_frame, old[-1]) if old else self._last_done_frame
         self._new_isam()
         self.isam.update(graph, values)
