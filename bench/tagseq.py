@@ -109,11 +109,6 @@ class Frame:
 # Scene
 
 
-def _rot_z(a: float) -> FloatArray:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def _wall_frame(normal_in: FloatArray) -> FloatArray:
     """Tag axes for a wall whose inward normal is `normal_in`: z into the wall, y down, x right."""
     z = -normal_in
@@ -214,7 +209,7 @@ class Room:
         rng = np.random.default_rng([spec.seed, 3])
         self.spec = spec
         w, d, h = spec.room_m
-        # faces: (axis, value, u-axis, v-axis, shade); u, v are the in-plane world coordinates
+        # faces: (axis, value, u-axis, v-axis); u, v are the in-plane world coordinates
         self.faces = [
             (0, 0.0, 1, 2),
             (0, w, 1, 2),

@@ -87,6 +87,7 @@ class TagTracker:
         self.settings = settings or TrackingSettings()
         self._tracks: dict[int, _Track] = {}
         self.last_frame = -1  # the newest frame `update` saw
+        _code_book()  # built once here (587 code words x 4 rotations), not on the first missed tag
 
     def predict(self, frame: int, detected: set[int], image_size: tuple[int, int]) -> list[Prediction]:
         """Quads for the recently seen tags stage 1 missed in `frame`, the freshest first; only those
@@ -235,33 +236,31 @@ def verify_tag(image: NDArray[np.uint8], prediction: Prediction, settings: Track
     own = int(np.flatnonzero(ids == prediction.tag_id)[0])
     _, h0 = _rectify(image, prediction.corners_px)
     ops = _blur_candidates(prediction, h0)
-    own_blurred = _normalise(np.stack([(op @ book[own])[_DATA_CELLS] for op in ops]))
+    # only the data cells' rows of each blur operator are ever compared
+    data_ops = [op[_DATA_CELLS] for op in ops]
+    own_blurred = _normalise(np.stack([op @ book[own] for op in data_ops]))
 
-    def score_at(shift: Array) -> tuple[float, int]:
+    def score_at(shift: Array) -> tuple[float, int, NDArray[np.float64]]:
         means, _ = _rectify(image, prediction.corners_px + shift)
-        scores = own_blurred @ _normalise(means[_DATA_CELLS][None, :])[0]
+        cand = _normalise(means[_DATA_CELLS][None, :])[0]
+        scores = own_blurred @ cand
         k = int(np.argmax(scores))
-        return float(scores[k]), k
+        return float(scores[k]), k, cand
 
-    best = (-2.0, 0, np.zeros(2))
+    best = (-2.0, 0, np.zeros(2), np.zeros(len(_DATA_CELLS)))
     coarse = np.arange(-s.search_px, s.search_px + 1e-9, s.search_step_px)
-    for dx in coarse:
-        for dy in coarse:
-            sc, k = score_at(np.array([dx, dy]))
-            if sc > best[0]:
-                best = (sc, k, np.array([dx, dy]))
     fine = np.arange(-s.search_step_px / 2, s.search_step_px / 2 + 1e-9, s.search_step_px / 4)
-    centre = best[2]
-    for dx in fine:
-        for dy in fine:
-            sc, k = score_at(centre + np.array([dx, dy]))
-            if sc > best[0]:
-                best = (sc, k, centre + np.array([dx, dy]))
-    score, k, shift = best
+    for grid, centre in ((coarse, np.zeros(2)), (fine, None)):
+        origin = best[2] if centre is None else centre
+        for dx in grid:
+            for dy in grid:
+                shift = origin + np.array([dx, dy])
+                sc, k, cand = score_at(shift)
+                if sc > best[0]:
+                    best = (sc, k, shift, cand)
+    score, k, shift, cand = best
     quad = prediction.corners_px + shift
-    means, _ = _rectify(image, quad)
-    cand = _normalise(means[_DATA_CELLS][None, :])[0]
-    others = _normalise((book @ ops[k].T)[:, _DATA_CELLS]) @ cand
+    others = _normalise(book @ data_ops[k].T) @ cand
     others[own] = -1.0
     best_other = float(others.max())
     accepted = score >= s.min_correlation and score - best_other >= s.min_margin
