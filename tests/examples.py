@@ -181,9 +181,11 @@ def example_messages() -> dict[str, Message]:
     return {m.SCHEMA: m for m in msgs}
 
 
-def golden_name(schema: str) -> str:
-    """File name of a schema's golden bytes under tests/golden/."""
-    return schema.replace("splittag/", "").replace("/", "_") + ".msgpack"
+def golden_name(schema: str, framing: int = 2) -> str:
+    """Path of a schema's golden bytes under tests/golden/: framing2/ (what encode writes, regenerated on
+    purpose) or framing1/ (plain msgpack, frozen: older peers' bytes must keep decoding)."""
+    name = schema.replace("splittag/", "").replace("/", "_")
+    return f"framing1/{name}.msgpack" if framing == 1 else f"framing2/{name}.splittag"
 
 
 def assert_messages_equal(a: Message, b: Message) -> None:

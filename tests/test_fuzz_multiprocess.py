@@ -38,7 +38,7 @@ def _ours(msg: Message) -> Message:
 
 def _with(msg: Message, path: tuple[str | int, ...], value: Any) -> bytes:
     """The message's wire bytes with one field (by path into the body) replaced, bypassing validation."""
-    doc = msgpack.unpackb(encode(msg), raw=False)
+    doc = msgpack.unpackb(encode(msg, framing=1), raw=False)  # framing 1: the peers still read it
     node = doc["body"]
     for step in path[:-1]:
         node = node[step]

@@ -118,9 +118,9 @@ class _ScriptedDetector:
 def test_robot_step_sends_a_tracked_tag_flagged() -> None:
     """Stage 1 sees tag 42 in frames 0 and 1 and misses it in frame 2: the robot tracks it and sends
     it with `tracked` set (and stage 1's tags without)."""
-    from shared.model.weights import load_model
+    from shared.model.runtime import load_split_net
 
-    model = load_model(Path("models"))
+    net = load_split_net(Path("models"), "fp32")
     camera = CameraIntrinsics(
         width=400, height=300, fx=400.0, fy=400.0, cx=199.5, cy=149.5, distortion_model="none", distortion=[]
     )
@@ -129,6 +129,6 @@ def test_robot_step_sends_a_tracked_tag_flagged() -> None:
         image = _image(42, centre=(x, 150.0))
         detector = _ScriptedDetector({42: _quad((x, 150.0), 60.0)} if seq < 2 else {})
         frame = Frame(robot_id="r1", seq=seq, capture_nanos=1_000 + seq, image=image, intrinsics=camera)
-        tags, _ = robot_step(frame, detector=detector, model=model, k=7, codec="fp32", tracker=tracker)
+        tags, _ = robot_step(frame, detector=detector, net=net, k=7, codec="fp32", tracker=tracker)
         assert [(t.tag_id, t.tracked) for t in tags] == [(42, seq == 2)]
     np.testing.assert_allclose(tags[0].corners_px, _quad((200.0, 150.0), 60.0), atol=1.0)

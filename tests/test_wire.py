@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import struct
 from pathlib import Path
 
 import msgpack
@@ -19,6 +20,7 @@ from shared.wire.codec import (
     SchemaError,
     WireError,
     pack,
+    pack_framing1,
     unpack,
 )
 from shared.wire.messages import (
@@ -67,11 +69,20 @@ def test_golden_bytes(schema: str) -> None:
     assert_messages_equal(decode(golden), EXAMPLES[schema])
 
 
+@pytest.mark.parametrize("schema", sorted(EXAMPLES))
+def test_framing1_bytes_of_older_peers_still_decode_and_can_still_be_written(schema: str) -> None:
+    """Framing 1 (plain msgpack, before the tensors went out of band): frozen bytes decode to the same
+    message, and `encode(framing=1)` still writes them byte for byte (for a peer that has not upgraded)."""
+    golden = (GOLDEN / golden_name(schema, framing=1)).read_bytes()
+    assert_messages_equal(decode(golden), EXAMPLES[schema])
+    assert encode(EXAMPLES[schema], framing=1) == golden
+
+
 @pytest.mark.parametrize("schema", sorted(LEGACY_SCHEMAS))
 def test_legacy_golden_bytes_still_decode_as_the_current_version(schema: str) -> None:
     """Bytes of an older version (frozen golden file, never regenerated) decode as the current message,
     with the fields that version lacked set to None, and pass an `expected` of the current type."""
-    golden = (GOLDEN / golden_name(schema)).read_bytes()
+    golden = (GOLDEN / golden_name(schema, framing=1)).read_bytes()
     msg = decode(golden)
     name = schema.rpartition("/")[0]
     [example] = [m for s, m in EXAMPLES.items() if s.rpartition("/")[0] == name]
@@ -145,9 +156,10 @@ def _body(schema: str) -> dict:
 
 
 def _patched(schema: str, **changes: object) -> bytes:
+    """Framing 1 (plain msgpack), so that array maps written by hand reach the framing-1 array checks."""
     body = {k: v for k, v in _body(schema).items()}
     body.update(changes)
-    return pack({"schema": schema, "body": body})
+    return pack_framing1({"schema": schema, "body": body})
 
 
 @pytest.mark.parametrize(
@@ -196,11 +208,12 @@ def test_bad_input_gives_typed_error_saying_what_was_received(
 
 
 def test_non_finite_values_are_rejected() -> None:
+    """In every small array and scalar; the split tensor is checked by the edge (its keypoints), not here."""
     body = _body(Features.SCHEMA)
     tags = [dict(t) for t in body["tags"]]
-    bad = np.array(tags[0]["tensor"], copy=True)
+    bad = np.array(tags[0]["corners_px"], copy=True)
     bad.flat[3] = np.nan
-    tags[0]["tensor"] = bad
+    tags[0]["corners_px"] = bad
     with pytest.raises(SchemaError, match="1 non-finite"):
         decode(pack({"schema": Features.SCHEMA, "body": {**body, "tags": tags}}))
     with pytest.raises(SchemaError, match="finite"):
@@ -287,7 +300,7 @@ EVIL_ARRAY = {"dtype": "uint8", "shape": [0, 2**63], "data": b""}  # right byte 
 )
 def test_an_impossible_shape_is_a_wire_error_not_a_crash(schema: str, path: tuple[str | int, ...]) -> None:
     """A 37-byte array {uint8, [0, 2**63], b""} used to escape the decoder as numpy's ValueError."""
-    doc = msgpack.unpackb(encode(EXAMPLES[schema]), raw=False)
+    doc = msgpack.unpackb(encode(EXAMPLES[schema], framing=1), raw=False)
     node = doc["body"]
     for step in path[:-1]:
         node = node[step]
@@ -299,7 +312,91 @@ def test_an_impossible_shape_is_a_wire_error_not_a_crash(schema: str, path: tupl
 @pytest.mark.parametrize("width", [float("nan"), float("inf"), -1.0, 1e9])
 def test_an_impossible_edge_width_is_refused(width: float) -> None:
     """Features v2's per-tag edge width (the fusion's blur measure) must be finite and 0..1000 px."""
-    doc = msgpack.unpackb(encode(EXAMPLES[Features.SCHEMA]), raw=False)
+    doc = msgpack.unpackb(encode(EXAMPLES[Features.SCHEMA], framing=1), raw=False)
     doc["body"]["tags"][0]["edge_width_px"] = width
     with pytest.raises(WireError, match="edge_width_px"):
-        decode(pack(doc), Features)
+        decode(pack_framing1(doc), Features)
+
+
+# ---- framing 2: the header is msgpack, the arrays follow it out of band --------------------------
+
+
+def _frame(header: bytes, data: bytes = b"") -> bytes:
+    """A framing-2 payload assembled by hand (frame head, header, padding to 8, data)."""
+    head = struct.pack("<BBxxI", 0xC1, 2, len(header)) + header
+    return head + bytes(-len(head) % 8 if data else 0) + data
+
+
+def _array_ext(dtype_code: int, shape: tuple[int, ...], offset: int) -> msgpack.ExtType:
+    return msgpack.ExtType(
+        1, struct.pack("<BB6xQ", dtype_code, len(shape), offset) + struct.pack(f"<{len(shape)}Q", *shape)
+    )
+
+
+def test_framing2_arrays_are_8_byte_aligned_views_in_header_order() -> None:
+    doc = {"a": np.arange(3, dtype=np.uint8), "b": np.arange(4, dtype=np.float64), "c": [np.zeros((0, 2), np.float32)]}
+    payload = pack(doc)
+    out = unpack(payload)
+    base = np.frombuffer(payload, np.uint8)
+    for name in ("a", "b"):
+        assert np.shares_memory(out[name], base) and not out[name].flags.writeable
+        assert (out[name].__array_interface__["data"][0] - base.__array_interface__["data"][0]) % 8 == 0
+    assert out["b"].tolist() == [0.0, 1.0, 2.0, 3.0] and out["c"][0].shape == (0, 2)
+
+
+U8 = 3  # dtype code of uint8 (position in WIRE_DTYPES)
+
+
+@pytest.mark.parametrize(
+    ("payload", "error", "match"),
+    [
+        (b"\xc1\x02\x00\x00", MalformedFrame, "0xc1 frame head needs 8"),
+        (_frame(b"")[:1] + b"\x03" + _frame(b"")[2:], MalformedFrame, "framing version 3"),
+        (struct.pack("<BBxxI", 0xC1, 2, 50) + msgpack.packb({"a": 1}), MalformedFrame, "truncated"),
+        (_frame(msgpack.packb({"a": 1}) + b"\x01"), MalformedFrame, "ends before"),
+        (_frame(b"\xc1"), MalformedFrame, "malformed msgpack header"),
+        (_frame(msgpack.packb({"a": msgpack.ExtType(7, b"")})), MalformedFrame, "ext type 7"),
+        (_frame(msgpack.packb({"a": _array_ext(99, (3,), 0)}), bytes(8)), ArrayError, "dtype code 99"),
+        (_frame(msgpack.packb({"a": _array_ext(U8, (0, 2**63), 0)}), bytes(8)), ArrayError, "sizes in 0"),
+        (_frame(msgpack.packb({"a": _array_ext(U8, (16,), 0)}), bytes(8)), MalformedFrame, "truncated"),
+        (_frame(msgpack.packb({"a": _array_ext(U8, (8,), 4)}), bytes(16)), ArrayError, "aligned"),
+        (
+            _frame(msgpack.packb({"a": _array_ext(U8, (8,), 8), "b": _array_ext(U8, (8,), 0)}), bytes(16)),
+            ArrayError,
+            "previous one ends at 16",
+        ),
+        (_frame(msgpack.packb({"a": _array_ext(U8, (8,), 0)}), bytes(9)), MalformedFrame, "1 trailing bytes"),
+        (_frame(msgpack.packb({"a": 1})) + b"\x00", MalformedFrame, "1 trailing bytes"),
+    ],
+)
+def test_framing2_bad_input_gives_typed_errors(payload: bytes, error: type[WireError], match: str) -> None:
+    with pytest.raises(error, match=match):
+        unpack(payload)
+
+
+def test_a_non_finite_split_tensor_is_refused_by_the_edge_not_the_wire() -> None:
+    """Decoding is O(header): a NaN in a megabyte feature map passes the wire; the edge's tail turns it
+    into non-finite keypoints and refuses the frame with a message naming the tag and the cut."""
+    from shared.model.runtime import load_split_net
+    from shared.perception.split import edge_step
+    from shared.vision.tagmap import TagMapFile
+    from shared.wire.cuts import FeatureShapeError
+
+    features = EXAMPLES[Features.SCHEMA]
+    assert isinstance(features, Features)
+    tag = features.tags[0]
+    from shared.wire.cuts import CUTS
+
+    bad = np.zeros(CUTS[features.split_k].shape, np.float16)
+    bad.flat[0] = np.nan
+    msg = features.model_copy(update={"tags": [tag.model_copy(update={"tensor": bad})]})
+    received = decode(encode(msg), Features)
+    with pytest.raises(FeatureShapeError, match=rf"tag\(s\) \[{tag.tag_id}\].*cut-{msg.split_k}"):
+        edge_step(
+            received,
+            net=load_split_net(Path(__file__).resolve().parent.parent / "models", "fp32"),
+            tag_map=TagMapFile(default_size_m=0.2),
+            receive_nanos=1,
+            previous_receive_nanos=0,
+            payload_bytes=1,
+        )

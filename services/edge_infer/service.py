@@ -12,8 +12,9 @@ import zenoh
 
 from services.edge_infer.settings import EdgeInferSettings
 from shared.control.compute import ComputeEstimator, tail_per_tag_ms
-from shared.model.profile import calibrate_cumulative_ms, calibrate_pnp_ms, warm_up
-from shared.model.weights import load_keypoint_fusion, load_model
+from shared.model.profile import calibrate_pnp_ms
+from shared.model.runtime import calibrate_cumulative_ms, load_split_net
+from shared.model.weights import load_keypoint_fusion
 from shared.perception.split import edge_step
 from shared.runtime.guard import InputGuard, serve_stats
 from shared.transport.probe import ArrivalClock, serve_echo
@@ -43,13 +44,12 @@ class EdgeInfer:
     def __init__(self, settings: EdgeInferSettings, session: zenoh.Session, stop: threading.Event) -> None:
         self.settings = s = settings
         self.stop = stop
-        self.model = load_model(s.weights)
+        self.net = load_split_net(s.weights, s.precision, threads=s.threads)
         self.fusion = load_keypoint_fusion(s.weights) if s.fuse_corners else None
-        warm_up(self.model, bf16=s.bf16)
+        self.net.warm_up(0, max_batch=6)
         self.emulated = s.emulated_ms_per_tag_by_k
         self.estimator = ComputeEstimator(
-            self.emulated
-            or tail_per_tag_ms(calibrate_cumulative_ms(self.model, bf16=s.bf16), pnp_ms=calibrate_pnp_ms())
+            self.emulated or tail_per_tag_ms(calibrate_cumulative_ms(self.net), pnp_ms=calibrate_pnp_ms())
         )
         self.last_profile = 0.0
         self.tag_map = load_tag_map(s.tag_map) if s.tag_map else TagMapFile(default_size_m=s.default_tag_size_m)
@@ -100,12 +100,11 @@ class EdgeInfer:
         features = decode(payload, Features, max_bytes=s.max_payload_bytes)
         poses = edge_step(
             features,
-            model=self.model,
+            net=self.net,
             tag_map=self.tag_map,
             receive_nanos=received,
             previous_receive_nanos=previous,
             payload_bytes=len(payload),
-            bf16=s.bf16,
             fusion=self.fusion,
             tracked_max_reprojection_px=self.settings.tracked_max_reprojection_px,
             min_compute_secs=len(features.tags) * emulated[features.split_k] / 1e3 if emulated else 0.0,

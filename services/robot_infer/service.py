@@ -12,8 +12,8 @@ import zenoh
 
 from services.robot_infer.settings import RobotInferSettings
 from shared.control.compute import ComputeEstimator, head_per_tag_ms
-from shared.model.profile import calibrate_cumulative_ms, warm_up
-from shared.model.weights import load_keypoint_fusion, load_model
+from shared.model.runtime import calibrate_cumulative_ms, load_split_net
+from shared.model.weights import load_keypoint_fusion
 from shared.perception.split import RobotTimings, edge_step, robot_step
 from shared.runtime.guard import InputGuard, serve_stats
 from shared.transport.flow import EdgeWatch, InFlightWindow
@@ -44,7 +44,13 @@ def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading
     """Process frames until `stop` is set."""
     torch.set_num_threads(settings.threads)
     node = RobotInfer(settings, session)
-    log.info("robot_infer ready: k=%d codec=%s gamma=%.2f", settings.split_k, settings.codec, settings.gamma)
+    log.info(
+        "robot_infer ready: k=%d codec=%s precision=%s gamma=%.2f",
+        settings.split_k,
+        settings.codec,
+        settings.precision,
+        settings.gamma,
+    )
     try:
         node.serve(stop)
     finally:
@@ -56,11 +62,11 @@ class RobotInfer:
 
     def __init__(self, settings: RobotInferSettings, session: zenoh.Session) -> None:
         self.settings = s = settings
-        self.model = load_model(s.weights)
+        self.net = load_split_net(s.weights, s.precision, threads=s.threads)
         self.fusion = load_keypoint_fusion(s.weights) if s.fuse_corners else None
-        warm_up(self.model, bf16=s.bf16)
+        self.net.warm_up(s.split_k, max_batch=6)
         self.emulated = s.emulated_ms_per_tag_by_k
-        self.per_tag_ms = self.emulated or head_per_tag_ms(calibrate_cumulative_ms(self.model, bf16=s.bf16))
+        self.per_tag_ms = self.emulated or head_per_tag_ms(calibrate_cumulative_ms(self.net))
         self.estimator = ComputeEstimator(self.per_tag_ms)
         self.detector = TagDetector(s.detector)
         self.tracker = TagTracker(s.tracking) if s.tracking.enabled else None
@@ -130,10 +136,9 @@ class RobotInfer:
         tags, timings = robot_step(
             frame,
             detector=self.detector,
-            model=self.model,
+            net=self.net,
             k=split.k,
             codec=split.codec,
-            bf16=self.settings.bf16,
             tracker=self.tracker,
         )
         network_ms, compute_secs = self._pace(split.k, len(tags), timings)
@@ -185,22 +190,20 @@ class RobotInfer:
         tags, timings = robot_step(
             frame,
             detector=self.detector,
-            model=self.model,
+            net=self.net,
             k=k,
             codec="fp32",
-            bf16=self.settings.bf16,
             tracker=self.tracker,
         )
         _, compute_secs = self._pace(k, len(tags), timings)  # the robot's CPU, as emulated for the split
         features = self._features(frame, tags, k, "fp32", compute_secs)
         poses = edge_step(
             features,
-            model=self.model,
+            net=self.net,
             tag_map=self.tag_map,
             receive_nanos=features.publish_nanos,
             previous_receive_nanos=0,
             payload_bytes=0,  # nothing crossed the link
-            bf16=self.settings.bf16,
             tracked_max_reprojection_px=self.settings.tracking.max_refined_reprojection_px,
             fusion=self.fusion,
         )

@@ -113,6 +113,24 @@ class SplitKeypointNet(nn.Module):
         return self.forward_tail(self.forward_head(x, 0), 0)
 
 
+class AllCuts(nn.Module):
+    """The whole network with every cut as an output: `forward(x)` returns the tensors at cuts 1..7
+    (cut 7 = keypoints). This is the graph that is exported and quantised once; the split runtimes
+    cut it at any k (head: input to output k-1; tail: a new input replacing that output)."""
+
+    def __init__(self, net: SplitKeypointNet) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, x: Tensor) -> tuple[Tensor, ...]:
+        outs = []
+        z = x
+        for stage in range(1, N_CUTS):
+            z = self.net._stage(z, stage)
+            outs.append(z)
+        return tuple(outs)
+
+
 def count_parameters(model: nn.Module) -> int:
     """Number of trainable parameters."""
     return sum(p.numel() for p in model.parameters() if p.requires_grad)

@@ -9,9 +9,9 @@ from typing import Literal
 import numpy as np
 import torch
 
-from shared.model.infer import autocast, prepare, run_head, run_tail
+from shared.model.infer import autocast, prepare
 from shared.model.net import SplitKeypointNet
-from shared.wire.cuts import CUTS, INPUT_SIZE
+from shared.wire.cuts import CUTS
 
 Variant = Literal["fp32", "fp32-channels-last", "bf16-channels-last"]
 VARIANTS: tuple[Variant, ...] = ("fp32", "fp32-channels-last", "bf16-channels-last")
@@ -51,14 +51,6 @@ def profile_cuts(
     return out
 
 
-def calibrate_cumulative_ms(model: SplitKeypointNet, *, bf16: bool, repetitions: int = 5) -> list[float]:
-    """Quick start-up calibration: cumulative head time per tag (batch 1) at every cut, ms. The minimum
-    over repetitions, not the median: services start together and calibrate while their neighbours
-    load, and the fastest run is the one least disturbed by them (live measurements scale it later)."""
-    variant: Variant = "bf16-channels-last" if bf16 else "fp32-channels-last"
-    return [t.min_ms for t in profile_cuts(model, variant=variant, repetitions=repetitions, warmup=1)]
-
-
 def calibrate_pnp_ms(repetitions: int = 20) -> float:
     """Median time to map 16 keypoints to the image and solve both PnP branches for one tag, ms."""
     from shared.vision.geometry import default_camera, lattice_in_tag, make_pose
@@ -75,17 +67,3 @@ def calibrate_pnp_ms(repetitions: int = 20) -> float:
         solve_planar_pnp(cam, obj, img)
         times.append((time.perf_counter() - t0) * 1e3)
     return float(np.median(times))
-
-
-@torch.no_grad()
-def warm_up(model: SplitKeypointNet, *, bf16: bool, max_batch: int = 6) -> None:
-    """Run the whole network once per batch size 1..max_batch: oneDNN builds its kernels per shape,
-    and the first frame with a new tag count would otherwise take several times longer (and teach
-    the compute estimator a wrong scale)."""
-    for n in range(1, max_batch + 1):
-        run_tail(
-            model,
-            run_head(model, torch.zeros((n, 1, INPUT_SIZE, INPUT_SIZE), dtype=torch.uint8), 0, bf16=bf16),
-            0,
-            bf16=bf16,
-        )

@@ -14,13 +14,14 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from shared.model.net import OFFSET_SCALE, SplitKeypointNet
+from shared.model.precision import ModelFileError
 from shared.vision.fusion import KeypointFusion
 from shared.vision.geometry import ROI_MARGIN, ROI_SIZE
 
 CONFIG_VERSION: Final[str] = "splittag/model-config/v1"
 
 
-class WeightsError(ValueError):
+class WeightsError(ModelFileError):
     """A weights folder that is missing, malformed or made for another data contract."""
 
 

@@ -11,11 +11,9 @@ from dataclasses import dataclass
 from typing import Final, Protocol
 
 import numpy as np
-import torch
 from numpy.typing import NDArray
 
-from shared.model.infer import run_head, run_tail
-from shared.model.net import SplitKeypointNet
+from shared.model.runtime import SplitNet
 from shared.perception.single import extract_rois
 from shared.vision.detector import Detection
 from shared.vision.fusion import KeypointFusion, edge_width_px
@@ -67,15 +65,13 @@ def track_missed(frame: Frame, detections: list[Detection], tracker: TagTracker)
     return accepted, refused
 
 
-@torch.no_grad()
 def robot_step(
     frame: Frame,
     *,
     detector: Stage1,
-    model: SplitKeypointNet,
+    net: SplitNet,
     k: int,
     codec: CodecName,
-    bf16: bool = True,
     tracker: TagTracker | None = None,
 ) -> tuple[list[TagFeature], RobotTimings]:
     """Stage 1, ROI warping and the network up to cut k for all tags of the frame in one batch; with a
@@ -93,9 +89,9 @@ def robot_step(
     if k == 0 or not detections:
         tensors = [r[None] for r in rois]
     else:
-        z = run_head(model, torch.from_numpy(rois).unsqueeze(1), k, bf16=bf16)
+        z = net.head(rois, k)
         dt = CUTS[k].dtype(codec)
-        tensors = list(np.ascontiguousarray(z.contiguous().numpy().astype(dt)))
+        tensors = list(np.ascontiguousarray(z.astype(dt)))
     t3 = time.perf_counter()
     tags = [
         TagFeature(
@@ -124,16 +120,14 @@ def robot_step(
     return tags, RobotTimings(t1 - t0, t2 - t1, t3 - t2)
 
 
-@torch.no_grad()
 def edge_step(
     features: Features,
     *,
-    model: SplitKeypointNet,
+    net: SplitNet,
     tag_map: TagMapFile,
     receive_nanos: int,
     previous_receive_nanos: int,
     payload_bytes: int,
-    bf16: bool = True,
     min_compute_secs: float = 0.0,
     fusion: KeypointFusion | None = None,
     tracked_max_reprojection_px: float = 1.0,
@@ -153,8 +147,12 @@ def edge_step(
     t0 = time.perf_counter()
     poses: list[TagPose] = []
     if features.tags:
-        z = torch.from_numpy(np.stack([np.asarray(t.tensor, np.float32) for t in features.tags]))
-        keypoints = run_tail(model, z, k, bf16=bf16).numpy()
+        z = np.stack([np.asarray(t.tensor, np.uint8 if k == 0 else np.float32) for t in features.tags])
+        keypoints = net.tail(z, k)
+        if not np.isfinite(keypoints).all():
+            # The wire checks a tensor's framing, not its megabytes of values: NaN/inf surfaces here.
+            bad = [t.tag_id for t, kp in zip(features.tags, keypoints, strict=True) if not np.isfinite(kp).all()]
+            raise FeatureShapeError(f"non-finite keypoints for tag(s) {bad}: their cut-{k} tensors carry NaN or inf")
         for tag, kp in zip(features.tags, keypoints, strict=True):
             size = tag_map.size_of(tag.tag_id)
             kp_px = keypoints_to_image(kp, tag.roi_to_image)

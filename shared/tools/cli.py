@@ -9,10 +9,11 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from shared.model.precision import PRECISIONS, ModelFileError
 from shared.runtime.logs import setup_logging
 from shared.tools.options import add_model_options, model_from_args
 from shared.tools.topology import EDGE_PORT, Topology
-from shared.training.settings import TrainSettings
+from shared.training.settings import QuantizeSettings, TrainSettings
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -165,10 +166,28 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_quantize(args: argparse.Namespace) -> int:
+    import json
+
+    from shared.training.quantize import quantize
+
+    print(json.dumps(quantize(model_from_args(QuantizeSettings, args)), indent=2))
+    return 0
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from shared.model.export import export
+
+    manifest = export(args.weights, args.out, fmt=args.format, precision=args.precision)
+    print(f"wrote {manifest}")
+    return 0
+
+
 def _cmd_eval(args: argparse.Namespace) -> int:
     import json
 
     from shared.datasets.shards import load_dataset
+    from shared.model.runtime import load_split_net
     from shared.model.weights import load_model
     from shared.training.evaluate import evaluate, format_report
 
@@ -183,7 +202,9 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         write_keypoint_fusion(args.weights, fusion)
         print(f"wrote keypoint_fusion to {args.weights}/config.json: {fusion.model_dump_json()}")
         return 0
-    result = evaluate(model, load_dataset(args.data), split=args.split, bf16=args.bf16, limit=args.limit)
+    net = model if args.precision == "fp32" else load_split_net(args.weights, args.precision)
+    result = evaluate(net, load_dataset(args.data), split=args.split, limit=args.limit)
+    result["precision"] = args.precision
     print(format_report(result))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
@@ -342,14 +363,15 @@ def _cmd_link_cost(args: argparse.Namespace) -> int:
 
     import torch
 
-    from shared.model.profile import calibrate_cumulative_ms, calibrate_pnp_ms
-    from shared.model.weights import load_model
+    from shared.model.profile import calibrate_pnp_ms
+    from shared.model.runtime import calibrate_cumulative_ms, load_split_net
     from shared.tools.linkprobe import cost_table, link_fit_of, plot_costs
     from shared.wire.cuts import CUTS, tensor_bytes
 
     torch.set_num_threads(args.threads)
     fit = link_fit_of(json.loads(args.link.read_text()))
-    cumulative = calibrate_cumulative_ms(load_model(args.weights), bf16=True, repetitions=args.repetitions)
+    net = load_split_net(args.weights, args.precision, threads=args.threads)
+    cumulative = calibrate_cumulative_ms(net, repetitions=args.repetitions)
     pnp = calibrate_pnp_ms()
     compute = [args.tags * c for c in cumulative]
     edge = [args.tags * (cumulative[-1] - c + pnp) for c in cumulative]
@@ -480,6 +502,7 @@ def _add_link_commands(sub: Any) -> None:
     p.add_argument("--gamma", type=float, nargs="+", default=[1.0, 2.0, 4.0, 8.0])
     p.add_argument("--tags", type=int, default=1)
     p.add_argument("--weights", type=Path, default=Path("models"))
+    p.add_argument("--precision", choices=PRECISIONS, default="bf16", help="the network's arithmetic (both sides)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--repetitions", type=int, default=10)
     p.add_argument("--json", type=Path)
@@ -536,12 +559,25 @@ def _add_model_commands(sub: Any) -> None:
     add_model_options(p, TrainSettings)
     p.set_defaults(func=_cmd_train)
 
+    p = sub.add_parser("quantize", help="int8 variant: quantisation-aware fine-tuning, OpenVINO IR (resumes)")
+    add_model_options(p, QuantizeSettings)
+    p.set_defaults(func=_cmd_quantize)
+
+    p = sub.add_parser("export", help="head and tail of every cut as ONNX or OpenVINO graphs, with a manifest")
+    p.add_argument("--weights", type=Path, default=Path("models"))
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--format", choices=["onnx", "openvino"], default="onnx")
+    p.add_argument("--precision", choices=["fp32", "int8"], default="fp32", help="int8: --format openvino only")
+    p.set_defaults(func=_cmd_export)
+
     p = sub.add_parser("eval", help="keypoint and pose errors of weights on a data set split")
     p.add_argument("--weights", type=Path, required=True, help="weights folder (model.safetensors + config.json)")
     p.add_argument("--data", type=Path, required=True)
     p.add_argument("--split", choices=["train", "test", "all"], default="test")
     p.add_argument("--json", type=Path)
-    p.add_argument("--bf16", action="store_true", help="bf16 autocast inference (default fp32)")
+    p.add_argument(
+        "--precision", choices=PRECISIONS, default="fp32", help="fp32/bf16: PyTorch; int8: the OpenVINO variant"
+    )
     p.add_argument("--limit", type=int, default=None)
     p.add_argument(
         "--calibrate-fusion",
@@ -574,7 +610,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging(f"splittag-{args.command}")
     _load_link_profiles(args)
-    code: int = args.func(args)
+    try:
+        code: int = args.func(args)
+    except ModelFileError as exc:
+        print(f"splittag {args.command}: {exc}", file=sys.stderr)
+        return 2
     return code
 
 

@@ -12,6 +12,7 @@ from tqdm import tqdm
 from shared.datasets.generate import DISTANCE_BINS_M, TILT_BINS_DEG
 from shared.datasets.shards import Dataset
 from shared.model.net import SplitKeypointNet
+from shared.model.runtime import SplitNet
 from shared.perception.single import run_network
 from shared.training.train import evaluate_arrays
 from shared.vision.camera import CameraIntrinsics
@@ -29,12 +30,17 @@ from shared.vision.pnp import solve_planar_pnp
 
 
 def predict_dataset(
-    model: SplitKeypointNet, ds: Dataset, rows: np.ndarray, *, bf16: bool = False, batch: int = 64
+    model: SplitKeypointNet | SplitNet, ds: Dataset, rows: np.ndarray, *, bf16: bool = False, batch: int = 64
 ) -> np.ndarray:
-    """Normalised keypoint predictions for the given rows."""
+    """Normalised keypoint predictions for the given rows: PyTorch weights (fp32, or bf16 with `bf16`) or
+    a SplitNet at its own precision (the whole network: tail from cut 0)."""
     out = []
     for i in tqdm(range(0, len(rows), batch), desc="inference", leave=False):
-        out.append(run_network(model, ds.arrays["roi"][rows[i : i + batch]], bf16=bf16))
+        rois = ds.arrays["roi"][rows[i : i + batch]]
+        if isinstance(model, SplitKeypointNet):
+            out.append(run_network(model, rois, bf16=bf16))
+        else:
+            out.append(model.tail(rois, 0))
     return np.concatenate(out) if out else np.zeros((0, 16, 2), np.float32)
 
 
@@ -83,7 +89,12 @@ def pose_comparison(camera: CameraIntrinsics, ds: Dataset, rows: np.ndarray, pre
 
 
 def evaluate(
-    model: SplitKeypointNet, ds: Dataset, *, split: str = "test", bf16: bool = False, limit: int | None = None
+    model: SplitKeypointNet | SplitNet,
+    ds: Dataset,
+    *,
+    split: str = "test",
+    bf16: bool = False,
+    limit: int | None = None,
 ) -> dict[str, Any]:
     """Everything `splittag eval` writes to its JSON."""
     rows = ds.split(split)[:limit]

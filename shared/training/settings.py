@@ -35,3 +35,23 @@ class TrainSettings(BaseModel):
         gt=0,
         description="cut the epoch count after epoch 1 so the run fits (the cosine schedule is re-planned)",
     )
+
+
+class QuantizeSettings(BaseModel):
+    """Quantisation-aware fine-tuning of fp32 weights into the int8 variant (OpenVINO IR)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    weights: Path = Field(description="fp32 weights folder to quantise (its int8/ variant is written with --install)")
+    data: list[Path] = Field(description="data set folder (repeat the option for several): calibration + fine-tuning")
+    out: Path = Field(description="run folder: checkpoints, curve, best IR (resumes from OUT/last.pt)")
+    calibration_samples: int = Field(default=300, ge=1, description="training ROIs that set the initial int8 ranges")
+    steps: int = Field(default=300, ge=0, description="fine-tuning steps with the quantisers in the graph")
+    batch_size: int = Field(default=32, ge=1, description="batch size")
+    lr: float = Field(default=2e-5, gt=0, description="peak learning rate (Adam, cosine decay)")
+    eval_every: int = Field(default=50, ge=1, description="steps between validations of the exported int8 graph")
+    val_samples: int = Field(default=400, ge=1, description="held-out training ROIs that select the best step")
+    threads: int | None = Field(default=None, description="torch threads (default: torch's choice)")
+    seed: int = Field(default=0, description="random seed")
+    time_budget_secs: float | None = Field(default=None, gt=0, description="stop fine-tuning after this long")
+    install: bool = Field(default=False, description="copy the best IR into WEIGHTS/int8 and record it in config.json")

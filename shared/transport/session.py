@@ -18,7 +18,8 @@ from shared.transport.access import AccessControlSettings, access_control_config
 
 log = logging.getLogger(__name__)
 
-MSGPACK = "application/msgpack"
+# Framing 2 of shared.wire.codec: a msgpack header with the tensors out of band (not plain msgpack).
+WIRE_ENCODING = "application/x-splittag-frame"
 
 
 # The largest legitimate message: a Frame or Features under the codec's 64 MiB cap, plus headers.
@@ -136,8 +137,8 @@ def open_session(settings: ZenohSettings) -> zenoh.Session:
 
 
 def encoding_for(schema: str) -> zenoh.Encoding:
-    """The Zenoh encoding of a splittag message: msgpack with the versioned schema id."""
-    return zenoh.Encoding(MSGPACK).with_schema(schema)
+    """The Zenoh encoding of a splittag message: our framing, with the versioned schema id."""
+    return zenoh.Encoding(WIRE_ENCODING).with_schema(schema)
 
 
 def declare_tensor_publisher(session: zenoh.Session, key: str, schema: str) -> zenoh.Publisher:

@@ -1,3 +1,3 @@
-"""Layer 1: what travels between processes: the msgpack codec, versioned message schemas, key
-expressions, the cut table.
+"""Layer 1: what travels between processes: the codec (msgpack header, tensors out of band), versioned
+message schemas, key expressions, the cut table.
 """

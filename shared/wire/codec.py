@@ -1,10 +1,22 @@
-"""msgpack framing of splittag messages: arrays as {dtype, shape, data}, decoded without copying.
+"""Wire framing of splittag messages: a msgpack header with the tensors out of band, decoded without copying.
 
-Encoding uses the msgpack library. Decoding uses a small msgpack reader of our own because the
-library always copies `bin` values into new `bytes` objects; ours returns them as memoryview
-slices of the received buffer, so a tensor crosses from Zenoh into numpy with only the one copy
-that Zenoh's `to_bytes()` forces. The reader is also where every byte-level check lives: size
-limit, truncation, trailing bytes, nesting depth, array dtype/shape/length.
+Framing 2 (what `pack` writes):
+
+    0xC1 | version 2 | 2 zero bytes | u32 LE header length H | H bytes msgpack header | 0-7 zero bytes |
+    array data, each array starting 8-byte aligned (relative to the data section), in header order
+
+0xC1 is the one byte msgpack never uses, so a framed payload cannot be mistaken for plain msgpack. In the
+header, each array is a msgpack ext (type 1): u8 dtype code, u8 ndim, 6 zero bytes, u64 LE offset into
+the data section, then ndim u64 LE sizes. The header is decoded by the msgpack library's C unpacker,
+and each array becomes a read-only ndarray viewing the received buffer: decoding costs O(header), not
+O(tensor), and the tensor crosses from Zenoh into numpy with only the one copy that `to_bytes()` forces.
+The checks: size limit, frame head, header well-formed and spanning exactly H bytes, array dtype/shape
+bounds, arrays in order without overlap, inside the payload, and the payload ending with the last one.
+
+Framing 1 (older peers; still decoded, and written by `pack_framing1`): the whole document is msgpack,
+arrays are {dtype, shape, data} maps. It is read by a small msgpack reader of our own, because the
+library copies `bin` values; ours returns memoryview slices of the buffer. That reader also bounds
+nesting depth, refuses duplicate keys and fails fast on huge declared lengths.
 """
 
 from __future__ import annotations
@@ -15,6 +27,7 @@ from typing import Any, Final
 
 import msgpack
 import numpy as np
+from pydantic import BaseModel
 
 # Wire dtype name -> numpy dtype (always little-endian on the wire).
 WIRE_DTYPES: Final[dict[str, np.dtype[Any]]] = {
@@ -74,6 +87,10 @@ def _pack_default(obj: Any) -> Any:
         arr = np.ascontiguousarray(obj, dtype=WIRE_DTYPES[name]).reshape(obj.shape)
         data = memoryview(arr).cast("B") if arr.size else b""  # type: ignore[arg-type]
         return {"dtype": name, "shape": list(arr.shape), "data": data}
+    if isinstance(obj, BaseModel):
+        # A message's fields, in declaration order: what model_dump gives, without building a copy first
+        # (msgpack's C packer walks the dict and calls back here for nested models and arrays).
+        return obj.__dict__
     if isinstance(obj, np.integer):
         return int(obj)
     if isinstance(obj, np.floating):
@@ -83,11 +100,63 @@ def _pack_default(obj: Any) -> Any:
     raise MalformedFrame(f"cannot encode value of type {type(obj).__name__}")
 
 
-def pack(document: Mapping[str, Any]) -> bytes:
-    """Serialise a document (dicts, lists, scalars, numpy arrays) to msgpack bytes."""
+def pack_framing1(document: Mapping[str, Any]) -> bytes:
+    """Framing 1 (older peers): the document as one msgpack value, arrays as {dtype, shape, data} maps."""
     out = msgpack.packb(document, default=_pack_default, use_bin_type=True, strict_types=False)
     assert isinstance(out, bytes)
     return out
+
+
+FRAME_MAGIC: Final[int] = 0xC1
+FRAMING: Final[int] = 2
+EXT_ARRAY: Final[int] = 1
+ALIGN: Final[int] = 8
+_FRAME_HEAD = struct.Struct("<BBxxI")
+_ARRAY_HEAD = struct.Struct("<BB6xQ")
+_DTYPE_CODES: Final[dict[str, int]] = {name: i for i, name in enumerate(WIRE_DTYPES)}
+_CODE_DTYPES: Final[dict[int, np.dtype[Any]]] = {i: WIRE_DTYPES[name] for name, i in _DTYPE_CODES.items()}
+_CODE_NAMES: Final[dict[int, str]] = {i: name for name, i in _DTYPE_CODES.items()}
+_SHAPES: Final[list[struct.Struct]] = [struct.Struct(f"<{n}Q") for n in range(MAX_NDIM + 1)]
+_ZEROS: Final[bytes] = bytes(ALIGN)
+
+
+def _aligned(n: int) -> int:
+    return (n + ALIGN - 1) & ~(ALIGN - 1)
+
+
+def pack(document: Mapping[str, Any]) -> bytes:
+    """Serialise a document (dicts, lists, scalars, numpy arrays) in framing 2: one copy of each array."""
+    arrays: list[np.ndarray] = []
+    starts: list[int] = []
+    end = 0
+
+    def default(obj: Any) -> Any:
+        nonlocal end
+        if isinstance(obj, np.ndarray):
+            name = wire_dtype_name(obj.dtype)
+            arr = np.ascontiguousarray(obj, dtype=WIRE_DTYPES[name])
+            if arr.ndim > MAX_NDIM:
+                raise ArrayError(f"array of {arr.ndim} dimensions; at most {MAX_NDIM} travel")
+            start = _aligned(end)
+            arrays.append(arr)
+            starts.append(start)
+            end = start + arr.nbytes
+            head = _ARRAY_HEAD.pack(_DTYPE_CODES[name], arr.ndim, start) + _SHAPES[arr.ndim].pack(*arr.shape)
+            return msgpack.ExtType(EXT_ARRAY, head)
+        return _pack_default(obj)
+
+    header = msgpack.packb(document, default=default, use_bin_type=True, strict_types=False)
+    parts: list[Any] = [_FRAME_HEAD.pack(FRAME_MAGIC, FRAMING, len(header)), header]
+    if arrays:
+        head_len = _FRAME_HEAD.size + len(header)
+        parts.append(_ZEROS[: _aligned(head_len) - head_len])
+        pos = 0
+        for start, arr in zip(starts, arrays, strict=True):
+            parts.append(_ZEROS[: start - pos])
+            if arr.nbytes:
+                parts.append(memoryview(arr).cast("B"))  # type: ignore[arg-type]
+            pos = start + arr.nbytes
+    return b"".join(parts)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -249,11 +318,81 @@ def array_from_wire(doc: Mapping[str, Any]) -> np.ndarray:
     return np.frombuffer(data, dtype=dtype, count=count).reshape(shape)
 
 
-def unpack(payload: bytes | bytearray | memoryview, *, max_bytes: int = DEFAULT_MAX_BYTES) -> Any:
-    """Decode one msgpack document that must span the whole payload exactly.
+class _ArrayViews:
+    """ext_hook of one framed payload: each array ext becomes a view of the data section, in order."""
 
-    Arrays come back as read-only ndarrays that view `payload` (no copy).
-    """
+    __slots__ = ("count", "data", "end")
+
+    def __init__(self, data: memoryview) -> None:
+        self.data = data
+        self.end = 0
+        self.count = 0
+
+    def __call__(self, code: int, ext: bytes) -> np.ndarray:
+        if code != EXT_ARRAY:
+            raise MalformedFrame(f"unknown msgpack ext type {code} in the header (arrays are type {EXT_ARRAY})")
+        if len(ext) < _ARRAY_HEAD.size:
+            raise ArrayError(f"array header of {len(ext)} bytes, needs at least {_ARRAY_HEAD.size}")
+        dcode, ndim, start = _ARRAY_HEAD.unpack_from(ext)
+        dtype = _CODE_DTYPES.get(dcode)
+        if dtype is None:
+            raise ArrayError(f"array dtype code {dcode} is not one of {_DTYPE_CODES}")
+        if ndim > MAX_NDIM or len(ext) != _ARRAY_HEAD.size + 8 * ndim:
+            raise ArrayError(f"array header of {len(ext)} bytes for {ndim} dimensions (at most {MAX_NDIM})")
+        shape = _SHAPES[ndim].unpack_from(ext, _ARRAY_HEAD.size)
+        count = 1
+        for d in shape:
+            if d > MAX_DIM:
+                text = repr(list(shape))[:120]
+                raise ArrayError(f"array shape {text} is not a list of at most {MAX_NDIM} sizes in 0..{MAX_DIM}")
+            count *= d
+        nbytes = count * dtype.itemsize
+        if start < self.end or start % ALIGN:
+            raise ArrayError(
+                f"array of dtype {_CODE_NAMES[dcode]} and shape {shape} at offset {start}: arrays must follow each "
+                f"other {ALIGN}-byte aligned (the previous one ends at {self.end})"
+            )
+        if start + nbytes > len(self.data):
+            raise MalformedFrame(
+                f"truncated payload: array of dtype {_CODE_NAMES[dcode]} and shape {shape} needs bytes "
+                f"{start}..{start + nbytes} of the data section, which has {len(self.data)}"
+            )
+        self.end = start + nbytes
+        self.count += 1
+        return np.frombuffer(self.data, dtype=dtype, count=count, offset=start).reshape(shape)
+
+
+def _unpack_framed(mv: memoryview) -> Any:
+    size = len(mv)
+    if size < _FRAME_HEAD.size:
+        raise MalformedFrame(f"truncated payload: {size} bytes, a 0xc1 frame head needs {_FRAME_HEAD.size}")
+    _, version, header_len = _FRAME_HEAD.unpack_from(mv)
+    if version != FRAMING:
+        raise MalformedFrame(f"framing version {version} is not supported (this peer reads 1 and {FRAMING})")
+    head_end = _FRAME_HEAD.size + header_len
+    if head_end > size:
+        raise MalformedFrame(
+            f"truncated payload: the header needs {header_len} bytes, {size - 8} follow the frame head"
+        )
+    data_start = min(_aligned(head_end), size)
+    views = _ArrayViews(mv[data_start:])
+    try:
+        doc = msgpack.unpackb(mv[_FRAME_HEAD.size : head_end], ext_hook=views, raw=False, strict_map_key=True)
+    except WireError:
+        raise
+    except msgpack.ExtraData as exc:
+        raise MalformedFrame(f"the msgpack header ends before its declared {header_len} bytes") from exc
+    except (ValueError, TypeError, msgpack.StackError, msgpack.FormatError) as exc:
+        raise MalformedFrame(f"malformed msgpack header: {exc}") from exc
+    end = data_start + views.end if views.count else head_end  # no arrays: no data section, no padding
+    if end != size:
+        raise MalformedFrame(f"{size - end} trailing bytes after the document (document ends at byte {end} of {size})")
+    return doc
+
+
+def unpack(payload: bytes | bytearray | memoryview, *, max_bytes: int = DEFAULT_MAX_BYTES) -> Any:
+    """Decode one document that must span the whole payload exactly (framing 2, or framing 1 from
+    older peers). Arrays come back as read-only ndarrays that view `payload` (no copy)."""
     size = len(payload)
     if size > max_bytes:
         raise PayloadTooLarge(f"payload of {size} bytes exceeds the limit of {max_bytes} bytes")
@@ -262,6 +401,8 @@ def unpack(payload: bytes | bytearray | memoryview, *, max_bytes: int = DEFAULT_
     mv = memoryview(payload)
     if mv.format != "B" or mv.ndim != 1:
         mv = mv.cast("B")
+    if mv[0] == FRAME_MAGIC:
+        return _unpack_framed(mv)
     reader = _Reader(mv)
     doc = reader.value(0)
     if reader.pos != size:

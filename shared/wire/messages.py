@@ -1,17 +1,19 @@
 """Versioned message schemas that travel over Zenoh, and their encode/decode functions.
 
 Every message is a frozen pydantic model with a schema id `splittag/<Name>/v<N>`. On the wire a
-message is a msgpack map `{"schema": id, "body": {...}}`; arrays inside the body are
-`{dtype, shape, data}` maps (see `shared.wire.codec`). Decoding checks, in order: size limit, msgpack
-well-formedness, envelope, schema id and version, array framing, then the model's own field
-checks (dtypes, shapes, finiteness, ranges). Any failure is a `WireError` subclass whose message
-says what was received; nothing is defaulted silently.
+message is the envelope `{"schema": id, "body": {...}}` in the codec's framing 2 (a msgpack header,
+arrays out of band; framing 1, plain msgpack, is still read: see `shared.wire.codec`). Decoding
+checks, in order: size limit, framing, envelope, schema id and version, array framing, then the
+model's own field checks (dtypes, shapes, ranges, finiteness of every array but the split tensor,
+whose values the edge checks through its keypoints). Any failure is a `WireError` subclass whose
+message says what was received; nothing is defaulted silently.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Annotated, Any, ClassVar, Final, Literal, Self, TypeVar
 
 import numpy as np
@@ -29,10 +31,13 @@ from pydantic_core import core_schema
 from shared.vision.camera import CameraIntrinsics
 from shared.wire.codec import (
     DEFAULT_MAX_BYTES,
+    FRAMING,
+    WIRE_DTYPES,
     ArrayError,
     MalformedFrame,
     SchemaError,
     pack,
+    pack_framing1,
     unpack,
     wire_dtype_name,
 )
@@ -44,6 +49,8 @@ from shared.wire.cuts import N_CUTS, CodecName
 
 
 def _all_finite(value: np.ndarray) -> bool:
+    if value.size <= 16:  # 3x3, 4x4, 4x2: Python floats beat a numpy call
+        return all(map(math.isfinite, value.ravel().tolist()))
     if value.dtype.itemsize == 2:
         # float16: an all-ones exponent is inf or NaN; integer bit test is ~2.5x faster than isfinite.
         return not bool(((value.view(np.uint16) & 0x7C00) == 0x7C00).any())
@@ -52,22 +59,31 @@ def _all_finite(value: np.ndarray) -> bool:
 
 @dataclass(frozen=True)
 class ArraySpec:
-    """Pydantic metadata that validates an ndarray field: allowed dtypes, shape, finiteness."""
+    """Pydantic metadata that validates an ndarray field: allowed dtypes, shape, finiteness.
+
+    `finite=False` for the split tensor: a feature map can be megabytes, and checking it would make
+    decoding O(tensor) instead of O(header); a non-finite tensor is caught where it matters, by the
+    edge refusing non-finite keypoints (shared.perception.split)."""
 
     dtypes: tuple[str, ...]
     shape: tuple[int | None, ...] | None = None  # None entries match any size
     ndims: tuple[int, ...] | None = None  # alternative to `shape` when only ndim is fixed
     finite: bool = True
+    _numpy: frozenset[np.dtype[Any]] = field(default=frozenset(), init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "_numpy", frozenset(WIRE_DTYPES[d] for d in self.dtypes))
 
     def validate(self, value: Any) -> np.ndarray:
         if not isinstance(value, np.ndarray):
             raise ValueError(f"expected an ndarray, got {type(value).__name__}")
-        try:
-            name = wire_dtype_name(value.dtype)
-        except ArrayError as exc:
-            raise ValueError(str(exc)) from exc
-        if name not in self.dtypes:
-            raise ValueError(f"dtype {name} not allowed here (allowed: {', '.join(self.dtypes)})")
+        if value.dtype not in self._numpy:  # fast path: the little-endian wire dtypes
+            try:
+                name = wire_dtype_name(value.dtype)
+            except ArrayError as exc:
+                raise ValueError(str(exc)) from exc
+            if name not in self.dtypes:
+                raise ValueError(f"dtype {name} not allowed here (allowed: {', '.join(self.dtypes)})")
         if self.shape is not None and (
             value.ndim != len(self.shape)
             or any(w is not None and w != got for w, got in zip(self.shape, value.shape, strict=True))
@@ -78,7 +94,7 @@ class ArraySpec:
             raise ValueError(f"ndim {value.ndim} not in {self.ndims} (shape {value.shape})")
         if self.finite and value.dtype.kind == "f" and not _all_finite(value):
             bad = int(np.size(value) - np.count_nonzero(np.isfinite(value)))
-            raise ValueError(f"{bad} non-finite values (NaN or inf) in a {name} array")
+            raise ValueError(f"{bad} non-finite values (NaN or inf) in a {wire_dtype_name(value.dtype)} array")
         return value
 
     def __get_pydantic_core_schema__(self, source: Any, handler: GetCoreSchemaHandler) -> core_schema.CoreSchema:
@@ -97,7 +113,7 @@ Keypoints16 = Annotated[NDArray[np.float32], ArraySpec(F32, shape=(16, 2))]
 Homography = Annotated[NDArray[np.float64], ArraySpec(F64, shape=(3, 3))]
 Pose4x4 = Annotated[NDArray[np.float64], ArraySpec(F64, shape=(4, 4))]
 # Split tensors: ROI pixels (k=0, uint8), feature maps (k=1..5), pooled/keypoints (k=6,7).
-SplitTensor = Annotated[NDArray[Any], ArraySpec(("float16", "float32", "uint8", "int8"), ndims=(1, 2, 3))]
+SplitTensor = Annotated[NDArray[Any], ArraySpec(("float16", "float32", "uint8", "int8"), ndims=(1, 2, 3), finite=False)]
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 NonNegFloat = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
@@ -157,9 +173,10 @@ class TagFeatureV1(WireModel):
 
     @model_validator(mode="after")
     def _homography_invertible(self) -> Self:
-        h = np.asarray(self.roi_to_image, np.float64)
-        scale = float(np.abs(h).max())
-        if scale == 0 or abs(float(np.linalg.det(h / scale))) < 1e-12:
+        (a, b, c), (d, e, f), (g, h, i) = self.roi_to_image.tolist()  # 3x3 floats: Python beats numpy here
+        scale = max(abs(a), abs(b), abs(c), abs(d), abs(e), abs(f), abs(g), abs(h), abs(i))
+        det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+        if scale == 0 or abs(det) / scale**3 < 1e-12:
             raise ValueError("roi_to_image is not an invertible homography")
         return self
 
@@ -454,10 +471,14 @@ M = TypeVar("M", bound=Message)
 # ----------------------------------------------------------------------------------------------
 
 
-def encode(message: Message) -> bytes:
-    """Serialise a message to its wire bytes (msgpack envelope with the schema id)."""
-    body = message.model_dump(mode="python", round_trip=True)
-    return pack({"schema": message.SCHEMA, "body": body})
+def encode(message: Message, *, framing: int = FRAMING) -> bytes:
+    """Serialise a message to its wire bytes: the envelope {schema, body} in framing 2 (tensors out of
+    band), or framing 1 (plain msgpack) for a peer older than framing 2."""
+    if framing == FRAMING:
+        return pack({"schema": message.SCHEMA, "body": message})
+    if framing == 1:
+        return pack_framing1({"schema": message.SCHEMA, "body": message})
+    raise ValueError(f"framing must be 1 or {FRAMING}, got {framing!r}")
 
 
 def _schema_error(schema: Any) -> SchemaError:

@@ -1,4 +1,5 @@
-"""Regenerate the golden wire bytes: `python -m tests.golden.regenerate` (review the diff!)."""
+"""Regenerate the golden wire bytes of framing 2: `python -m tests.golden.regenerate` (review the diff!).
+framing1/ is frozen: those are the bytes older peers send, never regenerated."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ HERE = Path(__file__).parent
 
 
 def main() -> None:
-    """Write one .msgpack file per schema next to this script."""
+    """Write one framing2/*.splittag file per schema."""
+    (HERE / "framing2").mkdir(exist_ok=True)
     for schema, msg in example_messages().items():
         path = HERE / golden_name(schema)
         path.write_bytes(encode(msg))

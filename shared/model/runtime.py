@@ -1,0 +1,88 @@
+"""The split network as the services run it, whatever executes it: `SplitNet.head(rois, k)` on the
+robot, `SplitNet.tail(z, k)` on the edge, numpy in and out.
+
+Precisions (chosen per side by configuration, `precision = "fp32" | "bf16" | "int8"`):
+- fp32 and bf16: PyTorch eager on the safetensors weights (bf16 = autocast + channels_last).
+- int8: OpenVINO on the weights folder's int8 variant (shared.model.openvino_net), made by
+  `splittag quantize`; config.json lists it under `variants`.
+Both sides of a link may use different precisions: the cut tensor is float on the wire either way.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+
+from shared.model.infer import run_head, run_tail
+from shared.model.net import SplitKeypointNet
+from shared.model.openvino_net import OpenVINOSplitNet, variant_path
+from shared.model.precision import PRECISIONS, Precision
+from shared.model.weights import load_model
+from shared.wire.cuts import CUTS, INPUT_SIZE
+
+
+class SplitNet(Protocol):
+    """What the robot and edge steps need from the network."""
+
+    @property
+    def precision(self) -> Precision: ...
+
+    def head(self, rois_u8: NDArray[np.uint8], k: int) -> NDArray[np.float32]: ...
+
+    def tail(self, z: NDArray[Any], k: int) -> NDArray[np.float32]: ...
+
+    def warm_up(self, k: int, *, max_batch: int = 1) -> None: ...
+
+
+class TorchSplitNet:
+    """PyTorch eager, fp32 or bf16 autocast (channels_last)."""
+
+    def __init__(self, model: SplitKeypointNet, *, bf16: bool) -> None:
+        self.model = model.eval()
+        self.precision: Precision = "bf16" if bf16 else "fp32"
+        self._bf16 = bf16
+
+    def head(self, rois_u8: NDArray[np.uint8], k: int) -> NDArray[np.float32]:
+        x = torch.from_numpy(np.ascontiguousarray(rois_u8).reshape(-1, 1, INPUT_SIZE, INPUT_SIZE))
+        return run_head(self.model, x, k, bf16=self._bf16).contiguous().numpy()
+
+    def tail(self, z: NDArray[Any], k: int) -> NDArray[np.float32]:
+        x = torch.from_numpy(np.asarray(z, np.uint8 if k == 0 else np.float32))
+        if k == 0:
+            x = x.reshape(-1, 1, INPUT_SIZE, INPUT_SIZE)
+        return run_tail(self.model, x, k, bf16=self._bf16).numpy()
+
+    def warm_up(self, k: int, *, max_batch: int = 1) -> None:
+        """oneDNN builds its kernels per shape: run the whole network once per batch size."""
+        for n in range(1, max_batch + 1):
+            self.tail(self.head(np.zeros((n, INPUT_SIZE, INPUT_SIZE), np.uint8), 0), 0)
+
+
+def load_split_net(weights: Path, precision: Precision, *, threads: int | None = None) -> SplitNet:
+    """The network of a weights folder at a precision (int8: its OpenVINO variant, else VariantError)."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+    if precision == "int8":
+        return OpenVINOSplitNet(variant_path(weights, "int8"), threads=threads)
+    return TorchSplitNet(load_model(weights), bf16=precision == "bf16")
+
+
+def calibrate_cumulative_ms(net: SplitNet, *, repetitions: int = 5) -> list[float]:
+    """Cumulative head time per tag (batch 1) at every cut, ms: the minimum over repetitions (services
+    start together and calibrate while their neighbours load; live measurements scale it later)."""
+    x = np.random.default_rng(0).integers(0, 256, (1, INPUT_SIZE, INPUT_SIZE), dtype=np.uint8)
+    out = []
+    for cut in CUTS:
+        net.head(x, cut.k)  # compiles this half on first use (OpenVINO), outside the timing
+        times = []
+        for _ in range(repetitions):
+            t0 = time.perf_counter()
+            net.head(x, cut.k)
+            times.append((time.perf_counter() - t0) * 1e3)
+        out.append(min(times))
+    return out

@@ -1,0 +1,122 @@
+"""The split network at every precision: OpenVINO's cut graphs compute what the whole graph computes,
+the shipped int8 variant stays close to fp32, and a folder without the variant is refused clearly."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from shared.model.net import AllCuts, SplitKeypointNet
+from shared.model.openvino_net import OpenVINOSplitNet, VariantError, compile_full, export_ir, variant_path
+from shared.model.runtime import calibrate_cumulative_ms, load_split_net
+from shared.vision.metrics import e_px
+from shared.wire.cuts import CUTS, N_CUTS
+
+MODELS = Path(__file__).resolve().parent.parent / "models"
+
+
+def _rois(n: int, seed: int = 0) -> np.ndarray:
+    """Tag-like ROIs: a dark square with a random bit pattern on a bright border, plus noise."""
+    rng = np.random.default_rng(seed)
+    out = np.full((n, 256, 256), 200, np.uint8)
+    for i in range(n):
+        cells = rng.integers(0, 2, (8, 8)) * 170 + 20
+        cells[0, :] = cells[-1, :] = cells[:, 0] = cells[:, -1] = 20
+        out[i, 51:205, 51:205] = np.kron(cells, np.ones((20, 20)))[:154, :154]
+    noisy = out.astype(np.int16) + rng.integers(-8, 9, out.shape)
+    return np.clip(noisy, 0, 255).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def float_ir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The untrained network's all-cuts graph as IR (random but fixed weights, BatchNorm in eval)."""
+    torch.manual_seed(0)
+    net = SplitKeypointNet(roi_margin=0.2).eval()
+    for p in net.fc[-1].parameters():  # non-zero offsets, so the tail's output depends on its input
+        torch.nn.init.normal_(p, std=0.01)
+    return export_ir(AllCuts(net), tmp_path_factory.mktemp("ir"))
+
+
+@pytest.mark.parametrize("k", [c.k for c in CUTS])
+def test_openvino_head_then_tail_equals_the_whole_graph(float_ir: Path, k: int) -> None:
+    net = OpenVINOSplitNet(float_ir, threads=1)
+    rois = _rois(3)
+    whole = compile_full(float_ir, threads=1)(rois)
+    z = net.head(rois, k)
+    assert z.shape[0] == 3 and z.shape[1:] == CUTS[k].shape
+    np.testing.assert_allclose(net.tail(z, k), whole, atol=1e-5)
+
+
+def test_openvino_tail_at_zero_takes_the_roi_pixels(float_ir: Path) -> None:
+    net = OpenVINOSplitNet(float_ir, threads=1)
+    rois = _rois(2, seed=1)
+    np.testing.assert_allclose(net.tail(rois, 0), net.tail(net.head(rois, 0), 0), atol=1e-6)
+
+
+def test_a_folder_without_the_int8_variant_is_refused_with_what_it_has(tmp_path: Path) -> None:
+    for name in ("config.json", "model.safetensors"):
+        shutil.copy(MODELS / name, tmp_path / name)
+    config = json.loads((tmp_path / "config.json").read_text())
+    config.pop("variants", None)
+    (tmp_path / "config.json").write_text(json.dumps(config))
+    with pytest.raises(VariantError, match=r"no 'int8' variant.*splittag quantize"):
+        load_split_net(tmp_path, "int8")
+    with pytest.raises(ValueError, match="precision must be one of"):
+        load_split_net(tmp_path, "int4")  # type: ignore[arg-type]
+
+
+def test_a_listed_variant_whose_files_are_missing_is_refused(tmp_path: Path) -> None:
+    config = json.loads((MODELS / "config.json").read_text())
+    config["variants"] = {"int8": {"format": "openvino-ir", "path": "int8/model.xml"}}
+    (tmp_path / "config.json").write_text(json.dumps(config))
+    with pytest.raises(VariantError, match="missing"):
+        variant_path(tmp_path, "int8")
+
+
+def test_shipped_int8_variant_splits_like_fp32_and_stays_close_to_it() -> None:
+    """On tag-like ROIs the int8 keypoints stay within a fraction of a pixel of fp32 at every cut
+    (the accuracy on real test data is measured by `splittag eval --precision int8` and bench/accuracy)."""
+    fp32, int8 = load_split_net(MODELS, "fp32"), load_split_net(MODELS, "int8", threads=1)
+    rois = _rois(4, seed=2)
+    ref = fp32.tail(fp32.head(rois, 0), 0)
+    whole = int8.tail(rois, 0)
+    for k in range(N_CUTS):
+        np.testing.assert_allclose(int8.tail(int8.head(rois, k), k), whole, atol=1e-5)
+    assert float(e_px(whole, ref).max()) < 1.0
+
+
+def test_the_robot_calibration_times_every_cut_of_either_runtime(float_ir: Path) -> None:
+    ms = calibrate_cumulative_ms(OpenVINOSplitNet(float_ir, threads=1), repetitions=1)
+    assert len(ms) == N_CUTS and all(t >= 0 for t in ms)
+
+
+def test_onnx_halves_run_in_onnx_runtime_like_the_weights(tmp_path: Path) -> None:
+    """`splittag export`: head 3 then tail 3 in ONNX Runtime give PyTorch fp32's keypoints; the manifest
+    says what each file takes and returns."""
+    import onnxruntime as ort
+
+    from shared.model.export import export
+
+    manifest = json.loads(export(MODELS, tmp_path, fmt="onnx", precision="fp32", cuts=(3,)).read_text())
+    assert [(f["side"], f["k"]) for f in manifest["files"]] == [("head", 3), ("tail", 3)]
+    head, tail = (ort.InferenceSession(str(tmp_path / f["file"])) for f in manifest["files"])
+    rois = _rois(2, seed=3)
+    z = head.run(None, {"roi": rois[:, None]})[0]
+    assert z.shape == (2, *CUTS[3].shape) and manifest["files"][1]["input"]["name"] == "cut3"
+    kp = tail.run(None, {"cut3": z})[0]
+    fp32 = load_split_net(MODELS, "fp32")
+    np.testing.assert_allclose(kp, fp32.tail(rois, 0), atol=2e-5)
+
+
+def test_the_export_command_refuses_int8_onnx_with_the_way_out(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from shared.tools.cli import main
+
+    assert main(["export", "--out", str(tmp_path), "--format", "onnx", "--precision", "int8"]) == 2
+    assert "--format openvino" in capsys.readouterr().err
