@@ -6,7 +6,7 @@ import threading
 
 import pytest
 
-from shared.transport.flow import EdgeWatch, InFlightWindow
+from shared.transport.flow import EdgePacer, EdgeWatch, InFlightWindow
 from tests.fakes import FakeClock
 
 
@@ -90,3 +90,57 @@ def test_edge_watch_and_abandoning_the_frames_in_flight() -> None:
     assert w.oldest_age_secs() == pytest.approx(0.7)
     assert w.acquire(threading.Event(), poll_secs=0.01, abandon=lambda: True)
     assert w.in_flight == 0
+
+
+def _cycle(pacer: EdgePacer, clock: FakeClock, seq: int, *, robot: float, link: float, edge: float) -> None:
+    """One frame through a robot, link and edge that take exactly these times (no return trip)."""
+    clock.now += robot
+    pacer.sent(seq, tags=2, robot_secs=robot)
+    clock.now += link + edge
+    pacer.answered(seq, tags=2, link_secs=link, edge_secs=edge)
+
+
+def test_pacer_starts_at_once_until_it_knows_the_chain() -> None:
+    clock = FakeClock()
+    pacer = EdgePacer(clock=clock)
+    assert pacer.start_delay_secs() == 0.0
+    pacer.sent(0, tags=2, robot_secs=0.01)
+    assert pacer.start_delay_secs() == 0.0  # nothing measured about the link and the edge yet
+
+
+def test_pacer_times_the_next_frame_to_reach_the_edge_as_it_frees_up() -> None:
+    """Edge-bound chain (robot 10 ms, link 5 ms, edge 150 ms): with one frame just sent, the next one
+    should start 150 - 10 = 140 ms later, not at once (it would wait ~140 ms in the edge's queue)."""
+    clock = FakeClock()
+    pacer = EdgePacer(smoothing=1.0, clock=clock)
+    _cycle(pacer, clock, 0, robot=0.010, link=0.005, edge=0.150)
+    clock.now += 0.010
+    pacer.sent(1, tags=2, robot_secs=0.010)  # arrives at +5 ms, done at +155 ms
+    assert pacer.start_delay_secs() == pytest.approx(0.155 - 0.010 - 0.005)
+    clock.now += 0.140
+    assert pacer.start_delay_secs() == pytest.approx(0.0)
+
+
+def test_pacer_lets_a_robot_bound_chain_run_back_to_back() -> None:
+    """Robot-bound chain (robot 100 ms, edge 20 ms): the edge is free long before the next frame is
+    ready, so the robot never waits."""
+    clock = FakeClock()
+    pacer = EdgePacer(smoothing=1.0, clock=clock)
+    _cycle(pacer, clock, 0, robot=0.100, link=0.005, edge=0.020)
+    clock.now += 0.100
+    pacer.sent(1, tags=2, robot_secs=0.100)
+    assert pacer.start_delay_secs() == 0.0
+
+
+def test_pacer_re_anchors_on_each_answer_and_forgets_on_edge_loss() -> None:
+    clock = FakeClock()
+    pacer = EdgePacer(smoothing=1.0, clock=clock)
+    _cycle(pacer, clock, 0, robot=0.010, link=0.005, edge=0.100)
+    pacer.sent(1, tags=2, robot_secs=0.010)
+    pacer.sent(2, tags=2, robot_secs=0.010)  # queued behind 1: predicted done at +105 and +205 ms
+    assert pacer.start_delay_secs() == pytest.approx(0.205 - 0.015)
+    clock.now += 0.060  # frame 1 answered 45 ms earlier than predicted (the edge sped up)
+    pacer.answered(1, tags=2, link_secs=0.005, edge_secs=0.055)
+    assert pacer.start_delay_secs() == pytest.approx(0.205 - 0.045 - 0.060 - 0.015)
+    pacer.forget()
+    assert pacer.start_delay_secs() == 0.0

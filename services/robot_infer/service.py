@@ -16,7 +16,7 @@ from shared.model.runtime import calibrate_cumulative_ms, load_split_net
 from shared.model.weights import load_keypoint_fusion
 from shared.perception.split import RobotTimings, edge_step, robot_step
 from shared.runtime.guard import InputGuard, serve_stats
-from shared.transport.flow import EdgeWatch, InFlightWindow
+from shared.transport.flow import EdgePacer, EdgeWatch, InFlightWindow
 from shared.transport.session import declare_latest_subscriber, declare_tensor_publisher, encoding_for, next_sample
 from shared.transport.split_control import SplitState, serve_split
 from shared.vision.detector import TagDetector
@@ -73,6 +73,7 @@ class RobotInfer:
         self.tag_map = load_tag_map(s.tag_map) if s.tag_map else TagMapFile(default_size_m=s.default_tag_size_m)
         self.state = SplitState(SplitConfig(k=s.split_k, codec=s.codec, pinned=False, source="default"))
         self.window = InFlightWindow(s.max_in_flight, timeout_secs=s.in_flight_timeout_secs)
+        self.pacer = EdgePacer() if s.pace_to_edge and s.max_in_flight else None
         self.watch = EdgeWatch(answer_timeout_secs=s.edge_answer_timeout_secs)
         self.guard = InputGuard("robot_infer")
         self.on_board_frames = 0
@@ -106,7 +107,15 @@ class RobotInfer:
     def _on_poses(self, sample: zenoh.Sample) -> None:
         # A bad TagPoses is edge_infer's problem to report; that frame's credit expires on its own.
         with contextlib.suppress(WireError):
-            self.window.done(decode(sample.payload.to_bytes(), TagPoses).seq)
+            poses = decode(sample.payload.to_bytes(), TagPoses)
+            self.window.done(poses.seq)
+            if self.pacer is not None and poses.link is not None:  # link None: computed on board
+                self.pacer.answered(
+                    poses.seq,
+                    tags=len(poses.tags),
+                    link_secs=poses.timings.transport_secs,
+                    edge_secs=poses.timings.edge_compute_secs,
+                )
 
     def _on_edge(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.PUT:
@@ -114,6 +123,8 @@ class RobotInfer:
         else:
             self.watch.edge_down()
             self.window.clear()
+            if self.pacer is not None:
+                self.pacer.forget()
 
     def serve(self, stop: threading.Event) -> None:
         """Take a frame only with a credit in hand: the ring keeps the newest one while the edge catches up."""
@@ -121,7 +132,14 @@ class RobotInfer:
         def give_up() -> bool:  # the edge is gone: stop waiting for credits
             return self.watch.on_board(self.window.oldest_age_secs())
 
-        while self.window.acquire(stop, abandon=give_up) and (sample := next_sample(self.sub, stop)) is not None:
+        while self.window.acquire(stop, abandon=give_up):
+            # Start when this frame would reach the edge as it becomes free (the camera ring keeps the
+            # newest frame meanwhile): waiting here is free, waiting in the edge's queue is latency.
+            delay = self.pacer.start_delay_secs() if self.pacer is not None else 0.0
+            if delay > 0 and stop.wait(min(delay, self.settings.edge_answer_timeout_secs)):
+                break
+            if (sample := next_sample(self.sub, stop)) is None:
+                break
             payload = sample.payload.to_bytes()
             self.guard.run("frame", len(payload), lambda: self.process(payload))  # noqa: B023 (called at once)
 
@@ -145,6 +163,8 @@ class RobotInfer:
         wire = encode(self._features(frame, tags, split.k, split.codec, compute_secs))
         sent_nanos = time.time_ns()
         self.window.send(frame.seq, lambda: self.pub.put(wire))
+        if self.pacer is not None:
+            self.pacer.sent(frame.seq, tags=len(tags), robot_secs=compute_secs)
         sent = FrameSent(robot_id=self.settings.robot_id, seq=frame.seq, sent_nanos=sent_nanos, payload_bytes=len(wire))
         self.sent_pub.put(encode(sent))
         fixed_ms = (timings.detect_secs + timings.warp_secs) * 1e3

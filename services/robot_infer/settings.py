@@ -35,6 +35,8 @@ class RobotInferSettings(ServiceSettings):
     precision: Precision = "bf16"
     threads: int = Field(default=1, ge=1)
     max_in_flight: int = Field(default=2, ge=0)  # frames sent without TagPoses back yet; 0 = no limit
+    # Start each frame when it would reach the edge as the edge becomes free (shared.transport.flow.EdgePacer)
+    pace_to_edge: bool = True
     in_flight_timeout_secs: float = Field(default=2.0, gt=0)  # a frame never answered returns its credit
     profile_period_secs: float = Field(default=1.0, gt=0)  # ComputeProfile C(k) publication period
     # Without the edge (its liveliness token gone, or an answer this late) the robot runs the whole

@@ -5,7 +5,8 @@ robot_infer may have at most `capacity` frames in flight (sent, no TagPoses back
 latest-only ring, so it always sends the freshest frame and no backlog can build up in transport
 buffers: latency stays bounded by about `capacity` edge service times instead of growing without
 limit. A frame whose TagPoses never come back (edge restarted, message rejected) expires after
-`timeout_secs` and its credit returns.
+`timeout_secs` and its credit returns. Within the window, `EdgePacer` times when the robot starts
+each frame so that it reaches the edge just as the edge becomes free (no queueing at the edge).
 """
 
 from __future__ import annotations
@@ -126,3 +127,71 @@ class EdgeWatch:
         """True when frames must not be sent to the edge now."""
         with self._lock:
             return not self._alive or oldest_in_flight_secs > self.answer_timeout_secs
+
+
+class EdgePacer:
+    """When the robot should start its next frame so that the frame reaches the edge as the edge
+    becomes free: no frame waits in the edge's queue (that wait is pure latency), and the robot takes
+    the freshest camera frame at the last useful moment instead of one that would then sit and age.
+
+    Model per frame: the robot computes for R, the link carries it in L, the edge computes E (per tag,
+    times the frame's tags). Sending frame n at s_n, the edge finishes it at
+    c_n = max(s_n + L, c_(n-1)) + E_n; starting the next frame before c_n - R - L only makes it wait.
+    R, L and E are exponential averages of what each answered frame measured (TagPoses timings), and
+    each answer re-anchors the prediction of the frames still in flight to when it really arrived.
+    Thread-safe: answers arrive on Zenoh's threads. The in-flight window stays the hard cap."""
+
+    def __init__(self, *, smoothing: float = 0.3, clock: Callable[[], float] = time.monotonic) -> None:
+        if not 0 < smoothing <= 1:
+            raise ValueError("smoothing must be in (0, 1]")
+        self._alpha = smoothing
+        self._clock = clock
+        self._lock = threading.Lock()
+        self.robot_secs = 0.0
+        self.link_secs = 0.0
+        self.edge_secs_per_tag = 0.0
+        self.edge_secs_fixed = 0.0
+        self._done_at: dict[int, float] = {}  # seq -> predicted edge completion (robot clock)
+        self._last_done_at = 0.0
+
+    def _avg(self, old: float, new: float) -> float:
+        return new if old == 0.0 else old + self._alpha * (new - old)
+
+    def start_delay_secs(self) -> float:
+        """How long to wait before taking the next frame (0: start now)."""
+        with self._lock:
+            start = self._last_done_at - self.robot_secs - self.link_secs
+            return max(0.0, start - self._clock())
+
+    def sent(self, seq: int, *, tags: int, robot_secs: float) -> None:
+        """Frame `seq` with `tags` tags left the robot after `robot_secs` of robot compute."""
+        with self._lock:
+            now = self._clock()
+            self.robot_secs = self._avg(self.robot_secs, robot_secs)
+            edge = self.edge_secs_fixed + self.edge_secs_per_tag * tags
+            done = max(now + self.link_secs, self._last_done_at) + edge
+            self._done_at[seq] = done
+            self._last_done_at = done
+
+    def answered(self, seq: int, *, tags: int, link_secs: float, edge_secs: float) -> None:
+        """The edge's answer for `seq` arrived now, saying what its link and edge compute took."""
+        with self._lock:
+            now = self._clock()
+            self.link_secs = self._avg(self.link_secs, max(0.0, link_secs))
+            if tags:
+                self.edge_secs_per_tag = self._avg(self.edge_secs_per_tag, max(0.0, edge_secs) / tags)
+            else:
+                self.edge_secs_fixed = self._avg(self.edge_secs_fixed, max(0.0, edge_secs))
+            predicted = self._done_at.pop(seq, None)
+            for stale in [s for s in self._done_at if s < seq]:  # older answers that never came
+                del self._done_at[stale]
+            if predicted is not None:
+                shift = now - predicted  # the answer is the edge's completion (+ a small return trip)
+                self._done_at = {s: t + shift for s, t in self._done_at.items()}
+                self._last_done_at = max(self._done_at.values(), default=now)
+
+    def forget(self) -> None:
+        """The edge restarted or is gone: nothing is in flight any more."""
+        with self._lock:
+            self._done_at.clear()
+            self._last_done_at = 0.0
