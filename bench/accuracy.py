@@ -114,14 +114,16 @@ class SplittagUnavailable(RuntimeError):
     """The product's perception chain could not be imported or loaded."""
 
 
-def splittag_method(weights_dir: Path, *, fuse: bool = True) -> Method:
+def splittag_method(weights_dir: Path, *, fuse: bool = True, precision: str = "fp32") -> Method:
     """The product's chain (stage 1 -> ROI -> split network) as a "lattice16" method; imports the project here only.
 
     `fuse=True` is the product's default (the lattice fitted to the network's points and stage 1's
     corners with the sigmas calibrated into the weights' config.json); `fuse=False` scores the
-    network's 16 points as they are. The tag map's size only affects `perceive`'s own pose, which the
+    network's 16 points as they are. `precision`: fp32 (PyTorch, as `splittag detect`), bf16, or int8
+    (the weights folder's OpenVINO variant). The tag map's size only affects `perceive`'s own pose, which the
     bench ignores (it solves the pose from the keypoints with the true size).
     """
+    from shared.model.runtime import load_split_net
     from shared.model.weights import load_keypoint_fusion, load_model
     from shared.perception.single import perceive
     from shared.vision.camera import CameraIntrinsics
@@ -129,7 +131,9 @@ def splittag_method(weights_dir: Path, *, fuse: bool = True) -> Method:
     from shared.vision.tagmap import TagMapFile
 
     try:
-        model = load_model(Path(weights_dir))
+        model = (
+            load_model(Path(weights_dir)) if precision == "fp32" else load_split_net(Path(weights_dir), precision)  # type: ignore[arg-type]
+        )
         fusion = load_keypoint_fusion(Path(weights_dir)) if fuse else None
     except Exception as exc:
         raise SplittagUnavailable(f"cannot load weights from {weights_dir}: {exc}") from exc
@@ -443,6 +447,13 @@ def main() -> None:
     ap.add_argument("--json", type=Path, help="write the table, the settings and per-image scores here")
     ap.add_argument("--weights", type=Path, help="add the split network's column (a weights folder, e.g. models)")
     ap.add_argument("--workers", type=int, default=1, help="rendering processes (the methods run in this one)")
+    ap.add_argument(
+        "--precisions",
+        nargs="+",
+        default=["fp32"],
+        choices=["fp32", "bf16", "int8"],
+        help="the split network's columns, one pair per precision (int8: the weights' OpenVINO variant)",
+    )
     args = ap.parse_args()
     command = "python -m bench.accuracy " + shlex.join(sys.argv[1:])
     print(f"CPU: {cpu_label()}")
@@ -454,9 +465,11 @@ def main() -> None:
     if args.weights is not None:
         from shared.model.weights import load_keypoint_fusion
 
-        methods["splittag (network)"] = splittag_method(args.weights, fuse=False)
-        if load_keypoint_fusion(args.weights) is not None:
-            methods["splittag (fused)"] = splittag_method(args.weights)
+        for precision in args.precisions:
+            tag = "" if precision == "fp32" else f" {precision}"
+            methods[f"splittag{tag} (network)"] = splittag_method(args.weights, fuse=False, precision=precision)
+            if load_keypoint_fusion(args.weights) is not None:
+                methods[f"splittag{tag} (fused)"] = splittag_method(args.weights, precision=precision)
     t0 = time.perf_counter()
     try:
         table, rows, secs = run(n=args.n, seed=args.seed, settings=settings, methods=methods, workers=args.workers)

@@ -1,15 +1,27 @@
-"""The paper's Table on this machine: payload S(k) and cumulative single-thread compute C(k) per cut,
-for fp32 NCHW, fp32 channels_last and bf16 autocast + channels_last, all measured in one run; then
-what the edge adds per tag after the network: keypoint fusion (the weighted homography fit of the
-16 points and stage 1's corners) and planar PnP, beside the full network.
+"""The paper's Table on this machine, side by side in one run: payload S(k) and cumulative
+single-thread compute C(k) per cut for every way we can run the network, against the core's measured
+peak; then what the edge adds per tag after the network (keypoint fusion, PnP).
 
-    .venv/bin/python -m bench.model [--weights models] [--repetitions 30] [--threads 1]
+Columns (the same weights, batch 1, one thread, median):
+- eager fp32 (NCHW), the reference everything is compared with;
+- bf16: autocast + channels_last, what the services ran before int8 (`precision = "bf16"`);
+- int8 (ours): the weights folder's int8 variant (`splittag quantize`: quantisation-aware fine-tuned,
+  every convolution int8, the fully connected layers fp32) cut at k by shared.model.openvino_net,
+  exactly as robot_infer runs it (`precision = "int8"`);
+- OpenVINO int8 (reference): what an engineer gets from NNCF's default post-training quantisation of
+  the fp32 weights (every convolution and linear layer, calibrated on 64 random ROIs: its speed is the
+  reference, its accuracy is not), cut the same way.
+Peak: a tight 3x3 convolution (256 -> 256 channels on 32x32, block 4's shape) per dtype, the fastest
+of PyTorch and OpenVINO, as GFLOP/s (int8: GOP/s); each full network then reads as a fraction of it.
+
+    .venv/bin/python -m bench.model [--weights models] [--repetitions 30]
 """
 
 from __future__ import annotations
 
 import argparse
 import statistics
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -18,13 +30,101 @@ import numpy as np
 import torch
 
 from bench.machine import cpu_label
-from shared.model.net import SplitKeypointNet
-from shared.model.profile import VARIANTS, profile_cuts
+from shared.model.net import AllCuts, SplitKeypointNet
+from shared.model.openvino_net import OpenVINOSplitNet, export_ir, variant_path
+from shared.model.profile import profile_cuts
 from shared.model.weights import load_model
 from shared.vision.fusion import KeypointFusion, edge_width_px
 from shared.vision.geometry import CORNER_KEYPOINTS, apply_homography, default_camera, lattice_in_tag
 from shared.vision.pnp import solve_planar_pnp
 from shared.wire.cuts import CUTS
+
+NETWORK_GFLOP = 7.4  # multiply-adds x 2 of the whole network (shared.model.net), batch 1
+PEAK_SHAPE = (1, 256, 32, 32)
+PEAK_GFLOP = 2 * 256 * 256 * 9 * 32 * 32 / 1e9
+
+
+def _median_ms(fn: Callable[[], object], repetitions: int, warmup: int = 3) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repetitions):
+        t0 = time.perf_counter()
+        fn()
+        times.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(times)
+
+
+def _ov_cumulative_ms(net: OpenVINOSplitNet, repetitions: int) -> list[float]:
+    x = np.random.default_rng(0).integers(0, 256, (1, 256, 256), dtype=np.uint8)
+    out = []
+    for cut in CUTS:
+        k = cut.k
+        out.append(_median_ms(lambda: net.head(x, k), repetitions))  # noqa: B023 (called at once)
+    return out
+
+
+def reference_int8_ir(weights: Path | None, folder: Path) -> Path:
+    """NNCF's default post-training quantisation of the fp32 weights' all-cuts graph, as IR in `folder`."""
+    import nncf
+    import openvino as ov
+
+    net = load_model(weights) if weights else SplitKeypointNet(roi_margin=0.2)
+    fp32_ir = export_ir(AllCuts(net.to(memory_format=torch.contiguous_format)), folder / "fp32")  # type: ignore[call-overload]
+    rng = np.random.default_rng(0)
+    calibration = nncf.Dataset([rng.uniform(-1, 1, (1, 1, 256, 256)).astype(np.float32) for _ in range(64)])
+    quantised = nncf.quantize(ov.Core().read_model(str(fp32_ir)), calibration, subset_size=64)
+    (folder / "int8").mkdir(parents=True, exist_ok=True)
+    path = folder / "int8" / "model.xml"
+    ov.save_model(quantised, str(path), compress_to_fp16=False)
+    return path
+
+
+def _ov_conv_gflops(dtype: str, repetitions: int) -> float:
+    """One 3x3 conv 256->256 on 32x32 through OpenVINO: f32, bf16 (precision hint) or int8 (FakeQuantize)."""
+    import openvino as ov
+    import openvino.opset13 as ops
+
+    x = ops.parameter(list(PEAK_SHAPE), ov.Type.f32)
+    w = np.random.default_rng(0).standard_normal((256, 256, 3, 3)).astype(np.float32) * 0.05
+    src: object = x
+    weights: object = ops.constant(w)
+    if dtype == "int8":
+        lo, hi = ops.constant(np.float32(-4.0)), ops.constant(np.float32(4.0))
+        src = ops.fake_quantize(x, lo, hi, lo, hi, 256)
+        wl, wh = ops.constant(np.float32(-0.3)), ops.constant(np.float32(0.3))
+        weights = ops.fake_quantize(ops.constant(w), wl, wh, wl, wh, 255)
+    conv = ops.convolution(src, weights, [1, 1], [1, 1], [1, 1], [1, 1])
+    model = ov.Model([conv], [x])
+    hint = "bf16" if dtype == "bf16" else "f32"
+    compiled = ov.Core().compile_model(
+        model, "CPU", {"INFERENCE_NUM_THREADS": 1, "PERFORMANCE_HINT": "LATENCY", "INFERENCE_PRECISION_HINT": hint}
+    )
+    req = compiled.create_infer_request()
+    data = np.random.default_rng(1).standard_normal(PEAK_SHAPE).astype(np.float32)
+    ms = _median_ms(lambda: req.infer({0: data}), repetitions, warmup=5)
+    return PEAK_GFLOP / (ms / 1e3)
+
+
+@torch.no_grad()
+def _torch_conv_gflops(bf16: bool, repetitions: int) -> float:
+    conv = torch.nn.Conv2d(256, 256, 3, padding=1, bias=False).eval().to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+    x = torch.randn(PEAK_SHAPE).contiguous(memory_format=torch.channels_last)
+
+    def run() -> None:
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            conv(x)
+
+    return PEAK_GFLOP / (_median_ms(run, repetitions, warmup=5) / 1e3)
+
+
+def peak_gflops(repetitions: int) -> dict[str, float]:
+    """The fastest measured 3x3 convolution per dtype, GFLOP/s (int8: GOP/s)."""
+    return {
+        "fp32": max(_torch_conv_gflops(False, repetitions), _ov_conv_gflops("f32", repetitions)),
+        "bf16": max(_torch_conv_gflops(True, repetitions), _ov_conv_gflops("bf16", repetitions)),
+        "int8": _ov_conv_gflops("int8", repetitions),
+    }
 
 
 def per_tag_post_ms(repetitions: int = 2000) -> dict[str, float]:
@@ -58,29 +158,49 @@ def per_tag_post_ms(repetitions: int = 2000) -> dict[str, float]:
 
 def main() -> None:
     """Print the table."""
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--weights", type=Path, default=None)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--weights", type=Path, default=Path("models"))
     ap.add_argument("--repetitions", type=int, default=30)
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--batch", type=int, default=1, help="tags per frame")
     args = ap.parse_args()
     print(f"CPU: {cpu_label()}", flush=True)
-    torch.set_num_threads(args.threads)
-    model = load_model(args.weights) if args.weights else SplitKeypointNet(roi_margin=0.2)
-    results = {v: profile_cuts(model, variant=v, batch=args.batch, repetitions=args.repetitions) for v in VARIANTS}
-    print(f"{args.threads} thread(s), batch {args.batch}, median of {args.repetitions}; C(k) in ms, S(k) per tag")
-    head = "".join(f"{v:>20}" for v in VARIANTS)
-    print(f"{'k':>2} {'cut':<10} {'S(k) bytes':>11} {'S(k) kB fp16':>13}{head}")
+    torch.set_num_threads(1)
+    model = load_model(args.weights)
+    columns: dict[str, list[float]] = {}
+    columns["eager fp32"] = [t.median_ms for t in profile_cuts(model, variant="fp32", repetitions=args.repetitions)]
+    columns["bf16"] = [
+        t.median_ms for t in profile_cuts(model, variant="bf16-channels-last", repetitions=args.repetitions)
+    ]
+    columns["int8 (ours)"] = _ov_cumulative_ms(
+        OpenVINOSplitNet(variant_path(args.weights, "int8"), threads=1), args.repetitions
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        reference = reference_int8_ir(args.weights, Path(tmp))
+        columns["OpenVINO int8 (ref)"] = _ov_cumulative_ms(OpenVINOSplitNet(reference, threads=1), args.repetitions)
+    peak = peak_gflops(args.repetitions)
+    names = list(columns)
+    print(f"1 thread, batch 1, median of {args.repetitions}; C(k) = cumulative head time in ms, S(k) per tag")
+    print(f"{'k':>2} {'cut':<10} {'S(k) kB fp16':>13}" + "".join(f"{n:>21}" for n in names))
     for cut in CUTS:
-        cells = "".join(f"{results[v][cut.k].median_ms:>20.2f}" for v in VARIANTS)
-        print(f"{cut.k:>2} {cut.name:<10} {cut.tensor_bytes():>11} {cut.payload_bytes_fp16 / 1024:>13.2f}{cells}")
-    full = {v: results[v][-1].median_ms for v in VARIANTS}
-    print("full-network speed-up vs fp32 NCHW: " + ", ".join(f"{v} {full['fp32'] / full[v]:.2f}x" for v in VARIANTS))
+        cells = "".join(f"{columns[n][cut.k]:>21.2f}" for n in names)
+        print(f"{cut.k:>2} {cut.name:<10} {cut.payload_bytes_fp16 / 1024:>13.2f}{cells}")
+    full = {n: columns[n][-1] for n in names}
+    dtype_of = {"eager fp32": "fp32", "bf16": "bf16", "int8 (ours)": "int8", "OpenVINO int8 (ref)": "int8"}
+    print(
+        "peak (3x3 conv 256->256 @ 32x32, fastest of PyTorch/OpenVINO): "
+        + ", ".join(f"{d} {g:.0f} G/s" for d, g in peak.items())
+    )
+    for n in names:
+        rate = NETWORK_GFLOP / (full[n] / 1e3)
+        print(
+            f"  {n:<20} full network {full[n]:7.2f} ms = {rate:6.0f} G/s = {100 * rate / peak[dtype_of[n]]:5.1f} % of "
+            f"{dtype_of[n]} peak; {full['eager fp32'] / full[n]:.2f}x eager fp32"
+        )
+    ref = full["OpenVINO int8 (ref)"]
+    print(f"int8 (ours) / OpenVINO int8 (ref): {full['int8 (ours)'] / ref:.2f}x (full network)")
     post = per_tag_post_ms()
     print(
         f"beside the network, per tag: edge width (robot) {post['edge_width']:.3f} ms, keypoint fusion (edge) "
-        f"{post['fusion']:.3f} ms, PnP {post['pnp']:.3f} ms; width + fusion = "
-        f"{100 * (post['edge_width'] + post['fusion']) / full['bf16-channels-last']:.2f} % of the bf16 network"
+        f"{post['fusion']:.3f} ms, PnP {post['pnp']:.3f} ms"
     )
 
 

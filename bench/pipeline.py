@@ -5,6 +5,7 @@ processes, then for each k sets the split through the Zenoh query, waits for the
 effect, and measures capture->pose latency over a window.
 
     .venv/bin/python -m bench.pipeline [--fps 15] [--window-secs 10] [--tracking off|on|both]
+        [--precision fp32|bf16|int8] [--pace on|off|both]
 
 `--tracking both` runs everything twice, robot_infer's track-then-refine off and then on, in one run.
 """
@@ -38,27 +39,33 @@ def main() -> None:
     ap.add_argument("--rerun", action="store_true", help="log everything to Rerun (to measure its cost)")
     ap.add_argument("--rerun-image-every", type=int, default=1)
     ap.add_argument("--tracking", choices=("off", "on", "both"), default="off")
+    ap.add_argument("--precision", choices=("fp32", "bf16", "int8"), default="bf16", help="robot and edge network")
+    ap.add_argument("--pace", choices=("on", "off", "both"), default="on", help="robot_infer's edge pacer")
     args = ap.parse_args()
     print(f"CPU: {cpu_label()}", flush=True)
-    modes = {"off": [False], "on": [True], "both": [False, True]}[args.tracking]
-    tables = [(tracking, measure(args, tracking=tracking)) for tracking in modes]
-    for tracking, rows in tables:
-        print_table(args, rows, tracking=tracking)
+    modes = {"off": [False], "on": [True], "both": [False, True]}
+    runs = [(tracking, pace) for tracking in modes[args.tracking] for pace in modes[args.pace]]
+    tables = [(tracking, pace, measure(args, tracking=tracking, pace=pace)) for tracking, pace in runs]
+    for tracking, pace, rows in tables:
+        print_table(args, rows, tracking=tracking, pace=pace)
 
 
 Row = tuple[CutInfo, float, float, float, float, float, float, float, float]
 
 
-def measure(args: argparse.Namespace, *, tracking: bool) -> list[Row]:
-    """Start the services (robot_infer's tracking on or off), sweep k, stop them."""
+def measure(args: argparse.Namespace, *, tracking: bool, pace: bool) -> list[Row]:
+    """Start the services (robot_infer's tracking and pacing on or off), sweep k, stop them."""
     tmp = Path(tempfile.mkdtemp(prefix="splittag-bench-"))
     cfg, topology = loopback_config(
         tmp, robot_id=ROBOT, rerun=args.rerun, image_every=args.rerun_image_every, fps=args.fps
     )
-    env = {"SPLITTAG_ROBOT_INFER_TRACKING__ENABLED": "true" if tracking else "false"}
-    services = [
-        start_service(n, cfg, tmp, env if n == "robot_infer" else None) for n in ("edge_infer", "robot_infer", "camera")
-    ]
+    env = {
+        "SPLITTAG_ROBOT_INFER_TRACKING__ENABLED": "true" if tracking else "false",
+        "SPLITTAG_ROBOT_INFER_PACE_TO_EDGE": "true" if pace else "false",
+        "SPLITTAG_ROBOT_INFER_PRECISION": args.precision,
+        "SPLITTAG_EDGE_INFER_PRECISION": args.precision,
+    }
+    services = [start_service(n, cfg, tmp, env) for n in ("edge_infer", "robot_infer", "camera")]
     rows: list[Row] = []
     try:
         session = open_session(ZenohSettings(mode="client", connect=[topology.robot_router]))
@@ -97,20 +104,24 @@ def measure(args: argparse.Namespace, *, tracking: bool) -> list[Row]:
     return rows
 
 
-def print_table(args: argparse.Namespace, rows: list[Row], *, tracking: bool) -> None:
-    """One table per tracking mode."""
+def print_table(args: argparse.Namespace, rows: list[Row], *, tracking: bool, pace: bool) -> None:
+    """One table per mode. `path` = robot + link + edge medians (the critical path); `e2e/path` is what
+    waiting adds; `fps x slowest` = throughput x the slower side's per-frame time (1.0 = that side never
+    idles)."""
     print(
-        f"camera {args.fps} fps, window {args.window_secs} s per k, loopback, 2-core CPU, rerun "
-        f"{'on' if args.rerun else 'off'}, tracking {'on' if tracking else 'off'}; latencies in ms"
+        f"camera {args.fps} fps, window {args.window_secs} s per k, loopback, 2-core CPU, {args.precision}, rerun "
+        f"{'on' if args.rerun else 'off'}, tracking {'on' if tracking else 'off'}, pacing {'on' if pace else 'off'}; "
+        "latencies in ms"
     )
     print(
         f"{'k':>2} {'cut':<10} {'fps':>6} {'e2e p50':>8} {'e2e p99':>8} {'robot':>7} {'link':>6} {'edge':>6} "
-        f"{'tags':>5} {'msg kB':>8}"
+        f"{'path':>6} {'e2e/path':>9} {'fps x slowest':>14} {'tags':>5} {'msg kB':>8}"
     )
     for cut, fps, p50, p99, rb, tr, ed, tags, size in rows:
+        path = rb + tr + ed
         print(
             f"{cut.k:>2} {cut.name:<10} {fps:>6.1f} {p50:>8.1f} {p99:>8.1f} {rb:>7.1f} {tr:>6.1f} {ed:>6.1f} "
-            f"{tags:>5.1f} {size / 1024:>8.1f}"
+            f"{path:>6.1f} {p50 / path:>9.2f} {fps * max(rb, ed) / 1e3:>14.2f} {tags:>5.1f} {size / 1024:>8.1f}"
         )
 
 

@@ -1,8 +1,10 @@
-"""Round-trip time of splittag messages through codec + Zenoh vs a raw TCP ping-pong, one run.
+"""Round-trip time of splittag messages through codec + Zenoh vs Zenoh alone vs a raw TCP ping-pong, one run.
 
 Both servers run in their own process on 127.0.0.1, both replies are tiny (the payload loads only
-the "uplink"), shared memory is off. Zenoh timing includes encoding the Features message, the
-query, the server's full decode + validation, and decoding the ack.
+the "uplink"), shared memory is off. codec + Zenoh: encoding the Features message, the query, the
+echo's full decode + validation, a ProbeAck back, decoding it. Zenoh alone: the same querier options
+and payload size, the echo reading the payload into bytes and replying 8 bytes (what an application
+without our codec does at the least).
 
     .venv/bin/python -m bench.transport [--repetitions 200]
 """
@@ -81,41 +83,47 @@ def bench_tcp(port: int, size: int, reps: int) -> list[float]:
     return out[5:]
 
 
-def main() -> None:
-    """Run both benchmarks and print the table."""
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--repetitions", type=int, default=200)
-    args = ap.parse_args()
-    print(f"CPU: {cpu_label()}", flush=True)
+Row = tuple[int, int, float, float, float]
+
+
+def measure(repetitions: int, *, shared_memory: bool) -> list[Row]:
+    """One table: every size through codec + Zenoh, Zenoh alone and raw TCP."""
     robot = "bench"
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    shm = ["--shared-memory"] if shared_memory else []
     echo = subprocess.Popen(
-        [sys.executable, "-m", "shared.tools.cli", "echo", "--listen", endpoint, "--robot-id", robot],
+        [sys.executable, "-m", "shared.tools.cli", "echo", "--listen", endpoint, "--robot-id", robot, *shm],
         start_new_session=True,
         stderr=subprocess.DEVNULL,
     )
-    rows = []
+    rows: list[Row] = []
     try:
-        session = open_session(ZenohSettings(mode="client", connect=[endpoint]))
+        session = open_session(ZenohSettings(mode="client", connect=[endpoint], shared_memory=shared_memory))
         wait_for_liveliness(session, [keys.alive(robot, "echo")])
         prober = Prober(session, keys.echo(robot))
+        # The same querier options as the Prober's: only the codec differs between the two columns.
         raw_querier = session.declare_querier(
-            keys.echo(robot) + "/raw", congestion_control=zenoh.CongestionControl.BLOCK
+            keys.echo(robot) + "/raw",
+            timeout=10.0,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            target=zenoh.QueryTarget.ALL,
         )
         for size in SIZES:
             msg = probe_features(size, robot_id=robot)
             zen = []
-            for i in range(args.repetitions + 5):
+            for i in range(repetitions + 5):
                 t0 = time.perf_counter()
                 prober.round_trip(encode(msg))
                 if i >= 5:
                     zen.append((time.perf_counter() - t0) * 1e3)
             raw_payload = bytes(len(encode(msg)))
             raw = []
-            for i in range(args.repetitions + 5):
+            for i in range(repetitions + 5):
                 t0 = time.perf_counter()
                 for reply in raw_querier.get(payload=raw_payload):
                     assert reply.ok is not None
+                    reply.ok.payload.to_bytes()
+                    break
                 if i >= 5:
                     raw.append((time.perf_counter() - t0) * 1e3)
             port = free_tcp_port()
@@ -127,7 +135,7 @@ def main() -> None:
                 ]
             )
             try:
-                tcp = bench_tcp(port, len(encode(msg)), args.repetitions)
+                tcp = bench_tcp(port, len(encode(msg)), repetitions)
             finally:
                 server.wait(timeout=10)
             rows.append((size, len(encode(msg)), float(np.median(zen)), float(np.median(raw)), float(np.median(tcp))))
@@ -136,13 +144,37 @@ def main() -> None:
     finally:
         echo.send_signal(signal.SIGINT)
         echo.wait(timeout=10)
-    print(f"median of {args.repetitions} round trips, 127.0.0.1, zenoh shared memory off")
+    return rows
+
+
+def print_table(rows: list[Row], *, repetitions: int, shared_memory: bool) -> None:
+    """The table of one run."""
+    print(f"median of {repetitions} round trips, 127.0.0.1, zenoh shared memory {'on' if shared_memory else 'off'}")
     print(
         f"{'tensor B':>9} {'message B':>10} {'codec+zenoh ms':>15} {'zenoh only ms':>14} {'raw TCP ms':>11} "
-        f"{'ratio':>6} {'zenoh/TCP':>10}"
+        f"{'codec+zenoh/zenoh':>18} {'zenoh/TCP':>10}"
     )
     for size, wire, z, r, t in rows:
-        print(f"{size:>9} {wire:>10} {z:>15.3f} {r:>14.3f} {t:>11.3f} {z / t:>6.2f} {r / t:>10.2f}")
+        print(f"{size:>9} {wire:>10} {z:>15.3f} {r:>14.3f} {t:>11.3f} {z / r:>18.2f} {r / t:>10.2f}")
+    print(f"worst codec+zenoh / zenoh alone: {max(z / r for _, _, z, r, _ in rows):.2f}x")
+
+
+def main() -> None:
+    """Run the benchmarks and print the tables."""
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--repetitions", type=int, default=200)
+    ap.add_argument(
+        "--shared-memory",
+        choices=("off", "on", "both"),
+        default="off",
+        help="zenoh shared memory on both ends (same host only: it bypasses any link shaping)",
+    )
+    args = ap.parse_args()
+    print(f"CPU: {cpu_label()}", flush=True)
+    modes = {"off": [False], "on": [True], "both": [False, True]}[args.shared_memory]
+    tables = [(shm, measure(args.repetitions, shared_memory=shm)) for shm in modes]
+    for shm, rows in tables:
+        print_table(rows, repetitions=args.repetitions, shared_memory=shm)
 
 
 if __name__ == "__main__":

@@ -217,3 +217,38 @@ def test_two_host_profile_on_loopback(tmp_path: Path) -> None:
             for s in subs:
                 s.undeclare()
             session.close()
+
+
+def test_int8_on_both_sides_at_a_middle_cut(tmp_path: Path, deploy_config: DeployConfig) -> None:
+    """precision = "int8" (the weights' OpenVINO variant) in robot_infer and edge_infer, cut at block 3:
+    every frame gets poses, as accurate as the services' default precision must be."""
+    cfg, topology = deploy_config(
+        {
+            "common": {"robot_id": ROBOT},
+            "robot_infer": {"split_k": 3, "precision": "int8"},
+            "edge_infer": {"precision": "int8"},
+            "camera": {"fps": FPS, "loop": False, "max_frames": 20},
+        }
+    )
+    with processes(tmp_path) as procs:
+        for name in ("edge_infer", "robot_infer"):
+            procs.append(start_process(name, ["-m", f"services.{name}", "--config", str(cfg)], tmp_path))
+        session = open_session(ZenohSettings(mode="client", connect=[topology.robot_router]))
+        monitor = Monitor(demo_tag_map())
+        subs = attach_monitor(session, ROBOT, monitor)
+        try:
+            wait_for_liveliness(
+                session, [keys.alive(ROBOT, "edge_infer"), keys.alive(ROBOT, "robot_infer")], timeout_secs=90
+            )
+            procs.append(start_process("camera", ["-m", "services.camera", "--config", str(cfg)], tmp_path))
+            _wait(lambda: len(monitor.records) >= 20, 120, "20 TagPoses at int8")
+            assert sorted(r["seq"] for r in monitor.records) == list(range(20))
+            assert {r["k"] for r in monitor.records} == {3}
+            errs = [e for r in monitor.records for e in r["errors_cm"]]
+            print(f"int8: median e_t {np.median(errs):.2f} cm over {len(errs)} tag observations")
+            assert np.median(errs) <= MEDIAN_E_T_CM_MAX and monitor.bad == 0
+            assert "precision=int8" in next(p for p in procs if p.name == "robot_infer").log_text()
+        finally:
+            for s in subs:
+                s.undeclare()
+            session.close()

@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 
 from shared.model.infer import keypoints
 from shared.model.net import SplitKeypointNet
+from shared.model.runtime import SplitNet
 from shared.vision.camera import CameraIntrinsics
 from shared.vision.detector import Detection, TagDetector
 from shared.vision.fusion import KeypointFusion, edge_width_px
@@ -44,11 +45,14 @@ def extract_rois(image: NDArray[np.uint8], detections: list[Detection]) -> tuple
 
 @torch.no_grad()
 def run_network(
-    model: SplitKeypointNet, rois: NDArray[np.uint8], *, bf16: bool = False, channels_last: bool = True
+    model: SplitKeypointNet | SplitNet, rois: NDArray[np.uint8], *, bf16: bool = False, channels_last: bool = True
 ) -> NDArray[np.float32]:
-    """Normalised keypoints (N,16,2) for uint8 ROIs (N,256,256)."""
+    """Normalised keypoints (N,16,2) for uint8 ROIs (N,256,256): PyTorch weights (bf16 autocast with
+    `bf16`), or a SplitNet at its own precision (the whole network, the tail from cut 0)."""
     if len(rois) == 0:
         return np.zeros((0, 16, 2), np.float32)
+    if not isinstance(model, SplitKeypointNet):
+        return model.tail(rois, 0)
     rois_u8 = torch.from_numpy(np.ascontiguousarray(rois)).unsqueeze(1)
     return np.asarray(keypoints(model, rois_u8, bf16=bf16, channels_last=channels_last).numpy(), np.float32)
 
@@ -98,7 +102,7 @@ def perceive(
     *,
     camera: CameraIntrinsics,
     detector: TagDetector,
-    model: SplitKeypointNet | None,
+    model: SplitKeypointNet | SplitNet | None,
     tag_map: TagMapFile,
     fusion: KeypointFusion | None = None,
     bf16: bool = False,

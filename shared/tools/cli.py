@@ -95,7 +95,7 @@ def _cmd_echo(args: argparse.Namespace) -> int:
     from shared.tools import echo
     from shared.transport.session import ZenohSettings
 
-    settings = ZenohSettings(mode="router", listen=args.listen, connect=args.connect)
+    settings = ZenohSettings(mode="router", listen=args.listen, connect=args.connect, shared_memory=args.shared_memory)
     echo.run(settings, robot_id=args.robot_id)
     return 0
 
@@ -464,6 +464,7 @@ def _add_control_commands(sub: Any) -> None:
     p.add_argument("--robot-id", default="robot1")
     p.add_argument("--listen", action="append", default=[], help="zenoh endpoint, repeatable")
     p.add_argument("--connect", action="append", default=[], help="zenoh endpoint, repeatable")
+    p.add_argument("--shared-memory", action="store_true", help="zenoh shared memory on (same host, no shaping)")
     p.set_defaults(func=_cmd_echo)
 
 

@@ -6,6 +6,8 @@ import logging
 import signal
 import threading
 
+import zenoh
+
 from shared.transport.probe import serve_echo
 from shared.transport.session import ZenohSettings, open_session
 from shared.wire import keys
@@ -29,8 +31,14 @@ def run(
     session = open_session(zenoh_settings)
     try:
         queryable = serve_echo(session, keys.echo(robot_id), max_bytes=max_bytes)
-        # Raw echo: replies at once without decoding, to separate Zenoh's cost from the codec's.
-        raw = session.declare_queryable(keys.echo(robot_id) + "/raw", lambda q: q.reply(q.key_expr, b""))
+
+        # Raw echo: what an application on Zenoh alone does (reads the payload into bytes, replies its
+        # 8-byte length), to separate Zenoh's cost from the codec's.
+        def raw_echo(query: zenoh.Query) -> None:
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            query.reply(query.key_expr, len(payload).to_bytes(8, "little"))
+
+        raw = session.declare_queryable(keys.echo(robot_id) + "/raw", raw_echo)
         token = session.liveliness().declare_token(keys.alive(robot_id, "echo"))
         log.info("echo serving %s", keys.echo(robot_id))
         stop.wait()
