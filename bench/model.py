@@ -9,12 +9,13 @@ Columns (the same weights, batch 1, one thread, median):
   every convolution int8, the fully connected layers fp32) cut at k by shared.model.openvino_net,
   exactly as robot_infer runs it (`precision = "int8"`);
 - OpenVINO int8 (reference): what an engineer gets from NNCF's default post-training quantisation of
-  the fp32 weights (every convolution and linear layer, calibrated on 64 random ROIs: its speed is the
-  reference, its accuracy is not), cut the same way.
+  the fp32 weights (every convolution and linear layer), cut the same way; calibrated on 300 training
+  ROIs with `--data` (else 64 random ones: then only its speed means something).
+With `--data`, each column's keypoint error (e_px, ROI px, mean) on that data set's test split too.
 Peak: a tight 3x3 convolution (256 -> 256 channels on 32x32, block 4's shape) per dtype, the fastest
 of PyTorch and OpenVINO, as GFLOP/s (int8: GOP/s); each full network then reads as a fraction of it.
 
-    .venv/bin/python -m bench.model [--weights models] [--repetitions 30]
+    .venv/bin/python -m bench.model [--weights models] [--repetitions 30] [--data data/synth2 --samples 1000]
 """
 
 from __future__ import annotations
@@ -34,8 +35,10 @@ from shared.model.net import AllCuts, SplitKeypointNet
 from shared.model.openvino_net import OpenVINOSplitNet, export_ir, variant_path
 from shared.model.profile import profile_cuts
 from shared.model.weights import load_model
+from shared.perception.single import run_network
 from shared.vision.fusion import KeypointFusion, edge_width_px
 from shared.vision.geometry import CORNER_KEYPOINTS, apply_homography, default_camera, lattice_in_tag
+from shared.vision.metrics import e_px
 from shared.vision.pnp import solve_planar_pnp
 from shared.wire.cuts import CUTS
 
@@ -64,16 +67,21 @@ def _ov_cumulative_ms(net: OpenVINOSplitNet, repetitions: int) -> list[float]:
     return out
 
 
-def reference_int8_ir(weights: Path | None, folder: Path) -> Path:
+def reference_int8_ir(weights: Path | None, folder: Path, calibration_rois: np.ndarray | None) -> Path:
     """NNCF's default post-training quantisation of the fp32 weights' all-cuts graph, as IR in `folder`."""
     import nncf
     import openvino as ov
 
+    from shared.model.openvino_net import normalise
+
     net = load_model(weights) if weights else SplitKeypointNet(roi_margin=0.2)
     fp32_ir = export_ir(AllCuts(net.to(memory_format=torch.contiguous_format)), folder / "fp32")  # type: ignore[call-overload]
-    rng = np.random.default_rng(0)
-    calibration = nncf.Dataset([rng.uniform(-1, 1, (1, 1, 256, 256)).astype(np.float32) for _ in range(64)])
-    quantised = nncf.quantize(ov.Core().read_model(str(fp32_ir)), calibration, subset_size=64)
+    if calibration_rois is None:
+        calibration_rois = np.random.default_rng(0).integers(0, 256, (64, 256, 256), dtype=np.uint8)
+    calibration = nncf.Dataset([normalise(r) for r in calibration_rois])
+    quantised = nncf.quantize(
+        ov.Core().read_model(str(fp32_ir)), calibration, subset_size=len(calibration_rois), fast_bias_correction=False
+    )
     (folder / "int8").mkdir(parents=True, exist_ok=True)
     path = folder / "int8" / "model.xml"
     ov.save_model(quantised, str(path), compress_to_fp16=False)
@@ -161,6 +169,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--weights", type=Path, default=Path("models"))
     ap.add_argument("--repetitions", type=int, default=30)
+    ap.add_argument("--data", type=Path, help="a data set (splittag data synth): calibration + keypoint error")
+    ap.add_argument("--samples", type=int, default=1000, help="test ROIs for the keypoint error")
     args = ap.parse_args()
     print(f"CPU: {cpu_label()}", flush=True)
     torch.set_num_threads(1)
@@ -170,12 +180,29 @@ def main() -> None:
     columns["bf16"] = [
         t.median_ms for t in profile_cuts(model, variant="bf16-channels-last", repetitions=args.repetitions)
     ]
-    columns["int8 (ours)"] = _ov_cumulative_ms(
-        OpenVINOSplitNet(variant_path(args.weights, "int8"), threads=1), args.repetitions
-    )
+    ours = OpenVINOSplitNet(variant_path(args.weights, "int8"), threads=1)
+    columns["int8 (ours)"] = _ov_cumulative_ms(ours, args.repetitions)
+    errors: dict[str, float] = {}
+    test_rois = test_kp = calibration = None
+    if args.data is not None:
+        from shared.datasets.shards import load_dataset
+
+        ds = load_dataset(args.data)
+        rows = ds.split("test")[: args.samples]
+        test_rois, test_kp = ds.arrays["roi"][rows], ds.arrays["keypoints"][rows]
+        calibration = ds.arrays["roi"][np.random.default_rng(1).permutation(ds.split("train"))[:300]]
     with tempfile.TemporaryDirectory() as tmp:
-        reference = reference_int8_ir(args.weights, Path(tmp))
-        columns["OpenVINO int8 (ref)"] = _ov_cumulative_ms(OpenVINOSplitNet(reference, threads=1), args.repetitions)
+        reference = OpenVINOSplitNet(reference_int8_ir(args.weights, Path(tmp), calibration), threads=1)
+        columns["OpenVINO int8 (ref)"] = _ov_cumulative_ms(reference, args.repetitions)
+        if test_rois is not None and test_kp is not None:
+            for name, run in (
+                ("eager fp32", lambda r: run_network(model, r)),
+                ("bf16", lambda r: run_network(model, r, bf16=True)),
+                ("int8 (ours)", lambda r: ours.tail(r, 0)),
+                ("OpenVINO int8 (ref)", lambda r: reference.tail(r, 0)),
+            ):
+                pred = np.concatenate([run(test_rois[i : i + 64]) for i in range(0, len(test_rois), 64)])
+                errors[name] = float(e_px(pred, test_kp).mean())
     peak = peak_gflops(args.repetitions)
     names = list(columns)
     print(f"1 thread, batch 1, median of {args.repetitions}; C(k) = cumulative head time in ms, S(k) per tag")
@@ -191,9 +218,14 @@ def main() -> None:
     )
     for n in names:
         rate = NETWORK_GFLOP / (full[n] / 1e3)
+        err = (
+            f"; e_px {errors[n]:.4f} ({errors[n] - errors['eager fp32']:+.4f} vs fp32, {len(test_rois)} test ROIs)"
+            if errors and test_rois is not None
+            else ""
+        )
         print(
             f"  {n:<20} full network {full[n]:7.2f} ms = {rate:6.0f} G/s = {100 * rate / peak[dtype_of[n]]:5.1f} % of "
-            f"{dtype_of[n]} peak; {full['eager fp32'] / full[n]:.2f}x eager fp32"
+            f"{dtype_of[n]} peak; {full['eager fp32'] / full[n]:.2f}x eager fp32{err}"
         )
     ref = full["OpenVINO int8 (ref)"]
     print(f"int8 (ours) / OpenVINO int8 (ref): {full['int8 (ours)'] / ref:.2f}x (full network)")

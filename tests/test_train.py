@@ -107,3 +107,57 @@ def test_train_options_are_generated_from_the_settings() -> None:
     assert got == want
     with pytest.raises(SystemExit):
         build_parser().parse_args(["train", "--out", "o"])  # --data is required
+
+
+@pytest.mark.slow
+def test_tiny_quantisation_run_installs_an_int8_variant_that_resumes_and_runs(tmp_path: Path) -> None:
+    """`splittag quantize` end to end on a tiny data set: NNCF ranges from real ROIs, fine-tuning steps,
+    the exported IR validated, the best kept with its curve, installed into a copy of the weights folder
+    (config.json lists it), loadable as precision int8 at any cut; a second run resumes."""
+    import shutil
+
+    from shared.model.runtime import load_split_net
+    from shared.training.quantize import quantize
+    from shared.training.settings import QuantizeSettings
+
+    models = Path(__file__).resolve().parent.parent / "models"
+    weights = tmp_path / "w"
+    weights.mkdir()
+    for name in ("model.safetensors", "config.json"):
+        shutil.copy(models / name, weights / name)
+    config = json.loads((weights / "config.json").read_text())
+    config.pop("variants", None)
+    (weights / "config.json").write_text(json.dumps(config))
+    cam, s = default_camera(), SynthSettings(seed=3)
+    generate(
+        tmp_path / "d",
+        n=24,
+        seed=3,
+        kind="synth",
+        settings=s.model_dump(mode="json"),
+        maker=SynthMaker(cam, s),
+        shard_size=24,
+        workers=1,
+    )
+    settings = QuantizeSettings(
+        weights=weights,
+        data=[tmp_path / "d"],
+        out=tmp_path / "run",
+        calibration_samples=4,
+        steps=2,
+        batch_size=2,
+        eval_every=2,
+        val_samples=4,
+        threads=2,
+        install=True,
+    )
+    metrics = quantize(settings)
+    assert metrics["steps"] == 2 and metrics["val_e_px"] > 0
+    assert (weights / "int8" / "model.xml").is_file() and (weights / "int8" / "curve.jsonl").is_file()
+    listed = json.loads((weights / "config.json").read_text())["variants"]["int8"]
+    assert listed["path"] == "int8/model.xml" and listed["fp32_val_e_px"] > 0
+    net = load_split_net(weights, "int8", threads=1)
+    rois = np.zeros((1, 256, 256), np.uint8)
+    assert net.tail(net.head(rois, 4), 4).shape == (1, 16, 2)
+    again = quantize(settings.model_copy(update={"steps": 3, "install": False}))
+    assert again["steps"] == 3  # resumed at step 2, one more step
