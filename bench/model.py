@@ -148,12 +148,7 @@ def per_tag_post_ms(repetitions: int = 2000) -> dict[str, float]:
     camera, obj = default_camera(), lattice_in_tag(0.15)
 
     def median_ms(fn: Callable[[], object]) -> float:
-        times = []
-        for _ in range(repetitions):
-            t0 = time.perf_counter()
-            fn()
-            times.append((time.perf_counter() - t0) * 1e3)
-        return statistics.median(times)
+        return _median_ms(fn, repetitions, warmup=0)
 
     roi = np.full((256, 256), 200, np.uint8)
     roi[51:205, 51:205] = 30
