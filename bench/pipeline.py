@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.machine import cpu_label
+from shared.model.precision import resolve_for_folder
 from shared.tools.launch import Monitor, attach_monitor, demo_tag_map, loopback_config, start_service, stop_services
 from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
 from shared.transport.split_client import query_split
@@ -39,9 +40,12 @@ def main() -> None:
     ap.add_argument("--rerun", action="store_true", help="log everything to Rerun (to measure its cost)")
     ap.add_argument("--rerun-image-every", type=int, default=1)
     ap.add_argument("--tracking", choices=("off", "on", "both"), default="off")
-    ap.add_argument("--precision", choices=("fp32", "bf16", "int8"), default="bf16", help="robot and edge network")
+    ap.add_argument(
+        "--precision", choices=("auto", "fp32", "bf16", "int8"), default="auto", help="robot and edge network"
+    )
     ap.add_argument("--pace", choices=("on", "off", "both"), default="on", help="robot_infer's edge pacer")
     args = ap.parse_args()
+    args.precision = resolve_for_folder(args.precision, Path("models"))  # what auto stands for here
     print(f"CPU: {cpu_label()}", flush=True)
     modes = {"off": [False], "on": [True], "both": [False, True]}
     runs = [(tracking, pace) for tracking in modes[args.tracking] for pace in modes[args.pace]]

@@ -13,6 +13,7 @@ import torch
 
 from shared.model.net import AllCuts, SplitKeypointNet
 from shared.model.openvino_net import OpenVINOSplitNet, VariantError, compile_full, export_ir, variant_path
+from shared.model.precision import cpu_flags, resolve_for_folder, resolve_precision
 from shared.model.runtime import calibrate_cumulative_ms, load_split_net
 from shared.vision.metrics import e_px
 from shared.wire.cuts import CUTS, N_CUTS
@@ -68,6 +69,39 @@ def test_a_folder_without_the_int8_variant_is_refused_with_what_it_has(tmp_path:
         load_split_net(tmp_path, "int8")
     with pytest.raises(ValueError, match="precision must be one of"):
         load_split_net(tmp_path, "int4")  # type: ignore[arg-type]
+
+
+# /proc/cpuinfo excerpts of the three CPU kinds we meet (flags cut to what decides the precision).
+ZEN3 = "processor\t: 0\nmodel name\t: AMD EPYC\nflags\t\t: fpu sse4_2 avx fma avx2 sha_ni\n"
+ZEN4 = "processor\t: 0\nflags\t\t: fpu avx avx2 avx512f avx512_vnni avx512_bf16\n"
+SPR = "processor\t: 0\nflags\t\t: fpu avx avx2 avx512f avx512_vnni avx512_bf16 amx_bf16 amx_int8\n"
+
+
+def test_auto_precision_never_picks_emulated_bf16() -> None:
+    """auto: int8 where the folder has it; else bf16 only with hardware bf16 (PyTorch emulates it on
+    AVX2, 9x slower than fp32 on Zen 3); an explicit choice is taken as given."""
+    assert cpu_flags(ZEN3) >= {"avx2"} and "avx512_bf16" not in cpu_flags(ZEN3)
+    assert cpu_flags("no flags here") == frozenset()
+    for cpuinfo in (ZEN3, ZEN4, SPR):
+        assert resolve_precision("auto", variants={"int8"}, flags=cpu_flags(cpuinfo)) == "int8"
+    assert resolve_precision("auto", variants=(), flags=cpu_flags(ZEN3)) == "fp32"
+    assert resolve_precision("auto", variants=(), flags=cpu_flags(ZEN4)) == "bf16"
+    assert resolve_precision("auto", variants=(), flags=cpu_flags(SPR)) == "bf16"
+    assert resolve_precision("auto", variants={"int8"}, flags={"sse4_2"}) == "fp32"  # no AVX2: no OpenVINO int8
+    assert resolve_precision("bf16", variants={"int8"}, flags=cpu_flags(ZEN3)) == "bf16"
+    with pytest.raises(ValueError, match="precision must be one of"):
+        resolve_precision("int4", variants=(), flags=())  # type: ignore[arg-type]
+
+
+def test_auto_precision_reads_the_folder(tmp_path: Path) -> None:
+    assert resolve_for_folder("auto", MODELS, ZEN3) == "int8"  # the shipped folder lists int8
+    (tmp_path / "config.json").write_text(json.dumps({"variants": {}}))
+    assert resolve_for_folder("auto", tmp_path, ZEN3) == "fp32"
+    assert resolve_for_folder("auto", tmp_path, SPR) == "bf16"
+    (tmp_path / "config.json").write_text("{not json")
+    assert resolve_for_folder("auto", tmp_path, ZEN4) == "bf16"
+    net = load_split_net(MODELS, "auto", threads=1)
+    assert net.precision == resolve_for_folder("auto", MODELS)
 
 
 def test_a_listed_variant_whose_files_are_missing_is_refused(tmp_path: Path) -> None:

@@ -31,7 +31,7 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
     """Serve until `stop` is set. Malformed or inconsistent Features are rejected, counted and logged."""
     torch.set_num_threads(settings.threads)
     node = EdgeInfer(settings, session, stop)
-    log.info("edge_infer ready")
+    log.info("edge_infer ready: precision=%s (configured %s)", node.net.precision, settings.precision)
     try:
         node.serve(stop)
     finally:

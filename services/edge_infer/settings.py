@@ -8,7 +8,7 @@ from typing import ClassVar
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
-from shared.model.precision import Precision
+from shared.model.precision import PrecisionChoice
 from shared.runtime.settings import ServiceSettings
 from shared.wire.messages import PerCut
 
@@ -27,8 +27,8 @@ class EdgeInferSettings(ServiceSettings):
     tracked_max_reprojection_px: float = Field(default=1.0, gt=0)
     tag_map: Path | None = None  # YAML/JSON with per-tag sizes; unknown ids use default_tag_size_m
     default_tag_size_m: float = Field(default=0.2, gt=0)
-    # fp32 | bf16 (PyTorch) | int8 (OpenVINO, the weights folder's int8 variant: splittag quantize)
-    precision: Precision = "bf16"
+    # auto | fp32 | bf16 | int8: as robot_infer's (shared.model.precision says what auto picks)
+    precision: PrecisionChoice = "auto"
     threads: int = Field(default=1, ge=1)
     serve_echo: bool = True  # the link-probe echo queryable lives on the edge
     queue_depth: int = Field(default=2, ge=1)  # Features waiting for the edge; small = bounded latency

@@ -45,9 +45,10 @@ def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading
     torch.set_num_threads(settings.threads)
     node = RobotInfer(settings, session)
     log.info(
-        "robot_infer ready: k=%d codec=%s precision=%s gamma=%.2f",
+        "robot_infer ready: k=%d codec=%s precision=%s (configured %s) gamma=%.2f",
         settings.split_k,
         settings.codec,
+        node.net.precision,
         settings.precision,
         settings.gamma,
     )

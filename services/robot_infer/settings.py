@@ -8,7 +8,7 @@ from typing import ClassVar
 from pydantic import Field, model_validator
 from pydantic_settings import SettingsConfigDict
 
-from shared.model.precision import Precision
+from shared.model.precision import PrecisionChoice
 from shared.runtime.settings import ServiceSettings
 from shared.vision.detector import DetectorSettings
 from shared.vision.tracking import TrackingSettings
@@ -31,8 +31,9 @@ class RobotInferSettings(ServiceSettings):
     detector: DetectorSettings = Field(default_factory=DetectorSettings)
     # Track-then-refine for tags stage 1 missed (shared/vision/tracking.py; off by default, see README)
     tracking: TrackingSettings = Field(default_factory=TrackingSettings)
-    # fp32 | bf16 (PyTorch) | int8 (OpenVINO, the weights folder's int8 variant: splittag quantize)
-    precision: Precision = "bf16"
+    # auto (int8 if the folder has it, else bf16 where the CPU has it in hardware, else fp32) | fp32 | bf16
+    # (PyTorch) | int8 (OpenVINO, the weights folder's int8 variant: splittag quantize)
+    precision: PrecisionChoice = "auto"
     threads: int = Field(default=1, ge=1)
     max_in_flight: int = Field(default=2, ge=0)  # frames sent without TagPoses back yet; 0 = no limit
     # Start each frame when it would reach the edge as the edge becomes free (shared.transport.flow.EdgePacer)

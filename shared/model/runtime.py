@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from shared.model.infer import run_head, run_tail
 from shared.model.net import SplitKeypointNet
 from shared.model.openvino_net import OpenVINOSplitNet, variant_path
-from shared.model.precision import PRECISIONS, Precision
+from shared.model.precision import Precision, PrecisionChoice, resolve_for_folder
 from shared.model.weights import load_model
 from shared.wire.cuts import CUTS, INPUT_SIZE
 
@@ -63,10 +63,10 @@ class TorchSplitNet:
             self.tail(self.head(np.zeros((n, INPUT_SIZE, INPUT_SIZE), np.uint8), 0), 0)
 
 
-def load_split_net(weights: Path, precision: Precision, *, threads: int | None = None) -> SplitNet:
-    """The network of a weights folder at a precision (int8: its OpenVINO variant, else VariantError)."""
-    if precision not in PRECISIONS:
-        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+def load_split_net(weights: Path, precision: PrecisionChoice, *, threads: int | None = None) -> SplitNet:
+    """The network of a weights folder at a precision (int8: its OpenVINO variant, else VariantError;
+    auto: the fastest this CPU and folder allow, see shared.model.precision); `.precision` says which."""
+    precision = resolve_for_folder(precision, weights)
     if precision == "int8":
         return OpenVINOSplitNet(variant_path(weights, "int8"), threads=threads)
     return TorchSplitNet(load_model(weights), bf16=precision == "bf16")

@@ -9,7 +9,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from shared.model.precision import PRECISIONS, ModelFileError
+from shared.model.precision import PRECISION_CHOICES, PRECISIONS, ModelFileError
 from shared.runtime.logs import setup_logging
 from shared.tools.options import add_model_options, model_from_args
 from shared.tools.topology import EDGE_PORT, Topology
@@ -503,7 +503,9 @@ def _add_link_commands(sub: Any) -> None:
     p.add_argument("--gamma", type=float, nargs="+", default=[1.0, 2.0, 4.0, 8.0])
     p.add_argument("--tags", type=int, default=1)
     p.add_argument("--weights", type=Path, default=Path("models"))
-    p.add_argument("--precision", choices=PRECISIONS, default="bf16", help="the network's arithmetic (both sides)")
+    p.add_argument(
+        "--precision", choices=PRECISION_CHOICES, default="auto", help="the network's arithmetic (both sides)"
+    )
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--repetitions", type=int, default=10)
     p.add_argument("--json", type=Path)
