@@ -122,7 +122,9 @@ def test_up_restarts_a_killed_service(tmp_path: Path) -> None:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and d.pids()["edge_infer"] == first["edge_infer"]:
             time.sleep(0.2)
-        assert d.pids()["edge_infer"] != first["edge_infer"], "edge_infer was not restarted"
+        assert d.pids()["edge_infer"] != first["edge_infer"], (
+            "edge_infer was not restarted; up.sh said:\n" + (d.log_path.read_text(errors="replace")[-4000:])
+        )
         wait_for_liveliness(d.session, [keys.alive("sup1", "edge_infer")], timeout_secs=90)
         assert d.up.poll() is None, "the deployment ended with the service"
         down = d.down()

@@ -17,7 +17,8 @@ from shared.model.weights import load_keypoint_fusion
 from shared.perception.split import RobotTimings, edge_step, robot_step
 from shared.runtime.guard import InputGuard, serve_stats
 from shared.transport.flow import EdgePacer, EdgeWatch, InFlightWindow
-from shared.transport.session import declare_latest_subscriber, declare_tensor_publisher, encoding_for, next_sample
+from shared.transport.latest import LatestValid, declare_latest_valid
+from shared.transport.session import declare_tensor_publisher, encoding_for
 from shared.transport.split_control import SplitState, serve_split
 from shared.vision.detector import TagDetector
 from shared.vision.tagmap import TagMapFile, load_tag_map
@@ -80,7 +81,12 @@ class RobotInfer:
         self.on_board_frames = 0
         self.last_profile = 0.0
         rid = s.robot_id
-        self.sub = declare_latest_subscriber(session, keys.frames(rid))
+        # Frames are checked as they arrive: a bad one is counted and never displaces the good one waiting.
+        max_bytes = s.max_payload_bytes
+        self.frames: LatestValid[Frame] = LatestValid(
+            lambda b: decode(b, Frame, max_bytes=max_bytes), self.guard, "frame"
+        )
+        self.sub = declare_latest_valid(session, keys.frames(rid), self.frames)
         self.pub = declare_tensor_publisher(session, keys.features(rid), Features.SCHEMA)
         self.poses_pub = declare_tensor_publisher(session, keys.tag_poses(rid), TagPoses.SCHEMA)
         self.compute_pub = session.declare_publisher(
@@ -139,14 +145,13 @@ class RobotInfer:
             delay = self.pacer.start_delay_secs() if self.pacer is not None else 0.0
             if delay > 0 and stop.wait(min(delay, self.settings.edge_answer_timeout_secs)):
                 break
-            if (sample := next_sample(self.sub, stop)) is None:
+            if (frame := self.frames.take(stop)) is None:
                 break
-            payload = sample.payload.to_bytes()
-            self.guard.run("frame", len(payload), lambda: self.process(payload))  # noqa: B023 (called at once)
+            self.guard.run("frame", frame.image.nbytes, lambda: self.process(frame))
 
-    def process(self, payload: bytes) -> None:
-        """One frame: decode, stage 1 + head(k), Features out (raises on bad input; the guard counts it)."""
-        frame = decode(payload, Frame, max_bytes=self.settings.max_payload_bytes)
+    def process(self, frame: Frame) -> None:
+        """One decoded frame: stage 1 + head(k), Features out (raises on input the maths cannot take;
+        the guard counts it)."""
         if self.watch.on_board(self.window.oldest_age_secs()):
             self.window.clear()
             self.on_board(frame)
