@@ -11,19 +11,23 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
-from typing import Generic, TypeVar
+from typing import Generic, Protocol, TypeVar
 
 import zenoh
 
-from shared.runtime.guard import InputGuard
-
 T = TypeVar("T")
+
+
+class Rejecter(Protocol):
+    """Counts and logs one rejected input (shared.runtime.guard.InputGuard is one)."""
+
+    def reject(self, what: str, payload_bytes: int, exc: BaseException) -> None: ...
 
 
 class LatestValid(Generic[T]):
     """Keeps the newest message that `check(payload)` accepted; `take` waits for one."""
 
-    def __init__(self, check: Callable[[bytes], T], guard: InputGuard, what: str) -> None:
+    def __init__(self, check: Callable[[bytes], T], guard: Rejecter, what: str) -> None:
         self._check = check
         self._guard = guard
         self._what = what
