@@ -4,7 +4,8 @@ The images come from bench/tagrender.py, which shares no code with the training-
 learned method cannot win by fitting its own renderer. Every method sees the image and the camera
 matrix only; the bench matches its predictions to the truth by id, solves the pose itself with the
 tag size from the truth (IPPE_SQUARE on 4 corners, IPPE on 16 lattice points) and bins the errors by
-motion blur, distance, tilt and occlusion.
+motion blur, distance, tilt and occlusion. Always in the table: AprilTag 3 and OpenCV's ArUco (36h11) as a
+user runs them, and the product's stage 1 (both, merged and gated); with --weights, the whole chain.
 
     .venv/bin/python -m bench.accuracy --n 600 --seed 0 [--json out.json] [--weights models] [--workers 2]
 
@@ -59,7 +60,7 @@ Method = Callable[[NDArray[np.uint8], FloatArray], list[Prediction]]
 
 
 class AprilTagMethod:
-    """AprilTag 3 (pupil-apriltags) as the product's stage 1 runs it: corners only, +0.5 px removed.
+    """AprilTag 3 (pupil-apriltags) as the product's stage 1 runs its first proposer: corners only, +0.5 px removed.
 
     The defaults mirror the product's stage-1 settings (quad_decimate 2, refine_edges, sharpening 0.25,
     hamming <= 1, decision margin >= 20); they are restated here so the baseline shares nothing with the
@@ -110,6 +111,45 @@ class AprilTagMethod:
             destroy_detector(det)
 
 
+class ArucoMethod:
+    """OpenCV's ArUco detector on its AprilTag 36h11 dictionary, OpenCV's default parameters plus
+    sub-pixel corners: what an OpenCV user reaches for. OpenCV's marker images are AprilTag's canonical
+    tags rotated by 180 deg, so its corners c0..c3 are the canonical BR, BL, TL, TR."""
+
+    _TO_TL_TR_BR_BL: Final[list[int]] = [2, 3, 0, 1]
+
+    def __init__(self) -> None:
+        params = cv2.aruco.DetectorParameters()
+        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+        self._det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11), params)
+
+    def __call__(self, image: NDArray[np.uint8], camera_matrix: FloatArray) -> list[Prediction]:
+        """Decoded tags of one grayscale image."""
+        corners, ids, _ = self._det.detectMarkers(image)
+        if ids is None:
+            return []
+        return [
+            Prediction(int(i), np.asarray(c, np.float64).reshape(4, 2)[self._TO_TL_TR_BR_BL], "corners4")
+            for c, i in zip(corners, ids.ravel(), strict=True)
+        ]
+
+
+def stage1_method(quad_decimate: float = 2.0, *, aruco: bool = True) -> Method:
+    """The product's stage 1 alone (shared.vision.proposals.Stage1Detector: AprilTag 3, then the gated
+    ArUco proposer) as a "corners4" method; imports the project here only."""
+    from shared.vision.detector import DetectorSettings
+    from shared.vision.proposals import ArucoSettings, Stage1Detector, Stage1Settings
+
+    detector = Stage1Detector(
+        Stage1Settings(apriltag=DetectorSettings(quad_decimate=quad_decimate), aruco=ArucoSettings(enabled=aruco))
+    )
+
+    def method(image: NDArray[np.uint8], camera_matrix: FloatArray) -> list[Prediction]:
+        return [Prediction(d.tag_id, d.corners_px, "corners4") for d in detector.detect(image)]
+
+    return method
+
+
 class SplittagUnavailable(RuntimeError):
     """The product's perception chain could not be imported or loaded."""
 
@@ -127,7 +167,7 @@ def splittag_method(weights_dir: Path, *, fuse: bool = True, precision: str = "f
     from shared.model.weights import load_keypoint_fusion, load_model
     from shared.perception.single import perceive
     from shared.vision.camera import CameraIntrinsics
-    from shared.vision.detector import TagDetector
+    from shared.vision.proposals import Stage1Detector
     from shared.vision.tagmap import TagMapFile
 
     try:
@@ -137,7 +177,7 @@ def splittag_method(weights_dir: Path, *, fuse: bool = True, precision: str = "f
         fusion = load_keypoint_fusion(Path(weights_dir)) if fuse else None
     except Exception as exc:
         raise SplittagUnavailable(f"cannot load weights from {weights_dir}: {exc}") from exc
-    detector = TagDetector()
+    detector = Stage1Detector()  # the services' stage 1
     tag_map = TagMapFile(default_size_m=0.15)
 
     def method(image: NDArray[np.uint8], camera_matrix: FloatArray) -> list[Prediction]:
@@ -461,7 +501,11 @@ def main() -> None:
 
     settings = RenderSettings()
     apriltag = AprilTagMethod()
-    methods: dict[str, Method] = {"apriltag3 (corners)": apriltag}
+    methods: dict[str, Method] = {
+        "apriltag3 (corners)": apriltag,
+        "opencv aruco (corners)": ArucoMethod(),
+        "splittag stage 1 (corners)": stage1_method(),
+    }
     if args.weights is not None:
         from shared.model.weights import load_keypoint_fusion
 

@@ -20,7 +20,7 @@ from shared.transport.flow import EdgePacer, EdgeWatch, InFlightWindow
 from shared.transport.latest import LatestValid, declare_latest_valid
 from shared.transport.session import declare_tensor_publisher, encoding_for
 from shared.transport.split_control import SplitState, serve_split
-from shared.vision.detector import TagDetector
+from shared.vision.proposals import Stage1Detector
 from shared.vision.tagmap import TagMapFile, load_tag_map
 from shared.vision.tracking import TagTracker
 from shared.wire import keys
@@ -70,7 +70,7 @@ class RobotInfer:
         self.emulated = s.emulated_ms_per_tag_by_k
         self.per_tag_ms = self.emulated or head_per_tag_ms(calibrate_cumulative_ms(self.net))
         self.estimator = ComputeEstimator(self.per_tag_ms)
-        self.detector = TagDetector(s.detector)
+        self.detector = Stage1Detector(s.stage1)
         self.tracker = TagTracker(s.tracking) if s.tracking.enabled else None
         self.tag_map = load_tag_map(s.tag_map) if s.tag_map else TagMapFile(default_size_m=s.default_tag_size_m)
         self.state = SplitState(SplitConfig(k=s.split_k, codec=s.codec, pinned=False, source="default"))
@@ -108,6 +108,10 @@ class RobotInfer:
             "credits_expired": self.window.expired,
             "on_board_frames": self.on_board_frames,
             "edge_outages": self.watch.outages,
+            "stage1_frames": self.detector.counts.frames,
+            "stage1_apriltag_tags": self.detector.counts.apriltag,
+            "stage1_aruco_added": self.detector.counts.aruco_added,
+            "stage1_aruco_refused": self.detector.counts.aruco_refused,
         }
 
     # Zenoh callbacks: bookkeeping only.
@@ -248,9 +252,10 @@ class RobotInfer:
         self.stats.undeclare()
         self.edge_token.undeclare()
         log.info(
-            "robot_infer: %s, %d credits expired, %d frames on board in %d edge outages",
+            "robot_infer: %s, %d credits expired, %d frames on board in %d edge outages; stage 1: %s",
             self.guard.stats(),
             self.window.expired,
             self.on_board_frames,
             self.watch.outages,
+            self.detector.counts,
         )

@@ -10,7 +10,7 @@ from pydantic_settings import SettingsConfigDict
 
 from shared.model.precision import PrecisionChoice
 from shared.runtime.settings import ServiceSettings
-from shared.vision.detector import DetectorSettings
+from shared.vision.proposals import Stage1Settings
 from shared.vision.tracking import TrackingSettings
 from shared.wire.cuts import CodecName
 from shared.wire.messages import PerCut
@@ -28,7 +28,9 @@ class RobotInferSettings(ServiceSettings):
     fuse_corners: bool = True
     split_k: int = Field(default=7, ge=0, le=7)
     codec: CodecName = "fp16"
-    detector: DetectorSettings = Field(default_factory=DetectorSettings)
+    # Stage 1: AprilTag 3 (stage1.apriltag: quad_decimate, ...) and the second proposer for the tags it
+    # misses (stage1.aruco: OpenCV's ArUco on tag36h11, gated by a soft decode; .enabled = false drops it)
+    stage1: Stage1Settings = Field(default_factory=Stage1Settings)
     # Track-then-refine for tags stage 1 missed (shared/vision/tracking.py; off by default, see README)
     tracking: TrackingSettings = Field(default_factory=TrackingSettings)
     # auto (int8 if the folder has it, else bf16 where the CPU has it in hardware, else fp32) | fp32 | bf16

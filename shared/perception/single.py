@@ -17,7 +17,7 @@ from shared.model.infer import keypoints
 from shared.model.net import SplitKeypointNet
 from shared.model.runtime import SplitNet
 from shared.vision.camera import CameraIntrinsics
-from shared.vision.detector import Detection, TagDetector
+from shared.vision.detector import Detection, Stage1
 from shared.vision.fusion import KeypointFusion, edge_width_px
 from shared.vision.geometry import (
     Array,
@@ -89,6 +89,7 @@ class TagResult:
             "id": d.tag_id,
             "decision_margin": d.decision_margin,
             "hamming": d.hamming,
+            "proposer": d.proposer,
             "tag_size_m": self.tag_size_m,
             "apriltag_corners_px": d.corners_px.tolist(),
             "keypoints_px": None if self.keypoints_px is None else self.keypoints_px.tolist(),
@@ -101,7 +102,7 @@ def perceive(
     image: NDArray[np.uint8],
     *,
     camera: CameraIntrinsics,
-    detector: TagDetector,
+    detector: Stage1,
     model: SplitKeypointNet | SplitNet | None,
     tag_map: TagMapFile,
     fusion: KeypointFusion | None = None,

@@ -8,14 +8,13 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Final, Protocol
+from typing import Final
 
 import numpy as np
-from numpy.typing import NDArray
 
 from shared.model.runtime import SplitNet
 from shared.perception.single import extract_rois
-from shared.vision.detector import Detection
+from shared.vision.detector import Detection, Stage1
 from shared.vision.fusion import KeypointFusion, edge_width_px
 from shared.vision.geometry import keypoints_to_image, lattice_in_tag
 from shared.vision.pnp import solve_planar_pnp
@@ -23,13 +22,6 @@ from shared.vision.tagmap import TagMapFile
 from shared.vision.tracking import TagTracker, verify_tag
 from shared.wire.cuts import CUTS, CodecName, FeatureShapeError, check_cut, check_tensor
 from shared.wire.messages import Features, Frame, HopTimings, LinkStamps, TagFeature, TagPose, TagPoses
-
-
-class Stage1(Protocol):
-    """What robot_step needs of stage 1: TagDetector, or a test's scripted fake."""
-
-    def detect(self, image: NDArray[np.uint8]) -> list[Detection]: ...
-
 
 _LATTICE_CORNERS: Final[tuple[int, int, int, int]] = (0, 3, 15, 12)  # TL, TR, BR, BL in the 4x4 lattice
 

@@ -223,6 +223,8 @@ def _cmd_detect(args: argparse.Namespace) -> int:
         tags_path=args.tags,
         weights=args.weights,
         json_path=args.json,
+        quad_decimate=args.quad_decimate,
+        aruco=not args.no_aruco,
     )
 
 
@@ -597,6 +599,13 @@ def _add_model_commands(sub: Any) -> None:
     g.add_argument("--tags", type=Path, default=None, help="tag map YAML/JSON with per-tag sizes")
     p.add_argument("--weights", type=Path, default=None, help="weights folder (default: models/)")
     p.add_argument("--json", type=Path, required=True)
+    p.add_argument(
+        "--quad-decimate",
+        type=float,
+        default=1.0,
+        help="AprilTag's decimation (default 1: full resolution, for stills; the services run 2 for speed)",
+    )
+    p.add_argument("--no-aruco", action="store_true", help="stage 1 without the second proposer (AprilTag 3 alone)")
     p.set_defaults(func=_cmd_detect)
 
 

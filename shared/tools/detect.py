@@ -13,8 +13,9 @@ import numpy as np
 from shared.model.weights import load_keypoint_fusion, load_model
 from shared.perception.single import perceive
 from shared.runtime.sources import expand_paths
-from shared.vision.detector import TagDetector
+from shared.vision.detector import DetectorSettings
 from shared.vision.geometry import GeometryError, camera_from_yaml
+from shared.vision.proposals import ArucoSettings, Stage1Detector, Stage1Settings
 from shared.vision.tagmap import TagMapFile, load_tag_map
 
 DEFAULT_WEIGHTS: Final[Path] = Path(__file__).resolve().parents[2] / "models"
@@ -28,13 +29,17 @@ def run_detect(
     tags_path: Path | None,
     weights: Path | None,
     json_path: Path,
+    quad_decimate: float = 1.0,
+    aruco: bool = True,
 ) -> int:
     """Process every image; unreadable ones are reported in the JSON and on stderr. Exit 0 if any ran."""
     camera = camera_from_yaml(camera_path)
     tag_map = load_tag_map(tags_path) if tags_path else TagMapFile(default_size_m=tag_size_m or 0.16)
     model = load_model(weights or DEFAULT_WEIGHTS)
     fusion = load_keypoint_fusion(weights or DEFAULT_WEIGHTS)
-    detector = TagDetector()
+    detector = Stage1Detector(
+        Stage1Settings(apriltag=DetectorSettings(quad_decimate=quad_decimate), aruco=ArucoSettings(enabled=aruco))
+    )
     images: list[dict[str, Any]] = []
     errors = 0
     for path in expand_paths(paths):
@@ -68,6 +73,11 @@ def run_detect(
             print(f"{path}: {len(entry['tags'])} tags " + " ".join(str(t["id"]) for t in entry["tags"]))
         images.append(entry)
     json_path.parent.mkdir(parents=True, exist_ok=True)
-    json_path.write_text(json.dumps({"camera": camera.model_dump(), "images": images}, indent=2))
+    json_path.write_text(
+        json.dumps(
+            {"camera": camera.model_dump(), "stage1": detector.settings.model_dump(), "images": images}, indent=2
+        )
+    )
+    detector.close()
     print(f"wrote {json_path} ({len(images) - errors} images processed, {errors} failed)")
     return 0 if len(images) > errors else 1

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import weakref
 from dataclasses import dataclass
-from typing import Final
+from typing import Final, Protocol
 
 import numpy as np
 import pupil_apriltags
@@ -38,12 +38,21 @@ class DetectorSettings(BaseModel):
 
 @dataclass(frozen=True)
 class Detection:
-    """One decoded tag: id, decode quality, and the black square's corners TL, TR, BR, BL."""
+    """One decoded tag: id, decode quality, the black square's corners TL, TR, BR, BL, and which stage-1
+    proposer found it ("apriltag", "aruco"; shared.vision.proposals)."""
 
     tag_id: int
     decision_margin: float
     hamming: int
     corners_px: Array
+    proposer: str = "apriltag"
+
+
+class Stage1(Protocol):
+    """What the perception cores need of stage 1: TagDetector, shared.vision.proposals.Stage1Detector,
+    or a test's scripted fake."""
+
+    def detect(self, image: NDArray[np.uint8]) -> list[Detection]: ...
 
 
 def destroy_detector(det: pupil_apriltags.Detector) -> None:
