@@ -55,6 +55,7 @@ _CACHE_SOURCES = (
     "bench/accuracy.py",
     "shared/perception/single.py",
     "shared/vision/detector.py",
+    "shared/vision/proposals.py",
     "shared/vision/fusion.py",
     "shared/vision/pnp.py",
     "shared/vision/geometry.py",
@@ -106,12 +107,12 @@ def _init_worker(weights: str) -> None:
     import torch
 
     from shared.model.weights import load_keypoint_fusion, load_model
-    from shared.vision.detector import TagDetector
+    from shared.vision.proposals import Stage1Detector
 
     torch.set_num_threads(1)
     _worker["model"] = load_model(Path(weights))
     _worker["fusion"] = load_keypoint_fusion(Path(weights))
-    _worker["detector"] = TagDetector()
+    _worker["detector"] = Stage1Detector()  # the services' stage 1
     _worker["apriltag"] = AprilTagMethod()
     _worker["renderers"] = {}
 
