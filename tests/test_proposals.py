@@ -94,3 +94,14 @@ def test_real_photos_second_proposer_recovers_what_decimation_and_apriltag_lose(
     assert ours_d1 >= 46
     for d in (apriltag_d2, apriltag_d1, stage1_d2, stage1_d1):
         d.close()
+
+
+def test_bad_threshold_windows_are_refused_with_the_values() -> None:
+    import pydantic
+    import pytest
+
+    from shared.vision.proposals import ArucoSettings
+
+    for bad in ((2, 17, 10), (17, 7, 10), (7, 17, 0)):
+        with pytest.raises(pydantic.ValidationError, match="threshold_window_px"):
+            ArucoSettings(threshold_window_px=bad)

@@ -24,7 +24,7 @@ from typing import Final
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from shared.vision.detector import Detection, DetectorSettings, Stage1, TagDetector
 from shared.vision.geometry import Array, check_image
@@ -44,7 +44,7 @@ class ArucoSettings(BaseModel):
     # 3 of 36h11's 5 bits); the gate below then refuses what is not the tag.
     error_correction_rate: float = Field(default=0.6, ge=0.0, le=1.0)
     # Adaptive-threshold window sizes (px): min, max, step. OpenCV's defaults (3, 23, 10) threshold
-    # three times; 7 and 17 find as many tags on bench/accuracy's renders for 30-45 % less time
+    # three times; 7 and 17 find as many tags on bench/accuracy's renders for 25-50 % less time
     # (bench/photos: 2 fewer real-photo tags from ArUco alone, none fewer after merging at decimate 1).
     threshold_window_px: tuple[int, int, int] = (7, 17, 10)
     min_perimeter_rate: float = Field(default=0.03, gt=0.0)  # of the image's larger side (OpenCV's default)
@@ -55,6 +55,14 @@ class ArucoSettings(BaseModel):
     gate_min_correlation: float = Field(default=0.75, gt=0.0, le=1.0)
     gate_min_margin: float = Field(default=0.15, ge=0.0)
     gate_search_px: float = Field(default=1.0, ge=0.0)
+
+    @field_validator("threshold_window_px")
+    @classmethod
+    def _windows(cls, v: tuple[int, int, int]) -> tuple[int, int, int]:
+        lo, hi, step = v
+        if lo < 3 or hi < lo or step < 1:
+            raise ValueError(f"threshold_window_px is (min >= 3, max >= min, step >= 1) px, got {v}")
+        return v
 
 
 class Stage1Settings(BaseModel):
