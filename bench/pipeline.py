@@ -5,9 +5,10 @@ processes, then for each k sets the split through the Zenoh query, waits for the
 effect, and measures capture->pose latency over a window.
 
     .venv/bin/python -m bench.pipeline [--fps 15] [--window-secs 10] [--tracking off|on|both]
-        [--precision fp32|bf16|int8] [--pace on|off|both]
+        [--precision fp32|bf16|int8] [--pace on|off|both] [--aruco on|off|both]
 
-`--tracking both` runs everything twice, robot_infer's track-then-refine off and then on, in one run.
+`--tracking both` runs everything twice, robot_infer's track-then-refine off and then on, in one run;
+`--aruco both` likewise with stage 1's second proposer (shared.vision.proposals) off and on.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from __future__ import annotations
 import argparse
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -44,28 +46,44 @@ def main() -> None:
         "--precision", choices=("auto", "fp32", "bf16", "int8"), default="auto", help="robot and edge network"
     )
     ap.add_argument("--pace", choices=("on", "off", "both"), default="on", help="robot_infer's edge pacer")
+    ap.add_argument("--aruco", choices=("on", "off", "both"), default="on", help="stage 1's second proposer")
     args = ap.parse_args()
     args.precision = resolve_for_folder(args.precision, Path("models"))  # what auto stands for here
     print(f"CPU: {cpu_label()}", flush=True)
     modes = {"off": [False], "on": [True], "both": [False, True]}
-    runs = [(tracking, pace) for tracking in modes[args.tracking] for pace in modes[args.pace]]
-    tables = [(tracking, pace, measure(args, tracking=tracking, pace=pace)) for tracking, pace in runs]
-    for tracking, pace, rows in tables:
-        print_table(args, rows, tracking=tracking, pace=pace)
+    runs = [
+        Mode(tracking, pace, aruco)
+        for tracking in modes[args.tracking]
+        for pace in modes[args.pace]
+        for aruco in modes[args.aruco]
+    ]
+    tables = [(mode, measure(args, mode)) for mode in runs]
+    for mode, rows in tables:
+        print_table(args, rows, mode)
+
+
+@dataclass(frozen=True)
+class Mode:
+    """robot_infer's switches for one table."""
+
+    tracking: bool
+    pace: bool
+    aruco: bool
 
 
 Row = tuple[CutInfo, float, float, float, float, float, float, float, float]
 
 
-def measure(args: argparse.Namespace, *, tracking: bool, pace: bool) -> list[Row]:
-    """Start the services (robot_infer's tracking and pacing on or off), sweep k, stop them."""
+def measure(args: argparse.Namespace, mode: Mode) -> list[Row]:
+    """Start the services (robot_infer's tracking, pacing and second proposer on or off), sweep k, stop them."""
     tmp = Path(tempfile.mkdtemp(prefix="splittag-bench-"))
     cfg, topology = loopback_config(
         tmp, robot_id=ROBOT, rerun=args.rerun, image_every=args.rerun_image_every, fps=args.fps
     )
     env = {
-        "SPLITTAG_ROBOT_INFER_TRACKING__ENABLED": "true" if tracking else "false",
-        "SPLITTAG_ROBOT_INFER_PACE_TO_EDGE": "true" if pace else "false",
+        "SPLITTAG_ROBOT_INFER_TRACKING__ENABLED": "true" if mode.tracking else "false",
+        "SPLITTAG_ROBOT_INFER_PACE_TO_EDGE": "true" if mode.pace else "false",
+        "SPLITTAG_ROBOT_INFER_STAGE1__ARUCO__ENABLED": "true" if mode.aruco else "false",
         "SPLITTAG_ROBOT_INFER_PRECISION": args.precision,
         "SPLITTAG_EDGE_INFER_PRECISION": args.precision,
     }
@@ -108,13 +126,14 @@ def measure(args: argparse.Namespace, *, tracking: bool, pace: bool) -> list[Row
     return rows
 
 
-def print_table(args: argparse.Namespace, rows: list[Row], *, tracking: bool, pace: bool) -> None:
+def print_table(args: argparse.Namespace, rows: list[Row], mode: Mode) -> None:
     """One table per mode. `path` = robot + link + edge medians (the critical path); `e2e/path` is what
     waiting adds; `fps x slowest` = throughput x the slower side's per-frame time (1.0 = that side never
     idles)."""
     print(
         f"camera {args.fps} fps, window {args.window_secs} s per k, loopback, 2-core CPU, {args.precision}, rerun "
-        f"{'on' if args.rerun else 'off'}, tracking {'on' if tracking else 'off'}, pacing {'on' if pace else 'off'}; "
+        f"{'on' if args.rerun else 'off'}, tracking {'on' if mode.tracking else 'off'}, "
+        f"pacing {'on' if mode.pace else 'off'}, aruco {'on' if mode.aruco else 'off'}; "
         "latencies in ms"
     )
     print(
