@@ -12,6 +12,7 @@ from shared.wire.messages import (
     Features,
     Frame,
     FrameSent,
+    FrameStamp,
     HopTimings,
     LinkStamps,
     MapTag,
@@ -199,7 +200,10 @@ def example_messages() -> dict[str, Message]:
         applied=False,
         reason="keep k=7: k=5 better by 15.0 ms (1/3)",
     )
-    msgs: list[Message] = [frame, features, poses, camera_pose, tag_map, split, ack, compute, controller, sent]
+    stamp = FrameStamp(
+        robot_id="robot1", seq=3, capture_nanos=1_700_000_000_123_456_789, source_stamp_nanos=1_305_031_102_175_304_000
+    )
+    msgs: list[Message] = [frame, features, poses, camera_pose, tag_map, split, ack, compute, controller, sent, stamp]
     return {m.SCHEMA: m for m in msgs}
 
 

@@ -28,7 +28,7 @@ from shared.slam.marker_slam import (
 from shared.vision.geometry import GeometryError, default_camera, lattice_in_tag, make_pose, project
 from shared.vision.pnp import solve_planar_pnp
 from shared.vision.tagmap import load_tag_map
-from shared.vision.trajectory import read_tum
+from shared.vision.trajectory import StampMap, read_tum
 from shared.wire.messages import HopTimings, TagPose, TagPoses
 
 CAM = default_camera()
@@ -409,3 +409,36 @@ def test_the_pose_log_keeps_poses_compactly_in_stamp_order() -> None:
     np.testing.assert_allclose(back, np.array(poses), atol=1e-6)
     per_pose = (log._stamps.nbytes + log._positions.nbytes + log._quats.nbytes) / len(log._stamps)
     assert per_pose <= 52
+
+
+def test_trajectory_is_written_in_the_data_sets_time_when_every_frame_has_it(tmp_path: Path) -> None:
+    """A folder source with rgb.txt sends each frame's data-set time (FrameStamp): trajectory.tum and
+    groundtruth.tum come out in that time, so a TUM tool compares them with the data set's ground truth
+    as it is; one frame without a stamp and the run stays in capture time (said in slam.json)."""
+    poses = _constant_velocity(12)
+    source_ns = [1_305_031_102_175_304_000 + i * 33_333_333 for i in range(12)]
+    node = SlamNode(SlamServiceSettings(run_dir=tmp_path))
+    for i in range(12):
+        node.on_frame_stamp(1_000 + i, source_ns[i])
+        node.on_ground_truth(1_000 + i, poses[i])
+        node.on_poses(_tag_poses(i, 1_000 + i, poses[i]))
+    node.write_outputs(tmp_path)
+    stamps = [t for t, _ in read_tum(tmp_path / "trajectory.tum")]
+    np.testing.assert_allclose(stamps, np.array(source_ns) / 1e9, rtol=0, atol=1e-6)
+    np.testing.assert_allclose([t for t, _ in read_tum(tmp_path / "groundtruth.tum")], stamps, rtol=0, atol=1e-6)
+    assert json.loads((tmp_path / "slam.json").read_text())["time"] == "data set (rgb.txt)"
+
+    node.on_poses(_tag_poses(12, 1_012, poses[11]))  # no stamp came for this one
+    node.write_outputs(tmp_path)
+    assert read_tum(tmp_path / "trajectory.tum")[0][0] == pytest.approx(1_000e-9)
+    assert json.loads((tmp_path / "slam.json").read_text())["time"] == "capture"
+
+
+def test_stamp_map_looks_up_capture_times() -> None:
+    m = StampMap()
+    for i in range(300):  # past the first growth
+        m.add(5_000 - i, 10 * i)
+    values, found = m.lookup(np.array([5_000, 4_701, 7, 4_999]))
+    assert found.tolist() == [True, True, False, True]
+    assert values.tolist() == [0, 2_990, 7, 10]
+    assert StampMap().lookup(np.array([3]))[1].tolist() == [False]

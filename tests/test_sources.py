@@ -18,7 +18,7 @@ from shared.vision.geometry import GeometryError, camera_to_yaml, default_camera
 from shared.vision.tags import render_tag, to_uint8
 from shared.vision.trajectory import read_tum, write_tum
 from shared.wire import keys
-from shared.wire.messages import CameraPose, Frame, decode
+from shared.wire.messages import CameraPose, Frame, FrameStamp, decode
 
 CAM = default_camera()
 
@@ -92,12 +92,25 @@ def test_v4l2_source_when_a_device_exists(tmp_path: Path) -> None:
     assert frame.image.shape == (CAM.height, CAM.width)
 
 
-def _stream(settings: CameraSettings, key_prefix: str, expect: int) -> tuple[list[Frame], list[CameraPose], int]:
+def _stream(
+    settings: CameraSettings, key_prefix: str, expect: int, stamps: list[FrameStamp] | None = None
+) -> tuple[list[Frame], list[CameraPose], int]:
+    """Run the camera service into a hub session; collect its frames, ground truth (and FrameStamps
+    into `stamps`, waiting for `expect` of them too, when given)."""
     port = free_tcp_port()
     hub = open_session(ZenohSettings(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
     frames: list[Frame] = []
     gts: list[CameraPose] = []
     got = threading.Event()
+    got_stamps = threading.Event()
+    if stamps is None:
+        got_stamps.set()
+
+    def on_stamp(sample: object) -> None:
+        assert stamps is not None
+        stamps.append(decode(sample.payload.to_bytes(), FrameStamp))  # type: ignore[attr-defined]
+        if len(stamps) >= expect:
+            got_stamps.set()
 
     def on_frame(sample: object) -> None:
         frames.append(decode(sample.payload.to_bytes(), Frame))  # type: ignore[attr-defined]
@@ -110,6 +123,7 @@ def _stream(settings: CameraSettings, key_prefix: str, expect: int) -> tuple[lis
             keys.ground_truth(key_prefix),
             lambda s: gts.append(decode(s.payload.to_bytes(), CameraPose)),
         ),
+        hub.declare_subscriber(keys.frame_stamp(key_prefix), on_stamp),
     ]
     cam_session = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
     try:
@@ -117,6 +131,7 @@ def _stream(settings: CameraSettings, key_prefix: str, expect: int) -> tuple[lis
             settings.model_copy(update={"wait_for": []}), session=cam_session, stop=threading.Event()
         )
         assert got.wait(10), f"received {len(frames)} of {expect} frames"
+        assert got_stamps.wait(10), f"received {len(stamps or [])} of {expect} frame stamps"
     finally:
         cam_session.close()
         for s in subs:
@@ -166,3 +181,69 @@ def test_camera_settings_need_camera_info_for_files(tmp_path: Path) -> None:
 
     with pytest.raises(ValueError, match="camera_info"):
         make_source(CameraSettings(source="folder", path=str(tmp_path)))
+
+
+def test_folder_source_reads_rgb_txt_stamps_and_associates_ground_truth_by_time(tmp_path: Path) -> None:
+    """A TUM data set: rgb.txt beside rgb/ lists the images (its order, not the file names'), each frame
+    carries its time; ground truth at another rate is matched to the nearest stamp within 20 ms."""
+    root = tmp_path / "dataset"
+    (root / "rgb").mkdir(parents=True)
+    for i in range(3):
+        cv2.imwrite(str(root / "rgb" / f"{i}.png"), _tag_image(i))
+    (root / "rgb.txt").write_text(
+        "# color images\n# timestamp filename\n1305031102.175304 rgb/2.png\n1305031102.211214 rgb/0.png\n"
+        "1305031102.243211 rgb/1.png\n"
+    )
+    info = tmp_path / "camera_info.yaml"
+    info.write_text(camera_to_yaml(CAM))
+    gt = tmp_path / "groundtruth.txt"  # 100 Hz, and nothing near the last image
+    write_tum(gt, [(1305031102.17 + 0.01 * j, make_pose(np.eye(3), [float(j), 0.0, 0.0])) for j in range(6)])
+    frames = list(FolderSource(root / "rgb", info, gt).frames())
+    assert [f.stamp_nanos for f in frames] == [
+        1_305_031_102_175_304_000,
+        1_305_031_102_211_214_000,
+        1_305_031_102_243_211_000,
+    ]
+    assert np.array_equal(frames[0].image, _tag_image(2))
+    assert [None if f.world_from_camera is None else f.world_from_camera[0, 3] for f in frames] == [1.0, 4.0, None]
+    assert all(f.stamp_nanos is None for f in FolderSource(_folder(tmp_path)[0], info).frames())
+
+
+def test_folder_source_refuses_a_bad_rgb_txt_with_the_line(tmp_path: Path) -> None:
+    info = tmp_path / "camera_info.yaml"
+    info.write_text(camera_to_yaml(CAM))
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "a.png"), _tag_image(0))
+    for text, why in (
+        ("1.0 a.png extra\n", "rgb.txt:1: expected 'timestamp filename'"),
+        ("# c\nnan a.png\n", "rgb.txt:2: timestamp 'nan' must be"),
+        ("t a.png\n", "timestamp 't' is not a number"),
+        ("1e400 a.png\n", "timestamp '1e400' must be"),
+    ):
+        (folder / "rgb.txt").write_text(text)
+        with pytest.raises(GeometryError, match=why):
+            FolderSource(folder, info)
+    (folder / "rgb.txt").write_text("1.0 a.png\n2.0 missing.png\n")
+    with pytest.raises(FileNotFoundError, match="1 missing images"):
+        FolderSource(folder, info)
+
+
+def test_camera_service_sends_each_frames_data_set_time(tmp_path: Path) -> None:
+    """The camera publishes a FrameStamp per frame of a folder with rgb.txt: the same seq and capture
+    time as the Frame (so slam can pair them), and the data set's time."""
+    folder, info, _ = _folder(tmp_path)
+    listed = [1_305_031_102_175_304_000, 1_305_031_102_211_214_000, 1_305_031_102_243_211_000]
+    (folder / "rgb.txt").write_text(
+        "".join(f"{t // 10**9}.{t % 10**9:09d} {i:04d}.png\n" for i, t in enumerate(listed))
+    )
+    stamps: list[FrameStamp] = []
+    settings = CameraSettings(
+        robot_id="src3", source="folder", path=str(folder), camera_info=info, fps=50.0, loop=False, run_dir=tmp_path
+    )
+    frames, _, published = _stream(settings, "src3", 3, stamps)
+    assert published == 3
+    by_seq = {s.seq: s for s in stamps}
+    assert [(by_seq[f.seq].capture_nanos, by_seq[f.seq].source_stamp_nanos) for f in frames] == [
+        (f.capture_nanos, t) for f, t in zip(frames, listed, strict=True)
+    ]

@@ -13,7 +13,7 @@ from shared.runtime.sources import CaptureSource, DemoSource, FolderSource, Fram
 from shared.transport.session import declare_tensor_publisher, encoding_for, wait_for_liveliness
 from shared.viz.recording import make_viz
 from shared.wire import keys
-from shared.wire.messages import CameraPose, Frame, encode
+from shared.wire.messages import CameraPose, Frame, FrameStamp, encode
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +39,12 @@ def run(settings: CameraSettings, *, session: zenoh.Session, stop: threading.Eve
     source = make_source(settings)
     pub = declare_tensor_publisher(session, keys.frames(settings.robot_id), Frame.SCHEMA)
     gt_pub = session.declare_publisher(keys.ground_truth(settings.robot_id), encoding=encoding_for(CameraPose.SCHEMA))
+    # reliable and blocking: a lost stamp would leave its frame in live time in trajectory.tum
+    stamp_pub = session.declare_publisher(
+        keys.frame_stamp(settings.robot_id),
+        encoding=encoding_for(FrameStamp.SCHEMA),
+        congestion_control=zenoh.CongestionControl.BLOCK,
+    )
     token = session.liveliness().declare_token(keys.alive(settings.robot_id, "camera"))
     if settings.wait_for:
         wait_for_liveliness(
@@ -72,6 +78,17 @@ def run(settings: CameraSettings, *, session: zenoh.Session, stop: threading.Eve
                         )
                     )
                 )
+                if item.stamp_nanos is not None:
+                    stamp_pub.put(
+                        encode(
+                            FrameStamp(
+                                robot_id=settings.robot_id,
+                                seq=seq,
+                                capture_nanos=capture,
+                                source_stamp_nanos=item.stamp_nanos,
+                            )
+                        )
+                    )
                 if item.world_from_camera is not None:
                     gt_pub.put(
                         encode(

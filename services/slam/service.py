@@ -35,10 +35,10 @@ from shared.vision.camera import CameraIntrinsics
 from shared.vision.files import atomic_write_text
 from shared.vision.geometry import check_rigid
 from shared.vision.tagmap import load_tag_map, tag_map_from_poses, write_tag_map
-from shared.vision.trajectory import PoseLog, read_tum, write_tum_arrays
+from shared.vision.trajectory import PoseLog, StampMap, read_tum, write_tum_arrays
 from shared.viz.recording import make_viz
 from shared.wire import keys
-from shared.wire.messages import CameraPose, MapTag, TagMap, TagPoses, decode, encode
+from shared.wire.messages import CameraPose, FrameStamp, MapTag, TagMap, TagPoses, decode, encode
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +80,10 @@ class SlamNode:
         # it for the frames it gets poses for (a recent window waits for them), compactly.
         self.gt = PoseLog()
         self._gt_recent: OrderedDict[int, np.ndarray] = OrderedDict()
+        # A data set's own frame times (folder source with rgb.txt), held like ground truth until the
+        # frame's TagPoses come; trajectory.tum is written in that time when every pose has one.
+        self.source_stamps = StampMap()
+        self._stamp_recent: OrderedDict[int, int] = OrderedDict()
         self.revision = 0
         self.last_pose: np.ndarray | None = None
         self.lock = threading.Lock()
@@ -91,10 +95,18 @@ class SlamNode:
             while len(self._gt_recent) > GT_WAITING_FRAMES:
                 self._gt_recent.popitem(last=False)
 
+    def on_frame_stamp(self, capture_nanos: int, source_nanos: int) -> None:
+        """Hold a frame's data-set time until its TagPoses come (bounded as ground truth is)."""
+        with self.lock:
+            self._stamp_recent[capture_nanos] = source_nanos
+            while len(self._stamp_recent) > GT_WAITING_FRAMES:
+                self._stamp_recent.popitem(last=False)
+
     def on_poses(self, msg: TagPoses) -> tuple[CameraPose, TagMap | None]:
         """Fuse one frame; returns the camera pose message and the map if it should be published."""
         with self.lock:
             truth = self._gt_recent.pop(msg.capture_nanos, None)
+            source_nanos = self._stamp_recent.pop(msg.capture_nanos, None)
             focal = None if msg.intrinsics is None else (msg.intrinsics.fx + msg.intrinsics.fy) / 2
             observations = [Observation.from_message(t, focal) for t in msg.tags]
             for o in observations:
@@ -103,6 +115,8 @@ class SlamNode:
             res = self.slam.update(frame, msg.capture_nanos, observations)
             if truth is not None:
                 self.gt.append(msg.capture_nanos, truth)
+            if source_nanos is not None:
+                self.source_stamps.add(msg.capture_nanos, source_nanos)
             if res.world_from_camera is not None:
                 self.last_pose = res.world_from_camera
             pose = self.last_pose if self.last_pose is not None else np.eye(4)
@@ -141,7 +155,19 @@ class SlamNode:
             tag_map = self.slam.tag_map()
             gt_stamps, gt_poses = self.gt.arrays()
             state = self.slam.state
-        stamps_s, poses = traj_stamps / 1e9, traj_poses
+            source_traj, traj_found = self.source_stamps.lookup(traj_stamps)
+            source_gt, gt_found = self.source_stamps.lookup(gt_stamps)
+        # The data set's time when every pose has one (a TUM tool compares trajectory.tum with the data
+        # set's ground truth as it is); else the live capture time.
+        in_source_time = len(self.source_stamps) > 0 and bool(traj_found.all()) and bool(gt_found.all())
+        if len(self.source_stamps) and not in_source_time:
+            log.warning(
+                "trajectory.tum in capture time: %d of %d poses have no data-set stamp",
+                int((~traj_found).sum()),
+                len(traj_found),
+            )
+        out_stamps = source_traj if in_source_time else traj_stamps
+        stamps_s, poses = out_stamps / 1e9, traj_poses
         if len(self.previous_stamps_s):  # a resumed run: the earlier trajectory first, never less
             newer = stamps_s > self.previous_stamps_s[-1]
             stamps_s = np.concatenate([self.previous_stamps_s, stamps_s[newer]])
@@ -162,10 +188,11 @@ class SlamNode:
             "tags": len(tag_map),
             "lost_frames": state.lost,
             "rejected_ambiguous": state.rejected_ambiguous,
+            "time": "data set (rgb.txt)" if in_source_time else "capture",
         }
         atomic_write_text(run_dir / "slam.json", json.dumps(out, indent=2))
         if len(gt_stamps):
-            write_tum_arrays(run_dir / "groundtruth.tum", gt_stamps / 1e9, gt_poses)
+            write_tum_arrays(run_dir / "groundtruth.tum", (source_gt if in_source_time else gt_stamps) / 1e9, gt_poses)
             try:
                 ate, n = absolute_trajectory_error_arrays(
                     traj_stamps, traj_poses[:, :3, 3], gt_stamps, gt_poses[:, :3, 3]
@@ -221,7 +248,16 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
                 node.write_outputs(settings.run_dir)
             query.reply(query.key_expr, encode(node.current_map(rid)), encoding=encoding_for(TagMap.SCHEMA))
 
+    def on_stamp(sample: zenoh.Sample) -> None:
+        def keep(payload: bytes) -> None:
+            msg = decode(payload, FrameStamp)
+            node.on_frame_stamp(msg.capture_nanos, msg.source_stamp_nanos)
+
+        payload = sample.payload.to_bytes()
+        guard.run("frame_stamp", len(payload), lambda: keep(payload))
+
     gt_sub = session.declare_subscriber(keys.ground_truth(rid), on_gt)
+    stamp_sub = session.declare_subscriber(keys.frame_stamp(rid), on_stamp)
     queryable = session.declare_queryable(keys.tag_map(rid), on_map_query)
     token = session.liveliness().declare_token(keys.alive(rid, "slam"))
     viz = make_viz(settings.rerun, service="slam", run_dir=settings.run_dir)
@@ -270,6 +306,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
         token.undeclare()
         queryable.undeclare()
         gt_sub.undeclare()
+        stamp_sub.undeclare()
         summary = guard.run("final save", 0, lambda: node.write_outputs(settings.run_dir))
         log.info("slam outputs in %s: %s", settings.run_dir, summary)
         viz.close()

@@ -1,5 +1,6 @@
 """Frame sources for the camera service: the demo scene (default), an image folder, a video file,
-a V4L2 camera. Each yields (grayscale image, ground-truth world_from_camera or None)."""
+a V4L2 camera. Each yields (grayscale image, ground-truth world_from_camera or None, and the data
+set's own time of the frame when it has one)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import logging
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
+from decimal import Decimal, InvalidOperation
 from pathlib import Path
 from typing import Final, Protocol
 
@@ -38,6 +40,7 @@ class SourceFrame:
 
     image: NDArray[np.uint8]
     world_from_camera: Array | None  # ground truth, when the source knows it
+    stamp_nanos: int | None = None  # the data set's time of this frame (TUM rgb.txt), when it has one
 
 
 class FrameSource(Protocol):
@@ -160,20 +163,88 @@ def expand_paths(paths: list[Path]) -> list[Path]:
     return out
 
 
+_MAX_STAMP_S: Final[Decimal] = Decimal(2**63).scaleb(-9)  # stamps travel as int64 nanoseconds
+
+
+def parse_rgb_list(text: str, root: Path, *, name: str = "rgb.txt") -> list[tuple[int, Path]]:
+    """A TUM-style image list: `timestamp filename` per line (seconds; filename relative to `root`), `#`
+    comments; [(nanoseconds, exact to the digits given, path)] in file order. Raises GeometryError
+    naming the line on anything else."""
+    out = []
+    for n, line in enumerate(text.splitlines(), start=1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        parts = line.split()
+        if len(parts) != 2:
+            raise GeometryError(f"{name}:{n}: expected 'timestamp filename', got {line.strip()!r}")
+        try:
+            stamp = Decimal(parts[0])
+        except InvalidOperation:
+            raise GeometryError(f"{name}:{n}: timestamp {parts[0]!r} is not a number") from None
+        if not stamp.is_finite() or not 0 <= stamp < _MAX_STAMP_S:
+            raise GeometryError(f"{name}:{n}: timestamp {parts[0]!r} must be a finite time in [0, 2**63 ns) s")
+        out.append((int(stamp.scaleb(9).to_integral_value()), root / parts[1]))
+    return out
+
+
+def associate_stamps(stamps_s: list[float], gt_stamps_s: NDArray[np.float64], max_dt_s: float) -> list[int | None]:
+    """For each image stamp, the index of the ground-truth stamp nearest to it if within `max_dt_s`
+    (TUM's association: ground truth runs at another rate than the images). Pure."""
+    if len(gt_stamps_s) == 0:
+        return [None] * len(stamps_s)
+    order = np.argsort(gt_stamps_s)
+    sorted_gt = gt_stamps_s[order]
+    out: list[int | None] = []
+    for t in stamps_s:
+        j = int(np.searchsorted(sorted_gt, t))
+        near = [c for c in (j - 1, j) if 0 <= c < len(sorted_gt)]
+        best = min(near, key=lambda c: abs(sorted_gt[c] - t))
+        out.append(int(order[best]) if abs(sorted_gt[best] - t) <= max_dt_s else None)
+    return out
+
+
+RGB_LIST: Final[str] = "rgb.txt"
+GT_MAX_DT_S: Final[float] = 0.02  # TUM's tools associate within 20 ms
+
+
 class FolderSource:
-    """Sorted image files of a folder with a camera_info YAML; optional TUM ground truth (row i = image i)."""
+    """The images of a folder with a camera_info YAML; optional TUM ground truth.
+
+    With a TUM-style `rgb.txt` in the folder or its parent (a TUM data set: `rgb.txt` beside `rgb/`),
+    the images are the ones it lists, in its order, each stamped with its time, and ground truth is
+    associated by time (nearest within 20 ms; frames without one carry none). Without it: the sorted
+    image files, unstamped, ground-truth row i = image i."""
 
     def __init__(self, folder: Path, camera_info: Path, groundtruth: Path | None = None) -> None:
-
         self.camera = camera_from_yaml(camera_info)
-        if not Path(folder).is_dir():
+        folder = Path(folder)
+        if not folder.is_dir():
             raise FileNotFoundError(f"no images in {folder}: not a folder")
-        self.files = expand_paths([Path(folder)])
+        listing = next((d / RGB_LIST for d in (folder, folder.parent) if (d / RGB_LIST).is_file()), None)
+        self.stamps_nanos: list[int] | None = None
+        if listing is not None:
+            entries = parse_rgb_list(listing.read_text(), listing.parent, name=str(listing))
+            missing = [str(p) for _, p in entries if not p.is_file()]
+            if missing:
+                raise FileNotFoundError(f"{listing} lists {len(missing)} missing images, e.g. {missing[0]}")
+            self.files = [p for _, p in entries]
+            self.stamps_nanos = [t for t, _ in entries]
+            log.info("%s: %d images with their time stamps", listing, len(entries))
+        else:
+            self.files = expand_paths([folder])
         if not self.files:
             raise FileNotFoundError(f"no images in {folder}")
-        self.gt = [p for _, p in read_tum(groundtruth)] if groundtruth else None
-        if self.gt is not None and len(self.gt) != len(self.files):
-            raise GeometryError(f"{groundtruth} has {len(self.gt)} poses for {len(self.files)} images")
+        self.gt: list[Array | None] | None = None
+        if groundtruth:
+            rows = read_tum(groundtruth)
+            if self.stamps_nanos is not None:
+                seconds = [t / 1e9 for t in self.stamps_nanos]
+                nearest = associate_stamps(seconds, np.array([t for t, _ in rows], np.float64), GT_MAX_DT_S)
+                self.gt = [None if j is None else rows[j][1] for j in nearest]
+            elif len(rows) != len(self.files):
+                raise GeometryError(f"{groundtruth} has {len(rows)} poses for {len(self.files)} images")
+            else:
+                self.gt = [p for _, p in rows]
 
     def frames(self) -> Iterator[SourceFrame]:
         for i, f in enumerate(self.files):
@@ -181,7 +252,8 @@ class FolderSource:
             if img is None or img.shape != (self.camera.height, self.camera.width):
                 log.warning("skipping %s: unreadable or not %dx%d", f, self.camera.width, self.camera.height)
                 continue
-            yield SourceFrame(np.ascontiguousarray(img), None if self.gt is None else self.gt[i])
+            stamp = None if self.stamps_nanos is None else self.stamps_nanos[i]
+            yield SourceFrame(np.ascontiguousarray(img), None if self.gt is None else self.gt[i], stamp)
 
 
 class CaptureSource:

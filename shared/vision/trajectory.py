@@ -109,3 +109,35 @@ class PoseLog:
         """(n, 3) positions in stamp order."""
         order = np.argsort(self._stamps[: self._n], kind="stable")
         return np.asarray(self._positions[order])
+
+
+class StampMap:
+    """Live capture time -> a data set's own time, per frame, compact (two int64 per frame, growable):
+    slam writes its trajectory in the data set's time when every pose has one."""
+
+    def __init__(self) -> None:
+        self._pairs = np.zeros((0, 2), np.int64)
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    def add(self, capture_nanos: int, source_nanos: int) -> None:
+        """Record one frame's pair."""
+        if self._n == len(self._pairs):
+            grown = np.zeros((max(256, 2 * len(self._pairs)), 2), np.int64)
+            grown[: self._n] = self._pairs[: self._n]
+            self._pairs = grown
+        self._pairs[self._n] = (capture_nanos, source_nanos)
+        self._n += 1
+
+    def lookup(self, capture_nanos: Array) -> tuple[Array, Array]:
+        """(source nanos, found mask) for each capture time; not found: the capture time itself."""
+        captures = np.asarray(capture_nanos, np.int64)
+        pairs = self._pairs[: self._n]
+        order = np.argsort(pairs[:, 0], kind="stable")
+        keys, values = pairs[order, 0], pairs[order, 1]
+        at = np.clip(np.searchsorted(keys, captures), 0, max(len(keys) - 1, 0))
+        found = (keys[at] == captures) if len(keys) else np.zeros(len(captures), bool)
+        out = np.where(found, values[at] if len(keys) else captures, captures)
+        return out, found

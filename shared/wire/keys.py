@@ -29,6 +29,11 @@ def ground_truth(robot_id: str) -> str:
     return f"{ROOT}/{_check(robot_id, 'robot id')}/ground_truth/v1"
 
 
+def frame_stamp(robot_id: str) -> str:
+    """FrameStamp v1: camera -> slam, a data set's own time for a frame (folder source with rgb.txt)."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/frame_stamp/v1"
+
+
 def features(robot_id: str) -> str:
     """Features v3: robot_infer -> edge_infer (the split tensor crosses the link here)."""
     return f"{ROOT}/{_check(robot_id, 'robot id')}/features/v3"

@@ -336,6 +336,14 @@ class CameraPose(FrameMessage):
     tags_used: int = Field(ge=0)
 
 
+class FrameStamp(FrameMessage):
+    """The time a data set gives a frame (TUM `rgb.txt`): camera -> slam, which writes trajectory.tum in
+    the data set's own time. `capture_nanos` stays the live clock every latency is measured on."""
+
+    SCHEMA: ClassVar[str] = "splittag/FrameStamp/v1"
+    source_stamp_nanos: int = Field(ge=0)
+
+
 class MapTag(WireModel):
     """One tag in the map."""
 
@@ -454,6 +462,7 @@ MESSAGE_TYPES: Final[tuple[type[Message], ...]] = (
     ComputeProfile,
     ControllerState,
     FrameSent,
+    FrameStamp,
 )
 SCHEMAS: Final[dict[str, type[Message]]] = {m.SCHEMA: m for m in MESSAGE_TYPES}
 # Older versions still accepted: each has `upgrade()` to the current message of its name.
