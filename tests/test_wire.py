@@ -400,3 +400,17 @@ def test_a_non_finite_split_tensor_is_refused_by_the_edge_not_the_wire() -> None
             previous_receive_nanos=0,
             payload_bytes=1,
         )
+
+
+@pytest.mark.parametrize("big", [1e200, -1e300, 1.7e308])
+def test_a_homography_with_a_huge_entry_is_a_schema_error_not_an_overflow(big: float) -> None:
+    """Found by the mutation fuzzer: a flipped exponent made one homography entry ~1e200 and the
+    invertibility check cubed it (OverflowError escaped decode). Scaled first, it is a typed refusal."""
+    features = EXAMPLES["splittag/Features/v3"]
+    assert isinstance(features, Features)
+    h = np.eye(3)
+    h[0, 1] = big
+    tag = features.tags[0].model_copy(update={"roi_to_image": h})
+    payload = encode(features.model_copy(update={"tags": [tag]}))
+    with pytest.raises(SchemaError, match="invertible"):
+        decode(payload)

@@ -173,10 +173,14 @@ class TagFeatureV1(WireModel):
 
     @model_validator(mode="after")
     def _homography_invertible(self) -> Self:
-        (a, b, c), (d, e, f), (g, h, i) = self.roi_to_image.tolist()  # 3x3 floats: Python beats numpy here
-        scale = max(abs(a), abs(b), abs(c), abs(d), abs(e), abs(f), abs(g), abs(h), abs(i))
+        m = self.roi_to_image.tolist()  # 3x3 floats: Python beats numpy here
+        scale = max(abs(v) for row in m for v in row)
+        if scale == 0:
+            raise ValueError("roi_to_image is not an invertible homography")
+        # scale first: cubing a huge entry (a finite 1e200) would overflow
+        (a, b, c), (d, e, f), (g, h, i) = ([v / scale for v in row] for row in m)
         det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
-        if scale == 0 or abs(det) / scale**3 < 1e-12:
+        if abs(det) < 1e-12:
             raise ValueError("roi_to_image is not an invertible homography")
         return self
 
