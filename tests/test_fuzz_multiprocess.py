@@ -176,6 +176,7 @@ def test_no_message_kills_a_service(tmp_path: Path, deploy_config: DeployConfig)
                 keys.compute(ROBOT, "robot"): ex["ComputeProfile"],
                 keys.compute(ROBOT, "edge"): ex["ComputeProfile"],
                 keys.ground_truth(ROBOT): ex["CameraPose"],
+                keys.frame_stamp(ROBOT): ex["FrameStamp"],
                 keys.frame_sent(ROBOT): ex["FrameSent"],
             }
             started = time.monotonic()
