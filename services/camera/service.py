@@ -60,8 +60,10 @@ def run(settings: CameraSettings, *, session: zenoh.Session, stop: threading.Eve
     try:
         while not stop.is_set():
             produced = False
-            for item in source.frames():
+            for index, item in enumerate(source.frames()):
                 produced = True
+                if index < settings.start_frame and not seq:
+                    continue  # the first pass starts later in the source (a fleet's robots at different places)
                 now = time.monotonic()
                 if now < next_t and stop.wait(next_t - now):
                     return seq

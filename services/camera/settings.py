@@ -24,6 +24,7 @@ class CameraSettings(ServiceSettings):
     fps: float = Field(default=15.0, gt=0)
     loop: bool = True
     max_frames: int = Field(default=0, ge=0)  # 0 = unlimited
+    start_frame: int = Field(default=0, ge=0)  # skip this many frames of the source's first pass
     demo_frames: int = Field(default=150, ge=2)
     cache_dir: Path = Path("runs/cache")
     wait_for: list[str] = Field(default_factory=lambda: ["robot_infer"])  # services to await before streaming

@@ -1,4 +1,12 @@
-"""edge_infer loop: Features -> tail(k) -> keypoints in the image -> PnP -> TagPoses, every frame."""
+"""edge_infer loop: Features -> tail(k) -> keypoints in the image -> PnP -> TagPoses, for every robot it serves.
+
+One process is one worker of the edge tier. It serves one robot (the default), a list, or every live
+robot; several workers share the robots through their liveliness tokens (shared.transport.fleet).
+Each served robot is a `Lane`: its Features subscriber, TagPoses and ComputeProfile publishers, probe
+echo, liveliness token (what robot_infer waits for), arrival clock, compute estimate and tag map.
+Lanes are opened and closed by the main loop when the assignment changes (Zenoh's callbacks only
+record the change), and Features of several robots waiting together share one tail pass.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +14,8 @@ import logging
 import queue
 import threading
 import time
+from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 import zenoh
@@ -15,13 +25,15 @@ from shared.control.compute import ComputeEstimator, tail_per_tag_ms
 from shared.model.profile import calibrate_pnp_ms
 from shared.model.runtime import calibrate_cumulative_ms, load_split_net
 from shared.model.weights import load_keypoint_fusion
-from shared.perception.split import edge_step
+from shared.perception.split import EdgeInput, edge_batch
 from shared.runtime.guard import InputGuard, serve_stats
+from shared.transport.fleet import FleetView
 from shared.transport.probe import ArrivalClock, serve_echo
 from shared.transport.session import declare_tensor_publisher, encoding_for
 from shared.vision.tagmap import TagMapFile, load_tag_map
 from shared.viz.recording import make_viz
 from shared.wire import keys
+from shared.wire.codec import SchemaError
 from shared.wire.messages import ComputeProfile, Features, TagPoses, decode, encode
 
 log = logging.getLogger(__name__)
@@ -31,53 +43,115 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
     """Serve until `stop` is set. Malformed or inconsistent Features are rejected, counted and logged."""
     torch.set_num_threads(settings.threads)
     node = EdgeInfer(settings, session, stop)
-    log.info("edge_infer ready: precision=%s (configured %s)", node.net.precision, settings.precision)
+    log.info(
+        "edge_infer worker %s ready: precision=%s (configured %s), robots %s",
+        settings.worker_id,
+        node.net.precision,
+        settings.precision,
+        settings.robots or [settings.robot_id],
+    )
     try:
         node.serve(stop)
     finally:
         node.close()
 
 
+@dataclass
+class Lane:
+    """One robot served by this worker: its endpoints and its per-robot state."""
+
+    robot_id: str
+    tag_map: TagMapFile
+    estimator: ComputeEstimator
+    arrivals: ArrivalClock
+    endpoints: list[Any] = field(default_factory=list)  # subscriber, queryables, token: undeclared in reverse
+    pub: zenoh.Publisher | None = None
+    compute_pub: zenoh.Publisher | None = None
+    last_profile: float = 0.0
+    frames: int = 0
+
+
+@dataclass(frozen=True)
+class _Item:
+    robot_id: str
+    received: int
+    previous: int
+    payload: bytes
+
+
 class EdgeInfer:
-    """The edge side: its model, tag map, compute estimate, inbox and Zenoh endpoints."""
+    """One edge worker: its model, its lanes (one per robot served), the inbox and the fleet view."""
 
     def __init__(self, settings: EdgeInferSettings, session: zenoh.Session, stop: threading.Event) -> None:
         self.settings = s = settings
+        self.session = session
         self.stop = stop
         self.net = load_split_net(s.weights, s.precision, threads=s.threads)
         self.fusion = load_keypoint_fusion(s.weights) if s.fuse_corners else None
         self.net.warm_up(0, max_batch=6)
         self.emulated = s.emulated_ms_per_tag_by_k
-        self.estimator = ComputeEstimator(
-            self.emulated or tail_per_tag_ms(calibrate_cumulative_ms(self.net), pnp_ms=calibrate_pnp_ms())
-        )
-        self.last_profile = 0.0
-        self.tag_map = load_tag_map(s.tag_map) if s.tag_map else TagMapFile(default_size_m=s.default_tag_size_m)
-        rid = s.robot_id
+        self.per_tag_ms = self.emulated or tail_per_tag_ms(calibrate_cumulative_ms(self.net), pnp_ms=calibrate_pnp_ms())
+        self.default_map = load_tag_map(s.tag_map) if s.tag_map else TagMapFile(default_size_m=s.default_tag_size_m)
         # A short queue: when the edge is the bottleneck, backpressure reaches robot_infer (its publisher
         # blocks) and the robot's latest-only frame ring drops stale frames, so latency stays bounded.
         # Arrival is stamped in the subscriber callback, so a frame's transport time excludes the time it
         # then waits for the edge (the controller fits the link to it; queueing is not the link's).
-        # Probes and Features share the uplink: one arrival clock tells each message what was ahead of it.
-        self.inbox: queue.Queue[tuple[int, int, bytes]] = queue.Queue(maxsize=s.queue_depth)
-        self.arrivals = ArrivalClock()
-        self.sub = session.declare_subscriber(keys.features(rid), self._on_features)
-        self.pub = declare_tensor_publisher(session, keys.tag_poses(rid), TagPoses.SCHEMA)
-        self.compute_pub = session.declare_publisher(
-            keys.compute(rid, "edge"), encoding=encoding_for(ComputeProfile.SCHEMA)
-        )
-        self.echo = (
-            serve_echo(session, keys.echo(rid), max_bytes=s.max_payload_bytes, arrivals=self.arrivals)
-            if s.serve_echo
+        # Probes and Features of one robot share its uplink: one arrival clock per robot.
+        served = len(s.robots) if isinstance(s.robots, list) else (8 if s.robots == "*" else 1)
+        self.inbox: queue.Queue[_Item] = queue.Queue(maxsize=s.queue_depth * served)
+        self.lanes: dict[str, Lane] = {}
+        self.guard = InputGuard("edge_infer")
+        self.viz = make_viz(s.rerun, service="edge_infer", run_dir=s.run_dir)
+        self.dropped_unassigned = 0
+        self.batches = 0
+        self.batched_messages = 0
+        # The fleet: this worker's token, the other workers', the robots' (with robots = "*").
+        self._wanted: frozenset[str] | None = None
+        self._wanted_lock = threading.Lock()
+        fixed = None if s.robots == "*" else (s.robots or [s.robot_id])
+        self.fleet = FleetView(s.worker_id, robots=fixed, on_change=self._on_assignment)
+        liveliness = session.liveliness()
+        for reply in liveliness.get(keys.edge_workers(), timeout=2.0):  # the workers already there
+            if reply.ok is not None:
+                self.fleet.worker_up(keys.worker_of(str(reply.ok.key_expr)))
+        self.worker_token = liveliness.declare_token(keys.edge_worker(s.worker_id))
+        self.workers_sub = liveliness.declare_subscriber(keys.edge_workers(), self._on_worker, history=True)
+        self.robots_sub = (
+            liveliness.declare_subscriber(keys.alive_any_robot("robot_infer"), self._on_robot, history=True)
+            if fixed is None
             else None
         )
-        self.token = session.liveliness().declare_token(keys.alive(rid, "edge_infer"))
-        self.viz = make_viz(s.rerun, service="edge_infer", run_dir=s.run_dir)
-        self.guard = InputGuard("edge_infer")
-        self.stats = serve_stats(session, keys.stats(rid, "edge_infer"), self.guard)
+        self.fleet.refresh()
+        self._apply_assignment()  # the lanes exist before serve() starts (tests wait for their tokens)
 
-    def _on_features(self, sample: zenoh.Sample) -> None:
-        item = (*self.arrivals.stamp(), sample.payload.to_bytes())
+    # Zenoh callbacks: bookkeeping only; lanes are opened and closed on the main loop.
+    def _on_worker(self, sample: zenoh.Sample) -> None:
+        try:
+            worker = keys.worker_of(str(sample.key_expr))
+        except ValueError:
+            return
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.fleet.worker_up(worker)
+        else:
+            log.warning("edge worker %s is gone: its robots move", worker)
+            self.fleet.worker_down(worker)
+
+    def _on_robot(self, sample: zenoh.Sample) -> None:
+        try:
+            robot = keys.robot_of(str(sample.key_expr))
+        except ValueError:
+            return
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.fleet.robot_up(robot)
+        else:
+            self.fleet.robot_down(robot)
+
+    def _on_assignment(self, robots: frozenset[str]) -> None:
+        with self._wanted_lock:
+            self._wanted = robots
+
+    def _on_features(self, robot_id: str, arrivals: ArrivalClock, sample: zenoh.Sample) -> None:
+        item = _Item(robot_id, *arrivals.stamp(), sample.payload.to_bytes())
         while not self.stop.is_set():  # a full inbox blocks Zenoh's delivery: backpressure up to the robot
             try:
                 self.inbox.put(item, timeout=0.1)
@@ -85,47 +159,155 @@ class EdgeInfer:
             except queue.Full:
                 continue
 
+    # Lanes.
+    def _apply_assignment(self) -> None:
+        with self._wanted_lock:
+            wanted, self._wanted = self._wanted, None
+        if wanted is None:
+            return
+        for robot in sorted(set(self.lanes) - wanted):
+            self._close_lane(self.lanes.pop(robot))
+            log.info("worker %s no longer serves %s", self.settings.worker_id, robot)
+        for robot in sorted(wanted - set(self.lanes)):
+            self.lanes[robot] = self._open_lane(robot)
+            log.info("worker %s serves %s (workers %s)", self.settings.worker_id, robot, sorted(self.fleet.workers))
+
+    def _open_lane(self, robot: str) -> Lane:
+        s = self.settings
+        tag_map = load_tag_map(s.tag_maps[robot]) if robot in s.tag_maps else self.default_map
+        lane = Lane(robot, tag_map, ComputeEstimator(self.per_tag_ms), ArrivalClock())
+        session = self.session
+        lane.pub = declare_tensor_publisher(session, keys.tag_poses(robot), TagPoses.SCHEMA)
+        lane.compute_pub = session.declare_publisher(
+            keys.compute(robot, "edge"), encoding=encoding_for(ComputeProfile.SCHEMA)
+        )
+        arrivals = lane.arrivals
+        lane.endpoints.append(
+            session.declare_subscriber(keys.features(robot), lambda sample: self._on_features(robot, arrivals, sample))
+        )
+        if s.serve_echo:
+            lane.endpoints.append(
+                serve_echo(session, keys.echo(robot), max_bytes=s.max_payload_bytes, arrivals=arrivals)
+            )
+        lane.endpoints.append(
+            serve_stats(session, keys.stats(robot, "edge_infer"), self.guard, lambda: self.counters(lane))
+        )
+        # Last: robot_infer sends to the edge once this token is there.
+        lane.endpoints.append(session.liveliness().declare_token(keys.alive(robot, "edge_infer")))
+        return lane
+
+    @staticmethod
+    def _close_lane(lane: Lane) -> None:
+        for endpoint in reversed(lane.endpoints):  # the token first: the robot stops sending here
+            endpoint.undeclare()
+        for pub in (lane.pub, lane.compute_pub):
+            if pub is not None:
+                pub.undeclare()
+
+    def counters(self, lane: Lane) -> dict[str, object]:
+        """Served on the lane's stats key with the input counters."""
+        return {
+            "worker": self.settings.worker_id,
+            "workers": sorted(self.fleet.workers),
+            "robots_served": sorted(self.lanes),
+            "frames_for_robot": lane.frames,
+            "reassignments": self.fleet.reassignments,
+            "dropped_unassigned": self.dropped_unassigned,
+            "batches": self.batches,
+            "batched_messages": self.batched_messages,
+        }
+
+    # The loop.
     def serve(self, stop: threading.Event) -> None:
-        """Handle queued Features until `stop`; each goes through the input guard."""
+        """Handle queued Features until `stop`: every waiting message of every robot in one batch."""
         while not stop.is_set():
+            self._apply_assignment()
             try:
-                received, previous, payload = self.inbox.get(timeout=0.05)
+                first = self.inbox.get(timeout=0.05)
             except queue.Empty:
                 continue
-            self.guard.run("features", len(payload), lambda: self.process(received, previous, payload))  # noqa: B023
+            items = [first]
+            while len(items) < self.settings.batch_max_messages:
+                try:
+                    items.append(self.inbox.get_nowait())
+                except queue.Empty:
+                    break
+            self.process(items)
 
-    def process(self, received: int, previous: int, payload: bytes) -> None:
-        """One Features message: decode, tail + PnP, TagPoses out (raises on bad input; the guard counts it)."""
+    def process(self, items: list[_Item]) -> None:
+        """Decode each message (a bad one is counted and dropped alone), run the good ones as one batch;
+        if the batch raises, each message again on its own so only the bad one is lost."""
+        decoded: list[tuple[Lane, EdgeInput]] = []
+        for item in items:
+            lane = self.lanes.get(item.robot_id)
+            if lane is None:  # arrived just before its robot moved to another worker: its credit expires
+                self.dropped_unassigned += 1
+                continue
+            try:
+                decoded.append((lane, self._decode(item, lane)))
+            except Exception as exc:  # the guard's point: counted, logged, the others go on
+                self.guard.reject("features", len(item.payload), exc)
+        if len(decoded) > 1:
+            self.batches += 1
+            self.batched_messages += len(decoded)
+            try:
+                self._infer(decoded)
+                self.guard.accept(len(decoded))
+                return
+            except Exception:
+                pass
+        for pair in decoded:
+            self.guard.run("features", pair[1].payload_bytes, lambda: self._infer([pair]))  # noqa: B023
+
+    def _decode(self, item: _Item, lane: Lane) -> EdgeInput:
         s, emulated = self.settings, self.emulated
-        features = decode(payload, Features, max_bytes=s.max_payload_bytes)
-        poses = edge_step(
-            features,
+        features = decode(item.payload, Features, max_bytes=s.max_payload_bytes)
+        if features.robot_id != item.robot_id:
+            raise SchemaError(f"Features of robot {features.robot_id!r} on robot {item.robot_id!r}'s key")
+        min_secs = len(features.tags) * emulated[features.split_k] / 1e3 if emulated else 0.0
+        return EdgeInput(features, item.received, item.previous, len(item.payload), lane.tag_map, min_secs)
+
+    def _infer(self, pairs: list[tuple[Lane, EdgeInput]]) -> list[TagPoses]:
+        results = edge_batch(
+            [p for _, p in pairs],
             net=self.net,
-            tag_map=self.tag_map,
-            receive_nanos=received,
-            previous_receive_nanos=previous,
-            payload_bytes=len(payload),
             fusion=self.fusion,
             tracked_max_reprojection_px=self.settings.tracked_max_reprojection_px,
-            min_compute_secs=len(features.tags) * emulated[features.split_k] / 1e3 if emulated else 0.0,
         )
-        self.pub.put(encode(poses))
+        for (lane, _), poses in zip(pairs, results, strict=True):
+            self._publish(lane, poses)
+        return results
+
+    def _publish(self, lane: Lane, poses: TagPoses) -> None:
+        s, emulated = self.settings, self.emulated
+        if lane.pub is None or lane.compute_pub is None:
+            return
+        lane.pub.put(encode(poses))
+        lane.frames += 1
         self.viz.tag_poses(poses)
         # An emulated edge publishes its fixed profile (reality only pads up to it).
         live_ms = poses.timings.edge_compute_secs * 1e3
         network_ms = len(poses.tags) * emulated[poses.split_k] if emulated else live_ms
-        self.estimator.observe(k=poses.split_k, tags=len(poses.tags), network_ms=network_ms)
-        if time.monotonic() - self.last_profile >= s.profile_period_secs:
-            self.last_profile = time.monotonic()
-            message = self.estimator.message(robot_id=s.robot_id, side="edge", stamp_nanos=time.time_ns())
-            self.compute_pub.put(encode(message))
+        lane.estimator.observe(k=poses.split_k, tags=len(poses.tags), network_ms=network_ms)
+        if time.monotonic() - lane.last_profile >= s.profile_period_secs:
+            lane.last_profile = time.monotonic()
+            message = lane.estimator.message(robot_id=lane.robot_id, side="edge", stamp_nanos=time.time_ns())
+            lane.compute_pub.put(encode(message))
 
     def close(self) -> None:
         """Undeclare everything and log the run's counts."""
-        self.sub.undeclare()
-        self.token.undeclare()
-        if self.echo is not None:
-            self.echo.undeclare()
+        for undeclare in (self.workers_sub, self.robots_sub):
+            if undeclare is not None:
+                undeclare.undeclare()
+        for lane in self.lanes.values():
+            self._close_lane(lane)
+        self.worker_token.undeclare()
         self.viz.close()
-        self.stats.undeclare()
-        log.info("edge_infer: %s", self.guard.stats())
+        log.info(
+            "edge_infer %s: %s, %d batches of %d messages, %d dropped after a reassignment",
+            self.settings.worker_id,
+            self.guard.stats(),
+            self.batches,
+            self.batched_messages,
+            self.dropped_unassigned,
+        )

@@ -3,23 +3,33 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
 from shared.model.precision import PrecisionChoice
 from shared.runtime.settings import ServiceSettings
-from shared.wire.messages import PerCut
+from shared.wire.messages import PerCut, RobotId
 
 
 class EdgeInferSettings(ServiceSettings):
-    """The edge side of the split."""
+    """The edge side of the split: one worker of the edge tier, serving one robot or many."""
 
     SERVICE: ClassVar[str] = "edge_infer"
     model_config = SettingsConfigDict(**{**ServiceSettings.model_config, "env_prefix": "SPLITTAG_EDGE_INFER_"})
 
     weights: Path = Path("models")
+    # Which robots this edge tier serves: None = `robot_id` alone; a list = those robots; "*" = every
+    # robot whose robot_infer is alive (its liveliness token). Several workers with the same setting
+    # share the robots by rendezvous hashing over the workers' tokens (shared.transport.fleet): a
+    # worker that appears takes its share, one that dies hands its robots to the others.
+    robots: list[RobotId] | Literal["*"] | None = None
+    worker_id: RobotId = "edge1"  # unique in the edge tier (its liveliness token)
+    # Features of several robots that are waiting together go through one tail pass (per cut k).
+    batch_max_messages: int = Field(default=8, ge=1)
+    # Per-robot tag maps (robot id -> file), over `tag_map` for that robot.
+    tag_maps: dict[RobotId, Path] = Field(default_factory=dict)
     # Fit each tag's 16 points to the network's keypoints and stage 1's corners, weighted by the
     # sigmas calibrated into the weights' config.json (no calibration there: the network's points).
     fuse_corners: bool = True

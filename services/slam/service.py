@@ -14,6 +14,8 @@ import queue
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +29,7 @@ from shared.slam.marker_slam import (
     FrameIndexer,
     MarkerSlam,
     Observation,
+    SlamInputError,
     absolute_trajectory_error_arrays,
     check_observation,
 )
@@ -45,25 +48,41 @@ log = logging.getLogger(__name__)
 GT_WAITING_FRAMES = 1024  # ground truth held for frames whose TagPoses have not come yet
 
 
+@dataclass
+class RobotRun:
+    """What slam keeps per robot beside the shared graph: frame indexing (repeats, camera restarts),
+    ground truth and data-set stamps waiting for their frames, the resumed trajectory, the last pose."""
+
+    robot_id: str
+    indexer: FrameIndexer = field(default_factory=FrameIndexer)
+    # Ground truth (simulated sources): the camera sends it for every frame it captures, slam keeps
+    # it for the frames it gets poses for (a recent window waits for them), compactly.
+    gt: PoseLog = field(default_factory=PoseLog)
+    gt_recent: OrderedDict[int, np.ndarray] = field(default_factory=OrderedDict)
+    # A data set's own frame times (folder source with rgb.txt), held like ground truth until the
+    # frame's TagPoses come; trajectory.tum is written in that time when every pose has one.
+    source_stamps: StampMap = field(default_factory=StampMap)
+    stamp_recent: OrderedDict[int, int] = field(default_factory=OrderedDict)
+    # the resumed run's trajectory, as arrays (seconds, poses): written first, never shortened
+    previous_stamps_s: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float64))
+    previous_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4), np.float64))
+    last_pose: np.ndarray | None = None
+
+
 class SlamNode:
-    """The service's state: the SLAM core plus ground truth and output writing (no Zenoh here)."""
+    """The service's state: the SLAM core (one graph, one tag map, a trajectory per robot) plus ground
+    truth and output writing (no Zenoh here). One robot (`robots` unset) writes trajectory.tum; a
+    fleet writes trajectory_<robot>.tum (and groundtruth_<robot>.tum) per robot."""
 
     def __init__(self, settings: SlamServiceSettings) -> None:
         self.settings = settings
+        self.fleet = settings.robots is not None
         known: dict[int, tuple[float, np.ndarray]] = {}
         slam_settings = settings.slam
         # A restarted slam resumes from its last checkpoint in run_dir: the map it had (as priors, its
-        # anchor fixing the world frame) and the trajectory so far (kept, continued, never shortened).
+        # anchor fixing the world frame) and each trajectory so far (kept, continued, never shortened).
         checkpoint = settings.run_dir / "map.json"
         self.resumed = load_tag_map(checkpoint) if settings.resume and checkpoint.is_file() else None
-        previous = (
-            read_tum(settings.run_dir / "trajectory.tum")
-            if self.resumed is not None and (settings.run_dir / "trajectory.tum").is_file()
-            else []
-        )
-        # the resumed run's trajectory, as arrays (seconds, poses): written first, never shortened
-        self.previous_stamps_s = np.array([t for t, _ in previous], np.float64)
-        self.previous_poses = np.array([p for _, p in previous], np.float64).reshape(-1, 4, 4)
         for tm in (self.resumed, load_tag_map(settings.tag_map) if settings.tag_map is not None else None):
             if tm is None:
                 continue  # the configured map (second) wins over the checkpoint
@@ -72,54 +91,80 @@ class SlamNode:
                 slam_settings = slam_settings.model_copy(
                     update={"anchor_tag_id": slam_settings.anchor_tag_id or tm.anchor_tag_id}
                 )
-        if self.resumed is not None:
-            log.info("resuming from %s: %d tags, %d poses", checkpoint, len(known), len(self.previous_stamps_s))
         self.slam = MarkerSlam(slam_settings, known_tags=known)
-        self.indexer = FrameIndexer()  # repeated messages and restarted cameras (seq from 0 again)
-        # Ground truth (simulated sources): the camera sends it for every frame it captures, slam keeps
-        # it for the frames it gets poses for (a recent window waits for them), compactly.
-        self.gt = PoseLog()
-        self._gt_recent: OrderedDict[int, np.ndarray] = OrderedDict()
-        # A data set's own frame times (folder source with rgb.txt), held like ground truth until the
-        # frame's TagPoses come; trajectory.tum is written in that time when every pose has one.
-        self.source_stamps = StampMap()
-        self._stamp_recent: OrderedDict[int, int] = OrderedDict()
+        self.runs: dict[str, RobotRun] = {}
+        for robot in (
+            settings.robots if isinstance(settings.robots, list) else [] if self.fleet else [settings.robot_id]
+        ):
+            self.run_of(robot)
+        if self.resumed is not None:
+            log.info("resuming from %s: %d tags, robots %s", checkpoint, len(known), sorted(self.runs))
         self.revision = 0
-        self.last_pose: np.ndarray | None = None
         self.lock = threading.Lock()
 
-    def on_ground_truth(self, capture_nanos: int, world_from_camera: np.ndarray) -> None:
+    def _trajectory_file(self, robot: str, what: str = "trajectory") -> str:
+        return f"{what}_{robot}.tum" if self.fleet else f"{what}.tum"
+
+    def serves(self, robot: str) -> bool:
+        """Whether this slam takes `robot`'s messages."""
+        robots = self.settings.robots
+        return robots == "*" or (robot in robots if isinstance(robots, list) else robot == self.settings.robot_id)
+
+    def run_of(self, robot: str) -> RobotRun:
+        """The per-robot state (made on the robot's first message; a resumed trajectory is read then)."""
+        run = self.runs.get(robot)
+        if run is None:
+            if not self.serves(robot):
+                raise SlamInputError(f"robot {robot!r} is not one this slam serves ({self.settings.robots})")
+            run = self.runs[robot] = RobotRun(robot)
+            path = self.settings.run_dir / self._trajectory_file(robot)
+            if self.resumed is not None and path.is_file():
+                previous = read_tum(path)
+                run.previous_stamps_s = np.array([t for t, _ in previous], np.float64)
+                run.previous_poses = np.array([p for _, p in previous], np.float64).reshape(-1, 4, 4)
+        return run
+
+    @property
+    def indexer(self) -> FrameIndexer:
+        """The single robot's frame indexer."""
+        return self.run_of(self.settings.robot_id).indexer
+
+    def on_ground_truth(self, capture_nanos: int, world_from_camera: np.ndarray, robot: str | None = None) -> None:
         """Hold a frame's ground truth until its TagPoses come (bounded: the oldest goes first)."""
         with self.lock:
-            self._gt_recent[capture_nanos] = world_from_camera
-            while len(self._gt_recent) > GT_WAITING_FRAMES:
-                self._gt_recent.popitem(last=False)
+            run = self.run_of(robot or self.settings.robot_id)
+            run.gt_recent[capture_nanos] = world_from_camera
+            while len(run.gt_recent) > GT_WAITING_FRAMES:
+                run.gt_recent.popitem(last=False)
 
-    def on_frame_stamp(self, capture_nanos: int, source_nanos: int) -> None:
+    def on_frame_stamp(self, capture_nanos: int, source_nanos: int, robot: str | None = None) -> None:
         """Hold a frame's data-set time until its TagPoses come (bounded as ground truth is)."""
         with self.lock:
-            self._stamp_recent[capture_nanos] = source_nanos
-            while len(self._stamp_recent) > GT_WAITING_FRAMES:
-                self._stamp_recent.popitem(last=False)
+            run = self.run_of(robot or self.settings.robot_id)
+            run.stamp_recent[capture_nanos] = source_nanos
+            while len(run.stamp_recent) > GT_WAITING_FRAMES:
+                run.stamp_recent.popitem(last=False)
 
     def on_poses(self, msg: TagPoses) -> tuple[CameraPose, TagMap | None]:
         """Fuse one frame; returns the camera pose message and the map if it should be published."""
         with self.lock:
-            truth = self._gt_recent.pop(msg.capture_nanos, None)
-            source_nanos = self._stamp_recent.pop(msg.capture_nanos, None)
+            robot = msg.robot_id if self.fleet else self.settings.robot_id  # one robot: its key decided
+            run = self.run_of(robot)
             focal = None if msg.intrinsics is None else (msg.intrinsics.fx + msg.intrinsics.fy) / 2
             observations = [Observation.from_message(t, focal) for t in msg.tags]
             for o in observations:
                 check_observation(o)  # before the indexer remembers the frame
-            frame = self.indexer.index(msg.seq, msg.capture_nanos)
-            res = self.slam.update(frame, msg.capture_nanos, observations)
+            frame = run.indexer.index(msg.seq, msg.capture_nanos)
+            res = self.slam.update(frame, msg.capture_nanos, observations, robot=robot)
+            truth = run.gt_recent.pop(msg.capture_nanos, None)
+            source_nanos = run.stamp_recent.pop(msg.capture_nanos, None)
             if truth is not None:
-                self.gt.append(msg.capture_nanos, truth)
+                run.gt.append(msg.capture_nanos, truth)
             if source_nanos is not None:
-                self.source_stamps.add(msg.capture_nanos, source_nanos)
+                run.source_stamps.add(msg.capture_nanos, source_nanos)
             if res.world_from_camera is not None:
-                self.last_pose = res.world_from_camera
-            pose = self.last_pose if self.last_pose is not None else np.eye(4)
+                run.last_pose = res.world_from_camera
+            pose = run.last_pose if run.last_pose is not None else np.eye(4)
             cam = CameraPose(
                 robot_id=msg.robot_id,
                 seq=msg.seq,
@@ -141,38 +186,20 @@ class SlamNode:
         return TagMap(robot_id=robot_id, revision=self.revision, anchor_tag_id=self.slam.anchor or 0, tags=tags)
 
     def current_map(self, robot_id: str) -> TagMap:
-        """Thread-safe map snapshot."""
+        """Thread-safe map snapshot (the one shared map, addressed to `robot_id`)."""
         with self.lock:
             return self._map(robot_id)
 
     def write_outputs(self, run_dir: Path) -> dict[str, Any]:
-        """trajectory.tum, map.json (a tag map), slam.json, and with ground truth groundtruth.tum + ate.json."""
+        """Per robot trajectory(_<robot>).tum and, with ground truth, groundtruth(_<robot>).tum; the
+        shared map.json (a tag map), slam.json, and with ground truth ate.json."""
         run_dir.mkdir(parents=True, exist_ok=True)
-        # Arrays throughout: a long run writes its whole trajectory every few seconds, and a Python
-        # object per pose each time fragments the heap (RSS that only grows).
         with self.lock:
-            traj_stamps, traj_poses = self.slam.trajectory_arrays()
             tag_map = self.slam.tag_map()
-            gt_stamps, gt_poses = self.gt.arrays()
             state = self.slam.state
-            source_traj, traj_found = self.source_stamps.lookup(traj_stamps)
-            source_gt, gt_found = self.source_stamps.lookup(gt_stamps)
-        # The data set's time when every pose has one (a TUM tool compares trajectory.tum with the data
-        # set's ground truth as it is); else the live capture time.
-        in_source_time = len(self.source_stamps) > 0 and bool(traj_found.all()) and bool(gt_found.all())
-        if len(self.source_stamps) and not in_source_time:
-            log.warning(
-                "trajectory.tum in capture time: %d of %d poses have no data-set stamp",
-                int((~traj_found).sum()),
-                len(traj_found),
-            )
-        out_stamps = source_traj if in_source_time else traj_stamps
-        stamps_s, poses = out_stamps / 1e9, traj_poses
-        if len(self.previous_stamps_s):  # a resumed run: the earlier trajectory first, never less
-            newer = stamps_s > self.previous_stamps_s[-1]
-            stamps_s = np.concatenate([self.previous_stamps_s, stamps_s[newer]])
-            poses = np.concatenate([self.previous_poses, poses[newer]])
-        write_tum_arrays(run_dir / "trajectory.tum", stamps_s, poses)
+            frames, lost, rejected = state.frames, state.lost, state.rejected_ambiguous
+            robots = sorted(self.runs)
+        per_robot = {robot: self._write_robot(run_dir, robot) for robot in robots}
         if self.resumed is not None:  # tags of the checkpoint not seen again are kept as they were
             for t in self.resumed.tags:
                 if t.id not in tag_map and (pose := t.pose()) is not None:
@@ -183,16 +210,54 @@ class SlamNode:
         )
         write_tag_map(run_dir / "map.json", tag_map_from_poses(tag_map, anchor_tag_id=anchor))
         out: dict[str, Any] = {
-            "frames": state.frames,
-            "poses": len(stamps_s),
+            "frames": frames,
+            "poses": sum(r["poses"] for r in per_robot.values()),
             "tags": len(tag_map),
-            "lost_frames": state.lost,
-            "rejected_ambiguous": state.rejected_ambiguous,
-            "time": "data set (rgb.txt)" if in_source_time else "capture",
+            "lost_frames": lost,
+            "rejected_ambiguous": rejected,
         }
+        if self.fleet:
+            out["robots"] = per_robot
+        else:
+            out |= per_robot.get(self.settings.robot_id, {"poses": 0, "time": "capture"})
         atomic_write_text(run_dir / "slam.json", json.dumps(out, indent=2))
+        if any("ate_m" in r or "ate_error" in r for r in per_robot.values()):
+            (run_dir / "ate.json").write_text(json.dumps(out, indent=2))
+        return out
+
+    def _write_robot(self, run_dir: Path, robot: str) -> dict[str, Any]:
+        # Arrays throughout: a long run writes its whole trajectory every few seconds, and a Python
+        # object per pose each time fragments the heap (RSS that only grows).
+        with self.lock:
+            run = self.runs[robot]
+            traj_stamps, traj_poses = self.slam.trajectory_arrays(robot)
+            gt_stamps, gt_poses = run.gt.arrays()
+            source_traj, traj_found = run.source_stamps.lookup(traj_stamps)
+            source_gt, gt_found = run.source_stamps.lookup(gt_stamps)
+        # The data set's time when every pose has one (a TUM tool compares trajectory.tum with the data
+        # set's ground truth as it is); else the live capture time.
+        in_source_time = len(run.source_stamps) > 0 and bool(traj_found.all()) and bool(gt_found.all())
+        if len(run.source_stamps) and not in_source_time:
+            log.warning(
+                "%s in capture time: %d of %d poses have no data-set stamp",
+                self._trajectory_file(robot),
+                int((~traj_found).sum()),
+                len(traj_found),
+            )
+        out_stamps = source_traj if in_source_time else traj_stamps
+        stamps_s, poses = out_stamps / 1e9, traj_poses
+        if len(run.previous_stamps_s):  # a resumed run: the earlier trajectory first, never less
+            newer = stamps_s > run.previous_stamps_s[-1]
+            stamps_s = np.concatenate([run.previous_stamps_s, stamps_s[newer]])
+            poses = np.concatenate([run.previous_poses, poses[newer]])
+        write_tum_arrays(run_dir / self._trajectory_file(robot), stamps_s, poses)
+        out: dict[str, Any] = {"poses": len(stamps_s), "time": "data set (rgb.txt)" if in_source_time else "capture"}
         if len(gt_stamps):
-            write_tum_arrays(run_dir / "groundtruth.tum", (source_gt if in_source_time else gt_stamps) / 1e9, gt_poses)
+            write_tum_arrays(
+                run_dir / self._trajectory_file(robot, "groundtruth"),
+                (source_gt if in_source_time else gt_stamps) / 1e9,
+                gt_poses,
+            )
             try:
                 ate, n = absolute_trajectory_error_arrays(
                     traj_stamps, traj_poses[:, :3, 3], gt_stamps, gt_poses[:, :3, 3]
@@ -200,7 +265,6 @@ class SlamNode:
                 out.update({"ate_m": ate, "ate_frames": n})
             except ValueError as exc:
                 out["ate_error"] = str(exc)
-            (run_dir / "ate.json").write_text(json.dumps(out, indent=2))
         return out
 
 
@@ -215,20 +279,45 @@ def _refuse_busy(query: zenoh.Query) -> None:
 
 
 def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threading.Event) -> None:
-    """Serve until `stop`; writes the outputs into run_dir at exit."""
+    """Serve until `stop`; writes the outputs into run_dir at exit. One robot (`robots` unset) or a fleet:
+    the listed robots, or every robot ("*"), read through wildcard keys; each gets its camera poses
+    and the shared map on its own keys."""
     node = SlamNode(settings)
     rid = settings.robot_id
-    poses_sub = declare_fifo_subscriber(session, keys.tag_poses(rid))
-    cam_pub = session.declare_publisher(keys.camera_pose(rid), encoding=encoding_for(CameraPose.SCHEMA))
-    map_pub = session.declare_publisher(keys.tag_map(rid), encoding=encoding_for(TagMap.SCHEMA))
+
+    def key(per_robot: Callable[[str], str]) -> str:  # the key of one robot, or of every robot for a fleet
+        return keys.for_every_robot(per_robot(rid)) if node.fleet else per_robot(rid)
+
+    poses_sub = declare_fifo_subscriber(session, key(keys.tag_poses))
+    cam_pubs: dict[str, zenoh.Publisher] = {}
+    map_pubs: dict[str, zenoh.Publisher] = {}
+    robot_tokens: dict[str, zenoh.LivelinessToken] = {}
+
+    def publishers(robot: str) -> tuple[zenoh.Publisher, zenoh.Publisher]:
+        """The robot's camera-pose and map publishers and its slam token (made on its first frame)."""
+        if robot not in cam_pubs:
+            cam_pubs[robot] = session.declare_publisher(
+                keys.camera_pose(robot), encoding=encoding_for(CameraPose.SCHEMA)
+            )
+            map_pubs[robot] = session.declare_publisher(keys.tag_map(robot), encoding=encoding_for(TagMap.SCHEMA))
+            if robot not in robot_tokens:
+                robot_tokens[robot] = session.liveliness().declare_token(keys.alive(robot, "slam"))
+        return cam_pubs[robot], map_pubs[robot]
 
     guard = InputGuard("slam")
 
+    def robot_of(sample_key: object) -> str:
+        robot = keys.robot_of(str(sample_key))
+        if not node.serves(robot):
+            raise SlamInputError(f"robot {robot!r} is not one this slam serves")
+        return robot
+
     def on_gt(sample: zenoh.Sample) -> None:
         def keep(payload: bytes) -> None:
+            robot = robot_of(sample.key_expr)
             msg = decode(payload, CameraPose)
             check_rigid(msg.world_from_camera, "ground truth world_from_camera")  # it is written out as TUM
-            node.on_ground_truth(msg.capture_nanos, np.asarray(msg.world_from_camera))
+            node.on_ground_truth(msg.capture_nanos, np.asarray(msg.world_from_camera), robot)
 
         payload = sample.payload.to_bytes()
         guard.run("ground_truth", len(payload), lambda: keep(payload))
@@ -246,29 +335,41 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
         with query:  # the query is finalised (its asker told "no more replies") on exit
             if query.parameters.get("save") in ("1", "true"):
                 node.write_outputs(settings.run_dir)
-            query.reply(query.key_expr, encode(node.current_map(rid)), encoding=encoding_for(TagMap.SCHEMA))
+            try:
+                asker = keys.robot_of(str(query.key_expr))
+            except ValueError:
+                asker = rid  # a wildcard get: the map is one for every robot
+            reply_key = keys.tag_map(asker) if node.fleet else query.key_expr
+            query.reply(reply_key, encode(node.current_map(asker)), encoding=encoding_for(TagMap.SCHEMA))
 
     def on_stamp(sample: zenoh.Sample) -> None:
         def keep(payload: bytes) -> None:
+            robot = robot_of(sample.key_expr)
             msg = decode(payload, FrameStamp)
-            node.on_frame_stamp(msg.capture_nanos, msg.source_stamp_nanos)
+            node.on_frame_stamp(msg.capture_nanos, msg.source_stamp_nanos, robot)
 
         payload = sample.payload.to_bytes()
         guard.run("frame_stamp", len(payload), lambda: keep(payload))
 
-    gt_sub = session.declare_subscriber(keys.ground_truth(rid), on_gt)
-    stamp_sub = session.declare_subscriber(keys.frame_stamp(rid), on_stamp)
-    queryable = session.declare_queryable(keys.tag_map(rid), on_map_query)
-    token = session.liveliness().declare_token(keys.alive(rid, "slam"))
+    gt_sub = session.declare_subscriber(key(keys.ground_truth), on_gt)
+    stamp_sub = session.declare_subscriber(key(keys.frame_stamp), on_stamp)
+    queryable = session.declare_queryable(key(keys.tag_map), on_map_query)
+    for robot in sorted(node.runs):  # the configured robots: tokens at once (tests and tools wait for them)
+        robot_tokens[robot] = session.liveliness().declare_token(keys.alive(robot, "slam"))
+    fleet_token = session.liveliness().declare_token(keys.fleet_service("slam")) if node.fleet else None
     viz = make_viz(settings.rerun, service="slam", run_dir=settings.run_dir)
-    stats = serve_stats(session, keys.stats(rid, "slam"), guard)
+    stats = serve_stats(session, key(lambda r: keys.stats(r, "slam")), guard, lambda: {"robots": sorted(node.runs)})
     camera: CameraIntrinsics | None = None  # the frustum is logged with the pose when the intrinsics change
 
-    def process(payload: bytes) -> None:
+    def process(payload: bytes, sample_key: object) -> None:
         """One TagPoses: fuse, publish the camera pose (and the map on change), log (raises on bad input)."""
         nonlocal camera
+        robot = robot_of(sample_key)
         msg = decode(payload, TagPoses)
+        if node.fleet and msg.robot_id != robot:
+            raise SlamInputError(f"TagPoses of robot {msg.robot_id!r} on robot {robot!r}'s key")
         cam, tag_map = node.on_poses(msg)
+        cam_pub, map_pub = publishers(robot)
         cam_pub.put(encode(cam))
         if cam.status == "tracking":
             new_camera = msg.intrinsics if msg.intrinsics != camera else None
@@ -279,10 +380,11 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
             viz.tag_map(cam.capture_nanos, {t.tag_id: (t.size_m, t.world_from_tag) for t in tag_map.tags})
         if settings.rerun.enabled and node.slam.state.frames % 10 == 0:  # O(trajectory): only when drawn
             with node.lock:
-                traj = node.slam.trajectory_arrays()[1][:, :3, 3]
-                gt = node.gt.positions()
-            viz.trajectory(cam.capture_nanos, "world/trajectory", traj)
-            viz.trajectory(cam.capture_nanos, "world/groundtruth", gt)
+                traj = node.slam.trajectory_arrays(robot)[1][:, :3, 3]
+                gt = node.runs[robot].gt.positions()
+            where = f"world/robots/{robot}" if node.fleet else "world"  # the fleet view: a trajectory each
+            viz.trajectory(cam.capture_nanos, f"{where}/trajectory", traj)
+            viz.trajectory(cam.capture_nanos, f"{where}/groundtruth", gt)
 
     last_checkpoint = time.monotonic()
     try:
@@ -295,7 +397,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
                 stop.wait(0.001)
             else:
                 payload = sample.payload.to_bytes()
-                guard.run("tag_poses", len(payload), lambda: process(payload))  # noqa: B023 (called at once)
+                guard.run("tag_poses", len(payload), lambda: process(payload, sample.key_expr))  # noqa: B023
             if time.monotonic() - last_checkpoint >= settings.checkpoint_period_secs:
                 # Atomic: a kill never leaves half a file, or less. A failing write is counted, not fatal.
                 guard.run("checkpoint", 0, lambda: node.write_outputs(settings.run_dir))
@@ -303,7 +405,10 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
                 last_checkpoint = time.monotonic()
     finally:
         stats.undeclare()
-        token.undeclare()
+        for token in robot_tokens.values():
+            token.undeclare()
+        if fleet_token is not None:
+            fleet_token.undeclare()
         queryable.undeclare()
         gt_sub.undeclare()
         stamp_sub.undeclare()

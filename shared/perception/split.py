@@ -112,6 +112,19 @@ def robot_step(
     return tags, RobotTimings(t1 - t0, t2 - t1, t3 - t2)
 
 
+@dataclass(frozen=True)
+class EdgeInput:
+    """One Features message as the edge received it: the stamps taken where its bytes came in (edge
+    clock, 0 = none) and its size on the wire."""
+
+    features: Features
+    receive_nanos: int
+    previous_receive_nanos: int
+    payload_bytes: int
+    tag_map: TagMapFile
+    min_compute_secs: float = 0.0
+
+
 def edge_step(
     features: Features,
     *,
@@ -131,58 +144,112 @@ def edge_step(
     the network's points and the AprilTag corners the robot sent, weighted by their calibrated sigmas
     (not for tracked tags: their corners are predictions). A tracked tag whose 16 keypoints fit a plane
     worse than `tracked_max_reprojection_px` (RMS) is dropped: the keypoint-confidence gate."""
-    k, codec = features.split_k, features.codec
-    if codec not in ("fp16", "fp32"):
-        raise FeatureShapeError(f"codec {codec!r} is not fp16 or fp32")
-    for tag in features.tags:
-        check_tensor(tag.tensor, k, codec)
+    item = EdgeInput(features, receive_nanos, previous_receive_nanos, payload_bytes, tag_map, min_compute_secs)
+    return edge_batch([item], net=net, fusion=fusion, tracked_max_reprojection_px=tracked_max_reprojection_px)[0]
+
+
+def edge_batch(
+    items: list[EdgeInput],
+    *,
+    net: SplitNet,
+    fusion: KeypointFusion | None = None,
+    tracked_max_reprojection_px: float = 1.0,
+) -> list[TagPoses]:
+    """`edge_step` for several messages at once (several robots' frames that arrived together): the
+    tags of all messages cut at the same k go through one tail pass, then each message gets its own
+    TagPoses. Every message is validated before any network runs, so one bad message raises before
+    work is done for the others (the caller retries them one by one to keep the good ones). Each
+    message's edge time is its share of the batch's tail (by tags) plus its own PnP."""
+    for item in items:
+        f = item.features
+        if f.codec not in ("fp16", "fp32"):
+            raise FeatureShapeError(f"codec {f.codec!r} is not fp16 or fp32")
+        for tag in f.tags:
+            check_tensor(tag.tensor, f.split_k, f.codec)
+    keypoints: list[np.ndarray | None] = [None] * len(items)
+    share_secs = [0.0] * len(items)
+    for k in sorted({i.features.split_k for i in items}):
+        members = [n for n, i in enumerate(items) if i.features.split_k == k and i.features.tags]
+        if not members:
+            continue
+        t0 = time.perf_counter()
+        z = np.stack(
+            [np.asarray(t.tensor, np.uint8 if k == 0 else np.float32) for n in members for t in items[n].features.tags]
+        )
+        out = net.tail(z, k)
+        tail_secs = time.perf_counter() - t0
+        at = 0
+        for n in members:
+            tags = items[n].features.tags
+            kp = out[at : at + len(tags)]
+            at += len(tags)
+            if not np.isfinite(kp).all():
+                # The wire checks a tensor's framing, not its megabytes of values: NaN/inf surfaces here.
+                bad = [t.tag_id for t, p in zip(tags, kp, strict=True) if not np.isfinite(p).all()]
+                raise FeatureShapeError(
+                    f"non-finite keypoints for tag(s) {bad} of {items[n].features.robot_id}: their cut-{k} "
+                    "tensors carry NaN or inf"
+                )
+            keypoints[n] = kp
+            share_secs[n] = tail_secs * len(tags) / len(z)
+    return [
+        _poses(
+            item, keypoints[n], share_secs[n], fusion=fusion, tracked_max_reprojection_px=tracked_max_reprojection_px
+        )
+        for n, item in enumerate(items)
+    ]
+
+
+def _poses(
+    item: EdgeInput,
+    keypoints: np.ndarray | None,
+    tail_secs: float,
+    *,
+    fusion: KeypointFusion | None,
+    tracked_max_reprojection_px: float,
+) -> TagPoses:
+    features, k = item.features, item.features.split_k
     t0 = time.perf_counter()
     poses: list[TagPose] = []
-    if features.tags:
-        z = np.stack([np.asarray(t.tensor, np.uint8 if k == 0 else np.float32) for t in features.tags])
-        keypoints = net.tail(z, k)
-        if not np.isfinite(keypoints).all():
-            # The wire checks a tensor's framing, not its megabytes of values: NaN/inf surfaces here.
-            bad = [t.tag_id for t, kp in zip(features.tags, keypoints, strict=True) if not np.isfinite(kp).all()]
-            raise FeatureShapeError(f"non-finite keypoints for tag(s) {bad}: their cut-{k} tensors carry NaN or inf")
-        for tag, kp in zip(features.tags, keypoints, strict=True):
-            size = tag_map.size_of(tag.tag_id)
-            kp_px = keypoints_to_image(kp, tag.roi_to_image)
-            if fusion is not None and not tag.tracked:
-                corners = np.asarray(tag.corners_px, np.float64)
-                kp_px = fusion.apply(kp_px, corners, tag.roi_to_image, tag.edge_width_px)
-            cand = solve_planar_pnp(features.intrinsics, lattice_in_tag(size), kp_px)
-            if tag.tracked and cand.reprojection_error_px > tracked_max_reprojection_px:
-                continue
-            poses.append(
-                TagPose(
-                    tag_id=tag.tag_id,
-                    tag_size_m=size,
-                    keypoints_px=kp_px.astype(np.float32),
-                    corners_px=tag.corners_px,
-                    camera_from_tag=cand.camera_from_tag,
-                    reprojection_error_px=cand.reprojection_error_px,
-                    alt_camera_from_tag=cand.alt_camera_from_tag,
-                    alt_reprojection_error_px=cand.alt_reprojection_error_px,
-                    tracked=tag.tracked,
-                )
+    for tag, kp in zip(features.tags, keypoints if keypoints is not None else [], strict=True):
+        size = item.tag_map.size_of(tag.tag_id)
+        kp_px = keypoints_to_image(kp, tag.roi_to_image)
+        if fusion is not None and not tag.tracked:
+            corners = np.asarray(tag.corners_px, np.float64)
+            kp_px = fusion.apply(kp_px, corners, tag.roi_to_image, tag.edge_width_px)
+        cand = solve_planar_pnp(features.intrinsics, lattice_in_tag(size), kp_px)
+        if tag.tracked and cand.reprojection_error_px > tracked_max_reprojection_px:
+            continue
+        poses.append(
+            TagPose(
+                tag_id=tag.tag_id,
+                tag_size_m=size,
+                keypoints_px=kp_px.astype(np.float32),
+                corners_px=tag.corners_px,
+                camera_from_tag=cand.camera_from_tag,
+                reprojection_error_px=cand.reprojection_error_px,
+                alt_camera_from_tag=cand.alt_camera_from_tag,
+                alt_reprojection_error_px=cand.alt_reprojection_error_px,
+                tracked=tag.tracked,
             )
-    edge_secs = time.perf_counter() - t0
-    if edge_secs < min_compute_secs:
-        time.sleep(min_compute_secs - edge_secs)
-        edge_secs = time.perf_counter() - t0
+        )
+    edge_secs = tail_secs + time.perf_counter() - t0
+    if edge_secs < item.min_compute_secs:
+        time.sleep(item.min_compute_secs - edge_secs)
+        edge_secs = item.min_compute_secs
     done_nanos = time.time_ns()
+    receive_nanos = item.receive_nanos
     return TagPoses(
         robot_id=features.robot_id,
         seq=features.seq,
         capture_nanos=features.capture_nanos,
         split_k=k,
-        payload_bytes=payload_bytes,
+        payload_bytes=item.payload_bytes,
         intrinsics=features.intrinsics,
         link=LinkStamps(
             sent_nanos=features.publish_nanos,
             received_nanos=receive_nanos,
-            previous_received_nanos=previous_receive_nanos,
+            previous_received_nanos=item.previous_receive_nanos,
         ),
         timings=HopTimings(
             robot_compute_secs=features.robot_compute_secs,

@@ -15,6 +15,10 @@ with GTSAM's iSAM2. No I/O: the slam service feeds it TagPoses and publishes wha
 - Ambiguity guard: an observation whose two IPPE branches have similar reprojection error and
   whose chosen branch disagrees with the map's prediction is rejected and counted, not fused.
 - Localisation-only mode: all tag poses fixed from a tag-map file; unknown tags are ignored.
+- Several robots: each has its own trajectory (its own camera-pose symbols, motion prior, pending
+  tags and marginalised log) in the one graph with one tag map, so a tag seen by two robots ties
+  their trajectories together. The first robot's anchor fixes the world; another robot is lost until
+  it sees a tag already in the map (or a tag-map prior), then it is localised in the same world.
 """
 
 from __future__ import annotations
@@ -222,6 +226,27 @@ class _Pending:
     hypotheses: tuple[Array, Array]
 
 
+# Camera-pose symbol letters per robot: the first robot keeps X (as a single-robot graph), the others
+# take letters no other symbol uses (L is the tags').
+_TRACK_LETTERS: Final[str] = "xabcdefghijkmnopqrstuvwyzABCDEFGHIJKMNOPQRSTUVWXYZ"
+
+
+@dataclass
+class _Track:
+    """One robot's trajectory in the graph: its camera-pose symbols and the frames still in the graph,
+    its marginalised poses, and its new tags waiting for a second view."""
+
+    letter: str
+    stamps: dict[int, int] = field(default_factory=dict)  # frame index -> stamp, frames still in the graph
+    done: PoseLog = field(default_factory=PoseLog)  # frames marginalised out, compact
+    last_done_frame: int = -1
+    pending: dict[int, _Pending] = field(default_factory=dict)
+
+    def key(self, frame: int) -> int:
+        """The GTSAM key of this robot's camera pose at `frame`."""
+        return int(gtsam.symbol(self.letter, frame))
+
+
 class MarkerSlam:
     """Incremental marker SLAM (see module docstring)."""
 
@@ -229,13 +254,11 @@ class MarkerSlam:
         self.settings = settings
         self.known = known_tags or {}  # id -> (size, world_from_tag) from a tag map
         self.tags: dict[int, float] = {}  # ids in the graph -> size
-        self.stamps: dict[int, int] = {}  # frame index -> stamp, for the frames still in the graph
-        # Frames marginalised out of the graph (memory stays bounded): stamps and final poses, compact.
-        self._done = PoseLog()
-        self._last_done_frame = -1
+        # One trajectory per robot ("" = a single-robot graph's); frames marginalised out of the graph
+        # (memory stays bounded) keep their stamps and final poses in the track's compact log.
+        self._tracks: dict[str, _Track] = {}
         self.state = SlamState()
         self.anchor: int | None = None
-        self._pending: dict[int, _Pending] = {}
         self._new_isam()
         if settings.localisation_only:
             if not self.known:
@@ -247,6 +270,24 @@ class MarkerSlam:
                 self.tags[tag_id] = size
             self.isam.update(graph, values)
             self._estimate = self.isam.calculateEstimate()
+
+    def _track(self, robot: str) -> _Track:
+        track = self._tracks.get(robot)
+        if track is None:
+            if len(self._tracks) >= len(_TRACK_LETTERS):
+                raise SlamInputError(f"at most {len(_TRACK_LETTERS)} robots share one map; {robot!r} is one more")
+            track = self._tracks[robot] = _Track(_TRACK_LETTERS[len(self._tracks)])
+        return track
+
+    @property
+    def robots(self) -> list[str]:
+        """The robots with a trajectory, in the order they first came."""
+        return list(self._tracks)
+
+    @property
+    def stamps(self) -> dict[int, int]:
+        """The first robot's frames still in the graph (frame index -> stamp)."""
+        return self._tracks[next(iter(self._tracks))].stamps if self._tracks else {}
 
     def _new_isam(self) -> None:
         params = gtsam.ISAM2Params()
@@ -305,10 +346,15 @@ class MarkerSlam:
         gauss = gtsam.noiseModel.Gaussian.Covariance(cov)
         return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(s.huber_k), gauss)
 
-    def _check_input(self, frame: int, observations: list[Observation]) -> None:
+    def _check_input(self, robot: str, frame: int, observations: list[Observation]) -> None:
         if not 0 <= frame <= MAX_FRAME_INDEX:
             raise SlamInputError(f"frame index {frame} is outside 0..2**56-1")
-        if frame in self.stamps or frame <= self._last_done_frame or self._estimate.exists(X(frame)):
+        track = self._tracks.get(robot)
+        if track is None and len(self._tracks) >= len(_TRACK_LETTERS):
+            raise SlamInputError(f"at most {len(_TRACK_LETTERS)} robots share one map; {robot!r} is one more")
+        if track is not None and (
+            frame in track.stamps or frame <= track.last_done_frame or self._estimate.exists(track.key(frame))
+        ):
             raise SlamInputError(f"frame {frame} was already fused (a repeated message or a restarted camera)")
         for o in observations:
             check_observation(o)
@@ -360,27 +406,28 @@ class MarkerSlam:
                 changed = True
         return changed
 
-    def _pose(self, frame: int) -> Array:
-        return np.asarray(self._estimate.atPose3(X(frame)).matrix())
+    def _pose(self, track: _Track, frame: int) -> Array:
+        return np.asarray(self._estimate.atPose3(track.key(frame)).matrix())
 
-    def _motion_frames(self, frame: int) -> tuple[int, int] | None:
-        """The last two frames with a pose, when they and `frame` are within the bridging gap of each
-        other: what the motion prediction and the constant-velocity factor both stand on."""
+    def _motion_frames(self, track: _Track, frame: int) -> tuple[int, int] | None:
+        """The robot's last two frames with a pose, when they and `frame` are within the bridging gap of
+        each other: what the motion prediction and the constant-velocity factor both stand on."""
         gap = self.settings.motion_max_gap_frames
-        done = sorted(self.stamps)
+        done = sorted(track.stamps)
         if len(done) < 2:
             return None
         a, b = done[-2], done[-1]
         return (a, b) if 0 < frame - b <= gap and b - a <= gap else None
 
-    def predict(self, frame: int) -> Array | None:
-        """Constant-velocity camera pose for `frame` from the last two frames with a pose (None beyond
-        the bridging gap)."""
-        ab = self._motion_frames(frame)
-        if ab is None:
+    def predict(self, frame: int, *, robot: str = "") -> Array | None:
+        """Constant-velocity camera pose for `frame` of `robot` from its last two frames with a pose
+        (None beyond the bridging gap)."""
+        track = self._tracks.get(robot)
+        ab = self._motion_frames(track, frame) if track is not None else None
+        if track is None or ab is None:
             return None
         a, b = ab
-        pa, pb = self._pose(a), self._pose(b)
+        pa, pb = self._pose(track, a), self._pose(track, b)
         twist = np.asarray(gtsam.Pose3.Logmap(_pose3(np.linalg.inv(pa) @ pb))) / (b - a)
         return pb @ np.asarray(gtsam.Pose3.Expmap(twist * (frame - b)).matrix())
 
@@ -392,16 +439,17 @@ class MarkerSlam:
         predicted = np.linalg.inv(reference) @ world_from_tag
         return _rot_deg(o.alt_camera_from_tag, predicted) < _rot_deg(o.camera_from_tag, predicted)
 
-    def update(self, frame: int, stamp_nanos: int, observations: list[Observation]) -> FrameResult:
-        """Fuse one frame's observations; returns the camera pose estimate for it. Raises SlamInputError,
-        before touching any state, for a frame it has seen, a frame index GTSAM cannot key, or an
-        observation that is no rigid pose in front of the camera."""
-        self._check_input(frame, observations)
+    def update(self, frame: int, stamp_nanos: int, observations: list[Observation], *, robot: str = "") -> FrameResult:
+        """Fuse one frame of `robot` (frame indices are per robot); returns the camera pose estimate for
+        it. Raises SlamInputError, before touching any state, for a frame it has seen, a frame index
+        GTSAM cannot key, or an observation that is no rigid pose in front of the camera."""
+        self._check_input(robot, frame, observations)
+        track = self._track(robot)
         s = self.settings
         self.state.frames += 1
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         map_changed = self._seed_map(observations, graph, values)
-        predicted = self.predict(frame)
+        predicted = self.predict(frame, robot=robot)
         mapped = [(o, wt) for o in observations if (wt := self._world_from_tag(o.tag_id)) is not None]
         # Camera initial guess: each mapped tag's view (branch chosen against the prediction or, without
         # one, against the unambiguous views), the one nearest the median position wins.
@@ -435,7 +483,7 @@ class MarkerSlam:
             elif s.localisation_only:
                 continue
             else:
-                admitted = self._admit_new_tag(o, frame, init)
+                admitted = self._admit_new_tag(track, o, frame, init)
                 if admitted is None:
                     rejected += 1  # ambiguous and not yet disambiguated by a second view
                     continue
@@ -444,54 +492,56 @@ class MarkerSlam:
                 values.insert(L(o.tag_id), _pose3(init @ measured))
                 self.tags[o.tag_id] = o.size_m
                 map_changed = True
-            graph.add(gtsam.BetweenFactorPose3(X(frame), L(o.tag_id), _pose3(measured), self.noise(o, alt=use_alt)))
+            graph.add(
+                gtsam.BetweenFactorPose3(track.key(frame), L(o.tag_id), _pose3(measured), self.noise(o, alt=use_alt))
+            )
             self.state.observations[o.tag_id] = self.state.observations.get(o.tag_id, 0) + 1
             used += 1
         self.state.rejected_ambiguous += rejected
         if used == 0:
             self.state.lost += 1
             return FrameResult(None, "lost", 0, rejected, map_changed)
-        values.insert(X(frame), _pose3(init))
-        motion = self._motion_factor(frame)  # never None when this frame is bridged (same frames as predict)
+        values.insert(track.key(frame), _pose3(init))
+        motion = self._motion_factor(track, frame)  # never None when this frame is bridged (as predict)
         if motion is not None:
             graph.add(motion)
         self.isam.update(graph, values)
         self._estimate = self.isam.calculateEstimate()
-        pose = self._pose(frame)
-        self.stamps[frame] = stamp_nanos
-        if len(self.stamps) >= s.window_frames:
+        pose = self._pose(track, frame)
+        track.stamps[frame] = stamp_nanos
+        if sum(len(t.stamps) for t in self._tracks.values()) >= s.window_frames:
             self._marginalise_old_frames()
         return FrameResult(pose, "tracking", used, rejected, map_changed)
 
-    def _admit_new_tag(self, o: Observation, frame: int, world_from_camera: Array) -> bool | None:
+    def _admit_new_tag(self, track: _Track, o: Observation, frame: int, world_from_camera: Array) -> bool | None:
         """The branch a new tag enters the map with (True: the other one), or None while it is ambiguous:
         then both world-pose
         hypotheses are kept, and a later view (within the bridging gap) that agrees with exactly one
         of them decides."""
         s = self.settings
         if not self.is_ambiguous(o):
-            self._pending.pop(o.tag_id, None)
+            track.pending.pop(o.tag_id, None)
             return False
         now = (world_from_camera @ o.camera_from_tag, world_from_camera @ o.alt_camera_from_tag)
-        before = self._pending.get(o.tag_id)
+        before = track.pending.get(o.tag_id)
         if before is None or frame - before.frame > s.motion_max_gap_frames:
-            self._pending[o.tag_id] = _Pending(frame, now)
+            track.pending[o.tag_id] = _Pending(frame, now)
             return None
         # Disagreement of each current branch with the closest earlier hypothesis.
         score = [min(_rot_deg(h, p) for p in before.hypotheses) for h in now]
         best = int(np.argmin(score))
         if score[best] < s.disagreement_deg / 2 and score[1 - best] > s.disagreement_deg:
-            self._pending.pop(o.tag_id, None)
+            track.pending.pop(o.tag_id, None)
             return best == 1
-        self._pending[o.tag_id] = _Pending(frame, now)
+        track.pending[o.tag_id] = _Pending(frame, now)
         return None
 
-    def _motion_factor(self, frame: int) -> gtsam.CustomFactor | None:
+    def _motion_factor(self, track: _Track, frame: int) -> gtsam.CustomFactor | None:
         """Constant-velocity prior over the last two frames with a pose and this one (no odometry):
         their twists per frame agree up to an acceleration noise that grows with the gaps. A three-pose
         factor, so the velocity is estimated with the poses rather than frozen from noisy estimates."""
         s = self.settings
-        ab = self._motion_frames(frame)
+        ab = self._motion_frames(track, frame)
         if ab is None:
             return None
         a, b = ab
@@ -500,15 +550,15 @@ class MarkerSlam:
         rot = math.radians(s.motion_accel_deg) * span + math.radians(s.motion_sigma_deg) * g2
         pos = s.motion_accel_m * span + s.motion_sigma_m * g2
         noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([rot] * 3 + [pos] * 3))
-        return gtsam.CustomFactor(noise, [X(a), X(b), X(frame)], _constant_velocity_error(g1, g2))
+        return gtsam.CustomFactor(
+            noise, [track.key(a), track.key(b), track.key(frame)], _constant_velocity_error(g1, g2)
+        )
 
     def _marginalise_old_frames(self) -> None:
         """Bound memory: start a fresh graph from the current estimate. Every tag keeps its estimate as a
         prior with its marginal covariance (the anchor and a localisation map stay fixed); the last two
         frames keep theirs (the motion prior needs them); older frames are final and leave the graph."""
         s = self.settings
-        keep = sorted(self.stamps)[-2:]
-        poses = {f: self._pose(f) for f in self.stamps}
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         for tag_id in self.tags:
             if not self._estimate.exists(L(tag_id)):
@@ -520,34 +570,46 @@ class MarkerSlam:
                 noise = gtsam.noiseModel.Gaussian.Covariance(_spd(self.isam.marginalCovariance(L(tag_id))))
             graph.add(gtsam.PriorFactorPose3(L(tag_id), pose, noise))
             values.insert(L(tag_id), pose)
-        for f in keep:
-            cov = _spd(self.isam.marginalCovariance(X(f)))
-            graph.add(gtsam.PriorFactorPose3(X(f), _pose3(poses[f]), gtsam.noiseModel.Gaussian.Covariance(cov)))
-            values.insert(X(f), _pose3(poses[f]))
-        old = [f for f in sorted(self.stamps) if f not in keep]
-        self._done.extend([self.stamps[f] for f in old], [poses[f] for f in old])
-        for f in old:
-            del self.stamps[f]
-        self._last_done_frame = max(self._last_done_frame, old[-1]) if old else self._last_done_frame
+        for track in self._tracks.values():  # every robot keeps its last two frames (its motion prior)
+            keep = sorted(track.stamps)[-2:]
+            poses = {f: self._pose(track, f) for f in track.stamps}
+            for f in keep:
+                cov = _spd(self.isam.marginalCovariance(track.key(f)))
+                graph.add(
+                    gtsam.PriorFactorPose3(track.key(f), _pose3(poses[f]), gtsam.noiseModel.Gaussian.Covariance(cov))
+                )
+                values.insert(track.key(f), _pose3(poses[f]))
+            old = [f for f in sorted(track.stamps) if f not in keep]
+            track.done.extend([track.stamps[f] for f in old], [poses[f] for f in old])
+            for f in old:
+                del track.stamps[f]
+            track.last_done_frame = max(track.last_done_frame, old[-1]) if old else track.last_done_frame
         self._new_isam()
         self.isam.update(graph, values)
         self._estimate = self.isam.calculateEstimate()
 
-    def trajectory(self) -> list[tuple[int, Array]]:
-        """Camera poses in frame order: (stamp_nanos, world_from_camera); the frames still in the graph
-        are smoothed by every later observation, older ones are as they were when they left it."""
-        out = self._done.items()
-        for frame in sorted(self.stamps):
-            if self._estimate.exists(X(frame)):
-                out.append((self.stamps[frame], np.asarray(self._estimate.atPose3(X(frame)).matrix())))
+    def trajectory(self, robot: str | None = None) -> list[tuple[int, Array]]:
+        """One robot's camera poses in frame order (None: the first robot's): (stamp_nanos,
+        world_from_camera); the frames still in the graph are smoothed by every later observation,
+        older ones are as they were when they left it."""
+        track = self._tracks.get(robot if robot is not None else next(iter(self._tracks), ""))
+        if track is None:
+            return []
+        out = track.done.items()
+        for frame in sorted(track.stamps):
+            if self._estimate.exists(track.key(frame)):
+                out.append((track.stamps[frame], self._pose(track, frame)))
         return out
 
-    def trajectory_arrays(self) -> tuple[Array, Array]:
+    def trajectory_arrays(self, robot: str | None = None) -> tuple[Array, Array]:
         """`trajectory()` as arrays (stamps (n,) ns, poses (n, 4, 4)), without a Python object per pose."""
-        done_stamps, done_poses = self._done.arrays()
-        window = [f for f in sorted(self.stamps) if self._estimate.exists(X(f))]
-        stamps = np.concatenate([done_stamps, np.array([self.stamps[f] for f in window], np.int64)])
-        live = [np.asarray(self._estimate.atPose3(X(f)).matrix()) for f in window]
+        track = self._tracks.get(robot if robot is not None else next(iter(self._tracks), ""))
+        if track is None:
+            return np.zeros(0, np.int64), np.zeros((0, 4, 4))
+        done_stamps, done_poses = track.done.arrays()
+        window = [f for f in sorted(track.stamps) if self._estimate.exists(track.key(f))]
+        stamps = np.concatenate([done_stamps, np.array([track.stamps[f] for f in window], np.int64)])
+        live = [self._pose(track, f) for f in window]
         poses = np.concatenate([done_poses, np.array(live, np.float64).reshape(-1, 4, 4)])
         return stamps, poses
 

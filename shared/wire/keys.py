@@ -86,6 +86,54 @@ def alive(robot_id: str, service: str) -> str:
     return f"{ROOT}/{_check(robot_id, 'robot id')}/alive/{_check(service, 'service')}"
 
 
+def alive_any_robot(service: str) -> str:
+    """Liveliness tokens of one service of every robot (`splittag/*/alive/<service>`)."""
+    return f"{ROOT}/*/alive/{_check(service, 'service')}"
+
+
+def robot_of(key: str) -> str:
+    """The robot id of a per-robot key (`splittag/<robot_id>/...`); ValueError for any other key."""
+    parts = str(key).split("/")
+    if len(parts) < 3 or parts[0] != ROOT:
+        raise ValueError(f"{key!r} is not a splittag/<robot_id>/... key")
+    return _check(parts[1], "robot id")
+
+
+# Keys of the edge tier as a whole (not of one robot). '@fleet' is a verbatim chunk: no robot id can
+# spell it and no `splittag/*/...` wildcard of a per-robot key matches it.
+FLEET: Final[str] = f"{ROOT}/@fleet"
+
+
+def for_every_robot(key: str) -> str:
+    """A per-robot key with its robot id replaced by `*`: the same key of every robot."""
+    parts = key.split("/")
+    robot_of(key)
+    return "/".join([parts[0], "*", *parts[2:]])
+
+
+def fleet_service(service: str) -> str:
+    """Liveliness token of a service that serves the whole fleet (slam with `robots`)."""
+    return f"{FLEET}/{_check(service, 'service')}"
+
+
+def edge_worker(worker_id: str) -> str:
+    """Liveliness token of one edge_infer worker of the edge tier (discovery and robot assignment)."""
+    return f"{FLEET}/edge_worker/{_check(worker_id, 'worker id')}"
+
+
+def edge_workers() -> str:
+    """Every edge worker's liveliness token."""
+    return f"{FLEET}/edge_worker/*"
+
+
+def worker_of(key: str) -> str:
+    """The worker id of an `edge_worker` token key."""
+    parts = str(key).split("/")
+    if len(parts) != 4 or f"{parts[0]}/{parts[1]}" != FLEET or parts[2] != "edge_worker":
+        raise ValueError(f"{key!r} is not a {FLEET}/edge_worker/<id> key")
+    return _check(parts[3], "worker id")
+
+
 def stats(robot_id: str, service: str) -> str:
     """Queryable of every service: its input counters (accepted, rejected by reason) as JSON."""
     return f"{ROOT}/{_check(robot_id, 'robot id')}/{_check(service, 'service')}/stats"

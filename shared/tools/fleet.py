@@ -1,0 +1,146 @@
+"""A fleet deployment in one place: N robots (camera + robot_infer [+ controller] each) and M edge_infer
+workers sharing one edge tier with one slam, on one host or several.
+
+The shape: slam opens the edge tier's router (it is the one process per edge tier; a worker may die
+without taking the network with it); every edge worker and every robot router connects to it; each
+robot runs its own router (camera frames never leave the robot) that its camera and controller join.
+The workers share the robots by their liveliness tokens (shared.transport.fleet); slam keeps one map
+and a trajectory per robot. `FleetPlan` says who runs where; `fleet_configs` writes one run config per
+process (the deploy TOML's tables, then that process's robot id, worker id and endpoints), so every
+process is an ordinary service started with `--config`. Used by `splittag fleet`, bench/fleet.py and
+tests/test_fleet_multiprocess.py.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from shared.tools.topology import merge, write_config
+from shared.transport.session import free_tcp_port
+from shared.wire.messages import RobotId
+
+
+class FleetPlan(BaseModel):
+    """Who runs where. Hosts are as seen from the robots (`edge_host`) and as bound (`robot_hosts`)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    robots: list[RobotId] = Field(min_length=1)
+    edge_workers: list[RobotId] = Field(min_length=1)
+    edge_host: str = "127.0.0.1"  # where the edge tier's router (slam) listens / is reached
+    edge_port: int = Field(default=7447, gt=0, lt=65536)
+    robot_hosts: dict[RobotId, str] = Field(default_factory=dict)  # robot -> its host (default 127.0.0.1)
+    robot_ports: dict[RobotId, int] = Field(default_factory=dict)  # robot -> its router's port (default 7448 + i)
+    controller: bool = False
+
+    @model_validator(mode="after")
+    def _distinct(self) -> FleetPlan:
+        for what, ids in (("robots", self.robots), ("edge_workers", self.edge_workers)):
+            if len(set(ids)) != len(ids):
+                raise ValueError(f"fleet {what} repeat an id: {ids}")
+        unknown = (set(self.robot_hosts) | set(self.robot_ports)) - set(self.robots)
+        if unknown:
+            raise ValueError(f"robot_hosts / robot_ports name robots not in the fleet: {sorted(unknown)}")
+        return self
+
+    @classmethod
+    def loopback(cls, robots: int, workers: int, *, controller: bool = False) -> FleetPlan:
+        """`robots` robots and `workers` edge workers on this host, on free ports (tests, benchmarks)."""
+        names = [f"robot{i + 1}" for i in range(robots)]
+        return cls(
+            robots=names,
+            edge_workers=[f"edge{i + 1}" for i in range(workers)],
+            edge_port=free_tcp_port(),
+            robot_ports={r: free_tcp_port() for r in names},
+            controller=controller,
+        )
+
+    @classmethod
+    def from_config(cls, config: Path) -> FleetPlan:
+        """The `[fleet]` table of a deploy TOML (deploy/fleet.toml)."""
+        table = tomllib.loads(Path(config).read_text()).get("fleet")
+        if not isinstance(table, dict):
+            raise ValueError(f"{config} has no [fleet] table (see deploy/fleet.toml)")
+        return cls.model_validate(table)
+
+    def robot_port(self, robot: str) -> int:
+        """The port robot's own router listens on."""
+        return self.robot_ports.get(robot, self.edge_port + 1 + self.robots.index(robot))
+
+    @property
+    def edge_router(self) -> str:
+        """The edge tier's router endpoint (slam listens on it; workers, robots and tools connect)."""
+        return f"tcp/{self.edge_host}:{self.edge_port}"
+
+    def robot_router(self, robot: str) -> str:
+        """Robot's own router endpoint (its camera and controller connect to it)."""
+        return f"tcp/{self.robot_hosts.get(robot, '127.0.0.1')}:{self.robot_port(robot)}"
+
+
+@dataclass(frozen=True)
+class FleetProcess:
+    """One process of the fleet: its name (for logs and pids), service and run config."""
+
+    name: str
+    service: str
+    config: Path
+    robot_id: str | None  # the robot it belongs to (None: the edge tier's)
+
+
+def demo_tables(run_dir: Path, *, slam_map: bool = False) -> dict[str, Any]:
+    """The demo scene's tag map (sizes and world poses) for edge_infer and robot_infer, and for slam
+    with `slam_map` (then its poses are priors; without, slam builds the map from what the robots see)."""
+    import yaml
+
+    from shared.tools.launch import demo_tag_map
+
+    path = run_dir / "tag_map.yaml"
+    run_dir.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump(demo_tag_map().model_dump(), sort_keys=False))
+    users = ("edge_infer", "robot_infer", "slam") if slam_map else ("edge_infer", "robot_infer")
+    return {name: {"tag_map": str(path)} for name in users}
+
+
+def fleet_configs(
+    plan: FleetPlan, run_dir: Path, base: Path, extra: dict[str, Any] | None = None
+) -> list[FleetProcess]:
+    """Write a run config per process into run_dir (the base TOML's tables with run_dir, then the
+    process's own identity and endpoints, then `extra`); returns the processes in start order: the
+    edge tier (slam first: its router), then each robot (robot_infer before its camera)."""
+    doc = tomllib.loads(base.read_text())
+    doc.pop("fleet", None)
+    doc = merge(doc, {"common": {"run_dir": str(run_dir)}})
+    doc = merge(doc, extra or {})
+    run_dir.mkdir(parents=True, exist_ok=True)
+    out: list[FleetProcess] = []
+
+    def add(name: str, service: str, robot: str | None, tables: dict[str, Any]) -> None:
+        path = write_config(run_dir / f"config_{name}.toml", extra=merge(doc, tables))
+        out.append(FleetProcess(name, service, path, robot))
+
+    edge = plan.edge_router
+    robots = list(plan.robots)
+    add("slam", "slam", None, {"slam": {"robots": robots, "zenoh": {"mode": "router", "listen": [edge]}}})
+    for worker in plan.edge_workers:
+        zenoh = {"mode": "client", "connect": [edge]}
+        add(worker, "edge_infer", None, {"edge_infer": {"worker_id": worker, "robots": robots, "zenoh": zenoh}})
+    for robot in robots:
+        own = plan.robot_router(robot)
+        common = {"robot_id": robot}
+        router = {"mode": "router", "listen": [own], "connect": [edge]}
+        add(f"{robot}_robot_infer", "robot_infer", robot, {"common": common, "robot_infer": {"zenoh": router}})
+        if plan.controller:
+            client = {"mode": "client", "connect": [own]}
+            add(f"{robot}_controller", "controller", robot, {"common": common, "controller": {"zenoh": client}})
+        add(
+            f"{robot}_camera",
+            "camera",
+            robot,
+            {"common": common, "camera": {"zenoh": {"mode": "client", "connect": [own]}}},
+        )
+    return out
