@@ -442,3 +442,52 @@ def test_stamp_map_looks_up_capture_times() -> None:
     assert found.tolist() == [True, True, False, True]
     assert values.tolist() == [0, 2_990, 7, 10]
     assert StampMap().lookup(np.array([3]))[1].tolist() == [False]
+
+
+def test_two_robots_share_one_map_and_keep_their_own_trajectories() -> None:
+    """Two robots in one graph: the second is lost until it sees a tag the first mapped, then localised
+    in the same world; its own motion prior, frame indices and marginalised log; tags only the second
+    robot sees join the shared map; both trajectories stay exact across the bounded window."""
+    anchor = SCENE.tags[3]
+    slam = MarkerSlam(
+        SlamSettings(anchor_tag_id=anchor.id, window_frames=40),
+        known_tags={anchor.id: (anchor.size_m, anchor.pose())},
+    )
+    traj = _constant_velocity(90)
+    first, second = traj[:25], traj[20:]  # the second robot starts near the first's end and goes on
+    seen_first: set[int] = set()
+    for i in range(90):  # interleaved, the second robot starting later (its frame indices from 0)
+        if i < 25:
+            obs = [_exact_obs(*v) for v in _visible(first[i])]
+            seen_first |= {o.tag_id for o in obs}
+            res = slam.update(i, 1_000 + i, obs, robot="r1")
+            if res.world_from_camera is not None:
+                np.testing.assert_allclose(res.world_from_camera, first[i], atol=1e-3)
+        if i >= 20:
+            j = i - 20
+            res2 = slam.update(j, 5_000 + j, [_exact_obs(*v) for v in _visible(second[j])], robot="r2")
+            assert res2.status == "tracking", f"r2 frame {j}"
+            assert res2.world_from_camera is not None
+            np.testing.assert_allclose(res2.world_from_camera, second[j], atol=1e-3)
+    assert slam.robots == ["r1", "r2"]
+    seen_second = {v[0] for j in range(70) for v in _visible(second[j])}
+    assert seen_second - seen_first, "the second robot should see a tag the first did not"
+    assert seen_first | seen_second <= set(slam.tag_map())
+    for robot, truth, offset in (("r1", first, 1_000), ("r2", second, 5_000)):
+        got = slam.trajectory(robot)
+        assert [s for s, _ in got] == sorted(s for s, _ in got)
+        for stamp, pose in got:
+            np.testing.assert_allclose(pose, truth[stamp - offset], atol=2e-3)
+    # The frame index of one robot does not collide with the other's, a repeat of either does.
+    with pytest.raises(SlamInputError, match="already fused"):
+        slam.update(24, 1_024, [], robot="r1")
+
+
+def test_a_robot_that_never_saw_a_mapped_tag_is_lost_not_placed_in_a_second_world() -> None:
+    slam = MarkerSlam(SlamSettings())
+    traj = _constant_velocity(60)
+    for i in range(5):
+        slam.update(i, i, [_exact_obs(*v) for v in _visible(traj[i])], robot="a")
+    unseen = [v for v in _visible(traj[59]) if v[0] not in slam.tags]
+    assert unseen
+    assert slam.update(0, 100, [_exact_obs(*unseen[0])], robot="b").status == "lost"

@@ -38,6 +38,16 @@ def _cmd_up(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_fleet(args: argparse.Namespace) -> int:
+    import json
+
+    from shared.tools.fleet import run_fleet
+
+    summary = run_fleet(args.config, duration_secs=args.duration, runs_root=args.runs, only=args.only)
+    print(json.dumps({k: v for k, v in summary.items() if k != "exit_codes"}, indent=2))
+    return 0
+
+
 def _cmd_down(args: argparse.Namespace) -> int:
     import os
     import signal
@@ -446,6 +456,13 @@ def _add_deploy_commands(sub: Any) -> None:
     p.add_argument("--runs", type=Path, default=Path("runs"), help="run folders go under here (RUNS/current links)")
     _add_launch_options(p)
     p.set_defaults(func=_cmd_up)
+    p = sub.add_parser("fleet", help="N robots and M edge workers with one slam (deploy/fleet.toml); Ctrl-C stops")
+    p.add_argument("--config", type=Path, default=Path("deploy/fleet.toml"))
+    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    p.add_argument("--runs", type=Path, default=Path("runs"), help="run folders go under here (RUNS/current links)")
+    p.add_argument("--only", default=None, help="'edge' (slam + workers) or one robot id: this host's part")
+    p.set_defaults(func=_cmd_fleet)
+
     p = sub.add_parser("down", help="stop the deployment in RUNS/current (SIGINT to every service)")
     p.add_argument("--runs", type=Path, default=Path("runs"))
     p.set_defaults(func=_cmd_down)

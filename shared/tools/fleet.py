@@ -13,6 +13,7 @@ tests/test_fleet_multiprocess.py.
 
 from __future__ import annotations
 
+import os
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -144,3 +145,106 @@ def fleet_configs(
             {"common": common, "camera": {"zenoh": {"mode": "client", "connect": [own]}}},
         )
     return out
+
+
+def run_fleet(
+    config: Path,
+    *,
+    duration_secs: float | None,
+    runs_root: Path = Path("runs"),
+    only: str | None = None,
+    quiet: bool = False,
+) -> dict[str, Any]:
+    """Start the fleet of `config` (or only its edge tier, `only="edge"`, or one robot's processes),
+    print a line per robot per second until duration/SIGINT, stop everything, write summary.json.
+    A process that dies is restarted after the supervisor's backoff (as `splittag up` does)."""
+    import json
+    import signal
+    import threading
+    import time
+
+    from shared.tools.launch import (
+        Monitor,
+        Service,
+        attach_monitor,
+        demo_tag_map,
+        new_run_dir,
+        start_process,
+        stop_services,
+    )
+    from shared.tools.supervise import Supervisor
+    from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
+    from shared.viz.recording import merge_recordings
+    from shared.wire import keys
+
+    plan = FleetPlan.from_config(config)
+    if only is not None and only != "edge" and only not in plan.robots:
+        raise ValueError(f"--only is 'edge' or one of the fleet's robots {plan.robots}, not {only!r}")
+    run_dir = new_run_dir(runs_root)
+    base = tomllib.loads(Path(config).read_text())
+    extra = demo_tables(run_dir) if base.get("camera", {}).get("source", "demo") == "demo" else {}
+    specs = [
+        s for s in fleet_configs(plan, run_dir, config, extra=extra) if only is None or (s.robot_id or "edge") == only
+    ]
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    supervisor = Supervisor()
+    running: list[tuple[FleetProcess, Service]] = []
+    restart_at: dict[str, float] = {}
+
+    def start(spec: FleetProcess) -> Service:
+        supervisor.started(spec.name)
+        argv = ["-m", f"services.{spec.service}", "--config", str(spec.config)]
+        return start_process(spec.name, argv, run_dir)
+
+    monitors = {r: Monitor(demo_tag_map(), max_records=200_000) for r in plan.robots if only in (None, "edge", r)}
+    try:
+        (run_dir / "launcher.pid").write_text(f"{os.getpid()}\n")
+        running = [(spec, start(spec)) for spec in specs]
+        (run_dir / "pids").write_text("".join(f"{s.name} {p.popen.pid}\n" for s, p in running))
+        session = open_session(ZenohSettings(mode="client", connect=[plan.edge_router]))
+        subs = [sub for robot, monitor in monitors.items() for sub in attach_monitor(session, robot, monitor)]
+        wanted = [keys.edge_worker(w) for w in plan.edge_workers if only in (None, "edge")]
+        wanted += [keys.alive(r, "robot_infer") for r in monitors if only != "edge"]
+        wait_for_liveliness(session, wanted, timeout_secs=180)
+        print(f"fleet run {run_dir}: {', '.join(s.name for s in specs)} up; Ctrl-C stops", flush=True)
+        t_end = None if duration_secs is None else time.monotonic() + duration_secs
+        while not stop.wait(1.0):
+            if not quiet:
+                for robot, monitor in monitors.items():
+                    print(f"{robot:>10} {monitor.line()}", flush=True)
+            if t_end is not None and time.monotonic() > t_end:
+                break
+            for i, (spec, proc) in enumerate(running):  # restart what died, after its backoff
+                code = proc.popen.poll()
+                if code is None:
+                    continue
+                if spec.name not in restart_at:
+                    delay = supervisor.exited(spec.name, code)
+                    if delay is None:  # a camera whose source ended
+                        continue
+                    print(f"{spec.name} exited ({code}); restart in {delay:.0f} s", flush=True)
+                    restart_at[spec.name] = time.monotonic() + delay
+                elif time.monotonic() >= restart_at[spec.name]:
+                    del restart_at[spec.name]
+                    running[i] = (spec, start(spec))
+        for sub in subs:
+            sub.undeclare()
+        session.close()
+    finally:
+        codes = stop_services([p for _, p in running])
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    summary: dict[str, Any] = {
+        "run_dir": str(run_dir),
+        "robots": {r: m.summary() for r, m in monitors.items()},
+        "exit_codes": codes,
+    }
+    slam_json = run_dir / "slam.json"
+    if slam_json.is_file():
+        summary["slam"] = json.loads(slam_json.read_text())
+    recording = merge_recordings(run_dir)
+    if recording is not None:
+        summary["recording"] = str(recording)
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
