@@ -64,7 +64,7 @@ def test_fleet_view_with_discovered_robots_follows_their_tokens() -> None:
 def test_fleet_keys() -> None:
     assert keys.for_every_robot(keys.tag_poses("r1")) == "splittag/*/tag_poses/v3"
     assert keys.robot_of("splittag/r7/features/v3") == "r7"
-    assert keys.worker_of(keys.edge_worker("edge2")) == "edge2"
+    assert keys.worker_of(keys.edge_worker("fleet", "edge2")) == "edge2"
     with pytest.raises(ValueError, match="not a"):
         keys.worker_of(keys.alive("r1", "edge_infer"))
     with pytest.raises(ValueError, match="robot id"):
@@ -72,7 +72,9 @@ def test_fleet_keys() -> None:
     import zenoh
 
     # The fleet's keys can never be taken for a robot's: '@fleet' is a verbatim chunk.
-    assert not zenoh.KeyExpr(keys.alive_any_robot("edge_infer")).intersects(zenoh.KeyExpr(keys.edge_worker("w")))
+    assert not zenoh.KeyExpr(keys.alive_any_robot("edge_infer")).intersects(
+        zenoh.KeyExpr(keys.edge_worker("fleet", "w"))
+    )
 
 
 def test_a_batch_of_two_robots_gives_what_each_alone_gives() -> None:
@@ -126,6 +128,8 @@ def test_fleet_configs_give_each_process_its_identity_and_endpoints(tmp_path: Pa
     assert docs["slam"]["slam"]["zenoh"] == {"mode": "router", "listen": ["tcp/127.0.0.1:7447"]}
     assert docs["edge2"]["edge_infer"]["worker_id"] == "edge2"
     assert docs["edge2"]["edge_infer"]["robots"] == ["robot1", "robot2"]
+    assert docs["edge2"]["edge_infer"]["tier"] == "fleet"
+    assert docs["robot1_camera"]["common"]["rerun"]["entity_prefix"] == "robots/robot1/"
     assert docs["robot2_robot_infer"]["common"]["robot_id"] == "robot2"
     assert docs["robot2_robot_infer"]["robot_infer"]["zenoh"]["listen"] == ["tcp/127.0.0.1:7449"]
     assert docs["robot2_camera"]["camera"]["zenoh"]["connect"] == ["tcp/127.0.0.1:7449"]

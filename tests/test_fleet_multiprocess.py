@@ -99,7 +99,7 @@ def test_two_robots_two_workers_one_slam_and_a_worker_dies(tmp_path: Path) -> No
             wait_for_liveliness(
                 session,
                 [keys.alive(r, s) for r in plan.robots for s in ("robot_infer", "edge_infer", "slam")]
-                + [keys.edge_worker(w) for w in plan.edge_workers],
+                + [keys.edge_worker(plan.tier, w) for w in plan.edge_workers],
                 timeout_secs=120,
             )
             # Each robot is served by the worker every worker computes for it.

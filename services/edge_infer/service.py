@@ -109,13 +109,14 @@ class EdgeInfer:
         self._wanted: frozenset[str] | None = None
         self._wanted_lock = threading.Lock()
         fixed = None if s.robots == "*" else (s.robots or [s.robot_id])
+        self.tier = s.tier or (s.robot_id if s.robots is None else "fleet")
         self.fleet = FleetView(s.worker_id, robots=fixed, on_change=self._on_assignment)
         liveliness = session.liveliness()
-        for reply in liveliness.get(keys.edge_workers(), timeout=2.0):  # the workers already there
+        for reply in liveliness.get(keys.edge_workers(self.tier), timeout=2.0):  # the workers already there
             if reply.ok is not None:
                 self.fleet.worker_up(keys.worker_of(str(reply.ok.key_expr)))
-        self.worker_token = liveliness.declare_token(keys.edge_worker(s.worker_id))
-        self.workers_sub = liveliness.declare_subscriber(keys.edge_workers(), self._on_worker, history=True)
+        self.worker_token = liveliness.declare_token(keys.edge_worker(self.tier, s.worker_id))
+        self.workers_sub = liveliness.declare_subscriber(keys.edge_workers(self.tier), self._on_worker, history=True)
         self.robots_sub = (
             liveliness.declare_subscriber(keys.alive_any_robot("robot_infer"), self._on_robot, history=True)
             if fixed is None
@@ -208,6 +209,7 @@ class EdgeInfer:
         """Served on the lane's stats key with the input counters."""
         return {
             "worker": self.settings.worker_id,
+            "tier": self.tier,
             "workers": sorted(self.fleet.workers),
             "robots_served": sorted(self.lanes),
             "frames_for_robot": lane.frames,

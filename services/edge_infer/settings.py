@@ -26,6 +26,10 @@ class EdgeInferSettings(ServiceSettings):
     # worker that appears takes its share, one that dies hands its robots to the others.
     robots: list[RobotId] | Literal["*"] | None = None
     worker_id: RobotId = "edge1"  # unique in the edge tier (its liveliness token)
+    # The workers that share robots: the same tier name and the same `robots` on each. None: the robot id
+    # for a single-robot edge (so two robots' own edges on one network never take each other's robot),
+    # "fleet" otherwise.
+    tier: RobotId | None = None
     # Features of several robots that are waiting together go through one tail pass (per cut k).
     batch_max_messages: int = Field(default=8, ge=1)
     # Per-robot tag maps (robot id -> file), over `tag_map` for that robot.

@@ -374,7 +374,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
         if cam.status == "tracking":
             new_camera = msg.intrinsics if msg.intrinsics != camera else None
             camera = msg.intrinsics or camera
-            viz.camera_pose(cam.capture_nanos, cam.world_from_camera, new_camera)
+            viz.camera_pose(cam.capture_nanos, cam.world_from_camera, new_camera, robot if node.fleet else "")
         if tag_map is not None:
             map_pub.put(encode(tag_map))
             viz.tag_map(cam.capture_nanos, {t.tag_id: (t.size_m, t.world_from_tag) for t in tag_map.tags})

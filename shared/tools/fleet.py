@@ -38,6 +38,7 @@ class FleetPlan(BaseModel):
     robot_hosts: dict[RobotId, str] = Field(default_factory=dict)  # robot -> its host (default 127.0.0.1)
     robot_ports: dict[RobotId, int] = Field(default_factory=dict)  # robot -> its router's port (default 7448 + i)
     controller: bool = False
+    tier: RobotId = "fleet"  # the edge tier's name (its workers' tokens); one fleet, one tier
 
     @model_validator(mode="after")
     def _distinct(self) -> FleetPlan:
@@ -121,7 +122,10 @@ def fleet_configs(
     out: list[FleetProcess] = []
 
     def add(name: str, service: str, robot: str | None, tables: dict[str, Any]) -> None:
-        path = write_config(run_dir / f"config_{name}.toml", extra=merge(doc, tables))
+        # Rerun: a part file per process, per-robot entities under robots/<robot>/ (the workers' by message).
+        prefix = "robots/{robot}/" if service == "edge_infer" else (f"robots/{robot}/" if robot else "")
+        rerun = {"common": {"rerun": {"part_name": name, "entity_prefix": prefix}}}
+        path = write_config(run_dir / f"config_{name}.toml", extra=merge(merge(doc, rerun), tables))
         out.append(FleetProcess(name, service, path, robot))
 
     edge = plan.edge_router
@@ -129,7 +133,12 @@ def fleet_configs(
     add("slam", "slam", None, {"slam": {"robots": robots, "zenoh": {"mode": "router", "listen": [edge]}}})
     for worker in plan.edge_workers:
         zenoh = {"mode": "client", "connect": [edge]}
-        add(worker, "edge_infer", None, {"edge_infer": {"worker_id": worker, "robots": robots, "zenoh": zenoh}})
+        add(
+            worker,
+            "edge_infer",
+            None,
+            {"edge_infer": {"worker_id": worker, "tier": plan.tier, "robots": robots, "zenoh": zenoh}},
+        )
     for robot in robots:
         own = plan.robot_router(robot)
         common = {"robot_id": robot}
@@ -204,7 +213,7 @@ def run_fleet(
         (run_dir / "pids").write_text("".join(f"{s.name} {p.popen.pid}\n" for s, p in running))
         session = open_session(ZenohSettings(mode="client", connect=[plan.edge_router]))
         subs = [sub for robot, monitor in monitors.items() for sub in attach_monitor(session, robot, monitor)]
-        wanted = [keys.edge_worker(w) for w in plan.edge_workers if only in (None, "edge")]
+        wanted = [keys.edge_worker(plan.tier, w) for w in plan.edge_workers if only in (None, "edge")]
         wanted += [keys.alive(r, "robot_infer") for r in monitors if only != "edge"]
         wait_for_liveliness(session, wanted, timeout_secs=180)
         print(f"fleet run {run_dir}: {', '.join(s.name for s in specs)} up; Ctrl-C stops", flush=True)

@@ -40,6 +40,11 @@ class RerunSettings(BaseModel):
     enabled: bool = False
     recording_id: str = ""  # empty: the run folder's name, shared by every service of the run
     image_every: int = Field(default=1, ge=1)
+    # A fleet's processes: the .rrd part's name (empty: the service's) and a prefix for the per-robot
+    # entities (camera/, latency/, link/, split/, controller/), e.g. "robots/robot2/"; "{robot}" is
+    # replaced by each message's robot id (an edge worker serving several robots). world/ is shared.
+    part_name: str = ""
+    entity_prefix: str = ""
     jpeg_quality: int = Field(default=80, ge=10, le=100)
 
 
@@ -49,7 +54,9 @@ class Viz(Protocol):
     def image(self, capture_nanos: int, image: np.ndarray, camera: CameraIntrinsics, seq: int) -> None: ...
     def keypoints_gt(self, capture_nanos: int, points_px: list[Array]) -> None: ...
     def tag_poses(self, msg: TagPoses) -> None: ...
-    def camera_pose(self, capture_nanos: int, world_from_camera: Array, camera: CameraIntrinsics | None) -> None: ...
+    def camera_pose(
+        self, capture_nanos: int, world_from_camera: Array, camera: CameraIntrinsics | None, robot: str = ""
+    ) -> None: ...
     def trajectory(self, capture_nanos: int, path: str, positions: Array) -> None: ...
     def tag_map(self, capture_nanos: int, tags: dict[int, tuple[float, Array]]) -> None: ...
     def scalars(self, capture_nanos: int, values: dict[str, float]) -> None: ...
@@ -68,7 +75,9 @@ class NullViz:
     def tag_poses(self, msg: TagPoses) -> None:
         """No-op."""
 
-    def camera_pose(self, capture_nanos: int, world_from_camera: Array, camera: CameraIntrinsics | None) -> None:
+    def camera_pose(
+        self, capture_nanos: int, world_from_camera: Array, camera: CameraIntrinsics | None, robot: str = ""
+    ) -> None:
         """No-op."""
 
     def trajectory(self, capture_nanos: int, path: str, positions: Array) -> None:
@@ -94,9 +103,16 @@ class RerunViz:
         self.settings = settings
         run_dir.mkdir(parents=True, exist_ok=True)
         self.rec = rr.RecordingStream("splittag", recording_id=settings.recording_id or run_dir.name)
-        self.rec.save(run_dir / f"{service}.rrd")
+        self.rec.save(run_dir / f"{settings.part_name or service}.rrd")
+        self._prefix = settings.entity_prefix
+        self._robot = ""
         self._time_set = False
         self._trajectory_logged: dict[str, int] = {}
+
+    def _log(self, path: str, *args: Any, **kwargs: Any) -> None:
+        if self._prefix and not path.startswith("world/"):
+            path = self._prefix.replace("{robot}", self._robot) + path
+        self.rec.log(path, *args, **kwargs)
 
     def _at(self, capture_nanos: int) -> None:
         self.rec.set_time("capture_time", timestamp=capture_nanos / 1e9)
@@ -111,7 +127,7 @@ class RerunViz:
 
         ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.settings.jpeg_quality])
         if ok:
-            self.rec.log("camera/image", self._rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg"))
+            self._log("camera/image", self._rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg"))
 
     def keypoints_gt(self, capture_nanos: int, points_px: list[Array]) -> None:
         """Ground-truth keypoints of the tags in view."""
@@ -119,20 +135,21 @@ class RerunViz:
             return
         self._at(capture_nanos)
         pts = np.concatenate(points_px)
-        self.rec.log("camera/image/keypoints_gt", self._rr.Points2D(pts + 0.5, colors=[60, 120, 255], radii=2.5))
+        self._log("camera/image/keypoints_gt", self._rr.Points2D(pts + 0.5, colors=[60, 120, 255], radii=2.5))
 
     def tag_poses(self, msg: TagPoses) -> None:
         """Keypoints, quads, per-hop latency, payload and k of one frame."""
         rr = self._rr
+        self._robot = msg.robot_id
         self._at(msg.capture_nanos)
         # Rerun's 2D space puts pixel centres at +0.5; our convention has them at integers.
         if msg.tags:
             # detected tags yellow keypoints / green quads; tracked ones (stage 1 missed them) magenta
             kps = np.concatenate([t.keypoints_px for t in msg.tags]) + 0.5
             kp_colors = np.repeat([TRACKED_RGB if t.tracked else [255, 210, 0] for t in msg.tags], 16, axis=0)
-            self.rec.log("camera/image/keypoints", rr.Points2D(kps, colors=kp_colors, radii=2.0))
+            self._log("camera/image/keypoints", rr.Points2D(kps, colors=kp_colors, radii=2.0))
             quads = [np.vstack([t.corners_px, t.corners_px[:1]]) + 0.5 for t in msg.tags]
-            self.rec.log(
+            self._log(
                 "camera/image/tag_quads",
                 rr.LineStrips2D(
                     quads,
@@ -141,7 +158,7 @@ class RerunViz:
                 ),
             )
         else:
-            self.rec.log("camera/image/keypoints", rr.Clear(recursive=False))
+            self._log("camera/image/keypoints", rr.Clear(recursive=False))
         t = msg.timings
         self.scalars(
             msg.capture_nanos,
@@ -155,16 +172,17 @@ class RerunViz:
             },
         )
 
-    def camera_pose(self, capture_nanos: int, world_from_camera: Array, camera: CameraIntrinsics | None) -> None:
-        """SLAM camera pose (and its frustum)."""
+    def camera_pose(
+        self, capture_nanos: int, world_from_camera: Array, camera: CameraIntrinsics | None, robot: str = ""
+    ) -> None:
+        """SLAM camera pose (and its frustum); a fleet's robots each at world/robots/<robot>/camera."""
         rr = self._rr
         self._at(capture_nanos)
-        self.rec.log(
-            "world/camera", rr.Transform3D(translation=world_from_camera[:3, 3], mat3x3=world_from_camera[:3, :3])
-        )
+        entity = f"world/robots/{robot}/camera" if robot else "world/camera"
+        self._log(entity, rr.Transform3D(translation=world_from_camera[:3, 3], mat3x3=world_from_camera[:3, :3]))
         if camera is not None:
-            self.rec.log(
-                "world/camera",
+            self._log(
+                entity,
                 rr.Pinhole(
                     image_from_camera=camera.matrix(),
                     resolution=[camera.width, camera.height],
@@ -182,7 +200,7 @@ class RerunViz:
         self._trajectory_logged[path] = capture_nanos
         self._at(capture_nanos)
         colour = [255, 120, 0] if path.endswith("trajectory") else [60, 120, 255]
-        self.rec.log(path, self._rr.LineStrips3D([positions], colors=colour, radii=0.01))
+        self._log(path, self._rr.LineStrips3D([positions], colors=colour, radii=0.01))
 
     def tag_map(self, capture_nanos: int, tags: dict[int, tuple[float, Array]]) -> None:
         """Tags as flat boxes with their ids."""
@@ -197,7 +215,7 @@ class RerunViz:
         for i in ids:
             quats.append(self._rr.Quaternion(xyzw=Rotation.from_matrix(tags[i][1][:3, :3]).as_quat()))
         halves = [[tags[i][0] / 2, tags[i][0] / 2, 0.005] for i in ids]
-        self.rec.log(
+        self._log(
             "world/tags",
             self._rr.Boxes3D(
                 centers=centres, half_sizes=halves, quaternions=quats, labels=[str(i) for i in ids], colors=[0, 220, 0]
@@ -208,7 +226,7 @@ class RerunViz:
         """Time series values."""
         self._at(capture_nanos)
         for path, value in values.items():
-            self.rec.log(path, self._rr.Scalars([value]))
+            self._log(path, self._rr.Scalars([value]))
 
     def close(self) -> None:
         """Flush and close the .rrd file."""

@@ -116,22 +116,23 @@ def fleet_service(service: str) -> str:
     return f"{FLEET}/{_check(service, 'service')}"
 
 
-def edge_worker(worker_id: str) -> str:
-    """Liveliness token of one edge_infer worker of the edge tier (discovery and robot assignment)."""
-    return f"{FLEET}/edge_worker/{_check(worker_id, 'worker id')}"
+def edge_worker(tier: str, worker_id: str) -> str:
+    """Liveliness token of one edge_infer worker of an edge tier (discovery and robot assignment):
+    workers share robots only with the workers of their own tier."""
+    return f"{FLEET}/{_check(tier, 'edge tier')}/edge_worker/{_check(worker_id, 'worker id')}"
 
 
-def edge_workers() -> str:
-    """Every edge worker's liveliness token."""
-    return f"{FLEET}/edge_worker/*"
+def edge_workers(tier: str) -> str:
+    """Every worker's liveliness token of one edge tier."""
+    return f"{FLEET}/{_check(tier, 'edge tier')}/edge_worker/*"
 
 
 def worker_of(key: str) -> str:
     """The worker id of an `edge_worker` token key."""
     parts = str(key).split("/")
-    if len(parts) != 4 or f"{parts[0]}/{parts[1]}" != FLEET or parts[2] != "edge_worker":
-        raise ValueError(f"{key!r} is not a {FLEET}/edge_worker/<id> key")
-    return _check(parts[3], "worker id")
+    if len(parts) != 5 or f"{parts[0]}/{parts[1]}" != FLEET or parts[3] != "edge_worker":
+        raise ValueError(f"{key!r} is not a {FLEET}/<tier>/edge_worker/<id> key")
+    return _check(parts[4], "worker id")
 
 
 def stats(robot_id: str, service: str) -> str:
