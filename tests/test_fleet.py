@@ -76,6 +76,9 @@ def test_fleet_keys() -> None:
         zenoh.KeyExpr(keys.edge_worker("fleet", "w"))
     )
 
+    # Two robots' own single-robot edges (each a tier of its own) never count each other as workers.
+    assert not zenoh.KeyExpr(keys.edge_workers("robot1")).intersects(zenoh.KeyExpr(keys.edge_worker("robot2", "edge1")))
+
 
 def test_a_batch_of_two_robots_gives_what_each_alone_gives() -> None:
     """One tail pass over two robots' tags (edge_batch) publishes the same poses as one pass each."""
