@@ -10,14 +10,16 @@ a real fleet whose robots bring their own CPUs. A pose is an edge-computed TagPo
 fallbacks are counted apart); "offered" is robots x fps.
 
     .venv/bin/python -m bench.fleet [--robots 1 2 4 8] [--workers 1 2] [--fps 5] [--k 0] [--window-secs 10]
+        [--json fleet.json] [--plot docs/fleet.png]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -113,6 +115,8 @@ def main() -> None:
     ap.add_argument("--k", type=int, default=0, help="the robots' split (0: the edge runs the whole network)")
     ap.add_argument("--window-secs", type=float, default=10.0)
     ap.add_argument("--settle-secs", type=float, default=4.0)
+    ap.add_argument("--json", type=Path, default=None, help="write the rows as JSON")
+    ap.add_argument("--plot", type=Path, default=None, help="write the curves as a PNG")
     args = ap.parse_args()
     print(f"CPU: {cpu_label()}", flush=True)
     rows = []
@@ -136,6 +140,47 @@ def main() -> None:
             f"{r.robots:>6} {r.workers:>7} {r.offered_fps:>9.1f} {r.poses_per_sec:>8.1f} {r.on_board_per_sec:>10.1f} "
             f"{r.p50_ms:>8.1f} {r.p95_ms:>8.1f} {r.batched_share:>8.0%}"
         )
+    if args.json is not None:
+        args.json.write_text(
+            json.dumps(
+                {
+                    "cpu": cpu_label(),
+                    "args": vars(args) | {"json": str(args.json), "plot": str(args.plot)},
+                    "rows": [asdict(r) for r in rows],
+                },
+                indent=2,
+            )
+        )
+    if args.plot is not None:
+        plot(rows, args.plot, title=f"k = {args.k}, {args.fps:g} fps per robot, one 2-core machine ({cpu_label()})")
+
+
+def plot(rows: list[Row], path: Path, *, title: str) -> None:
+    """Poses per second and p50/p95 latency against robots, a line per worker count."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
+    for workers in sorted({r.workers for r in rows}):
+        mine = sorted((r for r in rows if r.workers == workers), key=lambda r: r.robots)
+        n = [r.robots for r in mine]
+        left.plot(n, [r.poses_per_sec for r in mine], "o-", label=f"{workers} worker(s)")
+        right.plot(n, [r.p50_ms for r in mine], "o-", label=f"p50, {workers} worker(s)")
+        right.plot(n, [r.p95_ms for r in mine], "o--", label=f"p95, {workers} worker(s)")
+    offered = sorted({(r.robots, r.offered_fps) for r in rows})
+    left.plot([o[0] for o in offered], [o[1] for o in offered], "k:", label="offered")
+    left.set(xlabel="robots", ylabel="edge-computed poses / s", xscale="log", title="throughput")
+    right.set(xlabel="robots", ylabel="capture to pose, ms", xscale="log", title="latency")
+    for ax in (left, right):
+        ticks = sorted({r.robots for r in rows})
+        ax.set_xticks(ticks, labels=[str(t) for t in ticks])
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
 
 
 if __name__ == "__main__":

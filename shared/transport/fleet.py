@@ -2,10 +2,10 @@
 
 Each edge_infer worker declares a liveliness token (`keys.edge_worker`); each robot_infer declares
 its own (`keys.alive(robot, "robot_infer")`). From the set of live workers every worker computes the
-same assignment with rendezvous (highest-random-weight) hashing: a robot goes to the worker with
-the highest hash of (robot, worker). No broker, no election, no messages beyond the tokens: when a
-worker appears it takes only the robots it now wins, when one disappears only its robots move (each
-to the worker with the next-highest weight), and all others stay where they are. The hash is
+same assignment with rendezvous (highest-random-weight) hashing with bounded loads: a robot goes to
+the worker with the highest hash of (robot, worker) that still has room for its share. No broker, no
+election, no messages beyond the tokens: when a worker disappears its robots move, and (almost) all
+others stay where they are. The hash is
 blake2b, so the answer is the same in every process and on every host (Python's own hash is salted).
 
 `FleetView` is the thread-safe bookkeeping of the tokens (Zenoh calls it on its threads); it tells
@@ -26,12 +26,25 @@ def weight(robot_id: str, worker_id: str) -> int:
 
 
 def assign(robots: Iterable[str], workers: Iterable[str]) -> dict[str, str]:
-    """robot -> the worker that serves it (no workers: empty). Ties cannot change the answer between
-    processes: the worker id breaks them."""
+    """robot -> the worker that serves it (no workers: empty): rendezvous hashing with bounded loads.
+    Robots are placed in id order, each with the highest-weight worker that has fewer than
+    ceil(robots / workers) robots, so no worker carries more than its share (plain rendezvous hashing
+    put all 4 robots of a 2-worker bench on one worker). The same sets give the same answer in every
+    process; a worker that leaves hands on all of its robots, and the others keep theirs unless the
+    bound makes room for a newcomer ahead of them (rarely: tests/test_fleet.py measures it)."""
     pool = sorted(set(workers))
     if not pool:
         return {}
-    return {r: max(pool, key=lambda w: (weight(r, w), w)) for r in sorted(set(robots))}
+    order = sorted(set(robots))
+    cap = -(-len(order) // len(pool))
+    load = dict.fromkeys(pool, 0)
+    out: dict[str, str] = {}
+    for r in order:
+        ranked = sorted(pool, key=lambda w: (weight(r, w), w), reverse=True)
+        chosen = next(w for w in ranked if load[w] < cap)
+        load[chosen] += 1
+        out[r] = chosen
+    return out
 
 
 class FleetView:
