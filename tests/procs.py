@@ -3,13 +3,14 @@ own process group, logs to files, SIGINT teardown, every log printed when the te
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 from shared.tools.launch import REPO, Service, start_process
 
-__all__ = ["REPO", "Service", "processes", "start_process"]
+__all__ = ["REPO", "Service", "processes", "start_process", "wait_until"]
 
 
 @contextmanager
@@ -27,3 +28,13 @@ def processes(log_dir: Path) -> Iterator[list[Service]]:
         if failed:
             for p in procs:
                 print(f"----- log of {p.name} (exit {p.popen.returncode}) -----\n{p.log_text()}")
+
+
+def wait_until(predicate: Callable[[], object], timeout_secs: float, what: str, *, poll_secs: float = 0.05) -> None:
+    """Poll until predicate() is true, or fail saying what was awaited."""
+    deadline = time.monotonic() + timeout_secs
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(poll_secs)
+    raise AssertionError(f"timed out after {timeout_secs} s waiting for {what}")

@@ -8,7 +8,6 @@ import json
 import signal
 import threading
 import time
-from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
@@ -25,7 +24,7 @@ from shared.vision.tagmap import load_tag_map
 from shared.vision.trajectory import read_tum
 from shared.wire import keys
 from shared.wire.messages import CameraPose, TagPoses, decode
-from tests.procs import REPO, processes, start_process
+from tests.procs import REPO, processes, start_process, wait_until
 
 pytestmark = pytest.mark.multiprocess
 
@@ -56,15 +55,6 @@ class Record:
         msg = decode(sample.payload.to_bytes(), CameraPose)
         with self.lock:
             self.cameras.setdefault(msg.robot_id, {})[msg.seq] = msg.status
-
-
-def _wait(predicate: Callable[[], bool], timeout_secs: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_secs
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(0.02)
-    raise AssertionError(f"timed out after {timeout_secs} s waiting for {what}")
 
 
 def test_two_robots_two_workers_one_slam_and_a_worker_dies(tmp_path: Path) -> None:
@@ -105,7 +95,7 @@ def test_two_robots_two_workers_one_slam_and_a_worker_dies(tmp_path: Path) -> No
             # Each robot is served by the worker every worker computes for it.
             expected = assign(plan.robots, plan.edge_workers)
             for robot in plan.robots:
-                _wait(
+                wait_until(
                     partial(lambda r: service_stats(session, r, "edge_infer")["worker"] == expected[r], robot),
                     10,
                     f"{robot} served by {expected[robot]}",
@@ -117,7 +107,7 @@ def test_two_robots_two_workers_one_slam_and_a_worker_dies(tmp_path: Path) -> No
                     spec.name, ["-m", "services.camera", "--config", str(spec.config)], tmp_path, env=env
                 )
                 procs.append(camera)
-                _wait(
+                wait_until(
                     partial(lambda r: len(record.poses.get(r, {})) >= START_FRAME["robot2"] + 2, robot),
                     120,
                     f"{robot} under way",
@@ -128,7 +118,7 @@ def test_two_robots_two_workers_one_slam_and_a_worker_dies(tmp_path: Path) -> No
             survivor = next(w for w in plan.edge_workers if w != victim)
             moved = [r for r in plan.robots if expected[r] == victim]
             assert moved == ["robot1"]
-            _wait(lambda: len(record.poses["robot1"]) >= 22, 60, "robot1 mid-run")
+            wait_until(lambda: len(record.poses["robot1"]) >= 22, 60, "robot1 mid-run")
             killed_at = time.monotonic()
             started[victim].popen.send_signal(signal.SIGKILL)
             started[victim].popen.wait(timeout=10)
@@ -139,7 +129,7 @@ def test_two_robots_two_workers_one_slam_and_a_worker_dies(tmp_path: Path) -> No
                 return min(after) - killed_at if after else None
 
             for robot in moved:
-                _wait(
+                wait_until(
                     partial(lambda r: served_by_survivor(r) is not None, robot), 30, f"{robot} served again by the edge"
                 )
                 assert service_stats(session, robot, "edge_infer")["worker"] == survivor
@@ -149,7 +139,7 @@ def test_two_robots_two_workers_one_slam_and_a_worker_dies(tmp_path: Path) -> No
                 assert took <= MOVE_BOUND_SECS, f"{robot} took {took:.2f} s to move (bound {MOVE_BOUND_SECS} s)"
             assert service_stats(session, "robot2", "edge_infer")["worker"] == survivor  # never moved
 
-            _wait(
+            wait_until(
                 lambda: (
                     all(len(record.poses.get(r, {})) >= FRAMES for r in plan.robots)
                     and all(len(record.cameras.get(r, {})) >= FRAMES for r in plan.robots)

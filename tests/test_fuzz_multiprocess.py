@@ -22,7 +22,7 @@ from shared.wire import keys
 from shared.wire.messages import CameraPose, Frame, Message, decode, encode
 from tests.conftest import DeployConfig
 from tests.examples import example_messages
-from tests.procs import processes, start_process
+from tests.procs import processes, start_process, wait_until
 
 pytestmark = pytest.mark.multiprocess
 
@@ -68,15 +68,6 @@ def _rejected(session: zenoh.Session, service: str) -> dict[str, int]:
     return counts
 
 
-def _wait(predicate: Any, timeout_secs: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_secs
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(0.1)
-    raise AssertionError(f"timed out after {timeout_secs} s waiting for {what}")
-
-
 def test_no_message_kills_a_service(tmp_path: Path, deploy_config: DeployConfig) -> None:
     ex = {schema.split("/")[1]: _ours(m) for schema, m in example_messages().items()}
     cfg, topology = deploy_config(
@@ -100,7 +91,7 @@ def test_no_message_kills_a_service(tmp_path: Path, deploy_config: DeployConfig)
         try:
             wait_for_liveliness(session, [keys.alive(ROBOT, s) for s in SERVICES], timeout_secs=120)
             procs.append(start_process("camera", ["-m", "services.camera", "--config", str(cfg)], tmp_path))
-            _wait(lambda: len(monitor.records) >= 3, 90, "the first poses")
+            wait_until(lambda: len(monitor.records) >= 3, 90, "the first poses")
             frames_key, features_key, poses_key = keys.frames(ROBOT), keys.features(ROBOT), keys.tag_poses(ROBOT)
 
             # 1. Every single-message crash the fault-injection run found.
@@ -151,7 +142,11 @@ def test_no_message_kills_a_service(tmp_path: Path, deploy_config: DeployConfig)
                 for i, payload in enumerate(bad):
                     pub.put(payload)
                     # Frames go through a latest-only ring: wait for each to be counted before the next.
-                    _wait(lambda: sum(_rejected(session, service).values()) >= i + 1, 30, f"{service} reject #{i + 1}")  # noqa: B023
+                    wait_until(
+                        lambda: sum(_rejected(session, service).values()) >= i + 1,  # noqa: B023 (called at once)
+                        30,
+                        f"{service} reject #{i + 1}",
+                    )
                 pub.undeclare()
 
             # A ground truth that is no rigid pose (slam writes ground truth out as TUM at each checkpoint).
@@ -165,7 +160,7 @@ def test_no_message_kills_a_service(tmp_path: Path, deploy_config: DeployConfig)
                     ),
                 )
             )
-            _wait(lambda: _rejected(session, "slam").get("ground_truth: GeometryError", 0) >= 1, 30, "gt reject")
+            wait_until(lambda: _rejected(session, "slam").get("ground_truth: GeometryError", 0) >= 1, 30, "gt reject")
             gt_pub.undeclare()
 
             # 2. A seeded mutation corpus on every input key (bounded in time: no waiting per message).
@@ -192,8 +187,10 @@ def test_no_message_kills_a_service(tmp_path: Path, deploy_config: DeployConfig)
 
             # 3. Everyone alive, and good frames still get poses and camera poses.
             mark, mark_cam = len(monitor.records), len(poses)
-            _wait(lambda: len(monitor.records) >= mark + 5, 90, "poses after the fuzzing")
-            _wait(lambda: any(p.status == "tracking" for p in poses[mark_cam:]), 60, "slam tracking after the fuzzing")
+            wait_until(lambda: len(monitor.records) >= mark + 5, 90, "poses after the fuzzing")
+            wait_until(
+                lambda: any(p.status == "tracking" for p in poses[mark_cam:]), 60, "slam tracking after the fuzzing"
+            )
             stats = {s: service_stats(session, ROBOT, s) for s in SERVICES}
             for s, st in stats.items():
                 print(f"{s}: accepted {st['accepted']}, rejected {st['rejected']} {st['rejected_by_reason']}")

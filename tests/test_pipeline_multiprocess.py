@@ -7,6 +7,7 @@ import os
 import signal
 import time
 from collections.abc import Iterator
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +27,7 @@ from shared.vision.geometry import default_camera
 from shared.wire import keys
 from shared.wire.messages import Features, SplitConfig, TagFeature, decode, encode
 from tests.conftest import DeployConfig
-from tests.procs import Service, processes, start_process
+from tests.procs import Service, processes, start_process, wait_until
 
 pytestmark = pytest.mark.multiprocess
 
@@ -61,15 +62,6 @@ def pipeline(
             session.close()
 
 
-def _wait(predicate: object, timeout_secs: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_secs
-    while time.monotonic() < deadline:
-        if predicate():  # type: ignore[operator]
-            return
-        time.sleep(0.1)
-    raise AssertionError(f"timed out after {timeout_secs} s waiting for {what}")
-
-
 def _split(session: zenoh.Session, params: str = "") -> tuple[SplitConfig | None, str | None]:
     selector = keys.split(ROBOT) + (f"?{params}" if params else "")
     for reply in session.get(selector, timeout=10):
@@ -85,7 +77,7 @@ def test_every_frame_yields_poses_within_tolerance(pipeline: tuple, tmp_path: Pa
     cam_env = {"SPLITTAG_CAMERA_MAX_FRAMES": "60", "SPLITTAG_CAMERA_LOOP": "false"}
     camera = start_process("camera", ["-m", "services.camera", "--config", str(cfg)], tmp_path, env=cam_env)
     procs.append(camera)
-    _wait(lambda: len(monitor.records) >= 60, 120, "60 TagPoses messages")
+    wait_until(lambda: len(monitor.records) >= 60, 120, "60 TagPoses messages")
     seqs = sorted(r["seq"] for r in monitor.records)
     missing = sorted(set(range(60)) - set(seqs))
     assert not missing, f"frames without TagPoses: {missing}"
@@ -99,7 +91,7 @@ def test_every_frame_yields_poses_within_tolerance(pipeline: tuple, tmp_path: Pa
 def test_split_changes_live_bad_input_and_edge_restart(pipeline: tuple, tmp_path: Path) -> None:
     cfg, procs, session, monitor, _ = pipeline
     procs.append(start_process("camera", ["-m", "services.camera", "--config", str(cfg)], tmp_path))
-    _wait(lambda: len(monitor.records) >= 3, 60, "first poses")
+    wait_until(lambda: len(monitor.records) >= 3, 60, "first poses")
     current, err = _split(session)
     assert err is None
     assert current is not None
@@ -110,7 +102,11 @@ def test_split_changes_live_bad_input_and_edge_restart(pipeline: tuple, tmp_path
         assert applied is not None
         assert (applied.k, applied.pinned, applied.source) == (k, True, "user")
         mark = len(monitor.records)
-        _wait(lambda k=k, mark=mark: sum(r["k"] == k for r in monitor.records[mark:]) >= 3, 60, f"frames at k={k}")
+        wait_until(
+            partial(lambda k, mark: sum(r["k"] == k for r in monitor.records[mark:]) >= 3, k, mark),
+            60,
+            f"frames at k={k}",
+        )
         after = [r for r in monitor.records[mark:] if r["k"] == k]
         # Once the new k shows up, no frame of the old k follows it.
         first = next(i for i, r in enumerate(monitor.records[mark:]) if r["k"] == k)
@@ -153,7 +149,7 @@ def test_split_changes_live_bad_input_and_edge_restart(pipeline: tuple, tmp_path
     pub.put(encode(wrong_shape))
     pub.put(b"\x93garbage")
     mark = len(monitor.records)
-    _wait(lambda: len(monitor.records) >= mark + 3, 30, "poses after bad input")
+    wait_until(lambda: len(monitor.records) >= mark + 3, 30, "poses after bad input")
     stats = service_stats(session, ROBOT, "edge_infer")
     assert stats["rejected_by_reason"] == {"features: FeatureShapeError": 1, "features: MalformedFrame": 1}
     edge_log = next(p for p in procs if p.name == "edge_infer").log_text()
@@ -167,7 +163,9 @@ def test_split_changes_live_bad_input_and_edge_restart(pipeline: tuple, tmp_path
     killed = time.time_ns()
     os.killpg(edge.popen.pid, signal.SIGKILL)
     edge.popen.wait()
-    _wait(lambda: any(r["payload_bytes"] == 0 and r["capture_nanos"] > killed for r in monitor.records), 30, "on board")
+    wait_until(
+        lambda: any(r["payload_bytes"] == 0 and r["capture_nanos"] > killed for r in monitor.records), 30, "on board"
+    )
     time.sleep(3.0)  # an outage of several frames
     assert all(r["k"] == 7 for r in monitor.records if r["payload_bytes"] == 0)
     procs.append(start_process("edge_infer_2", ["-m", "services.edge_infer", "--config", str(cfg)], tmp_path))
@@ -181,7 +179,7 @@ def test_split_changes_live_bad_input_and_edge_restart(pipeline: tuple, tmp_path
             if r["k"] == 5 and r["payload_bytes"] and r["capture_nanos"] > back
         ]
 
-    _wait(split_again, 30, "split poses after the edge returned")
+    wait_until(split_again, 30, "split poses after the edge returned")
     returned_secs = (min(split_again()) - back) / 1e9
     captures = sorted(
         r["capture_nanos"] for r in monitor.records if killed - 2e9 <= r["capture_nanos"] <= min(split_again())
@@ -209,7 +207,7 @@ def test_two_host_profile_on_loopback(tmp_path: Path) -> None:
                 session, [keys.alive("robot1", "edge_infer"), keys.alive("robot1", "robot_infer")], timeout_secs=90
             )
             procs.append(start_process("camera", ["-m", "services.camera", "--config", str(cfg)], tmp_path, env=env))
-            _wait(lambda: len(monitor.records) >= 8, 120, "8 TagPoses through the two-host profile")
+            wait_until(lambda: len(monitor.records) >= 8, 120, "8 TagPoses through the two-host profile")
             assert {r["k"] for r in monitor.records} == {5}
             robot_log = next(p for p in procs if p.name == "robot_infer").log_text()
             assert "connect=['tcp/127.0.0.2:7447']" in robot_log
@@ -241,7 +239,7 @@ def test_int8_on_both_sides_at_a_middle_cut(tmp_path: Path, deploy_config: Deplo
                 session, [keys.alive(ROBOT, "edge_infer"), keys.alive(ROBOT, "robot_infer")], timeout_secs=90
             )
             procs.append(start_process("camera", ["-m", "services.camera", "--config", str(cfg)], tmp_path))
-            _wait(lambda: len(monitor.records) >= 20, 120, "20 TagPoses at int8")
+            wait_until(lambda: len(monitor.records) >= 20, 120, "20 TagPoses at int8")
             assert sorted(r["seq"] for r in monitor.records) == list(range(20))
             assert {r["k"] for r in monitor.records} == {3}
             errs = [e for r in monitor.records for e in r["errors_cm"]]

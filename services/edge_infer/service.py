@@ -14,6 +14,7 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -69,6 +70,17 @@ class Lane:
     compute_pub: zenoh.Publisher | None = None
     last_profile: float = 0.0
     frames: int = 0
+
+
+def _on_token(
+    sample: zenoh.Sample, parse: Callable[[str], str], up: Callable[[str], None], down: Callable[[str], None]
+) -> None:
+    """A liveliness token appeared (up) or went (down); keys that do not parse are ignored."""
+    try:
+        ident = parse(str(sample.key_expr))
+    except ValueError:
+        return
+    (up if sample.kind == zenoh.SampleKind.PUT else down)(ident)
 
 
 @dataclass(frozen=True)
@@ -127,25 +139,14 @@ class EdgeInfer:
 
     # Zenoh callbacks: bookkeeping only; lanes are opened and closed on the main loop.
     def _on_worker(self, sample: zenoh.Sample) -> None:
-        try:
-            worker = keys.worker_of(str(sample.key_expr))
-        except ValueError:
-            return
-        if sample.kind == zenoh.SampleKind.PUT:
-            self.fleet.worker_up(worker)
-        else:
-            log.warning("edge worker %s is gone: its robots move", worker)
-            self.fleet.worker_down(worker)
+        _on_token(sample, keys.worker_of, self.fleet.worker_up, self._worker_gone)
+
+    def _worker_gone(self, worker: str) -> None:
+        log.warning("edge worker %s is gone: its robots move", worker)
+        self.fleet.worker_down(worker)
 
     def _on_robot(self, sample: zenoh.Sample) -> None:
-        try:
-            robot = keys.robot_of(str(sample.key_expr))
-        except ValueError:
-            return
-        if sample.kind == zenoh.SampleKind.PUT:
-            self.fleet.robot_up(robot)
-        else:
-            self.fleet.robot_down(robot)
+        _on_token(sample, keys.robot_of, self.fleet.robot_up, self.fleet.robot_down)
 
     def _on_assignment(self, robots: frozenset[str]) -> None:
         with self._wanted_lock:
