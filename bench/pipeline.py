@@ -129,7 +129,8 @@ def measure(args: argparse.Namespace, mode: Mode) -> list[Row]:
 def print_table(args: argparse.Namespace, rows: list[Row], mode: Mode) -> None:
     """One table per mode. `path` = robot + link + edge medians (the critical path); `e2e/path` is what
     waiting adds; `fps x slowest` = throughput x the slower side's per-frame time (1.0 = that side never
-    idles)."""
+    idles); `fps/cap` = throughput / min(camera rate, 1 / slower side's per-frame time): the share of
+    the frames the pipeline could have turned into poses (1.0 = nothing lost to waiting)."""
     print(
         f"camera {args.fps} fps, window {args.window_secs} s per k, loopback, 2-core CPU, {args.precision}, rerun "
         f"{'on' if args.rerun else 'off'}, tracking {'on' if mode.tracking else 'off'}, "
@@ -138,13 +139,14 @@ def print_table(args: argparse.Namespace, rows: list[Row], mode: Mode) -> None:
     )
     print(
         f"{'k':>2} {'cut':<10} {'fps':>6} {'e2e p50':>8} {'e2e p99':>8} {'robot':>7} {'link':>6} {'edge':>6} "
-        f"{'path':>6} {'e2e/path':>9} {'fps x slowest':>14} {'tags':>5} {'msg kB':>8}"
+        f"{'path':>6} {'e2e/path':>9} {'fps x slowest':>14} {'fps/cap':>8} {'tags':>5} {'msg kB':>8}"
     )
     for cut, fps, p50, p99, rb, tr, ed, tags, size in rows:
         path = rb + tr + ed
+        cap = min(args.fps, 1e3 / max(rb, ed))
         print(
             f"{cut.k:>2} {cut.name:<10} {fps:>6.1f} {p50:>8.1f} {p99:>8.1f} {rb:>7.1f} {tr:>6.1f} {ed:>6.1f} "
-            f"{path:>6.1f} {p50 / path:>9.2f} {fps * max(rb, ed) / 1e3:>14.2f} {tags:>5.1f} {size / 1024:>8.1f}"
+            f"{path:>6.1f} {p50 / path:>9.2f} {fps * max(rb, ed) / 1e3:>14.2f} {fps / cap:>8.2f} {tags:>5.1f} {size / 1024:>8.1f}"
         )
 
 

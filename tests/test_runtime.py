@@ -112,6 +112,51 @@ def test_a_listed_variant_whose_files_are_missing_is_refused(tmp_path: Path) -> 
         variant_path(tmp_path, "int8")
 
 
+def test_the_first_convolution_runs_on_an_exactly_quantised_image(float_ir: Path, tmp_path: Path) -> None:
+    """shared.model.int8_graph: the rewritten first convolution sees every 8-bit pixel exactly (x' =
+    (u - 128) / 128 on an int8 grid) and only its weights are rounded: inside the one-pixel border its
+    output (block 1's first layer, before the FakeQuantize that follows in an int8 graph) is the fp32
+    layer's to within the int8 weight step; cut-by-cut the graph still splits exactly."""
+    import openvino as ov
+
+    from shared.model.int8_graph import INPUT_SCALE, INPUT_SHIFT, first_convolution_exact_int8
+
+    def first_layer(model: ov.Model) -> ov.Model:
+        """The first convolution's output with its bias, if it has one."""
+        conv = next(op for op in model.get_ordered_ops() if op.get_type_name() == "Convolution")
+        (user,) = (t.get_node() for t in conv.output(0).get_target_inputs())
+        out = user if user.get_type_name() == "Add" else conv
+        return ov.Model([out.output(0)], model.get_parameters(), "first")
+
+    core = ov.Core()
+    config = {"INFERENCE_NUM_THREADS": 1, "INFERENCE_PRECISION_HINT": "f32"}
+    rewritten = first_convolution_exact_int8(core.read_model(float_ir))
+    x = (_rois(2, seed=3).astype(np.float32) / 127.5 - 1.0).reshape(2, 1, 256, 256)
+    ref = core.compile_model(first_layer(core.read_model(float_ir)), "CPU", config)(x)[0]
+    got = core.compile_model(first_layer(rewritten), "CPU", config)(x)[0]
+    conv = next(op for op in core.read_model(float_ir).get_ordered_ops() if op.get_type_name() == "Convolution")
+    weights = conv.input_value(1).get_node().get_data().astype(np.float64)  # (C, 1, 3, 3), no bias here
+    # what the layer must compute: the exact image x' = (u - 128) / 128, weights a W rounded per channel
+    scaled = INPUT_SCALE * weights
+    step = np.abs(scaled).reshape(len(scaled), -1).max(axis=1).reshape(-1, 1, 1, 1) / 127
+    u = _rois(2, seed=3).astype(np.float64).reshape(2, 1, 256, 256)
+    exact = torch.nn.functional.conv2d(
+        torch.from_numpy((u - 128) / 128), torch.from_numpy(np.round(scaled / step) * step), padding=1
+    ).numpy() + INPUT_SHIFT * weights.sum(axis=(1, 2, 3)).reshape(1, -1, 1, 1)
+    np.testing.assert_allclose(got, exact, atol=2e-5 * float(np.abs(exact).max()))
+    # against the fp32 layer: half an int8 weight step per tap inside; the border's padding is u = 128
+    bound = (np.abs(scaled).reshape(len(scaled), -1).max(axis=1) / 127 / 2 * 9).reshape(1, -1, 1, 1)
+    assert np.all(np.abs(got - ref)[:, :, 1:-1, 1:-1] <= bound + 1e-5)
+    border = INPUT_SHIFT * np.abs(weights).sum(axis=(1, 2, 3)).reshape(1, -1, 1, 1)
+    assert np.all(np.abs(got - ref) <= bound + border + 1e-5)
+    path = tmp_path / "model.xml"
+    ov.save_model(rewritten, str(path), compress_to_fp16=False)
+    net, rois = OpenVINOSplitNet(path, threads=1), _rois(2, seed=4)
+    whole = compile_full(path, threads=1)(rois)
+    for k in range(N_CUTS):
+        np.testing.assert_allclose(net.tail(net.head(rois, k), k), whole, atol=1e-5)
+
+
 def test_shipped_int8_variant_splits_like_fp32_and_stays_close_to_it() -> None:
     """Every cut gives the whole int8 graph's output, and on these toy ROIs (a bit pattern, far from the
     training data) the keypoints stay on the lattice fp32 finds (within 5 of the lattice's ~51 ROI px

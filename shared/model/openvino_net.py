@@ -2,8 +2,9 @@
 
 A weights folder may hold variants beside its fp32 `model.safetensors`; `config.json` lists them
 under `variants` (name -> {format, path, metrics}). The int8 variant is `int8/model.xml` (+ .bin),
-written by `splittag quantize`: every convolution int8 (per-channel weights, per-tensor activations),
-the two fully connected layers and the lattice add in fp32.
+written by `splittag quantize`: every convolution int8 (per-channel weights, per-tensor activations;
+the first one on an exactly quantised image, `shared.model.int8_graph`), the 4096 -> 512 layer with
+int8 weights and fp32 activations, the output layer and the lattice add in fp32.
 
 Cutting: output j of the IR is the tensor at cut j + 1. The head for cut k is the sub-graph from the
 input to output k - 1; the tail for cut k is a clone of the graph in which a new input of the cut's
@@ -44,8 +45,9 @@ def _core() -> Any:
     return ov.Core()
 
 
-def export_ir(all_cuts: Any, folder: Path) -> Path:
-    """Convert an `AllCuts` module (plain or NNCF-quantised) to OpenVINO IR in `folder`; returns the xml."""
+def export_ir(all_cuts: Any, folder: Path, *, rewrite: Callable[[Any], Any] | None = None) -> Path:
+    """Convert an `AllCuts` module (plain or NNCF-quantised) to OpenVINO IR in `folder`; returns the xml.
+    `rewrite` edits the converted graph before it is saved (shared.model.int8_graph)."""
     import openvino as ov
     import torch
 
@@ -54,6 +56,8 @@ def export_ir(all_cuts: Any, folder: Path) -> Path:
         model = ov.convert_model(all_cuts, example_input=torch.zeros(1, 1, 256, 256), input=[INPUT_SHAPE])
     if len(model.outputs) != N_CUTS - 1:
         raise VariantError(f"exported graph has {len(model.outputs)} outputs, expected {N_CUTS - 1} (cuts 1..7)")
+    if rewrite is not None:
+        model = rewrite(model)
     path = folder / IR_NAME
     ov.save_model(model, str(path), compress_to_fp16=False)
     return path

@@ -11,7 +11,9 @@ Recipe: NNCF `quantize` (PyTorch backend) on `AllCuts` with `calibration_samples
 activations); the first convolution, the global pooling and the two fully connected layers stay fp32
 (21 M of 3.7 G multiply-adds). With every convolution int8, fine-tuning stalled at +0.03 px over fp32
 (150 steps); NNCF's accuracy-aware ranking named the first convolution and the pooled features as the
-costliest quantisers. Then Adam on the Wing loss
+costliest quantisers. The exported graph is then rewritten (`shared.model.int8_graph`, settings
+`exact_first_conv`, `fc_int8_weights`): the first convolution runs int8 on an exactly quantised image
+with output-error-optimal weight codes, and the 4096 -> 512 layer gets int8 weights. Then Adam on the Wing loss
 with dihedral augmentation, BatchNorm statistics frozen, 20 warm-up steps then cosine decay over `steps`. Every
 `eval_every` steps the model is exported to OpenVINO, compiled and validated on held-out *training*
 ROIs (the test split stays untouched for the report), beside the fp32 weights on the same ROIs; the
@@ -35,6 +37,7 @@ from torch import Tensor, nn
 
 from shared.datasets.shards import load_dataset
 from shared.model.infer import keypoints as torch_keypoints
+from shared.model.int8_graph import int8_rewrite
 from shared.model.net import AllCuts, SplitKeypointNet
 from shared.model.openvino_net import INT8_FOLDER, IR_NAME, compile_full, export_ir, record_variant
 from shared.model.weights import load_model
@@ -123,13 +126,18 @@ def quantize(settings: QuantizeSettings) -> dict[str, Any]:
         step, best, history = state["step"], state["best"], state["history"]
         log.info("resumed from %s at step %d (best %.4f px)", ckpt, step, best)
     gen = torch.Generator().manual_seed(settings.seed + step)
+    rewrite = int8_rewrite(
+        exact_first_conv=settings.exact_first_conv,
+        fc_int8_weights=settings.fc_int8_weights,
+        calibration_rois=fit_roi[: settings.calibration_samples],
+    )
     started = time.monotonic()
 
     def validate() -> None:
         nonlocal best
         model.eval()
         candidate = out / "candidate"
-        export_ir(model, candidate)
+        export_ir(model, candidate, rewrite=rewrite)
         err = _ir_error_px(candidate, val_roi, val_kp)
         row = {
             "step": step,

@@ -55,3 +55,10 @@ class QuantizeSettings(BaseModel):
     seed: int = Field(default=0, description="random seed")
     time_budget_secs: float | None = Field(default=None, gt=0, description="stop fine-tuning after this long")
     install: bool = Field(default=False, description="copy the best IR into WEIGHTS/int8 and record it in config.json")
+    exact_first_conv: bool = Field(
+        default=True,
+        description="run the first convolution int8 on an exactly quantised input (shared.model.int8_graph)",
+    )
+    fc_int8_weights: bool = Field(
+        default=True, description="int8 weights (fp32 activations) for the fully connected layers"
+    )
