@@ -146,7 +146,8 @@ def print_table(args: argparse.Namespace, rows: list[Row], mode: Mode) -> None:
         cap = min(args.fps, 1e3 / max(rb, ed))
         print(
             f"{cut.k:>2} {cut.name:<10} {fps:>6.1f} {p50:>8.1f} {p99:>8.1f} {rb:>7.1f} {tr:>6.1f} {ed:>6.1f} "
-            f"{path:>6.1f} {p50 / path:>9.2f} {fps * max(rb, ed) / 1e3:>14.2f} {fps / cap:>8.2f} {tags:>5.1f} {size / 1024:>8.1f}"
+            f"{path:>6.1f} {p50 / path:>9.2f} {fps * max(rb, ed) / 1e3:>14.2f} {fps / cap:>8.2f} {tags:>5.1f} "
+            f"{size / 1024:>8.1f}"
         )
 
 
