@@ -147,6 +147,13 @@ def test_split_changes_live_bad_input_and_edge_restart(pipeline: tuple, tmp_path
         ],
     )
     pub.put(encode(wrong_shape))
+    # One at a time: the shape is refused on edge_infer's main loop, the garbage on arrival, so sent together
+    # the garbage could be counted (and logged) first.
+    wait_until(
+        lambda: service_stats(session, ROBOT, "edge_infer")["rejected_by_reason"].get("features: FeatureShapeError"),
+        30,
+        "the wrong shape refused",
+    )
     pub.put(b"\x93garbage")
     mark = len(monitor.records)
     wait_until(lambda: len(monitor.records) >= mark + 3, 30, "poses after bad input")

@@ -6,6 +6,7 @@ import contextlib
 import logging
 import threading
 import time
+from functools import partial
 
 import torch
 import zenoh
@@ -39,6 +40,9 @@ from shared.wire.messages import (
 )
 
 log = logging.getLogger(__name__)
+
+# Unanswered Features kept for recovery (a window holds 2-3; the rest had their credits expire).
+UNANSWERED_KEPT = 8
 
 
 def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading.Event) -> None:
@@ -79,6 +83,12 @@ class RobotInfer:
         self.watch = EdgeWatch(answer_timeout_secs=s.edge_answer_timeout_secs)
         self.guard = InputGuard("robot_infer")
         self.on_board_frames = 0
+        self.recovered_frames = 0
+        # Features sent and not answered yet, and those whose edge vanished before answering (recomputed
+        # here on the main loop: a worker's death must not cost the frames it held).
+        self._unanswered: dict[int, Features] = {}
+        self._orphans: list[Features] = []
+        self._orphans_lock = threading.Lock()
         self.last_profile = 0.0
         rid = s.robot_id
         # Frames are checked as they arrive: a bad one is counted and never displaces the good one waiting.
@@ -107,6 +117,7 @@ class RobotInfer:
             "in_flight": self.window.in_flight,
             "credits_expired": self.window.expired,
             "on_board_frames": self.on_board_frames,
+            "recovered_frames": self.recovered_frames,
             "edge_outages": self.watch.outages,
             "stage1_frames": self.detector.counts.frames,
             "stage1_apriltag_tags": self.detector.counts.apriltag,
@@ -119,6 +130,8 @@ class RobotInfer:
         # A bad TagPoses is edge_infer's problem to report; that frame's credit expires on its own.
         with contextlib.suppress(WireError):
             poses = decode(sample.payload.to_bytes(), TagPoses)
+            with self._orphans_lock:
+                self._unanswered.pop(poses.seq, None)
             self.window.done(poses.seq)
             if self.pacer is not None and poses.link is not None:  # link None: computed on board
                 self.pacer.answered(
@@ -133,6 +146,9 @@ class RobotInfer:
             self.watch.edge_up()
         else:
             self.watch.edge_down()
+            with self._orphans_lock:  # the frames it held: the main loop computes them on board
+                self._orphans.extend(self._unanswered[seq] for seq in sorted(self._unanswered))
+                self._unanswered.clear()
             self.window.clear()
             if self.pacer is not None:
                 self.pacer.forget()
@@ -143,15 +159,32 @@ class RobotInfer:
         def give_up() -> bool:  # the edge is gone: stop waiting for credits
             return self.watch.on_board(self.window.oldest_age_secs())
 
+        def has_orphans() -> bool:
+            with self._orphans_lock:
+                return bool(self._orphans)
+
         while self.window.acquire(stop, abandon=give_up):
+            self._recover_orphans()
             # Start when this frame would reach the edge as it becomes free (the camera ring keeps the
             # newest frame meanwhile): waiting here is free, waiting in the edge's queue is latency.
             delay = self.pacer.start_delay_secs() if self.pacer is not None else 0.0
             if delay > 0 and stop.wait(min(delay, self.settings.edge_answer_timeout_secs)):
                 break
-            if (frame := self.frames.take(stop)) is None:
-                break
+            if (frame := self.frames.take(stop, wake=has_orphans)) is None:
+                if stop.is_set():
+                    break
+                continue  # frames to recover first
             self.guard.run("frame", frame.image.nbytes, lambda: self.process(frame))
+
+    def _recover_orphans(self) -> None:
+        """Compute on board the frames whose edge vanished before answering (their Features are kept)."""
+        with self._orphans_lock:
+            orphans, self._orphans = self._orphans, []
+        for features in orphans:
+            self.guard.run("frame", 0, partial(self._finish_on_board, features))
+            self.recovered_frames += 1
+        if orphans:
+            log.warning("edge vanished with %d frame(s) unanswered: computed on board", len(orphans))
 
     def process(self, frame: Frame) -> None:
         """One decoded frame: stage 1 + head(k), Features out (raises on input the maths cannot take;
@@ -170,7 +203,13 @@ class RobotInfer:
             tracker=self.tracker,
         )
         network_ms, compute_secs = self._pace(split.k, len(tags), timings)
-        wire = encode(self._features(frame, tags, split.k, split.codec, compute_secs))
+        features = self._features(frame, tags, split.k, split.codec, compute_secs)
+        wire = encode(features)
+        if self.acks is not None:  # answers are watched: keep the frame until its answer comes
+            with self._orphans_lock:
+                self._unanswered[frame.seq] = features
+                while len(self._unanswered) > UNANSWERED_KEPT:  # expired credits: oldest first
+                    del self._unanswered[min(self._unanswered)]
         sent_nanos = time.time_ns()
         self.window.send(frame.seq, lambda: self.pub.put(wire))
         if self.pacer is not None:
@@ -226,7 +265,13 @@ class RobotInfer:
             tracker=self.tracker,
         )
         _, compute_secs = self._pace(k, len(tags), timings)  # the robot's CPU, as emulated for the split
-        features = self._features(frame, tags, k, "fp32", compute_secs)
+        self._finish_on_board(self._features(frame, tags, k, "fp32", compute_secs))
+        self.on_board_frames += 1
+        if self.on_board_frames == 1 or self.on_board_frames % 100 == 0:
+            log.warning("edge unavailable: %d frames computed on board", self.on_board_frames)
+
+    def _finish_on_board(self, features: Features) -> None:
+        """The edge's half of one frame here (any k: the robot holds the whole network): TagPoses out."""
         poses = edge_step(
             features,
             net=self.net,
@@ -238,9 +283,6 @@ class RobotInfer:
             fusion=self.fusion,
         )
         self.poses_pub.put(encode(poses.model_copy(update={"link": None})))  # nothing crossed the link
-        self.on_board_frames += 1
-        if self.on_board_frames == 1 or self.on_board_frames % 100 == 0:
-            log.warning("edge unavailable: %d frames computed on board", self.on_board_frames)
 
     def close(self) -> None:
         """Undeclare everything and log the run's counts."""

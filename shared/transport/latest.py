@@ -55,11 +55,14 @@ class LatestValid(Generic[T]):
         """Zenoh subscriber callback."""
         self.offer(sample.payload.to_bytes())
 
-    def take(self, stop: threading.Event, *, poll_secs: float = 0.05) -> T | None:
-        """The newest good message (removed from the slot), or None once `stop` is set."""
+    def take(
+        self, stop: threading.Event, *, poll_secs: float = 0.05, wake: Callable[[], bool] | None = None
+    ) -> T | None:
+        """The newest good message (removed from the slot), or None once `stop` is set or `wake()` says
+        the consumer has other work (checked every poll_secs)."""
         with self._cond:
             while self._item is None:
-                if stop.is_set():
+                if stop.is_set() or (wake is not None and wake()):
                     return None
                 self._cond.wait(poll_secs)
             item, self._item = self._item, None
