@@ -45,3 +45,16 @@ def test_take_waits_for_a_frame_and_returns_none_once_stopped() -> None:
     assert taken is not None and taken.seq == 7
     stop.set()
     assert slot.take(stop, poll_secs=0.01) is None
+
+
+def test_take_returns_early_when_the_consumer_has_other_work() -> None:
+    """robot_infer waits for a frame with `wake`: frames a vanished edge held are recovered at once, not
+    after the next camera frame (which may never come)."""
+    slot: LatestValid[Frame] = LatestValid(lambda b: decode(b, Frame), InputGuard("test"), "frame")
+    stop, work = threading.Event(), threading.Event()
+    threading.Timer(0.1, work.set).start()
+    assert slot.take(stop, poll_secs=0.01, wake=work.is_set) is None
+    assert not stop.is_set()
+    assert slot.offer(_frame(5))
+    taken = slot.take(stop, wake=work.is_set)  # a frame waiting is returned even with work pending
+    assert taken is not None and taken.seq == 5
