@@ -74,7 +74,7 @@ def test_fleet_keys() -> None:
     import zenoh
 
     # The fleet's keys can never be taken for a robot's: '@fleet' is a verbatim chunk.
-    assert not zenoh.KeyExpr(keys.alive_any_robot("edge_infer")).intersects(
+    assert not zenoh.KeyExpr(keys.for_every_robot(keys.alive("any", "edge_infer"))).intersects(
         zenoh.KeyExpr(keys.edge_worker("fleet", "w"))
     )
 
@@ -87,7 +87,8 @@ def test_a_batch_of_two_robots_gives_what_each_alone_gives() -> None:
     from shared.model.runtime import load_split_net
     from shared.perception.split import EdgeInput, edge_batch, edge_step
     from shared.vision.tagmap import TagMapFile
-    from shared.wire.messages import Features
+    from shared.wire.cuts import FeatureShapeError
+    from shared.wire.messages import Features, TagPoses
     from tests.examples import example_messages
 
     base = example_messages()[Features.SCHEMA]
@@ -111,7 +112,22 @@ def test_a_batch_of_two_robots_gives_what_each_alone_gives() -> None:
     ]
     together = edge_batch([EdgeInput(m, 2, 1, 10, tag_map) for m in messages], net=net)
     for a, b in zip(alone, together, strict=True):
+        assert isinstance(b, TagPoses)
         assert a.robot_id == b.robot_id and len(a.tags) == len(b.tags) == len(base.tags)
+        for ta, tb in zip(a.tags, b.tags, strict=True):
+            np.testing.assert_allclose(tb.keypoints_px, ta.keypoints_px, atol=1e-3)
+
+    # A third robot's tensor carries NaN (the wire does not scan tensor values): refused alone, in the
+    # same single pass, and the others' poses are what they were.
+    poisoned = messages[0].tags[0].tensor.copy()
+    poisoned.flat[0] = np.nan
+    bad = messages[0].model_copy(
+        update={"robot_id": "r3", "tags": [messages[0].tags[0].model_copy(update={"tensor": poisoned})]}
+    )
+    mixed = edge_batch([EdgeInput(m, 2, 1, 10, tag_map) for m in (messages[0], bad, messages[1])], net=net)
+    assert isinstance(mixed[1], FeatureShapeError) and "r3" in str(mixed[1])
+    for a, b in zip(alone, (mixed[0], mixed[2]), strict=True):
+        assert isinstance(b, TagPoses)
         for ta, tb in zip(a.tags, b.tags, strict=True):
             np.testing.assert_allclose(tb.keypoints_px, ta.keypoints_px, atol=1e-3)
 
@@ -141,3 +157,38 @@ def test_fleet_configs_give_each_process_its_identity_and_endpoints(tmp_path: Pa
     assert "fleet" not in docs["slam"]
     with pytest.raises(ValueError, match="repeat"):
         FleetPlan(robots=["a", "a"], edge_workers=["w"])
+
+
+def test_fleet_settings_refuse_an_empty_robot_list_and_maps_of_robots_not_served(tmp_path: Path) -> None:
+    from pydantic import ValidationError
+
+    from services.edge_infer.settings import EdgeInferSettings
+    from services.slam.settings import SlamServiceSettings
+
+    for settings in (EdgeInferSettings, SlamServiceSettings):
+        with pytest.raises(ValidationError, match="at least 1 item"):
+            settings(robot_id="r1", robots=[], run_dir=tmp_path)
+    with pytest.raises(ValidationError, match=r"tag_maps for robots this edge does not serve: \['r9'\]"):
+        EdgeInferSettings(robot_id="r1", robots=["r1", "r2"], tag_maps={"r9": tmp_path / "m.yaml"}, run_dir=tmp_path)
+    assert EdgeInferSettings(robot_id="r1", robots="*", tag_maps={"r9": tmp_path / "m.yaml"}, run_dir=tmp_path)
+
+
+class _Token:
+    """What edge_infer reads of a liveliness sample."""
+
+    def __init__(self, key: str, kind: object) -> None:
+        self.key_expr, self.kind = key, kind
+
+
+def test_a_liveliness_key_that_does_not_parse_is_counted_not_followed() -> None:
+    import zenoh
+
+    from services.edge_infer.service import _on_token
+    from shared.runtime.guard import InputGuard
+
+    guard, seen = InputGuard("edge_infer", log_every_secs=0.0), list[str]()
+    up = down = seen.append
+    _on_token(_Token(keys.edge_worker("fleet", "edge2"), zenoh.SampleKind.PUT), keys.worker_of, up, down, guard)  # type: ignore[arg-type]
+    _on_token(_Token("splittag/@fleet/fleet/oops", zenoh.SampleKind.PUT), keys.worker_of, up, down, guard)  # type: ignore[arg-type]
+    assert seen == ["edge2"]
+    assert guard.stats()["rejected_by_reason"] == {"liveliness: ValueError": 1}

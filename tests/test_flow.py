@@ -10,12 +10,12 @@ from shared.transport.flow import EdgePacer, EdgeWatch, InFlightWindow
 from tests.fakes import FakeClock
 
 
-def _has_credit(w: InFlightWindow) -> bool:
+def _has_credit(w: InFlightWindow[object]) -> bool:
     return w.capacity == 0 or w.in_flight < w.capacity
 
 
 def test_capacity_credits_and_done() -> None:
-    w = InFlightWindow(2, clock=FakeClock())
+    w: InFlightWindow[object] = InFlightWindow(2, clock=FakeClock())
     assert _has_credit(w)
     w.sent(1)
     w.sent(2)
@@ -28,7 +28,7 @@ def test_capacity_credits_and_done() -> None:
 
 def test_unanswered_frames_expire() -> None:
     clock = FakeClock()
-    w = InFlightWindow(1, timeout_secs=2.0, clock=clock)
+    w: InFlightWindow[object] = InFlightWindow(1, timeout_secs=2.0, clock=clock)
     w.sent(7)
     clock.now = 1.9
     assert not _has_credit(w)
@@ -38,7 +38,7 @@ def test_unanswered_frames_expire() -> None:
 
 
 def test_acquire_waits_for_done_and_stops() -> None:
-    w = InFlightWindow(1)
+    w: InFlightWindow[object] = InFlightWindow(1)
     stop = threading.Event()
     w.sent(1)
     threading.Timer(0.1, w.done, args=(1,)).start()
@@ -49,7 +49,7 @@ def test_acquire_waits_for_done_and_stops() -> None:
 
 
 def test_zero_capacity_disables_and_bad_values_raise() -> None:
-    w = InFlightWindow(0)
+    w: InFlightWindow[object] = InFlightWindow(0)
     for s in range(100):
         w.sent(s)
     assert _has_credit(w) and w.in_flight == 0
@@ -62,7 +62,7 @@ def test_zero_capacity_disables_and_bad_values_raise() -> None:
 def test_an_answer_that_arrives_before_put_returns_frees_its_credit() -> None:
     """Zenoh can deliver the TagPoses on another thread while put() is still returning: the credit must
     already be recorded, or the answer is 'unknown' and the credit is held until it expires."""
-    w = InFlightWindow(1, timeout_secs=2.0, clock=FakeClock())
+    w: InFlightWindow[object] = InFlightWindow(1, timeout_secs=2.0, clock=FakeClock())
     w.send(5, lambda: w.done(5))  # the fastest edge: it answers inside put()
     assert w.in_flight == 0 and _has_credit(w)
 
@@ -84,12 +84,36 @@ def test_edge_watch_and_abandoning_the_frames_in_flight() -> None:
     watch.edge_down()
     assert watch.on_board(0.0) and watch.outages == 1
     clock = FakeClock()
-    w = InFlightWindow(1, timeout_secs=10.0, clock=clock)
+    w: InFlightWindow[object] = InFlightWindow(1, timeout_secs=10.0, clock=clock)
     w.sent(1)
     clock.now = 0.7
     assert w.oldest_age_secs() == pytest.approx(0.7)
     assert w.acquire(threading.Event(), poll_secs=0.01, abandon=lambda: True)
     assert w.in_flight == 0
+
+
+def test_frames_a_vanished_edge_held_become_orphans_and_nothing_else_does() -> None:
+    """What a frame was sent with is kept until its answer; the edge's token gone (clear(recover=True))
+    turns the unanswered ones into orphans, oldest first; an answered, expired or merely overdue frame
+    (its answer may still come) is never recomputed."""
+    clock = FakeClock()
+    w: InFlightWindow[str] = InFlightWindow(3, timeout_secs=2.0, clock=clock)
+    w.send(1, lambda: None, keep="f1")
+    w.send(2, lambda: None, keep="f2")
+    w.done(1)
+    clock.now = 3.0  # frame 2's credit expires
+    assert w.in_flight == 0 and w.expired == 1
+    w.send(4, lambda: None, keep="f4")
+    w.send(3, lambda: None, keep="f3")
+    assert not w.has_orphans
+    w.clear(recover=True)
+    assert w.has_orphans and w.in_flight == 0
+    assert w.take_orphans() == ["f3", "f4"] and not w.has_orphans and w.take_orphans() == []
+    w.send(5, lambda: None, keep="f5")
+    w.clear()  # overdue, not gone
+    assert w.acquire(threading.Event(), poll_secs=0.01, abandon=lambda: True)
+    assert not w.has_orphans
+    assert InFlightWindow(0).take_orphans() == []  # window off: nothing kept
 
 
 def _cycle(pacer: EdgePacer, clock: FakeClock, seq: int, *, robot: float, link: float, edge: float) -> None:

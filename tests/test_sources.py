@@ -161,6 +161,35 @@ def test_camera_service_streams_a_folder_and_loops(tmp_path: Path) -> None:
     assert frames[0].intrinsics == CAM
 
 
+def test_camera_service_starts_later_in_the_source_and_refuses_a_start_past_its_end(tmp_path: Path) -> None:
+    """`start_frame` (a fleet's robots at different places of one source) skips the first pass's first
+    frames only; a start past the source's end is an error, not a camera that loops publishing nothing."""
+    folder, info, gt = _folder(tmp_path)
+    settings = CameraSettings(
+        robot_id="src3",
+        source="folder",
+        path=str(folder),
+        camera_info=info,
+        groundtruth=gt,
+        fps=50.0,
+        loop=True,
+        max_frames=4,
+        start_frame=2,
+        run_dir=tmp_path,
+    )
+    frames, gts, published = _stream(settings, "src3", 4)
+    assert published == 4 and [f.seq for f in frames] == list(range(4))
+    assert [g.world_from_camera[0, 3] for g in gts] == [2, 0, 1, 2]  # 2, then the whole source again
+    session = open_session(ZenohSettings(mode="peer", listen=[], multicast_scouting=False))
+    try:
+        with pytest.raises(ValueError, match="start_frame 3 is past the source's last frame"):
+            run_camera(
+                settings.model_copy(update={"start_frame": 3, "wait_for": []}), session=session, stop=threading.Event()
+            )
+    finally:
+        session.close()
+
+
 def test_camera_service_stops_at_the_end_of_a_video(tmp_path: Path) -> None:
     info = tmp_path / "camera_info.yaml"
     info.write_text(camera_to_yaml(CAM))

@@ -27,3 +27,6 @@ def test_a_finished_camera_ends_the_run_and_a_crashed_one_restarts() -> None:
     sup.started("camera")
     assert sup.exited("camera", 0) is None
     assert sup.exited("camera", 1) == 1.0
+    # a fleet names its cameras per robot: the kind decides, not the name
+    assert sup.exited("robot2_camera", 0, service="camera") is None
+    assert sup.exited("robot2_robot_infer", 0, service="robot_infer") == 1.0

@@ -115,6 +115,8 @@ def run(settings: CameraSettings, *, session: zenoh.Session, stop: threading.Eve
                     return seq
             if not produced:
                 raise RuntimeError("the source produced no frames")
+            if not seq:  # the whole first pass was skipped: looping again would skip it again, forever
+                raise ValueError(f"start_frame {settings.start_frame} is past the source's last frame")
             if not settings.loop:
                 log.info("source ended after %d frames", seq)
                 return seq

@@ -16,6 +16,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import torch
@@ -26,7 +27,7 @@ from shared.control.compute import ComputeEstimator, tail_per_tag_ms
 from shared.model.profile import calibrate_pnp_ms
 from shared.model.runtime import calibrate_cumulative_ms, load_split_net
 from shared.model.weights import load_keypoint_fusion
-from shared.perception.split import EdgeInput, edge_batch
+from shared.perception.split import EdgeInput, check_features, edge_batch
 from shared.runtime.guard import InputGuard, serve_stats
 from shared.transport.fleet import FleetView
 from shared.transport.probe import ArrivalClock, serve_echo
@@ -65,20 +66,25 @@ class Lane:
     tag_map: TagMapFile
     estimator: ComputeEstimator
     arrivals: ArrivalClock
+    pub: zenoh.Publisher
+    compute_pub: zenoh.Publisher
     endpoints: list[Any] = field(default_factory=list)  # subscriber, queryables, token: undeclared in reverse
-    pub: zenoh.Publisher | None = None
-    compute_pub: zenoh.Publisher | None = None
     last_profile: float = 0.0
     frames: int = 0
 
 
 def _on_token(
-    sample: zenoh.Sample, parse: Callable[[str], str], up: Callable[[str], None], down: Callable[[str], None]
+    sample: zenoh.Sample,
+    parse: Callable[[str], str],
+    up: Callable[[str], None],
+    down: Callable[[str], None],
+    guard: InputGuard,
 ) -> None:
-    """A liveliness token appeared (up) or went (down); keys that do not parse are ignored."""
+    """A liveliness token appeared (up) or went (down); a key that does not parse is counted and logged."""
     try:
         ident = parse(str(sample.key_expr))
-    except ValueError:
+    except ValueError as exc:
+        guard.reject("liveliness", 0, exc)
         return
     (up if sample.kind == zenoh.SampleKind.PUT else down)(ident)
 
@@ -104,6 +110,8 @@ class EdgeInfer:
         self.emulated = s.emulated_ms_per_tag_by_k
         self.per_tag_ms = self.emulated or tail_per_tag_ms(calibrate_cumulative_ms(self.net), pnp_ms=calibrate_pnp_ms())
         self.default_map = load_tag_map(s.tag_map) if s.tag_map else TagMapFile(default_size_m=s.default_tag_size_m)
+        # Every robot's own map is read now: a bad file stops the worker at start, not when the robot arrives.
+        self.tag_maps = {robot: load_tag_map(path) for robot, path in s.tag_maps.items()}
         # A short queue: when the edge is the bottleneck, backpressure reaches robot_infer (its publisher
         # blocks) and the robot's latest-only frame ring drops stale frames, so latency stays bounded.
         # Arrival is stamped in the subscriber callback, so a frame's transport time excludes the time it
@@ -126,11 +134,13 @@ class EdgeInfer:
         liveliness = session.liveliness()
         for reply in liveliness.get(keys.edge_workers(self.tier), timeout=2.0):  # the workers already there
             if reply.ok is not None:
-                self.fleet.worker_up(keys.worker_of(str(reply.ok.key_expr)))
+                _on_token(reply.ok, keys.worker_of, self.fleet.worker_up, self.fleet.worker_down, self.guard)
         self.worker_token = liveliness.declare_token(keys.edge_worker(self.tier, s.worker_id))
         self.workers_sub = liveliness.declare_subscriber(keys.edge_workers(self.tier), self._on_worker, history=True)
         self.robots_sub = (
-            liveliness.declare_subscriber(keys.alive_any_robot("robot_infer"), self._on_robot, history=True)
+            liveliness.declare_subscriber(
+                keys.for_every_robot(keys.alive("any", "robot_infer")), self._on_robot, history=True
+            )
             if fixed is None
             else None
         )
@@ -139,14 +149,14 @@ class EdgeInfer:
 
     # Zenoh callbacks: bookkeeping only; lanes are opened and closed on the main loop.
     def _on_worker(self, sample: zenoh.Sample) -> None:
-        _on_token(sample, keys.worker_of, self.fleet.worker_up, self._worker_gone)
+        _on_token(sample, keys.worker_of, self.fleet.worker_up, self._worker_gone, self.guard)
 
     def _worker_gone(self, worker: str) -> None:
         log.warning("edge worker %s is gone: its robots move", worker)
         self.fleet.worker_down(worker)
 
     def _on_robot(self, sample: zenoh.Sample) -> None:
-        _on_token(sample, keys.robot_of, self.fleet.robot_up, self.fleet.robot_down)
+        _on_token(sample, keys.robot_of, self.fleet.robot_up, self.fleet.robot_down, self.guard)
 
     def _on_assignment(self, robots: frozenset[str]) -> None:
         with self._wanted_lock:
@@ -176,12 +186,16 @@ class EdgeInfer:
 
     def _open_lane(self, robot: str) -> Lane:
         s = self.settings
-        tag_map = load_tag_map(s.tag_maps[robot]) if robot in s.tag_maps else self.default_map
-        lane = Lane(robot, tag_map, ComputeEstimator(self.per_tag_ms), ArrivalClock())
         session = self.session
-        lane.pub = declare_tensor_publisher(session, keys.tag_poses(robot), TagPoses.SCHEMA)
-        lane.compute_pub = session.declare_publisher(
-            keys.compute(robot, "edge"), encoding=encoding_for(ComputeProfile.SCHEMA)
+        lane = Lane(
+            robot,
+            self.tag_maps.get(robot, self.default_map),
+            ComputeEstimator(self.per_tag_ms),
+            ArrivalClock(),
+            pub=declare_tensor_publisher(session, keys.tag_poses(robot), TagPoses.SCHEMA),
+            compute_pub=session.declare_publisher(
+                keys.compute(robot, "edge"), encoding=encoding_for(ComputeProfile.SCHEMA)
+            ),
         )
         arrivals = lane.arrivals
         lane.endpoints.append(
@@ -202,9 +216,8 @@ class EdgeInfer:
     def _close_lane(lane: Lane) -> None:
         for endpoint in reversed(lane.endpoints):  # the token first: the robot stops sending here
             endpoint.undeclare()
-        for pub in (lane.pub, lane.compute_pub):
-            if pub is not None:
-                pub.undeclare()
+        lane.pub.undeclare()
+        lane.compute_pub.undeclare()
 
     def counters(self, lane: Lane) -> dict[str, object]:
         """Served on the lane's stats key with the input counters."""
@@ -238,8 +251,8 @@ class EdgeInfer:
             self.process(items)
 
     def process(self, items: list[_Item]) -> None:
-        """Decode each message (a bad one is counted and dropped alone), run the good ones as one batch;
-        if the batch raises, each message again on its own so only the bad one is lost."""
+        """Decode and check each message (a bad one is counted and dropped alone), run the good ones as
+        one batch, publish each result; a message whose tensors turn out non-finite is refused alone."""
         decoded: list[tuple[Lane, EdgeInput]] = []
         for item in items:
             lane = self.lanes.get(item.robot_id)
@@ -250,41 +263,40 @@ class EdgeInfer:
                 decoded.append((lane, self._decode(item, lane)))
             except Exception as exc:  # the guard's point: counted, logged, the others go on
                 self.guard.reject("features", len(item.payload), exc)
+        if not decoded:
+            return
+        inputs = [p for _, p in decoded]
+        try:
+            results = edge_batch(
+                inputs,
+                net=self.net,
+                fusion=self.fusion,
+                tracked_max_reprojection_px=self.settings.tracked_max_reprojection_px,
+            )
+        except Exception as exc:  # the tail itself failed on checked inputs (not expected): counted per message
+            for p in inputs:
+                self.guard.reject("features", p.payload_bytes, exc)
+            return
         if len(decoded) > 1:
             self.batches += 1
             self.batched_messages += len(decoded)
-            try:
-                self._infer(decoded)
-                self.guard.accept(len(decoded))
-                return
-            except Exception:
-                pass
-        for pair in decoded:
-            self.guard.run("features", pair[1].payload_bytes, lambda: self._infer([pair]))  # noqa: B023
+        for (lane, edge_input), result in zip(decoded, results, strict=True):
+            if isinstance(result, Exception):
+                self.guard.reject("features", edge_input.payload_bytes, result)
+            else:
+                self.guard.run("features", edge_input.payload_bytes, partial(self._publish, lane, result))
 
     def _decode(self, item: _Item, lane: Lane) -> EdgeInput:
         s, emulated = self.settings, self.emulated
         features = decode(item.payload, Features, max_bytes=s.max_payload_bytes)
         if features.robot_id != item.robot_id:
             raise SchemaError(f"Features of robot {features.robot_id!r} on robot {item.robot_id!r}'s key")
+        check_features(features)
         min_secs = len(features.tags) * emulated[features.split_k] / 1e3 if emulated else 0.0
         return EdgeInput(features, item.received, item.previous, len(item.payload), lane.tag_map, min_secs)
 
-    def _infer(self, pairs: list[tuple[Lane, EdgeInput]]) -> list[TagPoses]:
-        results = edge_batch(
-            [p for _, p in pairs],
-            net=self.net,
-            fusion=self.fusion,
-            tracked_max_reprojection_px=self.settings.tracked_max_reprojection_px,
-        )
-        for (lane, _), poses in zip(pairs, results, strict=True):
-            self._publish(lane, poses)
-        return results
-
     def _publish(self, lane: Lane, poses: TagPoses) -> None:
         s, emulated = self.settings, self.emulated
-        if lane.pub is None or lane.compute_pub is None:
-            return
         lane.pub.put(encode(poses))
         lane.frames += 1
         self.viz.tag_poses(poses)

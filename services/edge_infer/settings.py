@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import ClassVar, Literal
+from typing import ClassVar
 
-from pydantic import Field
+from pydantic import Field, model_validator
 from pydantic_settings import SettingsConfigDict
 
 from shared.model.precision import PrecisionChoice
-from shared.runtime.settings import ServiceSettings
+from shared.runtime.settings import ServedRobots, ServiceSettings
 from shared.wire.messages import PerCut, RobotId
 
 
@@ -24,7 +24,7 @@ class EdgeInferSettings(ServiceSettings):
     # robot whose robot_infer is alive (its liveliness token). Several workers with the same setting
     # share the robots by rendezvous hashing over the workers' tokens (shared.transport.fleet): a
     # worker that appears takes its share, one that dies hands its robots to the others.
-    robots: list[RobotId] | Literal["*"] | None = None
+    robots: ServedRobots = None
     worker_id: RobotId = "edge1"  # unique in the edge tier (its liveliness token)
     # The workers that share robots: the same tier name and the same `robots` on each. None: the robot id
     # for a single-robot edge (so two robots' own edges on one network never take each other's robot),
@@ -51,3 +51,11 @@ class EdgeInferSettings(ServiceSettings):
     # padded by sleeping up to it and E(k) is published from it, independent of this CPU; a frame
     # whose real compute exceeds it takes the real time. None: calibrated and measured live.
     emulated_ms_per_tag_by_k: PerCut | None = None
+
+    @model_validator(mode="after")
+    def _tag_maps_of_served_robots(self) -> EdgeInferSettings:
+        served = [self.robot_id] if self.robots is None else self.robots
+        unknown = sorted(set(self.tag_maps) - set(served)) if served != "*" else []
+        if unknown:
+            raise ValueError(f"tag_maps for robots this edge does not serve: {unknown} (robots: {served})")
+        return self

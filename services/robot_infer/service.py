@@ -41,9 +41,6 @@ from shared.wire.messages import (
 
 log = logging.getLogger(__name__)
 
-# Unanswered Features kept for recovery (a window holds 2-3; the rest had their credits expire).
-UNANSWERED_KEPT = 8
-
 
 def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading.Event) -> None:
     """Process frames until `stop` is set."""
@@ -78,17 +75,13 @@ class RobotInfer:
         self.tracker = TagTracker(s.tracking) if s.tracking.enabled else None
         self.tag_map = load_tag_map(s.tag_map) if s.tag_map else TagMapFile(default_size_m=s.default_tag_size_m)
         self.state = SplitState(SplitConfig(k=s.split_k, codec=s.codec, pinned=False, source="default"))
-        self.window = InFlightWindow(s.max_in_flight, timeout_secs=s.in_flight_timeout_secs)
+        # Each frame in flight keeps its Features: if its edge vanishes, the robot computes it on board.
+        self.window: InFlightWindow[Features] = InFlightWindow(s.max_in_flight, timeout_secs=s.in_flight_timeout_secs)
         self.pacer = EdgePacer() if s.pace_to_edge and s.max_in_flight else None
         self.watch = EdgeWatch(answer_timeout_secs=s.edge_answer_timeout_secs)
         self.guard = InputGuard("robot_infer")
         self.on_board_frames = 0
         self.recovered_frames = 0
-        # Features sent and not answered yet, and those whose edge vanished before answering (recomputed
-        # here on the main loop: a worker's death must not cost the frames it held).
-        self._unanswered: dict[int, Features] = {}
-        self._orphans: list[Features] = []
-        self._orphans_lock = threading.Lock()
         self.last_profile = 0.0
         rid = s.robot_id
         # Frames are checked as they arrive: a bad one is counted and never displaces the good one waiting.
@@ -130,8 +123,6 @@ class RobotInfer:
         # A bad TagPoses is edge_infer's problem to report; that frame's credit expires on its own.
         with contextlib.suppress(WireError):
             poses = decode(sample.payload.to_bytes(), TagPoses)
-            with self._orphans_lock:
-                self._unanswered.pop(poses.seq, None)
             self.window.done(poses.seq)
             if self.pacer is not None and poses.link is not None:  # link None: computed on board
                 self.pacer.answered(
@@ -146,10 +137,7 @@ class RobotInfer:
             self.watch.edge_up()
         else:
             self.watch.edge_down()
-            with self._orphans_lock:  # the frames it held: the main loop computes them on board
-                self._orphans.extend(self._unanswered[seq] for seq in sorted(self._unanswered))
-                self._unanswered.clear()
-            self.window.clear()
+            self.window.clear(recover=True)  # the frames it held: the main loop computes them on board
             if self.pacer is not None:
                 self.pacer.forget()
 
@@ -159,10 +147,6 @@ class RobotInfer:
         def give_up() -> bool:  # the edge is gone: stop waiting for credits
             return self.watch.on_board(self.window.oldest_age_secs())
 
-        def has_orphans() -> bool:
-            with self._orphans_lock:
-                return bool(self._orphans)
-
         while self.window.acquire(stop, abandon=give_up):
             self._recover_orphans()
             # Start when this frame would reach the edge as it becomes free (the camera ring keeps the
@@ -170,7 +154,7 @@ class RobotInfer:
             delay = self.pacer.start_delay_secs() if self.pacer is not None else 0.0
             if delay > 0 and stop.wait(min(delay, self.settings.edge_answer_timeout_secs)):
                 break
-            if (frame := self.frames.take(stop, wake=has_orphans)) is None:
+            if (frame := self.frames.take(stop, wake=lambda: self.window.has_orphans)) is None:
                 if stop.is_set():
                     break
                 continue  # frames to recover first
@@ -178,11 +162,10 @@ class RobotInfer:
 
     def _recover_orphans(self) -> None:
         """Compute on board the frames whose edge vanished before answering (their Features are kept)."""
-        with self._orphans_lock:
-            orphans, self._orphans = self._orphans, []
+        orphans = self.window.take_orphans()
         for features in orphans:
-            self.guard.run("frame", 0, partial(self._finish_on_board, features))
-            self.recovered_frames += 1
+            if self.guard.run("recovered frame", 0, partial(self._finish_on_board, features)):
+                self.recovered_frames += 1
         if orphans:
             log.warning("edge vanished with %d frame(s) unanswered: computed on board", len(orphans))
 
@@ -205,13 +188,8 @@ class RobotInfer:
         network_ms, compute_secs = self._pace(split.k, len(tags), timings)
         features = self._features(frame, tags, split.k, split.codec, compute_secs)
         wire = encode(features)
-        if self.acks is not None:  # answers are watched: keep the frame until its answer comes
-            with self._orphans_lock:
-                self._unanswered[frame.seq] = features
-                while len(self._unanswered) > UNANSWERED_KEPT:  # expired credits: oldest first
-                    del self._unanswered[min(self._unanswered)]
         sent_nanos = time.time_ns()
-        self.window.send(frame.seq, lambda: self.pub.put(wire))
+        self.window.send(frame.seq, lambda: self.pub.put(wire), keep=features)
         if self.pacer is not None:
             self.pacer.sent(frame.seq, tags=len(tags), robot_secs=compute_secs)
         sent = FrameSent(robot_id=self.settings.robot_id, seq=frame.seq, sent_nanos=sent_nanos, payload_bytes=len(wire))
@@ -270,7 +248,7 @@ class RobotInfer:
         if self.on_board_frames == 1 or self.on_board_frames % 100 == 0:
             log.warning("edge unavailable: %d frames computed on board", self.on_board_frames)
 
-    def _finish_on_board(self, features: Features) -> None:
+    def _finish_on_board(self, features: Features) -> bool:
         """The edge's half of one frame here (any k: the robot holds the whole network): TagPoses out."""
         poses = edge_step(
             features,
@@ -283,6 +261,7 @@ class RobotInfer:
             fusion=self.fusion,
         )
         self.poses_pub.put(encode(poses.model_copy(update={"link": None})))  # nothing crossed the link
+        return True
 
     def close(self) -> None:
         """Undeclare everything and log the run's counts."""

@@ -32,6 +32,7 @@ from shared.slam.marker_slam import (
     SlamInputError,
     absolute_trajectory_error_arrays,
     check_observation,
+    check_robot_count,
 )
 from shared.transport.session import declare_fifo_subscriber, encoding_for
 from shared.vision.camera import CameraIntrinsics
@@ -67,6 +68,9 @@ class RobotRun:
     previous_stamps_s: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float64))
     previous_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4), np.float64))
     last_pose: np.ndarray | None = None
+    frames: int = 0  # TagPoses fused for this robot (the periodic map publication and drawing count them)
+    map_due: bool = False  # the shared map changed since this robot's map key last carried it
+    intrinsics: CameraIntrinsics | None = None  # the frustum is logged again when they change
 
 
 class SlamNode:
@@ -116,6 +120,7 @@ class SlamNode:
         if run is None:
             if not self.serves(robot):
                 raise SlamInputError(f"robot {robot!r} is not one this slam serves ({self.settings.robots})")
+            check_robot_count(len(self.runs), robot)  # any id may arrive with robots = "*": bounded here
             run = self.runs[robot] = RobotRun(robot)
             path = self.settings.run_dir / self._trajectory_file(robot)
             if self.resumed is not None and path.is_file():
@@ -173,9 +178,13 @@ class SlamNode:
                 status="tracking" if res.world_from_camera is not None else "lost",
                 tags_used=res.tags_used,
             )
-            publish_map = res.map_changed or self.slam.state.frames % self.settings.map_publish_every == 0
-            if res.map_changed:
+            run.frames += 1
+            if res.map_changed:  # one shared map: every robot's map key carries the change
                 self.revision += 1
+                for other in self.runs.values():
+                    other.map_due = True
+            publish_map = run.map_due or run.frames % self.settings.map_publish_every == 0
+            run.map_due = False
             return cam, (self._map(msg.robot_id) if publish_map else None)
 
     def _map(self, robot_id: str) -> TagMap:
@@ -358,12 +367,15 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
         robot_tokens[robot] = session.liveliness().declare_token(keys.alive(robot, "slam"))
     fleet_token = session.liveliness().declare_token(keys.fleet_service("slam")) if node.fleet else None
     viz = make_viz(settings.rerun, service="slam", run_dir=settings.run_dir)
-    stats = serve_stats(session, key(lambda r: keys.stats(r, "slam")), guard, lambda: {"robots": sorted(node.runs)})
-    camera: CameraIntrinsics | None = None  # the frustum is logged with the pose when the intrinsics change
+
+    def robots_served() -> dict[str, object]:
+        with node.lock:  # on Zenoh's thread while the main loop may add a robot
+            return {"robots": sorted(node.runs)}
+
+    stats = serve_stats(session, key(lambda r: keys.stats(r, "slam")), guard, robots_served)
 
     def process(payload: bytes, sample_key: object) -> None:
         """One TagPoses: fuse, publish the camera pose (and the map on change), log (raises on bad input)."""
-        nonlocal camera
         robot = robot_of(sample_key)
         msg = decode(payload, TagPoses)
         if node.fleet and msg.robot_id != robot:
@@ -371,14 +383,15 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
         cam, tag_map = node.on_poses(msg)
         cam_pub, map_pub = publishers(robot)
         cam_pub.put(encode(cam))
+        run = node.runs[robot]
         if cam.status == "tracking":
-            new_camera = msg.intrinsics if msg.intrinsics != camera else None
-            camera = msg.intrinsics or camera
+            new_camera = msg.intrinsics if msg.intrinsics != run.intrinsics else None
+            run.intrinsics = msg.intrinsics or run.intrinsics
             viz.camera_pose(cam.capture_nanos, cam.world_from_camera, new_camera, robot if node.fleet else "")
         if tag_map is not None:
             map_pub.put(encode(tag_map))
             viz.tag_map(cam.capture_nanos, {t.tag_id: (t.size_m, t.world_from_tag) for t in tag_map.tags})
-        if settings.rerun.enabled and node.slam.state.frames % 10 == 0:  # O(trajectory): only when drawn
+        if settings.rerun.enabled and run.frames % 10 == 0:  # O(trajectory): only when drawn
             with node.lock:
                 traj = node.slam.trajectory_arrays(robot)[1][:, :3, 3]
                 gt = node.runs[robot].gt.positions()

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import ClassVar, Literal
+from typing import ClassVar
 
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
-from shared.runtime.settings import ServiceSettings
+from shared.runtime.settings import ServedRobots, ServiceSettings
 from shared.slam.marker_slam import SlamSettings
-from shared.wire.messages import RobotId
 
 
 class SlamServiceSettings(ServiceSettings):
@@ -22,7 +21,7 @@ class SlamServiceSettings(ServiceSettings):
     slam: SlamSettings = Field(default_factory=SlamSettings)
     # None: `robot_id` alone (trajectory.tum). A list, or "*" for every robot that sends TagPoses: one
     # graph and one tag map for all, a trajectory per robot (trajectory_<robot>.tum).
-    robots: list[RobotId] | Literal["*"] | None = None
+    robots: ServedRobots = None
     tag_map: Path | None = None  # anchor world pose, and all poses in localisation-only mode
     map_publish_every: int = Field(default=30, ge=1)  # frames; plus whenever a tag is added
     checkpoint_period_secs: float = Field(default=5.0, gt=0)  # map + trajectory written atomically this often

@@ -145,7 +145,20 @@ def edge_step(
     (not for tracked tags: their corners are predictions). A tracked tag whose 16 keypoints fit a plane
     worse than `tracked_max_reprojection_px` (RMS) is dropped: the keypoint-confidence gate."""
     item = EdgeInput(features, receive_nanos, previous_receive_nanos, payload_bytes, tag_map, min_compute_secs)
-    return edge_batch([item], net=net, fusion=fusion, tracked_max_reprojection_px=tracked_max_reprojection_px)[0]
+    check_features(features)
+    (result,) = edge_batch([item], net=net, fusion=fusion, tracked_max_reprojection_px=tracked_max_reprojection_px)
+    if isinstance(result, Exception):
+        raise result
+    return result
+
+
+def check_features(features: Features) -> None:
+    """What the edge can check of a Features before any network runs: its codec and every tensor's
+    shape and dtype for its cut (FeatureShapeError)."""
+    if features.codec not in ("fp16", "fp32"):
+        raise FeatureShapeError(f"codec {features.codec!r} is not fp16 or fp32")
+    for tag in features.tags:
+        check_tensor(tag.tensor, features.split_k, features.codec)
 
 
 def edge_batch(
@@ -154,19 +167,14 @@ def edge_batch(
     net: SplitNet,
     fusion: KeypointFusion | None = None,
     tracked_max_reprojection_px: float = 1.0,
-) -> list[TagPoses]:
-    """`edge_step` for several messages at once (several robots' frames that arrived together): the
-    tags of all messages cut at the same k go through one tail pass, then each message gets its own
-    TagPoses. Every message is validated before any network runs, so one bad message raises before
-    work is done for the others (the caller retries them one by one to keep the good ones). Each
+) -> list[TagPoses | FeatureShapeError]:
+    """`edge_step` for several messages at once (several robots' frames that arrived together), each
+    already through `check_features`: the tags of all messages cut at the same k go through one tail
+    pass, then each message gets its own TagPoses, or the FeatureShapeError that refuses it alone (its
+    tensors carried NaN/inf: the wire checks a tensor's framing, not its megabytes of values). Each
     message's edge time is its share of the batch's tail (by tags) plus its own PnP."""
-    for item in items:
-        f = item.features
-        if f.codec not in ("fp16", "fp32"):
-            raise FeatureShapeError(f"codec {f.codec!r} is not fp16 or fp32")
-        for tag in f.tags:
-            check_tensor(tag.tensor, f.split_k, f.codec)
     keypoints: list[np.ndarray | None] = [None] * len(items)
+    refused: dict[int, FeatureShapeError] = {}
     share_secs = [0.0] * len(items)
     for k in sorted({i.features.split_k for i in items}):
         members = [n for n, i in enumerate(items) if i.features.split_k == k and i.features.tags]
@@ -183,17 +191,19 @@ def edge_batch(
             tags = items[n].features.tags
             kp = out[at : at + len(tags)]
             at += len(tags)
+            share_secs[n] = tail_secs * len(tags) / len(z)
             if not np.isfinite(kp).all():
-                # The wire checks a tensor's framing, not its megabytes of values: NaN/inf surfaces here.
                 bad = [t.tag_id for t, p in zip(tags, kp, strict=True) if not np.isfinite(p).all()]
-                raise FeatureShapeError(
+                refused[n] = FeatureShapeError(
                     f"non-finite keypoints for tag(s) {bad} of {items[n].features.robot_id}: their cut-{k} "
                     "tensors carry NaN or inf"
                 )
-            keypoints[n] = kp
-            share_secs[n] = tail_secs * len(tags) / len(z)
+            else:
+                keypoints[n] = kp
     return [
-        _poses(
+        refused[n]
+        if n in refused
+        else _poses(
             item, keypoints[n], share_secs[n], fusion=fusion, tracked_max_reprojection_px=tracked_max_reprojection_px
         )
         for n, item in enumerate(items)

@@ -53,11 +53,6 @@ class InputGuard:
             self.accepted += 1
         return result
 
-    def accept(self, count: int = 1) -> None:
-        """Count inputs handled outside run() (a batch of them that succeeded together)."""
-        with self._lock:
-            self.accepted += count
-
     def reject(self, what: str, payload_bytes: int, exc: BaseException) -> None:
         """Count one rejected input; log it unless a line was logged less than log_every_secs ago."""
         reason = f"{what}: {type(exc).__name__}"

@@ -13,7 +13,7 @@ import os
 import tomllib
 from contextvars import ContextVar
 from pathlib import Path
-from typing import Any, ClassVar, Final, TypeVar
+from typing import Annotated, Any, ClassVar, Final, Literal, TypeVar
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, TomlConfigSettingsSource
@@ -22,6 +22,10 @@ from shared.transport.session import ZenohSettings
 from shared.viz.recording import RerunSettings
 from shared.wire.codec import DEFAULT_MAX_BYTES
 from shared.wire.messages import RobotId
+
+# Which robots a fleet service serves: None = its `robot_id` alone; a non-empty list = those robots;
+# "*" = every robot whose robot_infer is alive (its liveliness token).
+ServedRobots = Annotated[list[RobotId], Field(min_length=1)] | Literal["*"] | None
 
 log = logging.getLogger(__name__)
 CONFIG_ENV: Final[str] = "SPLITTAG_CONFIG"  # names the TOML file when --config is not given

@@ -143,6 +143,12 @@ class SlamInputError(ValueError):
     """A frame or observation the SLAM core refuses (the state is unchanged)."""
 
 
+def check_robot_count(robots: int, newcomer: str) -> None:
+    """SlamInputError when one map already holds as many robots as it can (one symbol letter each)."""
+    if robots >= len(_TRACK_LETTERS):
+        raise SlamInputError(f"at most {len(_TRACK_LETTERS)} robots share one map; {newcomer!r} is one more")
+
+
 MAX_FRAME_INDEX: Final[int] = 2**56 - 1  # gtsam.Symbol keeps 56 bits for the index
 MAX_RANGE_M: Final[float] = 1e3
 
@@ -274,8 +280,7 @@ class MarkerSlam:
     def _track(self, robot: str) -> _Track:
         track = self._tracks.get(robot)
         if track is None:
-            if len(self._tracks) >= len(_TRACK_LETTERS):
-                raise SlamInputError(f"at most {len(_TRACK_LETTERS)} robots share one map; {robot!r} is one more")
+            check_robot_count(len(self._tracks), robot)
             track = self._tracks[robot] = _Track(_TRACK_LETTERS[len(self._tracks)])
         return track
 
@@ -350,8 +355,8 @@ class MarkerSlam:
         if not 0 <= frame <= MAX_FRAME_INDEX:
             raise SlamInputError(f"frame index {frame} is outside 0..2**56-1")
         track = self._tracks.get(robot)
-        if track is None and len(self._tracks) >= len(_TRACK_LETTERS):
-            raise SlamInputError(f"at most {len(_TRACK_LETTERS)} robots share one map; {robot!r} is one more")
+        if track is None:
+            check_robot_count(len(self._tracks), robot)
         if track is not None and (
             frame in track.stamps or frame <= track.last_done_frame or self._estimate.exists(track.key(frame))
         ):

@@ -206,11 +206,14 @@ def run_fleet(
         argv = ["-m", f"services.{spec.service}", "--config", str(spec.config)]
         return start_process(spec.name, argv, run_dir)
 
+    def write_pids() -> None:  # what `splittag down` signals when the launcher itself is gone
+        (run_dir / "pids").write_text("".join(f"{s.name} {p.popen.pid}\n" for s, p in running))
+
     monitors = {r: Monitor(demo_tag_map(), max_records=200_000) for r in plan.robots if only in (None, "edge", r)}
     try:
         (run_dir / "launcher.pid").write_text(f"{os.getpid()}\n")
         running = [(spec, start(spec)) for spec in specs]
-        (run_dir / "pids").write_text("".join(f"{s.name} {p.popen.pid}\n" for s, p in running))
+        write_pids()
         session = open_session(ZenohSettings(mode="client", connect=[plan.edge_router]))
         subs = [sub for robot, monitor in monitors.items() for sub in attach_monitor(session, robot, monitor)]
         wanted = [keys.edge_worker(plan.tier, w) for w in plan.edge_workers if only in (None, "edge")]
@@ -229,7 +232,7 @@ def run_fleet(
                 if code is None:
                     continue
                 if spec.name not in restart_at:
-                    delay = supervisor.exited(spec.name, code)
+                    delay = supervisor.exited(spec.name, code, service=spec.service)
                     if delay is None:  # a camera whose source ended
                         continue
                     print(f"{spec.name} exited ({code}); restart in {delay:.0f} s", flush=True)
@@ -237,6 +240,7 @@ def run_fleet(
                 elif time.monotonic() >= restart_at[spec.name]:
                     del restart_at[spec.name]
                     running[i] = (spec, start(spec))
+                    write_pids()
         for sub in subs:
             sub.undeclare()
         session.close()

@@ -32,9 +32,10 @@ class Supervisor:
         """A service (re)started now."""
         self._started_at[name] = self.clock()
 
-    def exited(self, name: str, code: int | None) -> float | None:
-        """Seconds to wait before restarting `name`, or None when its exit ends the deployment."""
-        if name == "camera" and code == 0:
+    def exited(self, name: str, code: int | None, *, service: str | None = None) -> float | None:
+        """Seconds to wait before restarting `name` (a process of kind `service`: by default its name),
+        or None when its exit ends the deployment."""
+        if (service or name) == "camera" and code == 0:
             return None  # the source ended (a file without loop, max_frames): the run is complete
         up_secs = self.clock() - self._started_at.get(name, self.clock())
         if up_secs >= self.policy.healthy_after_secs or name not in self._backoff:

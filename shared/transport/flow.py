@@ -5,7 +5,10 @@ robot_infer may have at most `capacity` frames in flight (sent, no TagPoses back
 latest-only ring, so it always sends the freshest frame and no backlog can build up in transport
 buffers: latency stays bounded by about `capacity` edge service times instead of growing without
 limit. A frame whose TagPoses never come back (edge restarted, message rejected) expires after
-`timeout_secs` and its credit returns. Within the window, `EdgePacer` times when the robot starts
+`timeout_secs` and its credit returns. A frame sent with `keep=` holds that object (robot_infer: its
+Features) until the answer comes; when the edge is known to be gone (`clear(recover=True)`), the
+frames it held become orphans the robot computes itself (`take_orphans`), so a dying edge costs no
+frame. Within the window, `EdgePacer` times when the robot starts
 each frame so that it reaches the edge just as the edge becomes free (no queueing at the edge).
 """
 
@@ -14,10 +17,14 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
+from typing import Generic, TypeVar
+
+T = TypeVar("T")
 
 
-class InFlightWindow:
-    """Thread-safe set of in-flight sequence numbers with a capacity and per-entry expiry."""
+class InFlightWindow(Generic[T]):
+    """Thread-safe set of in-flight sequence numbers with a capacity, per-entry expiry and, optionally,
+    what each frame needs to be recomputed if its answer can no longer come."""
 
     def __init__(self, capacity: int, *, timeout_secs: float = 2.0, clock: Callable[[], float] = time.monotonic):
         if capacity < 0:
@@ -28,6 +35,8 @@ class InFlightWindow:
         self.timeout_secs = timeout_secs
         self._clock = clock
         self._sent: dict[int, float] = {}
+        self._kept: dict[int, T] = {}
+        self._orphans: list[T] = []
         self._cond = threading.Condition()
         self.expired = 0
 
@@ -36,7 +45,14 @@ class InFlightWindow:
         stale = [s for s, t in self._sent.items() if now - t > self.timeout_secs]
         for s in stale:
             del self._sent[s]
+            self._kept.pop(s, None)  # unanswered by a live edge (e.g. it refused it): not recomputed
         self.expired += len(stale)
+
+    def _drop_all(self, *, recover: bool) -> None:
+        if recover:
+            self._orphans.extend(self._kept[s] for s in sorted(self._kept))
+        self._sent.clear()
+        self._kept.clear()
 
     def acquire(
         self, stop: threading.Event, *, poll_secs: float = 0.05, abandon: Callable[[], bool] | None = None
@@ -52,7 +68,7 @@ class InFlightWindow:
                 if len(self._sent) < self.capacity:
                     return True
                 if abandon is not None and abandon():
-                    self._sent.clear()
+                    self._drop_all(recover=False)
                     return True
                 self._cond.wait(poll_secs)
         return False
@@ -62,24 +78,40 @@ class InFlightWindow:
         with self._cond:
             return self._clock() - min(self._sent.values()) if self._sent else 0.0
 
-    def clear(self) -> None:
-        """Forget every frame in flight (their answers will not come)."""
+    def clear(self, *, recover: bool = False) -> None:
+        """Forget every frame in flight (their answers will not come). `recover`: the edge is gone for
+        sure, so what the frames were sent with becomes orphans (`take_orphans`); without it (an answer
+        merely overdue, which may still come) they are dropped."""
         with self._cond:
-            self._sent.clear()
+            self._drop_all(recover=recover)
             self._cond.notify_all()
 
-    def sent(self, seq: int) -> None:
-        """Record that frame `seq` left the robot."""
+    def take_orphans(self) -> list[T]:
+        """What the frames a vanished edge held were sent with, oldest first (emptied)."""
+        with self._cond:
+            orphans, self._orphans = self._orphans, []
+            return orphans
+
+    @property
+    def has_orphans(self) -> bool:
+        """Frames wait to be recomputed."""
+        with self._cond:
+            return bool(self._orphans)
+
+    def sent(self, seq: int, *, keep: T | None = None) -> None:
+        """Record that frame `seq` left the robot (with what it would take to recompute it)."""
         if self.capacity == 0:
             return
         with self._cond:
             self._sent[seq] = self._clock()
+            if keep is not None:
+                self._kept[seq] = keep
 
-    def send(self, seq: int, put: Callable[[], None]) -> None:
+    def send(self, seq: int, put: Callable[[], None], *, keep: T | None = None) -> None:
         """Take frame seq's credit, then put it on the wire. In this order: the answer can arrive (and
         return the credit) before `put` returns; recorded after, it would find nothing to return and the
         credit would be held until it expires. A `put` that raises returns the credit."""
-        self.sent(seq)
+        self.sent(seq, keep=keep)
         try:
             put()
         except BaseException:
@@ -89,6 +121,7 @@ class InFlightWindow:
     def done(self, seq: int) -> None:
         """TagPoses for `seq` arrived: return its credit (unknown seqs are ignored)."""
         with self._cond:
+            self._kept.pop(seq, None)
             if self._sent.pop(seq, None) is not None:
                 self._cond.notify_all()
 

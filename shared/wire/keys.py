@@ -86,11 +86,6 @@ def alive(robot_id: str, service: str) -> str:
     return f"{ROOT}/{_check(robot_id, 'robot id')}/alive/{_check(service, 'service')}"
 
 
-def alive_any_robot(service: str) -> str:
-    """Liveliness tokens of one service of every robot (`splittag/*/alive/<service>`)."""
-    return f"{ROOT}/*/alive/{_check(service, 'service')}"
-
-
 def robot_of(key: str) -> str:
     """The robot id of a per-robot key (`splittag/<robot_id>/...`); ValueError for any other key."""
     parts = str(key).split("/")
