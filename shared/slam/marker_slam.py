@@ -38,7 +38,6 @@ from shared.vision.geometry import Array
 from shared.vision.trajectory import PoseLog
 from shared.wire.messages import TagPose
 
-X = gtsam.symbol_shorthand.X
 L = gtsam.symbol_shorthand.L
 
 

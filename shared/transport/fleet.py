@@ -83,11 +83,6 @@ class FleetView:
         with self._lock:
             return self._mine
 
-    def assignment(self) -> dict[str, str]:
-        """robot -> worker for every robot to be served, as every worker computes it now."""
-        with self._lock:
-            return assign(self._robots(), self._workers)
-
     def _robots(self) -> set[str]:
         return set(self._fixed) if self._fixed is not None else set(self._alive_robots)
 
