@@ -59,3 +59,31 @@ def test_access_rules_per_role() -> None:
     assert "splittag/*/map/v1" not in rules["slam-no-serve"]["key_exprs"]
     assert "splittag/*/split" in rules["slam-no-serve"]["key_exprs"]
     assert "splittag/*/slam/stats" in rules["cameras-no-serve"]["key_exprs"]
+
+
+def test_waiting_for_liveliness_lets_the_waiter_work_meanwhile() -> None:
+    """A launcher waits for its services' tokens and supervises meanwhile: `every_second` runs while
+    the tokens are missing (here it brings the token itself), and a token that never comes is a
+    TimeoutError naming it."""
+    from shared.transport.session import open_session, wait_for_liveliness
+
+    session = open_session(ZenohSettings(mode="peer", listen=[], multicast_scouting=False))
+    try:
+        tokens = []
+        wait_for_liveliness(
+            session,
+            [keys.alive("w1", "edge_infer")],
+            timeout_secs=20,
+            every_second=lambda: tokens.append(session.liveliness().declare_token(keys.alive("w1", "edge_infer"))),
+        )
+        assert len(tokens) == 1
+        calls = []
+        with pytest.raises(TimeoutError, match="w1/alive/camera"):
+            wait_for_liveliness(
+                session, [keys.alive("w1", "camera")], timeout_secs=2.5, every_second=lambda: calls.append(1)
+            )
+        assert calls  # called while waiting (about once a second)
+        for t in tokens:
+            t.undeclare()
+    finally:
+        session.close()

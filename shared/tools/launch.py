@@ -444,7 +444,9 @@ def run_pipeline(
         running.start_all(services)
         session = open_session(zs)
         subs = attach_monitor(session, robot_id, monitor)
-        wait_for_liveliness(session, [keys.alive(robot_id, s) for s in services], timeout_secs=120)
+        # Supervised while it comes up: a service that dies now is restarted (its token then appears).
+        alive = [keys.alive(robot_id, s) for s in services]
+        wait_for_liveliness(session, alive, timeout_secs=120, every_second=running.supervise)
         print(f"run {run_dir}: {', '.join(services)} alive; Ctrl-C stops", flush=True)
         t_end = None if duration_secs is None else time.monotonic() + duration_secs
         while not stop.wait(1.0):

@@ -7,7 +7,7 @@ import logging
 import socket
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Final, Literal
 
@@ -180,8 +180,15 @@ def next_sample(
     return None
 
 
-def wait_for_liveliness(session: zenoh.Session, keys: Iterable[str], *, timeout_secs: float = 30.0) -> None:
-    """Block until a liveliness token is alive on every key, or raise TimeoutError naming the rest."""
+def wait_for_liveliness(
+    session: zenoh.Session,
+    keys: Iterable[str],
+    *,
+    timeout_secs: float = 30.0,
+    every_second: Callable[[], object] | None = None,
+) -> None:
+    """Block until a liveliness token is alive on every key, or raise TimeoutError naming the rest.
+    `every_second` runs on the waiting thread about once a second meanwhile (a launcher supervises)."""
     wanted = set(keys)
     seen: set[str] = set()
     lock = threading.Lock()
@@ -200,6 +207,9 @@ def wait_for_liveliness(session: zenoh.Session, keys: Iterable[str], *, timeout_
     subs = [session.liveliness().declare_subscriber(k, on_sample, history=True) for k in wanted]
     try:
         deadline = time.monotonic() + timeout_secs
+        while every_second is not None and not done.is_set() and time.monotonic() < deadline:
+            if not done.wait(min(1.0, max(0.0, deadline - time.monotonic()))):
+                every_second()
         if not done.wait(max(0.0, deadline - time.monotonic())):
             with lock:
                 missing = sorted(wanted - seen)
