@@ -209,6 +209,22 @@ def run_fleet(
     def write_pids() -> None:  # what `splittag down` signals when the launcher itself is gone
         (run_dir / "pids").write_text("".join(f"{s.name} {p.popen.pid}\n" for s, p in running))
 
+    def restart_dead() -> None:  # what died, after its backoff (also while the fleet comes up)
+        for i, (spec, proc) in enumerate(running):
+            code = proc.popen.poll()
+            if code is None:
+                continue
+            if spec.name not in restart_at:
+                delay = supervisor.exited(spec.name, code, service=spec.service)
+                if delay is None:  # a camera whose source ended
+                    continue
+                print(f"{spec.name} exited ({code}); restart in {delay:.0f} s", flush=True)
+                restart_at[spec.name] = time.monotonic() + delay
+            elif time.monotonic() >= restart_at[spec.name]:
+                del restart_at[spec.name]
+                running[i] = (spec, start(spec))
+                write_pids()
+
     monitors = {r: Monitor(demo_tag_map(), max_records=200_000) for r in plan.robots if only in (None, "edge", r)}
     try:
         (run_dir / "launcher.pid").write_text(f"{os.getpid()}\n")
@@ -218,7 +234,7 @@ def run_fleet(
         subs = [sub for robot, monitor in monitors.items() for sub in attach_monitor(session, robot, monitor)]
         wanted = [keys.edge_worker(plan.tier, w) for w in plan.edge_workers if only in (None, "edge")]
         wanted += [keys.alive(r, "robot_infer") for r in monitors if only != "edge"]
-        wait_for_liveliness(session, wanted, timeout_secs=180)
+        wait_for_liveliness(session, wanted, timeout_secs=180, every_second=restart_dead)
         print(f"fleet run {run_dir}: {', '.join(s.name for s in specs)} up; Ctrl-C stops", flush=True)
         t_end = None if duration_secs is None else time.monotonic() + duration_secs
         while not stop.wait(1.0):
@@ -227,20 +243,7 @@ def run_fleet(
                     print(f"{robot:>10} {monitor.line()}", flush=True)
             if t_end is not None and time.monotonic() > t_end:
                 break
-            for i, (spec, proc) in enumerate(running):  # restart what died, after its backoff
-                code = proc.popen.poll()
-                if code is None:
-                    continue
-                if spec.name not in restart_at:
-                    delay = supervisor.exited(spec.name, code, service=spec.service)
-                    if delay is None:  # a camera whose source ended
-                        continue
-                    print(f"{spec.name} exited ({code}); restart in {delay:.0f} s", flush=True)
-                    restart_at[spec.name] = time.monotonic() + delay
-                elif time.monotonic() >= restart_at[spec.name]:
-                    del restart_at[spec.name]
-                    running[i] = (spec, start(spec))
-                    write_pids()
+            restart_dead()
         for sub in subs:
             sub.undeclare()
         session.close()
