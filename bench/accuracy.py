@@ -5,7 +5,8 @@ learned method cannot win by fitting its own renderer. Every method sees the ima
 matrix only; the bench matches its predictions to the truth by id, solves the pose itself with the
 tag size from the truth (IPPE_SQUARE on 4 corners, IPPE on 16 lattice points) and bins the errors by
 motion blur, distance, tilt and occlusion. Always in the table: AprilTag 3 and OpenCV's ArUco (36h11) as a
-user runs them, and the product's stage 1 (both, merged and gated); with --weights, the whole chain.
+user runs them, the product's line-quad proposer alone, and the product's stage 1 (all three, merged and
+gated); with --weights, the whole chain.
 
     .venv/bin/python -m bench.accuracy --n 600 --seed 0 [--json out.json] [--weights models] [--workers 2]
 
@@ -134,18 +135,35 @@ class ArucoMethod:
         ]
 
 
-def stage1_method(quad_decimate: float = 2.0, *, aruco: bool = True) -> Method:
+def stage1_method(quad_decimate: float = 2.0, *, aruco: bool = True, lines: bool = True) -> Method:
     """The product's stage 1 alone (shared.vision.proposals.Stage1Detector: AprilTag 3, then the gated
-    ArUco proposer) as a "corners4" method; imports the project here only."""
+    ArUco proposer and the line-quad proposer) as a "corners4" method; imports the project here only."""
     from shared.vision.detector import DetectorSettings
+    from shared.vision.linequads import LineQuadSettings
     from shared.vision.proposals import ArucoSettings, Stage1Detector, Stage1Settings
 
     detector = Stage1Detector(
-        Stage1Settings(apriltag=DetectorSettings(quad_decimate=quad_decimate), aruco=ArucoSettings(enabled=aruco))
+        Stage1Settings(
+            apriltag=DetectorSettings(quad_decimate=quad_decimate),
+            aruco=ArucoSettings(enabled=aruco),
+            lines=LineQuadSettings(enabled=lines),
+        )
     )
 
     def method(image: NDArray[np.uint8], camera_matrix: FloatArray) -> list[Prediction]:
         return [Prediction(d.tag_id, d.corners_px, "corners4") for d in detector.detect(image)]
+
+    return method
+
+
+def line_quads_method() -> Method:
+    """The product's line-quad proposer alone (shared.vision.linequads) as a "corners4" method."""
+    from shared.vision.linequads import LineQuadProposer
+
+    proposer = LineQuadProposer()
+
+    def method(image: NDArray[np.uint8], camera_matrix: FloatArray) -> list[Prediction]:
+        return [Prediction(d.tag_id, d.corners_px, "corners4") for d in proposer.detect(image)]
 
     return method
 
@@ -504,6 +522,7 @@ def main() -> None:
     methods: dict[str, Method] = {
         "apriltag3 (corners)": apriltag,
         "opencv aruco (corners)": ArucoMethod(),
+        "line quads (corners)": line_quads_method(),
         "splittag stage 1 (corners)": stage1_method(),
     }
     if args.weights is not None:

@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from bench.accuracy import AprilTagMethod, ArucoMethod, Method, Prediction, stage1_method
+from bench.accuracy import AprilTagMethod, ArucoMethod, Method, Prediction, line_quads_method, stage1_method
 from bench.machine import cpu_label
 
 PHOTOS: Final[Path] = Path(__file__).resolve().parent / "data" / "apriltag_photos"
@@ -104,6 +104,7 @@ def main() -> None:
         "apriltag3, decimate 2": apriltag_d2,
         "apriltag3, decimate 1": apriltag_d1,
         "opencv aruco 36h11": ArucoMethod(),
+        "line quads (shared.vision.linequads)": line_quads_method(),
         "splittag stage 1, decimate 2 (robot_infer)": stage1_method(2.0),
         "splittag stage 1, decimate 1 (splittag detect)": stage1_method(1.0),
     }

@@ -10,6 +10,7 @@ from bench.accuracy import Prediction
 from bench.photos import load_photos, match
 from bench.tagrender import clean_settings, render_sample
 from shared.vision.detector import Detection, DetectorSettings, TagDetector
+from shared.vision.linequads import LineQuadSettings
 from shared.vision.proposals import ArucoProposer, Stage1Detector, Stage1Settings, merge_proposals
 
 
@@ -64,7 +65,10 @@ def test_gate_refuses_a_second_proposer_claiming_the_wrong_id_or_a_blank_quad() 
     wrong = Detection((truth.tag_id + 1) % 587, 0.0, 0, truth.corners_px, "aruco")
     blank = Detection(truth.tag_id, 0.0, 0, off_tag, "aruco")
     right = Detection(truth.tag_id, 0.0, 0, truth.corners_px + 0.4, "aruco")
-    no_apriltag = Stage1Settings(apriltag=DetectorSettings(min_decision_margin=1e9))  # AprilTag finds nothing
+    # AprilTag finds nothing; the line-quad proposer (its own tests: tests/test_linequads.py) is off
+    no_apriltag = Stage1Settings(
+        apriltag=DetectorSettings(min_decision_margin=1e9), lines=LineQuadSettings(enabled=False)
+    )
     stage1 = Stage1Detector(no_apriltag, second=_Scripted([wrong, blank]))
     assert stage1.detect(sample.image) == []
     assert (stage1.counts.aruco_refused, stage1.counts.aruco_added) == (2, 0)

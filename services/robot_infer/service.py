@@ -116,6 +116,7 @@ class RobotInfer:
             "stage1_apriltag_tags": self.detector.counts.apriltag,
             "stage1_aruco_added": self.detector.counts.aruco_added,
             "stage1_aruco_refused": self.detector.counts.aruco_refused,
+            "stage1_lines_added": self.detector.counts.lines_added,
         }
 
     # Zenoh callbacks: bookkeeping only.

@@ -1,4 +1,5 @@
-"""Stage 1 with a second proposer: AprilTag 3 first, OpenCV's ArUco detector for what it rejects.
+"""Stage 1 with three proposers: AprilTag 3 first, OpenCV's ArUco detector and the line-quad proposer
+for what it misses.
 
 AprilTag 3 finds a quad by clustering gradient edges and fitting lines; at `quad_decimate = 2` small
 tags vanish, and a border that is partly covered or smeared breaks the quad. OpenCV's ArUco detector
@@ -28,6 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from shared.vision.detector import Detection, DetectorSettings, Stage1, TagDetector
 from shared.vision.geometry import Array, check_image
+from shared.vision.linequads import LineQuadProposer, LineQuadSettings
 from shared.vision.tracking import Prediction as TrackPrediction
 from shared.vision.tracking import TrackingSettings, verify_tag
 
@@ -72,6 +74,7 @@ class Stage1Settings(BaseModel):
 
     apriltag: DetectorSettings = Field(default_factory=DetectorSettings)
     aruco: ArucoSettings = Field(default_factory=ArucoSettings)
+    lines: LineQuadSettings = Field(default_factory=LineQuadSettings)
     # A tag both proposers report is one tag when their centres are closer than this fraction of the
     # larger quad side (one id may appear several times in one image: all are kept).
     same_tag_fraction: float = Field(default=0.5, gt=0.0, le=1.0)
@@ -86,6 +89,8 @@ class Stage1Counts:
     aruco_added: int = 0  # tags only ArUco decoded that passed the gate
     aruco_merged: int = 0  # ArUco tags that AprilTag had already
     aruco_refused: int = 0  # ArUco-only tags the gate refused
+    lines_added: int = 0  # tags only the line-quad proposer decoded
+    lines_merged: int = 0  # line-quad tags the others had already
 
 
 def _quad_side_px(corners_px: Array) -> float:
@@ -147,11 +152,15 @@ class Stage1Detector:
     (module docstring). `detect` returns the merged list sorted by id; each Detection says its
     proposer. Not thread-safe: one per thread."""
 
-    def __init__(self, settings: Stage1Settings | None = None, *, second: Stage1 | None = None) -> None:
-        """`second` replaces the ArUco proposer (a test's scripted fake); the gate still applies."""
+    def __init__(
+        self, settings: Stage1Settings | None = None, *, second: Stage1 | None = None, third: Stage1 | None = None
+    ) -> None:
+        """`second` replaces the ArUco proposer, `third` the line-quad proposer (a test's scripted
+        fakes); the gate still applies to the second's tags."""
         self.settings = s = settings or Stage1Settings()
         self._apriltag = TagDetector(s.apriltag)
         self._aruco: Stage1 | None = second or (ArucoProposer(s.aruco) if s.aruco.enabled else None)
+        self._lines: Stage1 | None = third or (LineQuadProposer(s.lines) if s.lines.enabled else None)
         self._gate = TrackingSettings(
             search_px=s.aruco.gate_search_px,
             search_step_px=max(s.aruco.gate_search_px, 0.5),
@@ -166,19 +175,26 @@ class Stage1Detector:
         found = self._apriltag.detect(img)
         self.counts.frames += 1
         self.counts.apriltag += len(found)
-        if self._aruco is None:
-            return found
-        new, duplicates = merge_proposals(
-            found, self._aruco.detect(img), same_tag_fraction=self.settings.same_tag_fraction
-        )
-        self.counts.aruco_merged += len(duplicates)
-        for d in new:
-            verdict = verify_tag(img, TrackPrediction(d.tag_id, d.corners_px, np.zeros((4, 2)), 0), self._gate)
-            if verdict.accepted:
-                found.append(d)
-                self.counts.aruco_added += 1
-            else:
-                self.counts.aruco_refused += 1
+        if self._aruco is not None:
+            new, duplicates = merge_proposals(
+                found, self._aruco.detect(img), same_tag_fraction=self.settings.same_tag_fraction
+            )
+            self.counts.aruco_merged += len(duplicates)
+            for d in new:
+                verdict = verify_tag(img, TrackPrediction(d.tag_id, d.corners_px, np.zeros((4, 2)), 0), self._gate)
+                if verdict.accepted:
+                    found.append(d)
+                    self.counts.aruco_added += 1
+                else:
+                    self.counts.aruco_refused += 1
+        if self._lines is not None:
+            # its own decode is its gate (shared.vision.linequads: <= max_hamming bit errors, both rings)
+            new, duplicates = merge_proposals(
+                found, self._lines.detect(img), same_tag_fraction=self.settings.same_tag_fraction
+            )
+            self.counts.lines_merged += len(duplicates)
+            self.counts.lines_added += len(new)
+            found.extend(new)
         return sorted(found, key=lambda d: d.tag_id)
 
     def close(self) -> None:

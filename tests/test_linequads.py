@@ -1,0 +1,148 @@
+"""Stage 1's line-quad proposer (shared.vision.linequads): conventions on exact renders, occluded tags
+that AprilTag loses, the decode's bit budget, no tags from tag-like squares that are no code word, and
+its place in Stage1Detector."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pydantic
+import pytest
+from numpy.typing import NDArray
+
+from bench.tagrender import RenderSettings, clean_settings, render_sample
+from shared.vision.detector import DetectorSettings, TagDetector
+from shared.vision.linequads import LineQuadProposer, LineQuadSettings, _data_book
+from shared.vision.proposals import ArucoSettings, Stage1Detector, Stage1Settings
+from shared.vision.tags import tag_cells
+
+
+def test_corners_are_ours_in_order_and_pixel_convention() -> None:
+    """On exact clean renders the corners lie on the true TL, TR, BR, BL (OpenCV pixel centres)."""
+    proposer = LineQuadProposer()
+    errors = []
+    for index in range(8):
+        sample = render_sample(index, 11, clean_settings(span_px=(80.0, 200.0), tilt_deg=(0.0, 40.0)))
+        truth = sample.tags[0]
+        found = proposer.detect(sample.image)
+        assert [(d.tag_id, d.proposer) for d in found] == [(truth.tag_id, "lines")], sample.meta
+        errors.append(np.linalg.norm(found[0].corners_px - truth.corners_px, axis=1))
+    err = np.concatenate(errors)
+    assert float(np.median(err)) < 0.3, err  # a wrong order or a half-pixel shift would be >= 0.5
+
+
+OCCLUDED = RenderSettings(
+    p_occluder=1.0,
+    p_motion_blur=0.0,
+    p_defocus=0.0,
+    p_distractors=0.0,
+    span_px=(80.0, 220.0),
+    tilt_deg=(0.0, 40.0),
+)
+
+
+def test_a_finger_or_cable_across_the_border_loses_apriltag_not_the_line_quads() -> None:
+    """Tags with an occluder across the black border (all four corners in view): AprilTag 3 finds few,
+    the line-quad proposer most, every one with its own id and corners within a pixel."""
+    proposer, apriltag = LineQuadProposer(), TagDetector(DetectorSettings(quad_decimate=1.0))
+    ours = theirs = occluded = 0
+    errors = []
+    for index in range(12):
+        sample = render_sample(index, 5, OCCLUDED)
+        truth = sample.tags[0]
+        if sample.meta["occluded_fraction"] <= 0.0:
+            continue
+        occluded += 1
+        found = proposer.detect(sample.image)
+        assert all(d.tag_id == truth.tag_id for d in found), (sample.meta, [d.tag_id for d in found])
+        if found:
+            ours += 1
+            errors.append(float(np.linalg.norm(found[0].corners_px - truth.corners_px, axis=1).max()))
+        theirs += any(d.tag_id == truth.tag_id for d in apriltag.detect(sample.image))
+    apriltag.close()
+    print(f"\noccluded tags: line quads {ours}/{occluded}, AprilTag 3 (decimate 1) {theirs}/{occluded}")
+    assert occluded >= 10
+    assert ours >= 0.75 * occluded
+    assert theirs <= 0.3 * occluded
+    assert float(np.median(errors)) < 1.0, errors
+
+
+def _draw(data_bits: NDArray[np.bool_] | None, tag_id: int = 0, *, seed: int = 0) -> NDArray[np.uint8]:
+    """A 10x10-cell tag (white ring, black ring, 6x6 data) drawn sharp under a mild perspective on a
+    grey background: `data_bits` replaces the tag's own 36 bits when given."""
+    cells = tag_cells(tag_id).astype(np.float64)
+    if data_bits is not None:
+        cells[2:-2, 2:-2] = data_bits.reshape(6, 6)
+    px = 16
+    flat = np.kron(cells, np.ones((px, px))) * 200 + 30
+    rng = np.random.default_rng(seed)
+    src = np.array([[0, 0], [160, 0], [160, 160], [0, 160]], np.float32)
+    dst = src * 1.2 + np.array([120, 80], np.float32) + rng.uniform(-12, 12, (4, 2)).astype(np.float32)
+    h = cv2.getPerspectiveTransform(src, dst)
+    canvas = np.full((420, 460), 120.0)
+    warped = cv2.warpPerspective(flat, h, (460, 420), flags=cv2.INTER_AREA, borderValue=-1.0)
+    canvas = np.where(warped >= 0, warped, canvas)
+    return np.clip(canvas, 0, 255).astype(np.uint8)
+
+
+def _flip(bits: NDArray[np.bool_], n: int, seed: int) -> NDArray[np.bool_]:
+    out = bits.copy()
+    idx = np.random.default_rng(seed).choice(36, n, replace=False)
+    out[idx] = ~out[idx]
+    return out
+
+
+def test_the_decode_takes_three_bit_errors_and_refuses_four() -> None:
+    """Up to max_hamming (3) flipped data bits still read as the tag's own id; 4 read as nothing (36h11's
+    minimum distance 11 keeps every other word >= 7 bits away, so no wrong id either way)."""
+    proposer = LineQuadProposer()
+    tag_id = 117
+    own = tag_cells(tag_id)[2:-2, 2:-2].ravel() > 0
+    assert [d.tag_id for d in proposer.detect(_draw(None, tag_id))] == [tag_id]
+    for seed in range(4):
+        three = proposer.detect(_draw(_flip(own, 3, seed), tag_id, seed=seed))
+        assert [(d.tag_id, d.hamming) for d in three] == [(tag_id, 3)]
+        assert proposer.detect(_draw(_flip(own, 4, seed), tag_id, seed=seed)) == []
+
+
+def test_tag_like_squares_that_are_no_code_word_give_no_tag() -> None:
+    """Black-bordered squares whose 36 bits are >= 4 bits from every tag36h11 word in every rotation
+    are drawn exactly like tags: none is reported (and the same squares with a code word are)."""
+    book, _, _ = _data_book()
+    rng = np.random.default_rng(7)
+    proposer = LineQuadProposer()
+    tried = 0
+    while tried < 12:
+        bits = rng.random(36) < 0.5
+        if np.count_nonzero(book != bits[None, :], axis=1).min() < 4:
+            continue
+        tried += 1
+        assert proposer.detect(_draw(bits, seed=tried)) == [], bits
+    assert len(proposer.detect(_draw(None, 42, seed=1))) == 1
+
+
+def test_stage1_adds_what_only_the_line_quads_find_and_counts_it() -> None:
+    sample = render_sample(0, 5, OCCLUDED)
+    truth = sample.tags[0]
+    no_apriltag = DetectorSettings(min_decision_margin=1e9)  # AprilTag finds nothing
+    stage1 = Stage1Detector(Stage1Settings(apriltag=no_apriltag, aruco=ArucoSettings(enabled=False)))
+    found = stage1.detect(sample.image)
+    assert [(d.tag_id, d.proposer) for d in found] == [(truth.tag_id, "lines")]
+    assert (stage1.counts.lines_added, stage1.counts.lines_merged) == (1, 0)
+    off = Stage1Detector(
+        Stage1Settings(apriltag=no_apriltag, aruco=ArucoSettings(enabled=False), lines=LineQuadSettings(enabled=False))
+    )
+    assert off.detect(sample.image) == []
+    both = Stage1Detector(Stage1Settings(aruco=ArucoSettings(enabled=False)))
+    clean = render_sample(1, 11, clean_settings(span_px=(100.0, 160.0), tilt_deg=(0.0, 20.0)))
+    assert [d.proposer for d in both.detect(clean.image)] == ["apriltag"]  # AprilTag's corners stay
+    assert (both.counts.lines_added, both.counts.lines_merged) == (0, 1)
+    for d in (stage1, off, both):
+        d.close()
+
+
+@pytest.mark.parametrize("field", ["scale", "max_hamming", "min_ring_fraction"])
+def test_out_of_range_settings_are_refused(field: str) -> None:
+    bad = {"scale": 0.0, "max_hamming": 5, "min_ring_fraction": 0.5}[field]
+    with pytest.raises(pydantic.ValidationError, match=field):
+        LineQuadSettings(**{field: bad})
