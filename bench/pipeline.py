@@ -6,9 +6,11 @@ effect, and measures capture->pose latency over a window.
 
     .venv/bin/python -m bench.pipeline [--fps 15] [--window-secs 10] [--tracking off|on|both]
         [--precision fp32|bf16|int8] [--pace on|off|both] [--aruco on|off|both]
+        [--lines on|off|both]
 
 `--tracking both` runs everything twice, robot_infer's track-then-refine off and then on, in one run;
-`--aruco both` likewise with stage 1's second proposer (shared.vision.proposals) off and on.
+`--aruco both` likewise with stage 1's ArUco proposer (shared.vision.proposals) off and on, `--lines both`
+with its line-quad proposer (shared.vision.linequads).
 """
 
 from __future__ import annotations
@@ -46,16 +48,18 @@ def main() -> None:
         "--precision", choices=("auto", "fp32", "bf16", "int8"), default="auto", help="robot and edge network"
     )
     ap.add_argument("--pace", choices=("on", "off", "both"), default="on", help="robot_infer's edge pacer")
-    ap.add_argument("--aruco", choices=("on", "off", "both"), default="on", help="stage 1's second proposer")
+    ap.add_argument("--aruco", choices=("on", "off", "both"), default="on", help="stage 1's ArUco proposer")
+    ap.add_argument("--lines", choices=("on", "off", "both"), default="on", help="stage 1's line-quad proposer")
     args = ap.parse_args()
     args.precision = resolve_for_folder(args.precision, Path("models"))  # what auto stands for here
     print(f"CPU: {cpu_label()}", flush=True)
     modes = {"off": [False], "on": [True], "both": [False, True]}
     runs = [
-        Mode(tracking, pace, aruco)
+        Mode(tracking, pace, aruco, lines)
         for tracking in modes[args.tracking]
         for pace in modes[args.pace]
         for aruco in modes[args.aruco]
+        for lines in modes[args.lines]
     ]
     tables = [(mode, measure(args, mode)) for mode in runs]
     for mode, rows in tables:
@@ -69,13 +73,14 @@ class Mode:
     tracking: bool
     pace: bool
     aruco: bool
+    lines: bool
 
 
 Row = tuple[CutInfo, float, float, float, float, float, float, float, float]
 
 
 def measure(args: argparse.Namespace, mode: Mode) -> list[Row]:
-    """Start the services (robot_infer's tracking, pacing and second proposer on or off), sweep k, stop them."""
+    """Start the services (robot_infer's tracking, pacing and stage-1 proposers on or off), sweep k, stop them."""
     tmp = Path(tempfile.mkdtemp(prefix="splittag-bench-"))
     cfg, topology = loopback_config(
         tmp, robot_id=ROBOT, rerun=args.rerun, image_every=args.rerun_image_every, fps=args.fps
@@ -84,6 +89,7 @@ def measure(args: argparse.Namespace, mode: Mode) -> list[Row]:
         "SPLITTAG_ROBOT_INFER_TRACKING__ENABLED": "true" if mode.tracking else "false",
         "SPLITTAG_ROBOT_INFER_PACE_TO_EDGE": "true" if mode.pace else "false",
         "SPLITTAG_ROBOT_INFER_STAGE1__ARUCO__ENABLED": "true" if mode.aruco else "false",
+        "SPLITTAG_ROBOT_INFER_STAGE1__LINES__ENABLED": "true" if mode.lines else "false",
         "SPLITTAG_ROBOT_INFER_PRECISION": args.precision,
         "SPLITTAG_EDGE_INFER_PRECISION": args.precision,
     }
@@ -134,7 +140,8 @@ def print_table(args: argparse.Namespace, rows: list[Row], mode: Mode) -> None:
     print(
         f"camera {args.fps} fps, window {args.window_secs} s per k, loopback, 2-core CPU, {args.precision}, rerun "
         f"{'on' if args.rerun else 'off'}, tracking {'on' if mode.tracking else 'off'}, "
-        f"pacing {'on' if mode.pace else 'off'}, aruco {'on' if mode.aruco else 'off'}; "
+        f"pacing {'on' if mode.pace else 'off'}, aruco {'on' if mode.aruco else 'off'}, "
+        f"lines {'on' if mode.lines else 'off'}; "
         "latencies in ms"
     )
     print(

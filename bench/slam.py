@@ -62,7 +62,8 @@ _CACHE_SOURCES = (
     "shared/model/net.py",
     "shared/model/infer.py",
     "shared/vision/tracking.py",
-    "shared/perception/single.py",
+    "shared/vision/linequads.py",
+    "bench/slam.py",  # what a FrameRecord holds
 )
 
 
@@ -92,6 +93,8 @@ class FrameRecord:
     # with track-then-refine: the tags stage 1 missed that the tracker predicted and the gate accepted
     tracked: list[TagObservation] = field(default_factory=list)
     tracked_corner_error_px: dict[int, float] = field(default_factory=dict)  # mean corner error vs truth
+    # stage 1 + the network: each tag's mean corner error vs truth (inf: a tag that is not in view)
+    splittag_corner_error_px: list[float] = field(default_factory=list)
     tracking_rejected: int = 0  # predictions the gate (soft decode or keypoint confidence) refused
     perception_ms: float = 0.0
     tracking_ms: float = 0.0
@@ -158,6 +161,7 @@ def _perceive_sequence(name: str) -> list[FrameRecord]:
             pose = solve_planar_pnp(camera, lattice_in_tag(size), kp)
             rec.splittag.append(_observation(d.tag_id, size, pose))
             refined[d.tag_id] = kp[[0, 3, 15, 12]]
+            rec.splittag_corner_error_px.append(_corner_error(r, frame, true_tags.get(d.tag_id), kp))
         rec.perception_ms = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
         predictions = tracker.predict(index, {d.tag_id for d in detections}, (s.width, s.height))
@@ -180,19 +184,19 @@ def _perceive_sequence(name: str) -> list[FrameRecord]:
                     continue
                 rec.tracked.append(_observation(d.tag_id, size, pose))
                 refined[d.tag_id] = kp[[0, 3, 15, 12]]
-                truth = true_tags.get(d.tag_id)
-                if truth is not None:
-                    true_corners = project_points(
-                        r.k, r.camera_from_tag(frame.world_from_camera, truth), corners_in_tag(truth.size_m)
-                    )
-                    err = float(np.linalg.norm(kp[[0, 3, 15, 12]] - true_corners, axis=1).mean())
-                else:
-                    err = float("inf")
-                rec.tracked_corner_error_px[d.tag_id] = err
+                rec.tracked_corner_error_px[d.tag_id] = _corner_error(r, frame, true_tags.get(d.tag_id), kp)
         tracker.update(index, refined, {d.tag_id for d in detections})
         rec.tracking_ms = (time.perf_counter() - t0) * 1e3
         records.append(rec)
     return records
+
+
+def _corner_error(r: SequenceRenderer, frame: Any, truth: Any, keypoints: FloatArray) -> float:
+    """Mean distance of the keypoints' four corners from the true ones (inf: no such tag in view)."""
+    if truth is None or truth.tag_id not in frame.in_view:
+        return float("inf")
+    true_corners = project_points(r.k, r.camera_from_tag(frame.world_from_camera, truth), corners_in_tag(truth.size_m))
+    return float(np.linalg.norm(keypoints[[0, 3, 15, 12]] - true_corners, axis=1).mean())
 
 
 def _observation(tag_id: int, size_m: float, pose: Any) -> TagObservation:
@@ -460,6 +464,7 @@ def sequence_facts(records: list[FrameRecord]) -> dict[str, float]:
     # a tracked tag is false when it is not in the frame or its corners are off by more than 3 px
     false_tracked = sum(1 for e in tracked if not e <= 3.0)
     blur = [b for r in records for b in r.blur_px.values()]
+    st_err = [e for r in records for e in r.splittag_corner_error_px]
     return {
         "frames": len(records),
         "frames_with_tag_in_view_pct": 100.0 * sum(1 for r in records if r.in_view) / len(records),
@@ -467,6 +472,10 @@ def sequence_facts(records: list[FrameRecord]) -> dict[str, float]:
         "apriltag_recall_pct": 100.0 * found / max(1, in_view),
         "splittag_recall_pct": 100.0 * found_st / max(1, in_view),
         "tracking_recall_pct": 100.0 * found_tr / max(1, in_view),
+        # stage 1 + network: tags not in view (ghosts), tags whose corners are off by > 3 px, the median
+        "splittag_ghosts": sum(1 for e in st_err if e == float("inf")),
+        "splittag_off_3px": sum(1 for e in st_err if 3.0 < e < float("inf")),
+        "splittag_corner_error_p50_px": float(np.median([e for e in st_err if e < float("inf")])) if st_err else 0.0,
         "tracked_tags": len(tracked),
         "tracked_false": false_tracked,
         "tracked_corner_error_p50_px": float(np.median(tracked)) if tracked else 0.0,
@@ -563,7 +572,10 @@ def main() -> None:
             f"exposure {spec.exposure_s * 1e3:.0f} ms, "
             f"flicker +-{spec.flicker * 100:.0f} %; {f['tags_in_view_per_frame']:.2f} tags in view per frame, "
             f"blur p50/max {f['blur_p50_px']:.1f}/{f['blur_max_px']:.1f} px; stage-1 recall AprilTag "
-            f"{f['apriltag_recall_pct']:.1f} %, splittag {f['splittag_recall_pct']:.1f} %, with tracking "
+            f"{f['apriltag_recall_pct']:.1f} %, splittag {f['splittag_recall_pct']:.1f} % "
+            f"({f['splittag_ghosts']} not in view, {f['splittag_off_3px']} off by > 3 px, "
+            f"corner error p50 {f['splittag_corner_error_p50_px']:.2f} px), "
+            f"with tracking "
             f"{f['tracking_recall_pct']:.1f} % ({f['tracked_tags']} tracked, {f['tracked_false']} false, corner error "
             f"p50 {f['tracked_corner_error_p50_px']:.2f} px, {f['tracking_rejected']} refused by the gates, "
             f"{f['tracking_ms_per_prediction']:.1f} ms per predicted tag incl. its network pass); observation error / "

@@ -28,8 +28,9 @@ class RobotInferSettings(ServiceSettings):
     fuse_corners: bool = True
     split_k: int = Field(default=7, ge=0, le=7)
     codec: CodecName = "fp16"
-    # Stage 1: AprilTag 3 (stage1.apriltag: quad_decimate, ...) and the second proposer for the tags it
-    # misses (stage1.aruco: OpenCV's ArUco on tag36h11, gated by a soft decode; .enabled = false drops it)
+    # Stage 1: AprilTag 3 (stage1.apriltag: quad_decimate, ...) and two proposers for the tags it misses
+    # (stage1.aruco: OpenCV's ArUco on tag36h11, gated by a soft decode; stage1.lines: quads from
+    # straight edges, for borders an occluder interrupts; .enabled = false drops either)
     stage1: Stage1Settings = Field(default_factory=Stage1Settings)
     # Track-then-refine for tags stage 1 missed (shared/vision/tracking.py; off by default, see README)
     tracking: TrackingSettings = Field(default_factory=TrackingSettings)

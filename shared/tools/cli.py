@@ -235,6 +235,7 @@ def _cmd_detect(args: argparse.Namespace) -> int:
         json_path=args.json,
         quad_decimate=args.quad_decimate,
         aruco=not args.no_aruco,
+        lines=not args.no_lines,
     )
 
 
@@ -622,7 +623,10 @@ def _add_model_commands(sub: Any) -> None:
         default=1.0,
         help="AprilTag's decimation (default 1: full resolution, for stills; the services run 2 for speed)",
     )
-    p.add_argument("--no-aruco", action="store_true", help="stage 1 without the second proposer (AprilTag 3 alone)")
+    p.add_argument("--no-aruco", action="store_true", help="stage 1 without the ArUco proposer")
+    p.add_argument(
+        "--no-lines", action="store_true", help="stage 1 without the line-quad proposer (finds occluded tags)"
+    )
     p.set_defaults(func=_cmd_detect)
 
 

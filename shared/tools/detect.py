@@ -15,6 +15,7 @@ from shared.perception.single import perceive
 from shared.runtime.sources import expand_paths
 from shared.vision.detector import DetectorSettings
 from shared.vision.geometry import GeometryError, camera_from_yaml
+from shared.vision.linequads import LineQuadSettings
 from shared.vision.proposals import ArucoSettings, Stage1Detector, Stage1Settings
 from shared.vision.tagmap import TagMapFile, load_tag_map
 
@@ -31,6 +32,7 @@ def run_detect(
     json_path: Path,
     quad_decimate: float = 1.0,
     aruco: bool = True,
+    lines: bool = True,
 ) -> int:
     """Process every image; unreadable ones are reported in the JSON and on stderr. Exit 0 if any ran."""
     camera = camera_from_yaml(camera_path)
@@ -38,7 +40,11 @@ def run_detect(
     model = load_model(weights or DEFAULT_WEIGHTS)
     fusion = load_keypoint_fusion(weights or DEFAULT_WEIGHTS)
     detector = Stage1Detector(
-        Stage1Settings(apriltag=DetectorSettings(quad_decimate=quad_decimate), aruco=ArucoSettings(enabled=aruco))
+        Stage1Settings(
+            apriltag=DetectorSettings(quad_decimate=quad_decimate),
+            aruco=ArucoSettings(enabled=aruco),
+            lines=LineQuadSettings(enabled=lines),
+        )
     )
     images: list[dict[str, Any]] = []
     errors = 0
