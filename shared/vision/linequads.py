@@ -153,29 +153,31 @@ def _merge(a: Array, b: Array, d: Array, n: Array, length: Array, s: LineQuadSet
     else:
         i = j = np.zeros(0, np.int64)
     graph = coo_matrix((np.ones(len(i)), (i, j)), shape=(m, m))
-    _, roots = connected_components(graph, directed=False)
-    sizes = np.bincount(roots)
-    single = sizes[roots] == 1
-    p = list((a[single] + b[single]) / 2)
-    dd, nn = list(d[single]), list(n[single])
-    lo, hi = list(-length[single] / 2), list(length[single] / 2)
-    for r in np.flatnonzero(sizes > 1):
-        idx = np.flatnonzero(roots == r)
-        pts = np.vstack([a[idx], b[idx]])
-        w = np.concatenate([length[idx], length[idx]])
-        c = (pts * w[:, None]).sum(axis=0) / w.sum()
-        cov = ((pts - c) * w[:, None]).T @ (pts - c)
-        direction = np.linalg.eigh(cov)[1][:, 1]
-        normal = np.array([direction[1], -direction[0]])
-        if normal @ n[idx[0]] < 0:
-            normal = -normal
-        t = (pts - c) @ direction
-        p.append(c)
-        dd.append(direction)
-        nn.append(normal)
-        lo.append(float(t.min()))
-        hi.append(float(t.max()))
-    return _Lines(np.array(p), np.array(dd), np.array(nn), np.array(lo), np.array(hi))
+    groups, roots = connected_components(graph, directed=False)
+    # Each group's line: the length-weighted total-least-squares fit through its segments' end points
+    # (closed form from the weighted second moments), its extent the end points' span along it.
+    w = np.concatenate([length, length])
+    pts = np.vstack([a, b])
+    g = np.concatenate([roots, roots])
+    sw = np.bincount(g, w, groups)
+    c = np.column_stack([np.bincount(g, w * pts[:, 0], groups), np.bincount(g, w * pts[:, 1], groups)]) / sw[:, None]
+    q = pts - c[g]
+    sxx = np.bincount(g, w * q[:, 0] ** 2, groups)
+    sxy = np.bincount(g, w * q[:, 0] * q[:, 1], groups)
+    syy = np.bincount(g, w * q[:, 1] ** 2, groups)
+    theta = 0.5 * np.arctan2(2 * sxy, sxx - syy)
+    direction = np.column_stack([np.cos(theta), np.sin(theta)])
+    normal = np.column_stack([direction[:, 1], -direction[:, 0]])
+    first = np.full(groups, -1)
+    first[roots[::-1]] = np.arange(m)[::-1]  # one member segment of each group
+    flip = np.einsum("pk,pk->p", normal, n[first]) < 0
+    normal[flip] *= -1
+    t = np.einsum("pk,pk->p", q, direction[g])
+    lo = np.full(groups, np.inf)
+    hi = np.full(groups, -np.inf)
+    np.minimum.at(lo, g, t)
+    np.maximum.at(hi, g, t)
+    return _Lines(c, direction, normal, lo, hi)
 
 
 def _collinear(
