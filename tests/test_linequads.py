@@ -1,4 +1,5 @@
-"""Stage 1's line-quad proposer (shared.vision.linequads): conventions on exact renders, occluded tags
+"""Stage 1's line-quad proposer (shared.vision.linequads; its corner convention is checked with ArUco's in
+tests/test_proposals.py): occluded tags
 that AprilTag loses, the decode's bit budget, no tags from tag-like squares that are no code word, and
 its place in Stage1Detector."""
 
@@ -15,21 +16,6 @@ from shared.vision.detector import DetectorSettings, TagDetector
 from shared.vision.linequads import LineQuadProposer, LineQuadSettings, _data_book
 from shared.vision.proposals import ArucoSettings, Stage1Detector, Stage1Settings
 from shared.vision.tags import tag_cells
-
-
-def test_corners_are_ours_in_order_and_pixel_convention() -> None:
-    """On exact clean renders the corners lie on the true TL, TR, BR, BL (OpenCV pixel centres)."""
-    proposer = LineQuadProposer()
-    errors = []
-    for index in range(8):
-        sample = render_sample(index, 11, clean_settings(span_px=(80.0, 200.0), tilt_deg=(0.0, 40.0)))
-        truth = sample.tags[0]
-        found = proposer.detect(sample.image)
-        assert [(d.tag_id, d.proposer) for d in found] == [(truth.tag_id, "lines")], sample.meta
-        errors.append(np.linalg.norm(found[0].corners_px - truth.corners_px, axis=1))
-    err = np.concatenate(errors)
-    assert float(np.median(err)) < 0.3, err  # a wrong order or a half-pixel shift would be >= 0.5
-
 
 OCCLUDED = RenderSettings(
     p_occluder=1.0,
@@ -139,6 +125,21 @@ def test_stage1_adds_what_only_the_line_quads_find_and_counts_it() -> None:
     assert (both.counts.lines_added, both.counts.lines_merged) == (0, 1)
     for d in (stage1, off, both):
         d.close()
+
+
+@pytest.mark.parametrize(
+    ("image", "match"),
+    [
+        (np.zeros((40, 40, 3), np.uint8), "2-D"),
+        (np.zeros((40, 40), np.float32), "uint8"),
+        (np.zeros((4, 40), np.uint8), "at least 8x8"),
+    ],
+)
+def test_a_bad_image_is_refused_with_what_it_was(image: NDArray[np.generic], match: str) -> None:
+    from shared.vision.geometry import GeometryError
+
+    with pytest.raises(GeometryError, match=match):
+        LineQuadProposer().detect(image)  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize("field", ["scale", "max_hamming", "min_ring_fraction"])

@@ -1,17 +1,20 @@
-"""Stage 1's second proposer (shared.vision.proposals): conventions on exact renders, merging, the gate,
+"""Stage 1's extra proposers (shared.vision.proposals): conventions on exact renders, merging, the gate,
 and recall on real photos that nobody on the team made (bench/data/apriltag_photos)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
+import pytest
 from numpy.typing import NDArray
 
 from bench.accuracy import Prediction
 from bench.photos import load_photos, match
 from bench.tagrender import clean_settings, render_sample
-from shared.vision.detector import Detection, DetectorSettings, TagDetector
-from shared.vision.linequads import LineQuadSettings
-from shared.vision.proposals import ArucoProposer, Stage1Detector, Stage1Settings, merge_proposals
+from shared.vision.detector import Detection, DetectorSettings, Stage1, TagDetector, merge_proposals
+from shared.vision.linequads import LineQuadProposer, LineQuadSettings
+from shared.vision.proposals import ArucoProposer, Stage1Detector, Stage1Settings
 
 
 def _square(centre: tuple[float, float], side: float) -> NDArray[np.float64]:
@@ -20,15 +23,20 @@ def _square(centre: tuple[float, float], side: float) -> NDArray[np.float64]:
     return np.array([[x - h, y - h], [x + h, y - h], [x + h, y + h], [x - h, y + h]])
 
 
-def test_aruco_corners_are_ours_in_order_and_pixel_convention() -> None:
-    """On exact clean renders ArUco's corners, reordered, lie on the true TL, TR, BR, BL (OpenCV pixels)."""
-    proposer = ArucoProposer()
+@pytest.mark.parametrize(
+    ("make", "name", "max_tilt_deg"), [(ArucoProposer, "aruco", 30.0), (LineQuadProposer, "lines", 40.0)]
+)
+def test_proposer_corners_are_ours_in_order_and_pixel_convention(
+    make: Callable[[], Stage1], name: str, max_tilt_deg: float
+) -> None:
+    """On exact clean renders each extra proposer's corners lie on the true TL, TR, BR, BL (OpenCV pixels)."""
+    proposer = make()
     errors = []
     for index in range(8):
-        sample = render_sample(index, 11, clean_settings(span_px=(80.0, 200.0), tilt_deg=(0.0, 30.0)))
+        sample = render_sample(index, 11, clean_settings(span_px=(80.0, 200.0), tilt_deg=(0.0, max_tilt_deg)))
         truth = sample.tags[0]
         found = proposer.detect(sample.image)
-        assert [(d.tag_id, d.proposer) for d in found] == [(truth.tag_id, "aruco")], sample.meta
+        assert [(d.tag_id, d.proposer) for d in found] == [(truth.tag_id, name)], sample.meta
         errors.append(np.linalg.norm(found[0].corners_px - truth.corners_px, axis=1))
     err = np.concatenate(errors)
     assert float(np.median(err)) < 0.3, err  # a wrong order or a half-pixel shift would be >= 0.5

@@ -104,3 +104,28 @@ class TagDetector:
             corners = np.asarray(r.corners, np.float64)[_TO_TL_TR_BR_BL] - CORNER_OFFSET_PX
             out.append(Detection(int(r.tag_id), float(r.decision_margin), int(r.hamming), corners))
         return sorted(out, key=lambda d: d.tag_id)
+
+
+def quad_side_px(corners_px: Array) -> float:
+    """Mean side length of a quad (px)."""
+    return float(np.mean(np.linalg.norm(corners_px - np.roll(corners_px, -1, axis=0), axis=1)))
+
+
+def merge_proposals(
+    primary: list[Detection], secondary: list[Detection], *, same_tag_fraction: float = 0.5
+) -> tuple[list[Detection], list[Detection]]:
+    """(new, duplicates) among the secondary detections: one is a duplicate when a primary detection
+    (or an earlier new one) has its id and a centre closer than `same_tag_fraction` of the larger
+    quad side. Pure."""
+    new: list[Detection] = []
+    duplicates: list[Detection] = []
+    for d in secondary:
+        centre = d.corners_px.mean(axis=0)
+        same = any(
+            p.tag_id == d.tag_id
+            and float(np.linalg.norm(p.corners_px.mean(axis=0) - centre))
+            < same_tag_fraction * max(quad_side_px(p.corners_px), quad_side_px(d.corners_px))
+            for p in (*primary, *new)
+        )
+        (duplicates if same else new).append(d)
+    return new, duplicates

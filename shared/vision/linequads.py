@@ -32,7 +32,7 @@ and ArUco's. Measured on bench/accuracy's renders in the README ("Stage 1: three
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import Final
 
@@ -44,12 +44,10 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from shared.vision.detector import Detection
+from shared.vision.detector import Detection, merge_proposals, quad_side_px
 from shared.vision.geometry import Array, check_image
-from shared.vision.tags import tag_cells
+from shared.vision.tags import CELLS, NUM_TAG36H11, tag_cells
 
-NUM_TAG36H11: Final[int] = 587
-CELLS: Final[int] = 10
 _PX: Final[int] = 10  # rectified pixels per cell when decoding
 
 
@@ -92,10 +90,10 @@ class _Lines:
         return len(self.p)
 
 
-def segments(image: NDArray[np.uint8], scale: float) -> Array:
+def segments(image: NDArray[np.uint8], scale: float, lsd: cv2.LineSegmentDetector | None = None) -> Array:
     """LSD segments (N, 4) x1 y1 x2 y2 in full-size pixel coordinates (pixel centres at integers)."""
     small = image if scale == 1.0 else cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-    found = cv2.createLineSegmentDetector(cv2.LSD_REFINE_NONE).detect(small)[0]
+    found = (lsd or cv2.createLineSegmentDetector(cv2.LSD_REFINE_NONE)).detect(small)[0]
     if found is None:
         return np.zeros((0, 4))
     # A reduced pixel i covers full-size pixels [i/scale - 0.5, (i+1)/scale - 0.5): its centre is at
@@ -144,8 +142,11 @@ def _merge(a: Array, b: Array, d: Array, n: Array, length: Array, s: LineQuadSet
     ends = np.searchsorted(sorted_ang, sorted_ang[:m] + tol, side="right")
     counts = ends - np.arange(m) - 1
     if counts.sum():
+        # pair (k, k + 1 .. ends[k] - 1) in sorted positions, for every k at once
         i = np.repeat(order, counts)
-        j = np.concatenate([order, order])[np.concatenate([np.arange(k + 1, e) for k, e in enumerate(ends)])]
+        starts = np.repeat(np.cumsum(counts) - counts, counts)
+        positions = np.repeat(np.arange(m) + 1, counts) + np.arange(int(counts.sum())) - starts
+        j = np.concatenate([order, order])[positions]
         keep = i != j
         i, j = i[keep], j[keep]
         ok = _collinear(a, b, d, n, length, i, j, s) & _collinear(a, b, d, n, length, j, i, s)
@@ -358,10 +359,6 @@ def decode_quad(image: NDArray[np.uint8], quad: Array, s: LineQuadSettings) -> Q
     return QuadDecode(int(ids[k]), int(dist[k]), white - black, corners)
 
 
-def _side_px(corners: Array) -> float:
-    return float(np.mean(np.linalg.norm(corners - np.roll(corners, -1, axis=0), axis=1)))
-
-
 def _edge_line(image: NDArray[np.uint8], p0: Array, p1: Array, inward: Array, reach_px: float) -> Array | None:
     """The side p0 -> p1 refitted at full size: along it, the strongest dark-inward step within
     `reach_px` of the side (sub-pixel, parabola), weak steps dropped (an occluder's stretch), a Huber
@@ -395,7 +392,7 @@ def refine_corners(image: NDArray[np.uint8], corners: Array) -> Array:
     """Corners TL, TR, BR, BL from the four sides refitted at full size (`_edge_line`); a side that
     cannot be refitted keeps its line through the two corners."""
     centre = corners.mean(axis=0)
-    reach = float(np.clip(_side_px(corners) / 20, 2.0, 4.0))
+    reach = float(np.clip(quad_side_px(corners) / 20, 2.0, 4.0))
     sides = []
     for k in range(4):
         p0, p1 = corners[k], corners[(k + 1) % 4]
@@ -421,35 +418,28 @@ def refine_corners(image: NDArray[np.uint8], corners: Array) -> Array:
 
 
 class LineQuadProposer:
-    """Tags from straight edges (module docstring); stateless apart from its settings."""
+    """Tags from straight edges (module docstring); not thread-safe (one LSD object): one per thread."""
 
     def __init__(self, settings: LineQuadSettings | None = None) -> None:
         self.settings = settings or LineQuadSettings()
+        self._lsd = cv2.createLineSegmentDetector(cv2.LSD_REFINE_NONE)
 
     def detect(self, image: NDArray[np.uint8]) -> list[Detection]:
         """Decoded tags of one grayscale image, sorted by id (decision_margin = ring contrast)."""
         s = self.settings
         img = np.ascontiguousarray(check_image(image))
-        lines = oriented_lines(img, segments(img, s.scale), s)
+        lines = oriented_lines(img, segments(img, s.scale, self._lsd), s)
         found: list[tuple[QuadDecode, int]] = []
         for quad, sides in quads(lines, corner_graph(lines, s), s):
             r = decode_quad(img, quad, s)
             if r is not None:
                 found.append((r, sides))
-        # best first: fewest bit errors, four sides seen, most contrast
+        # best first (fewest bit errors, four sides seen, most contrast); the merge keeps the first of
+        # the quads that are one tag
         found.sort(key=lambda x: (x[0].hamming, -x[1], -x[0].contrast))
-        kept: list[QuadDecode] = []
-        for r, _ in found:
-            centre = r.corners_px.mean(axis=0)
-            if any(
-                k.tag_id == r.tag_id
-                and np.linalg.norm(k.corners_px.mean(axis=0) - centre) < 0.5 * max(_side_px(k.corners_px), 1.0)
-                for k in kept
-            ):
-                continue
-            kept.append(r)
-        out = []
-        for r in kept:
-            corners = refine_corners(img, r.corners_px) if s.refine_corners else r.corners_px
-            out.append(Detection(r.tag_id, r.contrast, r.hamming, corners, "lines"))
-        return sorted(out, key=lambda d: d.tag_id)
+        best, _ = merge_proposals(
+            [], [Detection(r.tag_id, r.contrast, r.hamming, r.corners_px, "lines") for r, _ in found]
+        )
+        if s.refine_corners:
+            best = [replace(d, corners_px=refine_corners(img, d.corners_px)) for d in best]
+        return sorted(best, key=lambda d: d.tag_id)

@@ -27,8 +27,8 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from shared.vision.detector import Detection, DetectorSettings, Stage1, TagDetector
-from shared.vision.geometry import Array, check_image
+from shared.vision.detector import Detection, DetectorSettings, Stage1, TagDetector, merge_proposals
+from shared.vision.geometry import check_image
 from shared.vision.linequads import LineQuadProposer, LineQuadSettings
 from shared.vision.tracking import Prediction as TrackPrediction
 from shared.vision.tracking import TrackingSettings, verify_tag
@@ -93,30 +93,6 @@ class Stage1Counts:
     lines_merged: int = 0  # line-quad tags the others had already
 
 
-def _quad_side_px(corners_px: Array) -> float:
-    return float(np.mean(np.linalg.norm(corners_px - np.roll(corners_px, -1, axis=0), axis=1)))
-
-
-def merge_proposals(
-    primary: list[Detection], secondary: list[Detection], *, same_tag_fraction: float = 0.5
-) -> tuple[list[Detection], list[Detection]]:
-    """(new, duplicates) among the secondary detections: one is a duplicate when a primary detection
-    (or an earlier new one) has its id and a centre closer than `same_tag_fraction` of the larger
-    quad side. Pure."""
-    new: list[Detection] = []
-    duplicates: list[Detection] = []
-    for d in secondary:
-        centre = d.corners_px.mean(axis=0)
-        same = any(
-            p.tag_id == d.tag_id
-            and float(np.linalg.norm(p.corners_px.mean(axis=0) - centre))
-            < same_tag_fraction * max(_quad_side_px(p.corners_px), _quad_side_px(d.corners_px))
-            for p in (*primary, *new)
-        )
-        (duplicates if same else new).append(d)
-    return new, duplicates
-
-
 class ArucoProposer:
     """OpenCV's ArUco detector on DICT_APRILTAG_36h11, corners in our order and convention."""
 
@@ -152,15 +128,12 @@ class Stage1Detector:
     (module docstring). `detect` returns the merged list sorted by id; each Detection says its
     proposer. Not thread-safe: one per thread."""
 
-    def __init__(
-        self, settings: Stage1Settings | None = None, *, second: Stage1 | None = None, third: Stage1 | None = None
-    ) -> None:
-        """`second` replaces the ArUco proposer, `third` the line-quad proposer (a test's scripted
-        fakes); the gate still applies to the second's tags."""
+    def __init__(self, settings: Stage1Settings | None = None, *, second: Stage1 | None = None) -> None:
+        """`second` replaces the ArUco proposer (a test's scripted fake); the gate still applies."""
         self.settings = s = settings or Stage1Settings()
         self._apriltag = TagDetector(s.apriltag)
         self._aruco: Stage1 | None = second or (ArucoProposer(s.aruco) if s.aruco.enabled else None)
-        self._lines: Stage1 | None = third or (LineQuadProposer(s.lines) if s.lines.enabled else None)
+        self._lines = LineQuadProposer(s.lines) if s.lines.enabled else None
         self._gate = TrackingSettings(
             search_px=s.aruco.gate_search_px,
             search_step_px=max(s.aruco.gate_search_px, 0.5),
