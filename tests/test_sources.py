@@ -140,19 +140,25 @@ def _stream(
     return frames, gts, published
 
 
-def test_camera_service_streams_a_folder_and_loops(tmp_path: Path) -> None:
+def _looping_folder(tmp_path: Path, robot_id: str, *, max_frames: int, start_frame: int = 0) -> CameraSettings:
+    """Camera settings streaming _folder's three frames in a loop at 50 fps."""
     folder, info, gt = _folder(tmp_path)
-    settings = CameraSettings(
-        robot_id="src1",
+    return CameraSettings(
+        robot_id=robot_id,
         source="folder",
         path=str(folder),
         camera_info=info,
         groundtruth=gt,
         fps=50.0,
         loop=True,
-        max_frames=7,
+        max_frames=max_frames,
+        start_frame=start_frame,
         run_dir=tmp_path,
     )
+
+
+def test_camera_service_streams_a_folder_and_loops(tmp_path: Path) -> None:
+    settings = _looping_folder(tmp_path, "src1", max_frames=7)
     frames, gts, published = _stream(settings, "src1", 7)
     assert published == 7
     assert [f.seq for f in frames] == list(range(7))
@@ -164,19 +170,7 @@ def test_camera_service_streams_a_folder_and_loops(tmp_path: Path) -> None:
 def test_camera_service_starts_later_in_the_source_and_refuses_a_start_past_its_end(tmp_path: Path) -> None:
     """`start_frame` (a fleet's robots at different places of one source) skips the first pass's first
     frames only; a start past the source's end is an error, not a camera that loops publishing nothing."""
-    folder, info, gt = _folder(tmp_path)
-    settings = CameraSettings(
-        robot_id="src3",
-        source="folder",
-        path=str(folder),
-        camera_info=info,
-        groundtruth=gt,
-        fps=50.0,
-        loop=True,
-        max_frames=4,
-        start_frame=2,
-        run_dir=tmp_path,
-    )
+    settings = _looping_folder(tmp_path, "src3", max_frames=4, start_frame=2)
     frames, gts, published = _stream(settings, "src3", 4)
     assert published == 4 and [f.seq for f in frames] == list(range(4))
     assert [g.world_from_camera[0, 3] for g in gts] == [2, 0, 1, 2]  # 2, then the whole source again
