@@ -147,3 +147,15 @@ def test_out_of_range_settings_are_refused(field: str) -> None:
     bad = {"scale": 0.0, "max_hamming": 5, "min_ring_fraction": 0.5}[field]
     with pytest.raises(pydantic.ValidationError, match=field):
         LineQuadSettings(**{field: bad})
+
+
+def test_a_tag_the_image_edge_cuts_through_its_white_ring_gives_nothing() -> None:
+    """Its white ring would be read from replicated border pixels: the line quads report a tag only when
+    the whole tag, white ring included, is in the image."""
+    proposer = LineQuadProposer()
+    image = _draw(None, 9)
+    (whole,) = proposer.detect(image)
+    x0 = int(whole.corners_px[:, 0].min()) - 2  # keep the black square, cut the white ring
+    assert proposer.detect(np.ascontiguousarray(image[:, x0:])) == []
+    x1 = int(whole.corners_px[:, 0].min()) - 40  # the whole tag still in view
+    assert [d.tag_id for d in proposer.detect(np.ascontiguousarray(image[:, x1:]))] == [9]

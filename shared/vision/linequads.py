@@ -16,7 +16,8 @@ proposer works from straight edges instead:
    apart, with both dark sides inside the angle (the black square is dark inside every corner).
 5. Quads: four lines joined by four corners; and, where a side is covered over most of its length,
    three lines joined by two corners, the fourth side through the far ends of the outer two.
-6. Decode: the quad's 10 x 10 cells (inner 60 % of each) are read; the black ring's and white ring's
+6. Decode: the whole tag, white ring included, must lie inside the image; the quad's 10 x 10 cells
+   (inner 60 % of each) are read; the black ring's and white ring's
    medians give the threshold; at least `min_ring_fraction` of each ring must be on its side of it
    (an occluder may cover a few border cells); the 36 data bits must be within `max_hamming` of one
    tag36h11 code word in one rotation (its distance to every other word and rotation is then >= 11 -
@@ -335,6 +336,13 @@ def decode_quad(image: NDArray[np.uint8], quad: Array, s: LineQuadSettings) -> Q
     """Step 6: the quad (clockwise on screen) as a tag36h11 tag, or None."""
     dst = np.array([[1, 1], [9, 1], [9, 9], [1, 9]], np.float32) * _PX - 0.5
     h = cv2.getPerspectiveTransform(np.asarray(quad, np.float32), dst)
+    # The whole tag, white ring included, must be in the image: a tag the image edge cuts would be read
+    # from replicated border pixels (and its ROI would reach outside the image).
+    outer = np.array([[[0, 0]], [[CELLS, 0]], [[CELLS, CELLS]], [[0, CELLS]]], np.float32) * _PX - 0.5
+    ring = cv2.perspectiveTransform(outer, np.linalg.inv(h)).reshape(4, 2)
+    height, width = image.shape
+    if ring.min() < 0 or np.any(ring[:, 0] > width - 1) or np.any(ring[:, 1] > height - 1):
+        return None
     side = CELLS * _PX
     patch = cv2.warpPerspective(image, h, (side, side), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     lo, hi = round(0.2 * _PX), round(0.8 * _PX)
