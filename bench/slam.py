@@ -63,6 +63,7 @@ _CACHE_SOURCES = (
     "shared/model/infer.py",
     "shared/vision/tracking.py",
     "shared/vision/linequads.py",
+    "shared/vision/softdecode.py",
     "bench/slam.py",  # what a FrameRecord holds
 )
 

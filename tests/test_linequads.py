@@ -12,7 +12,7 @@ import pytest
 from numpy.typing import NDArray
 
 from bench.tagrender import RenderSettings, clean_settings, render_sample
-from shared.vision.detector import DetectorSettings, TagDetector
+from shared.vision.detector import DetectorSettings, TagDetector, quad_side_px
 from shared.vision.linequads import LineQuadProposer, LineQuadSettings, _data_book
 from shared.vision.proposals import ArucoSettings, Stage1Detector, Stage1Settings
 from shared.vision.tags import tag_cells
@@ -159,3 +159,115 @@ def test_a_tag_the_image_edge_cuts_through_its_white_ring_gives_nothing() -> Non
     assert proposer.detect(np.ascontiguousarray(image[:, x0:])) == []
     x1 = int(whole.corners_px[:, 0].min()) - 40  # the whole tag still in view
     assert [d.tag_id for d in proposer.detect(np.ascontiguousarray(image[:, x1:]))] == [9]
+
+
+SMALL_BLURRED = RenderSettings(
+    p_motion_blur=1.0,
+    p_occluder=0.0,
+    p_defocus=0.0,
+    p_distractors=0.0,
+    span_px=(30.0, 60.0),
+    tilt_deg=(0.0, 40.0),
+)
+
+
+def test_the_soft_decode_reads_small_tags_that_motion_blur_smeared_past_the_bits() -> None:
+    """30-60 px tags under >= 10 px of exposure blur (bench/tagrender, not the project's code): the hard
+    decode reads some, the blind soft decode (shared.vision.softdecode) reads more, never a wrong id."""
+    soft, hard = LineQuadProposer(), LineQuadProposer(LineQuadSettings(soft_decode=False))
+    n = hard_found = soft_found = 0
+    for index in range(60):
+        sample = render_sample(index, 3, SMALL_BLURRED)
+        if sample.meta["blur_px"] < 10.0:
+            continue
+        n += 1
+        tag_id = sample.tags[0].tag_id
+        got = soft.detect(sample.image)
+        assert all(d.tag_id == tag_id for d in got), (index, [d.tag_id for d in got], tag_id)
+        if got:
+            truth = sample.tags[0].corners_px
+            err = np.linalg.norm(got[0].corners_px - truth, axis=1).max()
+            # the right corner order: a wrong rotation would put each corner a side (>= 30 px) away
+            assert err < 0.25 * quad_side_px(truth), (index, err)
+        soft_found += bool(got)
+        hard_found += any(d.tag_id == tag_id for d in hard.detect(sample.image))
+    print(f"\n{n} small blurred tags: hard decode {hard_found}, with the soft decode {soft_found}")
+    assert n >= 15
+    assert soft_found >= hard_found + 3
+    assert soft.soft_decoded == soft_found - hard_found
+
+
+def _blurred(image: NDArray[np.uint8], length_px: float, angle_deg: float) -> NDArray[np.uint8]:
+    from shared.vision.blur import line_kernel
+
+    k = line_kernel(length_px, np.radians(angle_deg))
+    return np.asarray(cv2.filter2D(image, -1, k, borderType=cv2.BORDER_REPLICATE), np.uint8)
+
+
+@pytest.mark.parametrize("turns", [0, 1, 2, 3])
+def test_the_blind_decode_reads_id_and_orientation_under_blur_it_was_not_told(turns: int) -> None:
+    """A tag blurred by 2.5 cells at 30 deg, the quad given in any of its four corner orders: the id is
+    read and the corners come back TL, TR, BR, BL of the tag."""
+    from shared.vision.softdecode import BlindDecodeSettings, blind_decode
+
+    image = _blurred(_draw(None, 117), 2.5 * 16 * 1.2, 30.0)
+    (sharp,) = LineQuadProposer().detect(_draw(None, 117))
+    quad = np.roll(sharp.corners_px, turns, axis=0)
+    r = blind_decode(image, quad, BlindDecodeSettings())
+    assert r is not None and r.accepted, r
+    assert r.tag_id == 117
+    np.testing.assert_allclose(r.corners_px, sharp.corners_px)
+    assert 1.5 < float(np.hypot(*r.blur_cells)) < 3.5, r.blur_cells
+
+
+def test_blurred_squares_that_are_no_code_word_give_no_tag() -> None:
+    """The same squares as above (>= 4 bits from every word), blurred so that no bit reads: the soft
+    decode finds no word that fits clearly better than the rest, and the proposer reports nothing."""
+    from shared.vision.softdecode import BlindDecodeSettings, blind_decode
+
+    book, _, _ = _data_book()
+    rng = np.random.default_rng(8)
+    proposer = LineQuadProposer()
+    (sharp,) = proposer.detect(_draw(None, 42, seed=1))
+    tried = 0
+    while tried < 10:
+        bits = rng.random(36) < 0.5
+        if np.count_nonzero(book != bits[None, :], axis=1).min() < 4:
+            continue
+        tried += 1
+        image = _blurred(_draw(bits, seed=1), 20.0, float(rng.uniform(0, 180)))
+        assert proposer.detect(image) == [], bits
+        r = blind_decode(image, sharp.corners_px, BlindDecodeSettings())
+        assert r is None or not r.accepted, r
+    flat = np.full((420, 460), 128, np.uint8)
+    assert blind_decode(flat, sharp.corners_px, BlindDecodeSettings()) is None
+
+
+def test_stage1_counts_the_soft_decodes_and_skips_quads_inside_tags_it_has() -> None:
+    sample = next(
+        s
+        for s in (render_sample(i, 3, SMALL_BLURRED) for i in range(60))
+        if s.meta["blur_px"] >= 10.0
+        and not LineQuadProposer(LineQuadSettings(soft_decode=False)).detect(s.image)
+        and LineQuadProposer().detect(s.image)
+    )
+    no_apriltag = DetectorSettings(min_decision_margin=1e9)
+    stage1 = Stage1Detector(Stage1Settings(apriltag=no_apriltag, aruco=ArucoSettings(enabled=False)))
+    assert [(d.tag_id, d.proposer) for d in stage1.detect(sample.image)] == [(sample.tags[0].tag_id, "lines")]
+    assert (stage1.counts.lines_added, stage1.counts.lines_soft) == (1, 1)
+    # a tag another proposer already has is not read again
+    lines = LineQuadProposer()
+    assert lines.detect(sample.image, known=[sample.tags[0].corners_px]) == []
+    assert lines.soft_decoded == 0
+    stage1.close()
+
+
+@pytest.mark.parametrize("field", ["max_blur_cells", "min_correlation", "angle_step_deg"])
+def test_out_of_range_soft_decode_settings_are_refused(field: str) -> None:
+    from shared.vision.softdecode import BlindDecodeSettings
+
+    bad = {"max_blur_cells": -1.0, "min_correlation": 1.5, "angle_step_deg": 0.0}[field]
+    with pytest.raises(pydantic.ValidationError, match=field):
+        BlindDecodeSettings(**{field: bad})
+    with pytest.raises(pydantic.ValidationError, match="soft"):
+        LineQuadSettings(soft={field: bad})

@@ -91,6 +91,7 @@ class Stage1Counts:
     aruco_refused: int = 0  # ArUco-only tags the gate refused
     lines_added: int = 0  # tags only the line-quad proposer decoded
     lines_merged: int = 0  # line-quad tags the others had already
+    lines_soft: int = 0  # line-quad tags read by the blind soft decode (added or merged)
 
 
 class ArucoProposer:
@@ -161,10 +162,12 @@ class Stage1Detector:
                 else:
                     self.counts.aruco_refused += 1
         if self._lines is not None:
-            # its own decode is its gate (shared.vision.linequads: <= max_hamming bit errors, both rings)
-            new, duplicates = merge_proposals(
-                found, self._lines.detect(img), same_tag_fraction=self.settings.same_tag_fraction
-            )
+            # its own decode is its gate (shared.vision.linequads: <= max_hamming bit errors and both
+            # rings, or the blind soft decode's); quads inside tags already found are not soft-decoded
+            soft_before = self._lines.soft_decoded
+            lines = self._lines.detect(img, known=[d.corners_px for d in found])
+            self.counts.lines_soft += self._lines.soft_decoded - soft_before
+            new, duplicates = merge_proposals(found, lines, same_tag_fraction=self.settings.same_tag_fraction)
             self.counts.lines_merged += len(duplicates)
             self.counts.lines_added += len(new)
             found.extend(new)

@@ -13,29 +13,22 @@ moment ago has not gone anywhere, so:
   rotations, each pattern blurred along the tag's image motion (the exposure time is unknown, so
   several lengths). It passes when its own pattern correlates well and beats every other candidate by
   a margin: a soft decode that still works where blur has smeared the bits past a hard decode, and
-  refuses a blank wall, another tag or a rotated view of itself.
+  refuses a blank wall, another tag or a rotated view of itself (the rectification, code book and
+  blur operators are `shared.vision.softdecode`'s, which the line quads' blind decode uses too).
 - The verified quad (with the shift that aligned it best) becomes the ROI, the network refines the
   keypoints, and `update` records the refined corners for the next prediction.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
-from functools import lru_cache
-from typing import Final
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from shared.vision.blur import line_kernel
 from shared.vision.geometry import Array
-from shared.vision.tags import CELLS, NUM_TAG36H11, tag_cells
-
-_PX_PER_CELL: Final[int] = 6
-_SIDE: Final[int] = CELLS * _PX_PER_CELL
+from shared.vision.softdecode import DATA_CELLS, SIDE_PX, blur_operator, code_book, normalise, rectify
 
 
 class TrackingSettings(BaseModel):
@@ -87,7 +80,7 @@ class TagTracker:
         self.settings = settings or TrackingSettings()
         self._tracks: dict[int, _Track] = {}
         self.last_frame = -1  # the newest frame `update` saw
-        _code_book()  # built once here (587 code words x 4 rotations), not on the first missed tag
+        code_book()  # built once here (587 code words x 4 rotations), not on the first missed tag
 
     def predict(self, frame: int, detected: set[int], image_size: tuple[int, int]) -> list[Prediction]:
         """Quads for the recently seen tags stage 1 missed in `frame`, the freshest first; only those
@@ -170,84 +163,27 @@ class Verdict:
     corners_px: Array  # the predicted quad moved by the shift that aligned best
 
 
-@lru_cache(maxsize=1)
-def _code_book() -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-    """Every tag36h11 pattern in 4 rotations as zero-mean unit rows (4 * 587, 100), and the id of each
-    row (-1 for the rotations of the tags other than the identity)."""
-    rows, ids = [], []
-    for tag_id in range(NUM_TAG36H11):
-        cells = tag_cells(tag_id).astype(np.float64)
-        for rot in range(4):
-            rows.append(np.rot90(cells, rot).ravel())
-            ids.append(tag_id if rot == 0 else -1 - tag_id)
-    return np.array(rows), np.array(ids)
-
-
-@lru_cache(maxsize=256)
-def _blur_operator(dx_q: int, dy_q: int) -> NDArray[np.float64]:
-    """(100, 100): cell pattern -> cell means of the pattern rendered at _PX_PER_CELL and blurred by a
-    linear motion of (dx, dy) rectified pixels (quantised to half pixels). Blur is shift-invariant, so
-    one blurred cell gives how any cell spreads into its neighbours (the tag's surroundings are taken
-    as the same as its white border)."""
-    dx, dy = dx_q / 2.0, dy_q / 2.0
-    p, n = _PX_PER_CELL, 2 * CELLS - 1
-    canvas = np.zeros((n * p, n * p))
-    canvas[(CELLS - 1) * p : CELLS * p, (CELLS - 1) * p : CELLS * p] = 1.0
-    if math.hypot(dx, dy) >= 0.5:
-        canvas = np.asarray(
-            cv2.filter2D(
-                canvas, -1, line_kernel(math.hypot(dx, dy), math.atan2(dy, dx)), borderType=cv2.BORDER_CONSTANT
-            ),
-            np.float64,
-        )
-    spread = canvas.reshape(n, p, n, p).mean(axis=(1, 3))  # spread[oy + 9, ox + 9]: into the cell at offset
-    iy, ix = np.divmod(np.arange(CELLS * CELLS), CELLS)
-    return np.asarray(spread[iy[:, None] - iy[None, :] + CELLS - 1, ix[:, None] - ix[None, :] + CELLS - 1], np.float64)
-
-
-def _normalise(rows: NDArray[np.float64]) -> NDArray[np.float64]:
-    centred = rows - rows.mean(axis=-1, keepdims=True)
-    return centred / np.maximum(np.linalg.norm(centred, axis=-1, keepdims=True), 1e-9)
-
-
-def _rectify(image: NDArray[np.uint8], corners_px: Array) -> tuple[NDArray[np.float64], Array]:
-    """Cell means (100,) of the 10x10-cell tag region behind the quad, and the rectified-from-image
-    homography."""
-    p = _PX_PER_CELL
-    # black square corners sit at cells 1 and 9 of the 10-cell grid (pixel edges, so -0.5 for centres)
-    dst = np.array([[p, p], [9 * p, p], [9 * p, 9 * p], [p, 9 * p]], np.float32) - 0.5
-    h = cv2.getPerspectiveTransform(np.asarray(corners_px, np.float32), dst)
-    patch = cv2.warpPerspective(image, h, (_SIDE, _SIDE), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    means = patch.astype(np.float64).reshape(CELLS, p, CELLS, p).mean(axis=(1, 3)).ravel()
-    return means, h
-
-
-_DATA: Final[NDArray[np.bool_]] = np.zeros((CELLS, CELLS), bool)
-_DATA[2:-2, 2:-2] = True  # the 6x6 data bits: the borders are the same in every tag
-_DATA_CELLS: Final[NDArray[np.intp]] = np.flatnonzero(_DATA.ravel())
-
-
 def verify_tag(image: NDArray[np.uint8], prediction: Prediction, settings: TrackingSettings | None = None) -> Verdict:
     """The soft decode of a predicted tag (module docstring): correlations over the 36 data cells of
     the blurred patterns (all 100 cells blur into them), best over a coarse-to-fine search of shifts
     and over the blur lengths; every other code word and rotation at the best alignment."""
     s = settings or TrackingSettings()
-    book, ids = _code_book()
-    own = int(np.flatnonzero(ids == prediction.tag_id)[0])
-    _, h0 = _rectify(image, prediction.corners_px)
+    book, ids, rots = code_book()
+    own = int(np.flatnonzero((ids == prediction.tag_id) & (rots == 0))[0])
+    _, h0 = rectify(image, prediction.corners_px)
     ops = _blur_candidates(prediction, h0)
     # only the data cells' rows of each blur operator are ever compared
-    data_ops = [op[_DATA_CELLS] for op in ops]
-    own_blurred = _normalise(np.stack([op @ book[own] for op in data_ops]))
+    data_ops = [op[DATA_CELLS] for op in ops]
+    own_blurred = normalise(np.stack([op @ book[own] for op in data_ops]))
 
     def score_at(shift: Array) -> tuple[float, int, NDArray[np.float64]]:
-        means, _ = _rectify(image, prediction.corners_px + shift)
-        cand = _normalise(means[_DATA_CELLS][None, :])[0]
+        means, _ = rectify(image, prediction.corners_px + shift)
+        cand = normalise(means[DATA_CELLS][None, :])[0]
         scores = own_blurred @ cand
         k = int(np.argmax(scores))
         return float(scores[k]), k, cand
 
-    best = (-2.0, 0, np.zeros(2), np.zeros(len(_DATA_CELLS)))
+    best = (-2.0, 0, np.zeros(2), np.zeros(len(DATA_CELLS)))
     coarse = np.arange(-s.search_px, s.search_px + 1e-9, s.search_step_px)
     fine = np.arange(-s.search_step_px / 2, s.search_step_px / 2 + 1e-9, s.search_step_px / 4)
     for grid, centre in ((coarse, np.zeros(2)), (fine, None)):
@@ -260,7 +196,7 @@ def verify_tag(image: NDArray[np.uint8], prediction: Prediction, settings: Track
                     best = (sc, k, shift, cand)
     score, k, shift, cand = best
     quad = prediction.corners_px + shift
-    others = _normalise(book @ data_ops[k].T) @ cand
+    others = normalise(book @ data_ops[k].T) @ cand
     others[own] = -1.0
     best_other = float(others.max())
     accepted = score >= s.min_correlation and score - best_other >= s.min_margin
@@ -278,8 +214,8 @@ def _blur_candidates(prediction: Prediction, rect_from_image: Array) -> list[NDA
     ops = []
     for frac in (0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0):
         dq = np.round(d * frac * 2).astype(int)
-        dq = np.clip(dq, -2 * _SIDE, 2 * _SIDE)
-        ops.append(_blur_operator(int(dq[0]), int(dq[1])))
+        dq = np.clip(dq, -2 * SIDE_PX, 2 * SIDE_PX)
+        ops.append(blur_operator(int(dq[0]), int(dq[1])))
     return ops
 
 
