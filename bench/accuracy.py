@@ -135,7 +135,9 @@ class ArucoMethod:
         ]
 
 
-def stage1_method(quad_decimate: float = 2.0, *, aruco: bool = True, lines: bool = True) -> Method:
+def stage1_method(
+    quad_decimate: float = 2.0, *, aruco: bool = True, lines: bool = True, soft_decode: bool = False
+) -> Method:
     """The product's stage 1 alone (shared.vision.proposals.Stage1Detector: AprilTag 3, then the gated
     ArUco proposer and the line-quad proposer) as a "corners4" method; imports the project here only."""
     from shared.vision.detector import DetectorSettings
@@ -146,7 +148,7 @@ def stage1_method(quad_decimate: float = 2.0, *, aruco: bool = True, lines: bool
         Stage1Settings(
             apriltag=DetectorSettings(quad_decimate=quad_decimate),
             aruco=ArucoSettings(enabled=aruco),
-            lines=LineQuadSettings(enabled=lines),
+            lines=LineQuadSettings(enabled=lines, soft_decode=soft_decode),
         )
     )
 
@@ -156,11 +158,11 @@ def stage1_method(quad_decimate: float = 2.0, *, aruco: bool = True, lines: bool
     return method
 
 
-def line_quads_method() -> Method:
+def line_quads_method(*, soft_decode: bool = False) -> Method:
     """The product's line-quad proposer alone (shared.vision.linequads) as a "corners4" method."""
-    from shared.vision.linequads import LineQuadProposer
+    from shared.vision.linequads import LineQuadProposer, LineQuadSettings
 
-    proposer = LineQuadProposer()
+    proposer = LineQuadProposer(LineQuadSettings(soft_decode=soft_decode))
 
     def method(image: NDArray[np.uint8], camera_matrix: FloatArray) -> list[Prediction]:
         return [Prediction(d.tag_id, d.corners_px, "corners4") for d in proposer.detect(image)]
@@ -172,7 +174,9 @@ class SplittagUnavailable(RuntimeError):
     """The product's perception chain could not be imported or loaded."""
 
 
-def splittag_method(weights_dir: Path, *, fuse: bool = True, precision: str = "fp32") -> Method:
+def splittag_method(
+    weights_dir: Path, *, fuse: bool = True, precision: str = "fp32", soft_decode: bool = False
+) -> Method:
     """The product's chain (stage 1 -> ROI -> split network) as a "lattice16" method; imports the project here only.
 
     `fuse=True` is the product's default (the lattice fitted to the network's points and stage 1's
@@ -185,7 +189,8 @@ def splittag_method(weights_dir: Path, *, fuse: bool = True, precision: str = "f
     from shared.model.weights import load_keypoint_fusion, load_model
     from shared.perception.single import perceive
     from shared.vision.camera import CameraIntrinsics
-    from shared.vision.proposals import Stage1Detector
+    from shared.vision.linequads import LineQuadSettings
+    from shared.vision.proposals import Stage1Detector, Stage1Settings
     from shared.vision.tagmap import TagMapFile
 
     try:
@@ -195,7 +200,8 @@ def splittag_method(weights_dir: Path, *, fuse: bool = True, precision: str = "f
         fusion = load_keypoint_fusion(Path(weights_dir)) if fuse else None
     except Exception as exc:
         raise SplittagUnavailable(f"cannot load weights from {weights_dir}: {exc}") from exc
-    detector = Stage1Detector()  # the services' stage 1
+    # the services' stage 1
+    detector = Stage1Detector(Stage1Settings(lines=LineQuadSettings(soft_decode=soft_decode)))
     tag_map = TagMapFile(default_size_m=0.15)
 
     def method(image: NDArray[np.uint8], camera_matrix: FloatArray) -> list[Prediction]:
@@ -512,7 +518,13 @@ def main() -> None:
         choices=["fp32", "bf16", "int8"],
         help="the split network's columns, one pair per precision (int8: the weights' OpenVINO variant)",
     )
+    ap.add_argument(
+        "--soft-decode",
+        action="store_true",
+        help="stage 1 with the line quads' blind soft decode on (stage1.lines.soft_decode; off by default)",
+    )
     args = ap.parse_args()
+    soft = args.soft_decode
     command = "python -m bench.accuracy " + shlex.join(sys.argv[1:])
     print(f"CPU: {cpu_label()}")
     print(f"command: {command}", flush=True)
@@ -522,17 +534,19 @@ def main() -> None:
     methods: dict[str, Method] = {
         "apriltag3 (corners)": apriltag,
         "opencv aruco (corners)": ArucoMethod(),
-        "line quads (corners)": line_quads_method(),
-        "splittag stage 1 (corners)": stage1_method(),
+        "line quads (corners)": line_quads_method(soft_decode=soft),
+        "splittag stage 1 (corners)": stage1_method(soft_decode=soft),
     }
     if args.weights is not None:
         from shared.model.weights import load_keypoint_fusion
 
         for precision in args.precisions:
             tag = "" if precision == "fp32" else f" {precision}"
-            methods[f"splittag{tag} (network)"] = splittag_method(args.weights, fuse=False, precision=precision)
+            methods[f"splittag{tag} (network)"] = splittag_method(
+                args.weights, fuse=False, precision=precision, soft_decode=soft
+            )
             if load_keypoint_fusion(args.weights) is not None:
-                methods[f"splittag{tag} (fused)"] = splittag_method(args.weights, precision=precision)
+                methods[f"splittag{tag} (fused)"] = splittag_method(args.weights, precision=precision, soft_decode=soft)
     t0 = time.perf_counter()
     try:
         table, rows, secs = run(n=args.n, seed=args.seed, settings=settings, methods=methods, workers=args.workers)

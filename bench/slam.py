@@ -107,16 +107,18 @@ class FrameRecord:
 _worker: dict[str, Any] = {}
 
 
-def _init_worker(weights: str) -> None:
+def _init_worker(weights: str, soft_decode: bool = False) -> None:
     import torch
 
     from shared.model.weights import load_keypoint_fusion, load_model
-    from shared.vision.proposals import Stage1Detector
+    from shared.vision.linequads import LineQuadSettings
+    from shared.vision.proposals import Stage1Detector, Stage1Settings
 
     torch.set_num_threads(1)
     _worker["model"] = load_model(Path(weights))
     _worker["fusion"] = load_keypoint_fusion(Path(weights))
-    _worker["detector"] = Stage1Detector()  # the services' stage 1
+    # the services' stage 1 (with the line quads' soft decode when asked)
+    _worker["detector"] = Stage1Detector(Stage1Settings(lines=LineQuadSettings(soft_decode=soft_decode)))
     _worker["apriltag"] = AprilTagMethod()
     _worker["renderers"] = {}
 
@@ -211,8 +213,10 @@ def _observation(tag_id: int, size_m: float, pose: Any) -> TagObservation:
     )
 
 
-def _cache_key(spec: SequenceSpec, weights: Path) -> str:
+def _cache_key(spec: SequenceSpec, weights: Path, soft_decode: bool = False) -> str:
     h = hashlib.sha1(json.dumps(asdict(spec), sort_keys=True).encode())
+    if soft_decode:
+        h.update(b"soft_decode")
     for rel in _CACHE_SOURCES:
         h.update((ROOT / rel).read_bytes())
     h.update((weights / "config.json").read_bytes())
@@ -222,13 +226,15 @@ def _cache_key(spec: SequenceSpec, weights: Path) -> str:
 
 
 def perceive_sequences(
-    specs: list[SequenceSpec], weights: Path, *, workers: int, cache_dir: Path | None
+    specs: list[SequenceSpec], weights: Path, *, workers: int, cache_dir: Path | None, soft_decode: bool = False
 ) -> dict[str, list[FrameRecord]]:
     """Every frame's truth and both methods' output per sequence, one process per sequence (from the
     cache when nothing it depends on changed)."""
     out: dict[str, list[FrameRecord]] = {}
     paths = {
-        spec.name: (cache_dir / f"{spec.name}-{_cache_key(spec, weights)}.pkl" if cache_dir is not None else None)
+        spec.name: (
+            cache_dir / f"{spec.name}-{_cache_key(spec, weights, soft_decode)}.pkl" if cache_dir is not None else None
+        )
         for spec in specs
     }
     todo = []
@@ -240,7 +246,7 @@ def perceive_sequences(
             todo.append(spec.name)
     if todo:
         ctx = multiprocessing.get_context("spawn")
-        with ctx.Pool(min(workers, len(todo)), initializer=_init_worker, initargs=(str(weights),)) as pool:
+        with ctx.Pool(min(workers, len(todo)), initializer=_init_worker, initargs=(str(weights), soft_decode)) as pool:
             for name, records in zip(todo, pool.imap(_perceive_sequence, todo), strict=True):
                 out[name] = records
                 path = paths[name]
@@ -545,6 +551,9 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--cache-dir", type=Path, default=ROOT / "data" / "bench_slam")
     ap.add_argument("--no-cache", action="store_true")
+    ap.add_argument(
+        "--soft-decode", action="store_true", help="stage 1 with the line quads' soft decode (off by default)"
+    )
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     command = "python -m bench.slam " + shlex.join(sys.argv[1:])
@@ -558,6 +567,7 @@ def main() -> None:
         args.weights,
         workers=args.workers,
         cache_dir=None if args.no_cache else args.cache_dir,
+        soft_decode=args.soft_decode,
     )
     perceive_s = time.perf_counter() - t0
     for name in args.sequences:

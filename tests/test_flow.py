@@ -116,6 +116,35 @@ def test_frames_a_vanished_edge_held_become_orphans_and_nothing_else_does() -> N
     assert InFlightWindow(0).take_orphans() == []  # window off: nothing kept
 
 
+def test_a_frame_sent_while_the_edge_vanishes_becomes_an_orphan_whichever_comes_first() -> None:
+    """The edge's token can go while the robot is still making a frame: the loss's clear(recover=True)
+    finds nothing of that frame, which is then sent to no one. `send(gone=...)` checks once the frame is
+    recorded, so it becomes an orphan both when the token went before the send and during it (fleet
+    test: a frame lost at a worker's death, 0 credits expired). With the edge there nothing changes."""
+    watch = EdgeWatch(answer_timeout_secs=1.5)
+    watch.edge_up()
+    w: InFlightWindow[str] = InFlightWindow(2, timeout_secs=10.0, clock=FakeClock())
+
+    def token_lost() -> None:  # what robot_infer's liveliness callback does
+        watch.edge_down()
+        w.clear(recover=True)
+
+    w.send(1, lambda: None, keep="f1", gone=lambda: not watch.alive)
+    assert not w.has_orphans and w.in_flight == 1  # the edge is there: in flight as usual
+    token_lost()  # frame 1 was in flight: an orphan
+    assert w.take_orphans() == ["f1"]
+    # the token went while frame 2 was being made, before its send
+    w.send(2, lambda: None, keep="f2", gone=lambda: not watch.alive)
+    assert w.take_orphans() == ["f2"] and w.in_flight == 0
+    # ... and while it was being put on the wire
+    watch.edge_up()
+    w.send(3, token_lost, keep="f3", gone=lambda: not watch.alive)
+    assert w.take_orphans() == ["f3"] and w.in_flight == 0
+    # without `gone` (the old call) frame 4 would wait for its expiry and never be recomputed
+    w.send(4, lambda: None, keep="f4")
+    assert not w.has_orphans and w.in_flight == 1
+
+
 def _cycle(pacer: EdgePacer, clock: FakeClock, seq: int, *, robot: float, link: float, edge: float) -> None:
     """One frame through a robot, link and edge that take exactly these times (no return trip)."""
     clock.now += robot

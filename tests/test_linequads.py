@@ -161,6 +161,7 @@ def test_a_tag_the_image_edge_cuts_through_its_white_ring_gives_nothing() -> Non
     assert [d.tag_id for d in proposer.detect(np.ascontiguousarray(image[:, x1:]))] == [9]
 
 
+SOFT = LineQuadSettings(soft_decode=True)  # off by default (see the setting)
 SMALL_BLURRED = RenderSettings(
     p_motion_blur=1.0,
     p_occluder=0.0,
@@ -174,7 +175,7 @@ SMALL_BLURRED = RenderSettings(
 def test_the_soft_decode_reads_small_tags_that_motion_blur_smeared_past_the_bits() -> None:
     """30-60 px tags under >= 10 px of exposure blur (bench/tagrender, not the project's code): the hard
     decode reads some, the blind soft decode (shared.vision.softdecode) reads more, never a wrong id."""
-    soft, hard = LineQuadProposer(), LineQuadProposer(LineQuadSettings(soft_decode=False))
+    soft, hard = LineQuadProposer(SOFT), LineQuadProposer()
     n = hard_found = soft_found = 0
     for index in range(60):
         sample = render_sample(index, 3, SMALL_BLURRED)
@@ -227,7 +228,7 @@ def test_blurred_squares_that_are_no_code_word_give_no_tag() -> None:
 
     book, _, _ = _data_book()
     rng = np.random.default_rng(8)
-    proposer = LineQuadProposer()
+    proposer = LineQuadProposer(SOFT)
     (sharp,) = proposer.detect(_draw(None, 42, seed=1))
     tried = 0
     while tried < 10:
@@ -248,15 +249,18 @@ def test_stage1_counts_the_soft_decodes_and_skips_quads_inside_tags_it_has() -> 
         s
         for s in (render_sample(i, 3, SMALL_BLURRED) for i in range(60))
         if s.meta["blur_px"] >= 10.0
-        and not LineQuadProposer(LineQuadSettings(soft_decode=False)).detect(s.image)
-        and LineQuadProposer().detect(s.image)
+        and not LineQuadProposer().detect(s.image)
+        and LineQuadProposer(SOFT).detect(s.image)
     )
     no_apriltag = DetectorSettings(min_decision_margin=1e9)
-    stage1 = Stage1Detector(Stage1Settings(apriltag=no_apriltag, aruco=ArucoSettings(enabled=False)))
+    stage1 = Stage1Detector(Stage1Settings(apriltag=no_apriltag, aruco=ArucoSettings(enabled=False), lines=SOFT))
     assert [(d.tag_id, d.proposer) for d in stage1.detect(sample.image)] == [(sample.tags[0].tag_id, "lines")]
     assert (stage1.counts.lines_added, stage1.counts.lines_soft) == (1, 1)
+    default = Stage1Detector(Stage1Settings(apriltag=no_apriltag, aruco=ArucoSettings(enabled=False)))
+    assert default.detect(sample.image) == [] and default.counts.lines_soft == 0  # off unless asked
+    default.close()
     # a tag another proposer already has is not read again
-    lines = LineQuadProposer()
+    lines = LineQuadProposer(SOFT)
     assert lines.detect(sample.image, known=[sample.tags[0].corners_px]) == []
     assert lines.soft_decoded == 0
     stage1.close()

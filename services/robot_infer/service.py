@@ -117,6 +117,7 @@ class RobotInfer:
             "stage1_aruco_added": self.detector.counts.aruco_added,
             "stage1_aruco_refused": self.detector.counts.aruco_refused,
             "stage1_lines_added": self.detector.counts.lines_added,
+            "stage1_lines_soft": self.detector.counts.lines_soft,
         }
 
     # Zenoh callbacks: bookkeeping only.
@@ -174,7 +175,9 @@ class RobotInfer:
         """One decoded frame: stage 1 + head(k), Features out (raises on input the maths cannot take;
         the guard counts it)."""
         if self.watch.on_board(self.window.oldest_age_secs()):
-            self.window.clear()
+            # frames sent to an edge whose token is gone are recomputed here; an answer that is merely
+            # overdue may still come, so those are dropped
+            self.window.clear(recover=not self.watch.alive)
             self.on_board(frame)
             return
         split = self.state.get()  # changes apply from the next frame; each message says its k
@@ -190,7 +193,7 @@ class RobotInfer:
         features = self._features(frame, tags, split.k, split.codec, compute_secs)
         wire = encode(features)
         sent_nanos = time.time_ns()
-        self.window.send(frame.seq, lambda: self.pub.put(wire), keep=features)
+        self.window.send(frame.seq, lambda: self.pub.put(wire), keep=features, gone=lambda: not self.watch.alive)
         if self.pacer is not None:
             self.pacer.sent(frame.seq, tags=len(tags), robot_secs=compute_secs)
         sent = FrameSent(robot_id=self.settings.robot_id, seq=frame.seq, sent_nanos=sent_nanos, payload_bytes=len(wire))

@@ -236,6 +236,7 @@ def _cmd_detect(args: argparse.Namespace) -> int:
         quad_decimate=args.quad_decimate,
         aruco=not args.no_aruco,
         lines=not args.no_lines,
+        soft_decode=args.soft_decode,
     )
 
 
@@ -626,6 +627,11 @@ def _add_model_commands(sub: Any) -> None:
     p.add_argument("--no-aruco", action="store_true", help="stage 1 without the ArUco proposer")
     p.add_argument(
         "--no-lines", action="store_true", help="stage 1 without the line-quad proposer (finds occluded tags)"
+    )
+    p.add_argument(
+        "--soft-decode",
+        action="store_true",
+        help="the line quads also read tags whose bits blur or an occluder smeared (blind soft decode)",
     )
     p.set_defaults(func=_cmd_detect)
 

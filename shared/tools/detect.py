@@ -33,6 +33,7 @@ def run_detect(
     quad_decimate: float = 1.0,
     aruco: bool = True,
     lines: bool = True,
+    soft_decode: bool = False,
 ) -> int:
     """Process every image; unreadable ones are reported in the JSON and on stderr. Exit 0 if any ran."""
     camera = camera_from_yaml(camera_path)
@@ -43,7 +44,7 @@ def run_detect(
         Stage1Settings(
             apriltag=DetectorSettings(quad_decimate=quad_decimate),
             aruco=ArucoSettings(enabled=aruco),
-            lines=LineQuadSettings(enabled=lines),
+            lines=LineQuadSettings(enabled=lines, soft_decode=soft_decode),
         )
     )
     images: list[dict[str, Any]] = []

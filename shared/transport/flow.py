@@ -107,16 +107,25 @@ class InFlightWindow(Generic[T]):
             if keep is not None:
                 self._kept[seq] = keep
 
-    def send(self, seq: int, put: Callable[[], None], *, keep: T | None = None) -> None:
+    def send(
+        self, seq: int, put: Callable[[], None], *, keep: T | None = None, gone: Callable[[], bool] | None = None
+    ) -> None:
         """Take frame seq's credit, then put it on the wire. In this order: the answer can arrive (and
         return the credit) before `put` returns; recorded after, it would find nothing to return and the
-        credit would be held until it expires. A `put` that raises returns the credit."""
+        credit would be held until it expires. A `put` that raises returns the credit.
+
+        `gone()`: whether the edge's token is gone now. The edge can vanish while the frame is being
+        made: its token's loss turned the frames in flight then into orphans, but not this one, sent
+        after. Checked once the frame is recorded, so either that check or the loss's own
+        `clear(recover=True)` (whichever comes later) makes it an orphan: no frame is lost to the race."""
         self.sent(seq, keep=keep)
         try:
             put()
         except BaseException:
             self.done(seq)
             raise
+        if gone is not None and gone():
+            self.clear(recover=True)
 
     def done(self, seq: int) -> None:
         """TagPoses for `seq` arrived: return its credit (unknown seqs are ignored)."""
@@ -148,6 +157,12 @@ class EdgeWatch:
         """The edge's liveliness token appeared."""
         with self._lock:
             self._alive = True
+
+    @property
+    def alive(self) -> bool:
+        """The edge's liveliness token is there."""
+        with self._lock:
+            return self._alive
 
     def edge_down(self) -> None:
         """The edge's liveliness token disappeared."""
