@@ -6,11 +6,12 @@ effect, and measures capture->pose latency over a window.
 
     .venv/bin/python -m bench.pipeline [--fps 15] [--window-secs 10] [--tracking off|on|both]
         [--precision fp32|bf16|int8] [--pace on|off|both] [--aruco on|off|both]
-        [--lines on|off|both]
+        [--lines on|off|both] [--overlap on|off|both]
 
 `--tracking both` runs everything twice, robot_infer's track-then-refine off and then on, in one run;
 `--aruco both` likewise with stage 1's ArUco proposer (shared.vision.proposals) off and on, `--lines both`
-with its line-quad proposer (shared.vision.linequads).
+with its line-quad proposer (shared.vision.linequads), `--overlap both` with robot_infer's stage 1 of the
+next frame running alongside the network (`overlap_stage1`).
 """
 
 from __future__ import annotations
@@ -50,16 +51,20 @@ def main() -> None:
     ap.add_argument("--pace", choices=("on", "off", "both"), default="on", help="robot_infer's edge pacer")
     ap.add_argument("--aruco", choices=("on", "off", "both"), default="on", help="stage 1's ArUco proposer")
     ap.add_argument("--lines", choices=("on", "off", "both"), default="on", help="stage 1's line-quad proposer")
+    ap.add_argument(
+        "--overlap", choices=("on", "off", "both"), default="on", help="robot_infer's stage 1 ahead of the network"
+    )
     args = ap.parse_args()
     args.precision = resolve_for_folder(args.precision, Path("models"))  # what auto stands for here
     print(f"CPU: {cpu_label()}", flush=True)
     modes = {"off": [False], "on": [True], "both": [False, True]}
     runs = [
-        Mode(tracking, pace, aruco, lines)
+        Mode(tracking, pace, aruco, lines, overlap)
         for tracking in modes[args.tracking]
         for pace in modes[args.pace]
         for aruco in modes[args.aruco]
         for lines in modes[args.lines]
+        for overlap in modes[args.overlap]
     ]
     tables = [(mode, measure(args, mode)) for mode in runs]
     for mode, rows in tables:
@@ -74,6 +79,7 @@ class Mode:
     pace: bool
     aruco: bool
     lines: bool
+    overlap: bool = True
 
 
 Row = tuple[CutInfo, float, float, float, float, float, float, float, float]
@@ -90,6 +96,7 @@ def measure(args: argparse.Namespace, mode: Mode) -> list[Row]:
         "SPLITTAG_ROBOT_INFER_PACE_TO_EDGE": "true" if mode.pace else "false",
         "SPLITTAG_ROBOT_INFER_STAGE1__ARUCO__ENABLED": "true" if mode.aruco else "false",
         "SPLITTAG_ROBOT_INFER_STAGE1__LINES__ENABLED": "true" if mode.lines else "false",
+        "SPLITTAG_ROBOT_INFER_OVERLAP_STAGE1": "true" if mode.overlap else "false",
         "SPLITTAG_ROBOT_INFER_PRECISION": args.precision,
         "SPLITTAG_EDGE_INFER_PRECISION": args.precision,
     }
@@ -141,7 +148,7 @@ def print_table(args: argparse.Namespace, rows: list[Row], mode: Mode) -> None:
         f"camera {args.fps} fps, window {args.window_secs} s per k, loopback, 2-core CPU, {args.precision}, rerun "
         f"{'on' if args.rerun else 'off'}, tracking {'on' if mode.tracking else 'off'}, "
         f"pacing {'on' if mode.pace else 'off'}, aruco {'on' if mode.aruco else 'off'}, "
-        f"lines {'on' if mode.lines else 'off'}; "
+        f"lines {'on' if mode.lines else 'off'}, overlap {'on' if mode.overlap else 'off'}; "
         "latencies in ms"
     )
     print(

@@ -6,6 +6,7 @@ import contextlib
 import logging
 import threading
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from functools import partial
 
 import torch
@@ -15,7 +16,7 @@ from services.robot_infer.settings import RobotInferSettings
 from shared.control.compute import ComputeEstimator, head_per_tag_ms
 from shared.model.runtime import calibrate_cumulative_ms, load_split_net
 from shared.model.weights import load_keypoint_fusion
-from shared.perception.split import RobotTimings, edge_step, robot_step
+from shared.perception.split import RobotTimings, Stage1Output, edge_step, robot_head, robot_stage1
 from shared.runtime.guard import InputGuard, serve_stats
 from shared.transport.flow import EdgePacer, EdgeWatch, InFlightWindow
 from shared.transport.latest import LatestValid, declare_latest_valid
@@ -80,6 +81,13 @@ class RobotInfer:
         self.pacer = EdgePacer() if s.pace_to_edge and s.max_in_flight else None
         self.watch = EdgeWatch(answer_timeout_secs=s.edge_answer_timeout_secs)
         self.guard = InputGuard("robot_infer")
+        # stage 1 of the next frame while the network runs (settings.overlap_stage1)
+        self.ahead = ThreadPoolExecutor(1, "stage1") if s.overlap_stage1 and self.tracker is None else None
+        self.overlapped_frames = 0
+        # what stage 1 and the rest of a frame took lately (exponential averages, seconds): stage 1 of the
+        # next frame starts so that it ends as this frame's network does, not before (it would only age)
+        self.stage1_secs = 0.0
+        self.rest_secs = 0.0
         self.on_board_frames = 0
         self.recovered_frames = 0
         self.last_profile = 0.0
@@ -111,6 +119,7 @@ class RobotInfer:
             "credits_expired": self.window.expired,
             "on_board_frames": self.on_board_frames,
             "recovered_frames": self.recovered_frames,
+            "overlapped_frames": self.overlapped_frames,
             "edge_outages": self.watch.outages,
             "stage1_frames": self.detector.counts.frames,
             "stage1_apriltag_tags": self.detector.counts.apriltag,
@@ -144,23 +153,60 @@ class RobotInfer:
                 self.pacer.forget()
 
     def serve(self, stop: threading.Event) -> None:
-        """Take a frame only with a credit in hand: the ring keeps the newest one while the edge catches up."""
+        """Take a frame only with a credit in hand: the ring keeps the newest one while the edge catches up.
+        When the next frame can go out as soon as it is made, its stage 1 runs ahead on another thread
+        while this one runs the network (`overlap_stage1`)."""
 
         def give_up() -> bool:  # the edge is gone: stop waiting for credits
             return self.watch.on_board(self.window.oldest_age_secs())
 
+        ahead: Future[Stage1Output | None] | None = None
         while self.window.acquire(stop, abandon=give_up):
             self._recover_orphans()
-            # Start when this frame would reach the edge as it becomes free (the camera ring keeps the
-            # newest frame meanwhile): waiting here is free, waiting in the edge's queue is latency.
-            delay = self.pacer.start_delay_secs() if self.pacer is not None else 0.0
-            if delay > 0 and stop.wait(min(delay, self.settings.edge_answer_timeout_secs)):
-                break
-            if (frame := self.frames.take(stop, wake=lambda: self.window.has_orphans)) is None:
+            if ahead is not None:  # stage 1 of this frame ran while the last one's network did
+                s1, ahead = ahead.result(), None
+                self.overlapped_frames += s1 is not None
+            else:
+                # Start when this frame would reach the edge as it becomes free (the camera ring keeps the
+                # newest frame meanwhile): waiting here is free, waiting in the edge's queue is latency.
+                delay = self.pacer.start_delay_secs() if self.pacer is not None else 0.0
+                if delay > 0 and stop.wait(min(delay, self.settings.edge_answer_timeout_secs)):
+                    break
+                s1 = self._stage1(stop)
+            if s1 is None:
                 if stop.is_set():
                     break
-                continue  # frames to recover first
-            self.guard.run("frame", frame.image.nbytes, lambda: self.process(frame))
+                continue  # frames to recover first, or a frame stage 1 refused (counted)
+            if self.ahead is not None and self._can_send_next_at_once():
+                ahead = self.ahead.submit(self._stage1, stop, max(0.0, self.rest_secs - self.stage1_secs))
+            self.guard.run("frame", s1.frame.image.nbytes, partial(self.process, s1))
+        if ahead is not None:
+            ahead.cancel()
+
+    def _stage1(self, stop: threading.Event, after_secs: float = 0.0) -> Stage1Output | None:
+        """The newest frame's stage 1, `after_secs` from now (None: stopping, orphans to recover first,
+        or a frame it refused)."""
+        if after_secs > 0 and stop.wait(after_secs):
+            return None
+        if (frame := self.frames.take(stop, wake=lambda: self.window.has_orphans)) is None:
+            return None
+        try:
+            return robot_stage1(frame, detector=self.detector, tracker=self.tracker)
+        except Exception as exc:  # counted and logged like any bad input; the next frame goes on
+            self.guard.reject("frame", frame.image.nbytes, exc)
+            return None
+
+    def _can_send_next_at_once(self) -> bool:
+        """The next frame would go out as soon as it is made: the window has room (the frame in flight
+        before this one is answered by then, or a credit is free), the pacer would not hold it back (the
+        edge keeps up) and the edge is there. Then making it now costs it no freshness; otherwise it is
+        taken later, fresher, from the ring."""
+        w = self.window
+        if w.capacity and w.in_flight >= w.capacity:
+            return False
+        if self.pacer is not None and self.pacer.start_delay_secs() > 0:
+            return False
+        return not self.watch.on_board(w.oldest_age_secs())
 
     def _recover_orphans(self) -> None:
         """Compute on board the frames whose edge vanished before answering (their Features are kept)."""
@@ -171,25 +217,22 @@ class RobotInfer:
         if orphans:
             log.warning("edge vanished with %d frame(s) unanswered: computed on board", len(orphans))
 
-    def process(self, frame: Frame) -> None:
-        """One decoded frame: stage 1 + head(k), Features out (raises on input the maths cannot take;
-        the guard counts it)."""
+    def process(self, s1: Stage1Output) -> None:
+        """One frame after stage 1: head(k), Features out (raises on input the maths cannot take; the
+        guard counts it)."""
+        frame = s1.frame
         if self.watch.on_board(self.window.oldest_age_secs()):
             # frames sent to an edge whose token is gone are recomputed here; an answer that is merely
             # overdue may still come, so those are dropped
             self.window.clear(recover=not self.watch.alive)
-            self.on_board(frame)
+            self.on_board(s1)
             return
         split = self.state.get()  # changes apply from the next frame; each message says its k
-        tags, timings = robot_step(
-            frame,
-            detector=self.detector,
-            net=self.net,
-            k=split.k,
-            codec=split.codec,
-            tracker=self.tracker,
-        )
+        tags, timings = robot_head(s1, net=self.net, k=split.k, codec=split.codec, tracker=self.tracker)
         network_ms, compute_secs = self._pace(split.k, len(tags), timings)
+        stage1 = timings.detect_secs + timings.warp_secs
+        self.stage1_secs += 0.3 * (stage1 - self.stage1_secs)
+        self.rest_secs += 0.3 * (compute_secs - stage1 - self.rest_secs)
         features = self._features(frame, tags, split.k, split.codec, compute_secs)
         wire = encode(features)
         sent_nanos = time.time_ns()
@@ -235,17 +278,11 @@ class RobotInfer:
         )
         self.compute_pub.put(encode(profile))
 
-    def on_board(self, frame: Frame) -> None:
+    def on_board(self, s1: Stage1Output) -> None:
         """The whole chain here (k = 7, PnP) while the edge is gone: TagPoses published by the robot."""
+        frame = s1.frame
         k = N_CUTS - 1
-        tags, timings = robot_step(
-            frame,
-            detector=self.detector,
-            net=self.net,
-            k=k,
-            codec="fp32",
-            tracker=self.tracker,
-        )
+        tags, timings = robot_head(s1, net=self.net, k=k, codec="fp32", tracker=self.tracker)
         _, compute_secs = self._pace(k, len(tags), timings)  # the robot's CPU, as emulated for the split
         self._finish_on_board(self._features(frame, tags, k, "fp32", compute_secs))
         self.on_board_frames += 1
@@ -269,6 +306,8 @@ class RobotInfer:
 
     def close(self) -> None:
         """Undeclare everything and log the run's counts."""
+        if self.ahead is not None:
+            self.ahead.shutdown(wait=True, cancel_futures=True)
         self.detector.close()
         self.token.undeclare()
         if self.acks is not None:

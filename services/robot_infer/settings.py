@@ -38,6 +38,11 @@ class RobotInferSettings(ServiceSettings):
     # (PyTorch) | int8 (OpenVINO, the weights folder's int8 variant: splittag quantize)
     precision: PrecisionChoice = "auto"
     threads: int = Field(default=1, ge=1)
+    # Stage 1 of the next frame on a thread of its own while the network runs on this one, whenever
+    # that frame can be sent as soon as it is made (a credit free, the edge keeping up): the robot's
+    # frame time becomes max(stage 1, head) instead of their sum. Not with tracking (its prediction
+    # needs the frame before's network output). The robot then uses two cores.
+    overlap_stage1: bool = True
     max_in_flight: int = Field(default=2, ge=0)  # frames sent without TagPoses back yet; 0 = no limit
     # Start each frame when it would reach the edge as the edge becomes free (shared.transport.flow.EdgePacer)
     pace_to_edge: bool = True

@@ -11,12 +11,13 @@ from dataclasses import dataclass
 from typing import Final
 
 import numpy as np
+from numpy.typing import NDArray
 
 from shared.model.runtime import SplitNet
 from shared.perception.single import extract_rois
 from shared.vision.detector import Detection, Stage1
 from shared.vision.fusion import KeypointFusion, edge_width_px
-from shared.vision.geometry import keypoints_to_image, lattice_in_tag
+from shared.vision.geometry import Array, keypoints_to_image, lattice_in_tag
 from shared.vision.pnp import solve_planar_pnp
 from shared.vision.tagmap import TagMapFile
 from shared.vision.tracking import TagTracker, verify_tag
@@ -57,18 +58,23 @@ def track_missed(frame: Frame, detections: list[Detection], tracker: TagTracker)
     return accepted, refused
 
 
-def robot_step(
-    frame: Frame,
-    *,
-    detector: Stage1,
-    net: SplitNet,
-    k: int,
-    codec: CodecName,
-    tracker: TagTracker | None = None,
-) -> tuple[list[TagFeature], RobotTimings]:
-    """Stage 1, ROI warping and the network up to cut k for all tags of the frame in one batch; with a
-    tracker, also the tags stage 1 missed that it carries and verifies (sent with `tracked` set)."""
-    check_cut(k)
+@dataclass(frozen=True)
+class Stage1Output:
+    """Stage 1 of one frame on the robot: its tags (stage 1's, then the tracked ones), their ROIs and
+    ROI->image homographies, and what it cost. `robot_head` takes it from here."""
+
+    frame: Frame
+    detections: list[Detection]
+    n_detected: int  # the first n_detected are stage 1's; the rest the tracker's
+    rois: NDArray[np.uint8]  # (N, 256, 256)
+    roi_to_image: Array  # (N, 3, 3)
+    detect_secs: float
+    warp_secs: float
+
+
+def robot_stage1(frame: Frame, *, detector: Stage1, tracker: TagTracker | None = None) -> Stage1Output:
+    """Stage 1 and the ROI warps of one frame; with a tracker, also the tags stage 1 missed that it
+    carries and verifies."""
     t0 = time.perf_counter()
     detections = detector.detect(frame.image)
     n_detected = len(detections)
@@ -77,6 +83,17 @@ def robot_step(
         detections = detections + tracked
     t1 = time.perf_counter()
     rois, roi_to_image = extract_rois(frame.image, detections)
+    t2 = time.perf_counter()
+    return Stage1Output(frame, detections, n_detected, rois, roi_to_image, t1 - t0, t2 - t1)
+
+
+def robot_head(
+    s1: Stage1Output, *, net: SplitNet, k: int, codec: CodecName, tracker: TagTracker | None = None
+) -> tuple[list[TagFeature], RobotTimings]:
+    """The network up to cut k for all of a frame's tags in one batch, and their TagFeatures; with a
+    tracker, records the frame's quads for the next prediction."""
+    check_cut(k)
+    detections, rois, roi_to_image = s1.detections, s1.rois, s1.roi_to_image
     t2 = time.perf_counter()
     if k == 0 or not detections:
         tensors = [r[None] for r in rois]
@@ -94,7 +111,7 @@ def robot_step(
             roi_to_image=roi_to_image[i],
             tensor=tensors[i],
             edge_width_px=edge_width_px(rois[i], roi_to_image[i]),
-            tracked=i >= n_detected,
+            tracked=i >= s1.n_detected,
         )
         for i, d in enumerate(detections)
     ]
@@ -108,8 +125,24 @@ def robot_step(
                 quads[d.tag_id] = keypoints_to_image(kp, roi_to_image[i])[list(_LATTICE_CORNERS)]
             else:
                 quads[d.tag_id] = np.asarray(d.corners_px, np.float64)
-        tracker.update(frame.seq, quads, {d.tag_id for d in detections[:n_detected]})
-    return tags, RobotTimings(t1 - t0, t2 - t1, t3 - t2)
+        tracker.update(s1.frame.seq, quads, {d.tag_id for d in detections[: s1.n_detected]})
+    return tags, RobotTimings(s1.detect_secs, s1.warp_secs, t3 - t2)
+
+
+def robot_step(
+    frame: Frame,
+    *,
+    detector: Stage1,
+    net: SplitNet,
+    k: int,
+    codec: CodecName,
+    tracker: TagTracker | None = None,
+) -> tuple[list[TagFeature], RobotTimings]:
+    """Stage 1, ROI warping and the network up to cut k for all tags of the frame in one batch; with a
+    tracker, also the tags stage 1 missed that it carries and verifies (sent with `tracked` set)."""
+    check_cut(k)
+    s1 = robot_stage1(frame, detector=detector, tracker=tracker)
+    return robot_head(s1, net=net, k=k, codec=codec, tracker=tracker)
 
 
 @dataclass(frozen=True)
