@@ -3,7 +3,9 @@
 The frames are bench/tagrender.py's single-tag renders (textured backgrounds, distractors, blur,
 occluders), the same as bench/accuracy's; medians over the frames, and the CPU first.
 
-    .venv/bin/python -m bench.linequads [--n 60] [--seed 0]
+    .venv/bin/python -m bench.linequads [--n 60] [--seed 0] [--soft-decode]
+
+`--soft-decode`: the whole proposer ("detect") with its blind soft decode on (stage1.lines.soft_decode).
 """
 
 from __future__ import annotations
@@ -24,10 +26,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--n", type=int, default=60)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--soft-decode", action="store_true", help="detect with the blind soft decode on")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     print(f"CPU: {cpu_label()}", flush=True)
-    s = lq.LineQuadSettings()
+    s = lq.LineQuadSettings(soft_decode=args.soft_decode)
     lsd = cv2.createLineSegmentDetector(cv2.LSD_REFINE_NONE)
     proposer = lq.LineQuadProposer(s)
     steps: dict[str, list[float]] = {k: [] for k in ("lsd", "lines", "corners", "quads", "decode", "detect")}
