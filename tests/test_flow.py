@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import threading
+from functools import partial
 
 import pytest
 
-from shared.transport.flow import EdgePacer, EdgeWatch, InFlightWindow
+from shared.transport.flow import EdgePacer, EdgeWatch, InFlightWindow, may_run_ahead
 from tests.fakes import FakeClock
 
 
@@ -143,6 +144,45 @@ def test_a_frame_sent_while_the_edge_vanishes_becomes_an_orphan_whichever_comes_
     # without `gone` (the old call) frame 4 would wait for its expiry and never be recomputed
     w.send(4, lambda: None, keep="f4")
     assert not w.has_orphans and w.in_flight == 1
+
+
+def test_abandoning_a_gone_edge_recovers_and_an_overdue_one_drops() -> None:
+    """acquire() gives up on the frames in flight when `abandon()` says so: with the edge's token gone
+    (`recover()` True) they become orphans even if the token's loss has not reached clear() yet;
+    merely overdue (the edge still there) they are dropped."""
+    for gone, orphans in ((True, ["f1"]), (False, [])):
+        w: InFlightWindow[str] = InFlightWindow(1, timeout_secs=10.0, clock=FakeClock())
+        w.send(1, lambda: None, keep="f1")
+        assert w.acquire(threading.Event(), poll_secs=0.01, abandon=lambda: True, recover=partial(bool, gone))
+        assert w.take_orphans() == orphans and w.in_flight == 0
+
+
+def test_an_orphan_answered_after_all_is_not_recomputed() -> None:
+    """A new edge can answer a frame sent in the instant its token was not there yet, while the robot
+    already made it an orphan: the answer removes the orphan, so the frame gets one TagPoses."""
+    w: InFlightWindow[str] = InFlightWindow(2, timeout_secs=10.0, clock=FakeClock())
+    w.send(1, lambda: None, keep="f1")
+    w.send(2, lambda: None, keep="f2")
+    w.clear(recover=True)
+    w.done(2)  # its answer came after all
+    assert w.take_orphans() == ["f1"]
+
+
+@pytest.mark.parametrize(
+    ("in_flight", "capacity", "pace", "alive", "expected"),
+    [
+        (0, 2, 0.0, True, True),  # the current frame alone will be in flight: the next goes out at once
+        (1, 2, 0.0, True, False),  # the current frame fills the window: the next would wait for a credit
+        (0, 1, 0.0, True, False),  # one frame in flight at most: the current one
+        (3, 0, 0.0, True, True),  # no window
+        (0, 2, 0.02, True, False),  # the pacer holds the next frame back: the edge is the bottleneck
+        (0, 2, 0.0, False, False),  # no edge: on board
+    ],
+)
+def test_stage1_runs_ahead_only_when_the_next_frame_would_go_out_at_once(
+    in_flight: int, capacity: int, pace: float, alive: bool, expected: bool
+) -> None:
+    assert may_run_ahead(in_flight=in_flight, capacity=capacity, pace_delay_secs=pace, edge_alive=alive) is expected
 
 
 def _cycle(pacer: EdgePacer, clock: FakeClock, seq: int, *, robot: float, link: float, edge: float) -> None:

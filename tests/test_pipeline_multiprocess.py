@@ -88,7 +88,7 @@ def test_every_frame_yields_poses_within_tolerance(pipeline: tuple, tmp_path: Pa
     print(f"median e_t {np.median(errs):.2f} cm over {len(errs)} tag observations")
     assert np.median(errs) <= MEDIAN_E_T_CM_MAX
     assert monitor.bad == 0
-    overlapped = service_stats(session, ROBOT, "robot_infer")["overlapped_frames"]
+    overlapped = service_stats(session, ROBOT, "robot_infer")["stage1_ahead_frames"]
     print(f"{overlapped} of 60 frames had their stage 1 made on the look-ahead thread")
     assert overlapped >= 50
 

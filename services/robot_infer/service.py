@@ -18,7 +18,7 @@ from shared.model.runtime import calibrate_cumulative_ms, load_split_net
 from shared.model.weights import load_keypoint_fusion
 from shared.perception.split import RobotTimings, Stage1Output, edge_step, robot_head, robot_stage1
 from shared.runtime.guard import InputGuard, serve_stats
-from shared.transport.flow import EdgePacer, EdgeWatch, InFlightWindow
+from shared.transport.flow import EdgePacer, EdgeWatch, InFlightWindow, may_run_ahead
 from shared.transport.latest import LatestValid, declare_latest_valid
 from shared.transport.session import declare_tensor_publisher, encoding_for
 from shared.transport.split_control import SplitState, serve_split
@@ -41,6 +41,13 @@ from shared.wire.messages import (
 )
 
 log = logging.getLogger(__name__)
+
+
+class _Skipped:
+    """The look-ahead did not run (the next frame would not have gone out at once)."""
+
+
+_SKIPPED = _Skipped()
 
 
 def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading.Event) -> None:
@@ -82,8 +89,13 @@ class RobotInfer:
         self.watch = EdgeWatch(answer_timeout_secs=s.edge_answer_timeout_secs)
         self.guard = InputGuard("robot_infer")
         # stage 1 of the next frame while the network runs (settings.overlap_stage1)
-        self.ahead = ThreadPoolExecutor(1, "stage1") if s.overlap_stage1 and self.tracker is None else None
-        self.overlapped_frames = 0
+        # Not with tracking (its prediction needs the frame before's network output) nor when emulating
+        # another CPU (the emulation pads the whole frame's compute on this thread).
+        emulating = s.gamma != 1.0 or s.emulated_ms_per_tag_by_k is not None
+        ahead = s.overlap_stage1 and self.tracker is None and not emulating
+        self.ahead = ThreadPoolExecutor(1, "stage1") if ahead else None
+        self.halt = threading.Event()  # set when serve() ends, however it ends: the look-ahead stops too
+        self.stage1_ahead_frames = 0
         # what stage 1 and the rest of a frame took lately (exponential averages, seconds): stage 1 of the
         # next frame starts so that it ends as this frame's network does, not before (it would only age)
         self.stage1_secs = 0.0
@@ -119,7 +131,7 @@ class RobotInfer:
             "credits_expired": self.window.expired,
             "on_board_frames": self.on_board_frames,
             "recovered_frames": self.recovered_frames,
-            "overlapped_frames": self.overlapped_frames,
+            "stage1_ahead_frames": self.stage1_ahead_frames,
             "edge_outages": self.watch.outages,
             "stage1_frames": self.detector.counts.frames,
             "stage1_apriltag_tags": self.detector.counts.apriltag,
@@ -154,41 +166,47 @@ class RobotInfer:
 
     def serve(self, stop: threading.Event) -> None:
         """Take a frame only with a credit in hand: the ring keeps the newest one while the edge catches up.
-        When the next frame can go out as soon as it is made, its stage 1 runs ahead on another thread
-        while this one runs the network (`overlap_stage1`)."""
+        With `overlap_stage1`, the next frame's stage 1 runs on the look-ahead thread while this frame's
+        network runs, when that frame would go out as soon as it is made (`may_run_ahead`, checked there
+        just before it starts)."""
 
-        def give_up() -> bool:  # the edge is gone: stop waiting for credits
+        def give_up() -> bool:  # the edge is gone (or an answer overdue): stop waiting for credits
             return self.watch.on_board(self.window.oldest_age_secs())
 
-        ahead: Future[Stage1Output | None] | None = None
-        while self.window.acquire(stop, abandon=give_up):
-            self._recover_orphans()
-            if ahead is not None:  # stage 1 of this frame ran while the last one's network did
-                s1, ahead = ahead.result(), None
-                self.overlapped_frames += s1 is not None
-            else:
-                # Start when this frame would reach the edge as it becomes free (the camera ring keeps the
-                # newest frame meanwhile): waiting here is free, waiting in the edge's queue is latency.
-                delay = self.pacer.start_delay_secs() if self.pacer is not None else 0.0
-                if delay > 0 and stop.wait(min(delay, self.settings.edge_answer_timeout_secs)):
-                    break
-                s1 = self._stage1(stop)
-            if s1 is None:
-                if stop.is_set():
-                    break
-                continue  # frames to recover first, or a frame stage 1 refused (counted)
-            if self.ahead is not None and self._can_send_next_at_once():
-                ahead = self.ahead.submit(self._stage1, stop, max(0.0, self.rest_secs - self.stage1_secs))
-            self.guard.run("frame", s1.frame.image.nbytes, partial(self.process, s1))
-        if ahead is not None:
-            ahead.cancel()
+        ahead: Future[Stage1Output | _Skipped | None] | None = None
+        try:
+            while self.window.acquire(stop, abandon=give_up, recover=lambda: not self.watch.alive):
+                self._recover_orphans()
+                s1: Stage1Output | _Skipped | None = _SKIPPED
+                if ahead is not None:  # stage 1 of this frame may have run while the last one's network did
+                    s1, ahead = ahead.result(), None
+                    self.stage1_ahead_frames += isinstance(s1, Stage1Output)
+                if isinstance(s1, _Skipped):
+                    # Start when this frame would reach the edge as it becomes free (the camera ring keeps
+                    # the newest frame meanwhile): waiting here is free, waiting in the edge's queue is latency.
+                    delay = self.pacer.start_delay_secs() if self.pacer is not None else 0.0
+                    if delay > 0 and stop.wait(min(delay, self.settings.edge_answer_timeout_secs)):
+                        break
+                    s1 = self._stage1(stop)
+                if s1 is None:
+                    if stop.is_set():
+                        break
+                    continue  # frames to recover first, or a frame stage 1 refused (counted)
+                if self.ahead is not None:
+                    # timed to end as this frame's network does: earlier, it would only age waiting for it
+                    lead = max(0.0, self.rest_secs - self.stage1_secs)
+                    ahead = self.ahead.submit(self._stage1_ahead, stop, lead)
+                self.guard.run("frame", s1.frame.image.nbytes, partial(self.process, s1))
+        finally:
+            self.halt.set()
+            if ahead is not None:
+                ahead.cancel()
 
-    def _stage1(self, stop: threading.Event, after_secs: float = 0.0) -> Stage1Output | None:
-        """The newest frame's stage 1, `after_secs` from now (None: stopping, orphans to recover first,
-        or a frame it refused)."""
-        if after_secs > 0 and stop.wait(after_secs):
-            return None
-        if (frame := self.frames.take(stop, wake=lambda: self.window.has_orphans)) is None:
+    def _stage1(self, stop: threading.Event) -> Stage1Output | None:
+        """The newest frame's stage 1 (None: stopping, orphans to recover first, or a frame it refused)."""
+        # self.halt: serve() ended (the look-ahead thread must not wait for frames then)
+        wake = lambda: self.window.has_orphans or self.halt.is_set()  # noqa: E731
+        if (frame := self.frames.take(stop, wake=wake)) is None:
             return None
         try:
             return robot_stage1(frame, detector=self.detector, tracker=self.tracker)
@@ -196,17 +214,18 @@ class RobotInfer:
             self.guard.reject("frame", frame.image.nbytes, exc)
             return None
 
-    def _can_send_next_at_once(self) -> bool:
-        """The next frame would go out as soon as it is made: the window has room (the frame in flight
-        before this one is answered by then, or a credit is free), the pacer would not hold it back (the
-        edge keeps up) and the edge is there. Then making it now costs it no freshness; otherwise it is
-        taken later, fresher, from the ring."""
+    def _stage1_ahead(self, stop: threading.Event, after_secs: float) -> Stage1Output | _Skipped | None:
+        """On the look-ahead thread: the next frame's stage 1 in `after_secs`, if it may run ahead then
+        (else _SKIPPED: the main loop takes the frame itself, paced and fresh)."""
+        if stop.wait(after_secs) or self.halt.is_set():
+            return None
         w = self.window
-        if w.capacity and w.in_flight >= w.capacity:
-            return False
-        if self.pacer is not None and self.pacer.start_delay_secs() > 0:
-            return False
-        return not self.watch.on_board(w.oldest_age_secs())
+        pace = self.pacer.start_delay_secs() if self.pacer is not None else 0.0
+        if not may_run_ahead(
+            in_flight=w.in_flight, capacity=w.capacity, pace_delay_secs=pace, edge_alive=self.watch.alive
+        ):
+            return _SKIPPED
+        return self._stage1(stop)
 
     def _recover_orphans(self) -> None:
         """Compute on board the frames whose edge vanished before answering (their Features are kept)."""

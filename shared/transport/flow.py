@@ -36,7 +36,7 @@ class InFlightWindow(Generic[T]):
         self._clock = clock
         self._sent: dict[int, float] = {}
         self._kept: dict[int, T] = {}
-        self._orphans: list[T] = []
+        self._orphans: list[tuple[int, T]] = []  # (seq, what it was sent with)
         self._cond = threading.Condition()
         self.expired = 0
 
@@ -50,16 +50,23 @@ class InFlightWindow(Generic[T]):
 
     def _drop_all(self, *, recover: bool) -> None:
         if recover:
-            self._orphans.extend(self._kept[s] for s in sorted(self._kept))
+            self._orphans.extend((s, self._kept[s]) for s in sorted(self._kept))
         self._sent.clear()
         self._kept.clear()
 
     def acquire(
-        self, stop: threading.Event, *, poll_secs: float = 0.05, abandon: Callable[[], bool] | None = None
+        self,
+        stop: threading.Event,
+        *,
+        poll_secs: float = 0.05,
+        abandon: Callable[[], bool] | None = None,
+        recover: Callable[[], bool] | None = None,
     ) -> bool:
         """Wait for a credit; False once `stop` is set. Expiry is re-checked every poll_secs; when
-        `abandon()` says the answers will not come (the edge is gone), the frames in flight are
-        forgotten and the credit is there at once."""
+        `abandon()` says the answers will not come, the frames in flight are forgotten and the credit
+        is there at once; they become orphans when `recover()` says so (the edge's token is gone: its
+        loss may not have reached `clear(recover=True)` yet), else they are dropped (an answer merely
+        overdue)."""
         if self.capacity == 0:
             return not stop.is_set()
         with self._cond:
@@ -68,7 +75,7 @@ class InFlightWindow(Generic[T]):
                 if len(self._sent) < self.capacity:
                     return True
                 if abandon is not None and abandon():
-                    self._drop_all(recover=False)
+                    self._drop_all(recover=recover is not None and recover())
                     return True
                 self._cond.wait(poll_secs)
         return False
@@ -90,7 +97,7 @@ class InFlightWindow(Generic[T]):
         """What the frames a vanished edge held were sent with, oldest first (emptied)."""
         with self._cond:
             orphans, self._orphans = self._orphans, []
-            return orphans
+            return [kept for _, kept in orphans]
 
     @property
     def has_orphans(self) -> bool:
@@ -128,9 +135,12 @@ class InFlightWindow(Generic[T]):
             self.clear(recover=True)
 
     def done(self, seq: int) -> None:
-        """TagPoses for `seq` arrived: return its credit (unknown seqs are ignored)."""
+        """TagPoses for `seq` arrived: return its credit (unknown seqs are ignored). An orphan of that
+        seq not yet taken is answered too (a new edge can answer a frame sent in the instant its token
+        was not there yet): it is not recomputed, so no frame gets two TagPoses from that race."""
         with self._cond:
             self._kept.pop(seq, None)
+            self._orphans = [(s, kept) for s, kept in self._orphans if s != seq]
             if self._sent.pop(seq, None) is not None:
                 self._cond.notify_all()
 
@@ -140,6 +150,15 @@ class InFlightWindow(Generic[T]):
         with self._cond:
             self._expire()
             return len(self._sent)
+
+
+def may_run_ahead(*, in_flight: int, capacity: int, pace_delay_secs: float, edge_alive: bool) -> bool:
+    """Whether robot_infer may make the next frame's stage 1 now, while the current frame (made, not
+    yet sent) is in its network: the next frame would go out as soon as it is made, so making it
+    early costs it no freshness. Needs room in the window for it with the current frame counted
+    (capacity 0: no window), no pacer delay (the edge keeps up) and the edge there."""
+    room = capacity == 0 or in_flight + 1 < capacity
+    return room and pace_delay_secs <= 0 and edge_alive
 
 
 class EdgeWatch:

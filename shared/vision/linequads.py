@@ -418,7 +418,8 @@ def soft_decode_quad(image: NDArray[np.uint8], quad: Array, s: LineQuadSettings)
     """Step 8: a quad whose bits blur smeared, read by `shared.vision.softdecode.blind_decode`: first
     as found (a quad that reads nothing like a tag ends here; one the gate accepts is read), else
     refitted at full size and gated again (under heavy blur either can sit closer to the tag).
-    hamming is the hard read's distance to the word found."""
+    hamming is the hard read's distance to the word found (often above max_hamming: the bits did not
+    read, which is why the soft decode was needed)."""
     r = blind_decode(image, quad, s.soft)
     if r is None or min(r.correlation, r.full_correlation) < s.soft_min_first_correlation:
         return None

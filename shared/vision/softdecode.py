@@ -156,7 +156,7 @@ class BlindDecodeSettings(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     max_blur_cells: float = Field(default=3.5, ge=0.0, le=8.0)
-    step_cells: float = Field(default=0.5, gt=0.0)
+    step_cells: float = Field(default=0.5, ge=0.25)  # finer grids cost time and memory for nothing
     angle_step_deg: float = Field(default=15.0, ge=1.0, le=90.0)
     min_correlation: float = Field(default=0.8, gt=0.0, le=1.0)  # data cells
     min_full_correlation: float = Field(default=0.85, gt=0.0, le=1.0)  # all 100 cells
