@@ -5,6 +5,8 @@ its place in Stage1Detector."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pydantic
@@ -142,9 +144,17 @@ def test_a_bad_image_is_refused_with_what_it_was(image: NDArray[np.generic], mat
         LineQuadProposer().detect(image)  # type: ignore[arg-type]
 
 
-@pytest.mark.parametrize("field", ["scale", "max_hamming", "min_ring_fraction"])
+@pytest.mark.parametrize(
+    "field", ["scale", "max_hamming", "min_ring_fraction", "soft_min_ring_fraction", "soft_max_per_frame"]
+)
 def test_out_of_range_settings_are_refused(field: str) -> None:
-    bad = {"scale": 0.0, "max_hamming": 5, "min_ring_fraction": 0.5}[field]
+    bad = {
+        "scale": 0.0,
+        "max_hamming": 5,
+        "min_ring_fraction": 0.5,
+        "soft_min_ring_fraction": 0.5,
+        "soft_max_per_frame": -1,
+    }[field]
     with pytest.raises(pydantic.ValidationError, match=field):
         LineQuadSettings(**{field: bad})
 
@@ -162,14 +172,8 @@ def test_a_tag_the_image_edge_cuts_through_its_white_ring_gives_nothing() -> Non
 
 
 SOFT = LineQuadSettings(soft_decode=True)  # off by default (see the setting)
-SMALL_BLURRED = RenderSettings(
-    p_motion_blur=1.0,
-    p_occluder=0.0,
-    p_defocus=0.0,
-    p_distractors=0.0,
-    span_px=(30.0, 60.0),
-    tilt_deg=(0.0, 40.0),
-)
+# the occluded renders' settings with the occluder swapped for exposure blur, on smaller tags
+SMALL_BLURRED = replace(OCCLUDED, p_occluder=0.0, p_motion_blur=1.0, span_px=(30.0, 60.0))
 
 
 def test_the_soft_decode_reads_small_tags_that_motion_blur_smeared_past_the_bits() -> None:

@@ -41,7 +41,8 @@ class RobotInferSettings(ServiceSettings):
     # Stage 1 of the next frame on a thread of its own while the network runs on this one, whenever
     # that frame can be sent as soon as it is made (a credit free, the edge keeping up): the robot's
     # frame time becomes max(stage 1, head) instead of their sum. Not with tracking (its prediction
-    # needs the frame before's network output). The robot then uses two cores.
+    # needs the frame before's network output) nor when emulating another CPU (gamma != 1 or
+    # emulated_ms_per_tag_by_k: the padding assumes one thread). The robot then uses two cores.
     overlap_stage1: bool = True
     max_in_flight: int = Field(default=2, ge=0)  # frames sent without TagPoses back yet; 0 = no limit
     # Start each frame when it would reach the edge as the edge becomes free (shared.transport.flow.EdgePacer)

@@ -48,8 +48,8 @@ from scipy.spatial import cKDTree
 
 from shared.vision.detector import Detection, merge_proposals, quad_side_px
 from shared.vision.geometry import Array, check_image
-from shared.vision.softdecode import BlindDecodeSettings, blind_decode, prepare
-from shared.vision.tags import CELLS, NUM_TAG36H11, tag_cells
+from shared.vision.softdecode import DATA_CELLS, BlindDecodeSettings, blind_decode, code_book, prepare
+from shared.vision.tags import CELLS
 
 _PX: Final[int] = 10  # rectified pixels per cell when decoding
 
@@ -317,15 +317,10 @@ def quads(lines: _Lines, graph: dict[int, set[int]], s: LineQuadSettings) -> lis
 
 @lru_cache(maxsize=1)
 def _data_book() -> tuple[NDArray[np.bool_], NDArray[np.int64], NDArray[np.int64]]:
-    """The 36 data bits of every tag36h11 word in 4 rotations (np.rot90 k times), with id and k."""
-    rows, ids, rots = [], [], []
-    for tag_id in range(NUM_TAG36H11):
-        cells = tag_cells(tag_id)
-        for k in range(4):
-            rows.append(np.rot90(cells, k)[2:-2, 2:-2].ravel() > 0)
-            ids.append(tag_id)
-            rots.append(k)
-    return np.array(rows), np.array(ids), np.array(rots)
+    """The 36 data bits of every tag36h11 word in 4 rotations (np.rot90 k times), with id and k: the
+    data cells of `shared.vision.softdecode.code_book`."""
+    book, ids, rots = code_book()
+    return book[:, DATA_CELLS] > 0, ids, rots
 
 
 _RING_BLACK: Final[NDArray[np.bool_]] = np.zeros((CELLS, CELLS), bool)
@@ -538,10 +533,14 @@ class LineQuadProposer:
             if r is not None:
                 soft.append(r)
                 taken.append(r.corners_px)
-        hard = [Detection(r.tag_id, r.contrast, r.hamming, r.corners_px, "lines") for r, _ in found]
-        read = [Detection(r.tag_id, r.contrast, r.hamming, r.corners_px, "lines") for r in soft]
-        best, _ = merge_proposals([], hard + read)
-        self.soft_decoded += len(best) - len(merge_proposals([], hard)[0])
+        hard, _ = merge_proposals(
+            [], [Detection(r.tag_id, r.contrast, r.hamming, r.corners_px, "lines") for r, _ in found]
+        )
+        read, _ = merge_proposals(
+            hard, [Detection(r.tag_id, r.contrast, r.hamming, r.corners_px, "lines") for r in soft]
+        )
+        self.soft_decoded += len(read)
+        best = hard + read
         if s.refine_corners:
             best = [replace(d, corners_px=refine_corners(img, d.corners_px)) for d in best]
         return sorted(best, key=lambda d: d.tag_id)
