@@ -175,7 +175,7 @@ class SlamNode:
                 seq=msg.seq,
                 capture_nanos=msg.capture_nanos,
                 world_from_camera=pose,
-                status="tracking" if res.world_from_camera is not None else "lost",
+                status=res.status,  # "tracking" | "bridged" (a fragment not yet tied to the world) | "lost"
                 tags_used=res.tags_used,
             )
             run.frames += 1

@@ -4,11 +4,14 @@ with GTSAM's iSAM2. No I/O: the slam service feeds it TagPoses and publishes wha
 - World frame: anchored at a configured tag (or the first one seen), whose pose gets a tight prior
   (identity, or its world pose from a tag map).
 - Each tag observation is a BetweenFactorPose3(X_i, L_j, camera_from_tag) with a Huber-robust
-  Gaussian noise model from the viewing geometry: pixel noise (>= the observation's reprojection
-  error) propagated to lateral (d / f), depth (d^2 / (f s)) and rotation (1 / (f s / d)), inflated
-  with the tilt; the covariance is rotated into the tag frame, where GTSAM's Pose3 error lives.
-- New tags are initialised from the current camera estimate; a frame with no known tag cannot be
-  localised ("lost") unless it is the very first.
+  Gaussian noise model: the 16-keypoint PnP fit's covariance at that pose (pixel noise >= the
+  observation's reprojection error through the projection's Jacobian, in the tag frame where GTSAM's
+  Pose3 error lives), plus the IPPE flip uncertainty below.
+- New tags are initialised from the current camera estimate. A frame with only new tags shortly
+  after the last pose is bridged by the motion prior; long after it (a gap without tags), it starts
+  a map fragment where the robot was last seen, tied by a weak link, and its poses are "bridged"
+  until a view shared with the world's tags joins the fragment (bridge_long_gaps). Solved with QR
+  (such weakly tied fragments make Cholesky's normal equations indeterminate).
 - A constant-velocity motion prior (BetweenFactor predicting this frame's motion from the last one,
   sigma growing with the frame gap) ties consecutive camera poses: with tags near one plane, pitch
   and height trade off within a single frame.
@@ -27,14 +30,14 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Final
+from typing import Final, Literal
 
 import gtsam
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from shared.vision.geometry import Array
+from shared.vision.geometry import Array, lattice_in_tag
 from shared.vision.trajectory import PoseLog
 from shared.wire.messages import TagPose
 
@@ -60,10 +63,6 @@ class SlamSettings(BaseModel):
     disagreement_deg: float = Field(default=10.0, gt=0)
     huber_k: float = 1.5
     relinearize_threshold: float = 0.01
-    # Measured on PnP from 16 keypoints with 0.4 px noise: rotation errors are ~3x the naive
-    # pixel/size estimate and depth errors ~0.3x of it (16 points average the scale).
-    rotation_sigma_scale: float = 3.0
-    depth_sigma_scale: float = 0.3
     # Smooth-motion prior between consecutive frames (no odometry): sigma per frame of gap.
     # Constant-velocity prior between a frame and the last one with a pose: sigma per frame of gap
     # (velocity noise) plus per frame squared (acceleration); it also bridges frames with only new tags.
@@ -78,6 +77,16 @@ class SlamSettings(BaseModel):
     # Tags the tracker carried through blur: their quads drift in scale by a few % (bench/slam), so
     # every sigma of theirs is this much larger.
     tracked_sigma_scale: float = Field(default=4.0, ge=1)
+    # After a gap longer than motion_max_gap_frames, a frame whose tags are all new would be lost for
+    # good (nothing ties them to the map). With this on, it continues the trajectory instead: its pose
+    # starts where the robot was last seen, tied to it by a weak link (these sigmas), and the tags it
+    # maps form a new fragment whose poses are "bridged" until a view shared with the world's fragment
+    # (a tag mapped before the gap, or a tag-map prior) joins them and the graph corrects the fragment.
+    # The link's sigmas grow with the gap (a robot up to ~1.5 m/s and 60 deg/s at 30 fps; rotation
+    # capped at 180 deg). A join removes the link: the fragment is then placed by the shared views alone.
+    bridge_long_gaps: bool = True
+    long_gap_sigma_m_per_frame: float = Field(default=0.05, gt=0)
+    long_gap_sigma_deg_per_frame: float = Field(default=2.0, gt=0)
 
 
 @dataclass(frozen=True)
@@ -113,7 +122,7 @@ class FrameResult:
     """What one update produced."""
 
     world_from_camera: Array | None
-    status: str  # "tracking" | "lost"
+    status: Literal["tracking", "bridged", "lost"]  # bridged: in a fragment not yet tied to the world
     tags_used: int
     rejected_ambiguous: int
     map_changed: bool
@@ -127,6 +136,7 @@ class SlamState:
     lost: int = 0
     rejected_ambiguous: int = 0
     observations: dict[int, int] = field(default_factory=dict)
+    fragments: int = 0  # fragments started after long gaps (see SlamSettings.bridge_long_gaps)
 
 
 def _pose3(m: Array) -> gtsam.Pose3:
@@ -231,6 +241,37 @@ class _Pending:
     hypotheses: tuple[Array, Array]
 
 
+WORLD_FRAGMENT: Final[int] = 0
+JOIN_ITERATIONS: Final[int] = 5
+
+
+class _Fragments:
+    """Which parts of the map are tied to the world: union-find over fragment ids. Fragment 0 holds the
+    anchor and any tag-map prior; a long gap starts a new one; a frame that sees tags of several joins
+    them (the smallest id, so the world's, survives)."""
+
+    def __init__(self) -> None:
+        self._parent: dict[int, int] = {WORLD_FRAGMENT: WORLD_FRAGMENT}
+
+    def new(self) -> int:
+        f = len(self._parent)
+        self._parent[f] = f
+        return f
+
+    def find(self, f: int) -> int:
+        while self._parent[f] != f:
+            self._parent[f] = self._parent[self._parent[f]]
+            f = self._parent[f]
+        return f
+
+    def union(self, fragments: set[int]) -> int:
+        roots = {self.find(f) for f in fragments}
+        root = min(roots)
+        for r in roots:
+            self._parent[r] = root
+        return root
+
+
 # Camera-pose symbol letters per robot: the first robot keeps X (as a single-robot graph), the others
 # take letters no other symbol uses (L is the tags').
 _TRACK_LETTERS: Final[str] = "xabcdefghijkmnopqrstuvwyzABCDEFGHIJKMNOPQRSTUVWXYZ"
@@ -246,6 +287,10 @@ class _Track:
     done: PoseLog = field(default_factory=PoseLog)  # frames marginalised out, compact
     last_done_frame: int = -1
     pending: dict[int, _Pending] = field(default_factory=dict)
+    fragment: int = 0  # the map fragment of its last frame with a pose (see SlamSettings.bridge_long_gaps)
+    # (first stamp, fragment) each time the fragment changed: a frame's fragment is the last start at or
+    # before its stamp (one entry per long gap or join, so bounded by the gaps, not the frames)
+    fragment_starts: list[tuple[int, int]] = field(default_factory=lambda: [(-1, 0)])
 
     def key(self, frame: int) -> int:
         """The GTSAM key of this robot's camera pose at `frame`."""
@@ -264,6 +309,9 @@ class MarkerSlam:
         self._tracks: dict[str, _Track] = {}
         self.state = SlamState()
         self.anchor: int | None = None
+        self._fragments = _Fragments()
+        self._tag_fragment: dict[int, int] = {}  # tag id -> the fragment it was mapped in
+        self._fragment_links: dict[int, int] = {}  # fragment -> its weak link's factor index in iSAM2
         self._new_isam()
         if settings.localisation_only:
             if not self.known:
@@ -273,6 +321,7 @@ class MarkerSlam:
                 graph.add(gtsam.PriorFactorPose3(L(tag_id), _pose3(pose), self._iso(settings.anchor_sigma)))
                 values.insert(L(tag_id), _pose3(pose))
                 self.tags[tag_id] = size
+                self._tag_fragment[tag_id] = WORLD_FRAGMENT
             self.isam.update(graph, values)
             self._estimate = self.isam.calculateEstimate()
 
@@ -296,6 +345,7 @@ class MarkerSlam:
     def _new_isam(self) -> None:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(self.settings.relinearize_threshold)
+        params.setFactorization("QR")
         self.isam = gtsam.ISAM2(params)
         self._estimate = gtsam.Values()
 
@@ -313,30 +363,23 @@ class MarkerSlam:
     def noise(self, obs: Observation, *, alt: bool = False) -> gtsam.noiseModel.Base:
         """Robust Gaussian noise of one observation, in the tag frame (rotation first, as GTSAM).
 
-        Position from the viewing geometry (pixel noise to lateral d / f and depth d^2 / (f s)); rotation
-        a base term plus, about the axis that turns this IPPE branch into the other, the angle between
-        them scaled by keypoint noise / the other branch's reprojection error: a tag whose two branches
-        fit almost equally well (small, far, blurred) tells its position, barely its tilt. `alt`: the
-        observation is used with its other branch."""
+        The PnP estimate's covariance at this pose: sigma_px^2 (J^T J)^-1, J the Jacobian of the 16
+        lattice keypoints' pixels with respect to the pose (the Cramer-Rao bound of the 16-point fit;
+        it holds the far, small, tilted tag's weak rotation and depth and their correlations). The pixel
+        sigma is the observation's reprojection error, at least min_pixel_sigma. Added to it, about the
+        axis that turns this IPPE branch into the other, the angle between them scaled by keypoint noise
+        / the other branch's reprojection error: a tag whose two branches fit almost equally well
+        (small, far, blurred) tells its position, barely its tilt. `alt`: the observation is used with
+        its other branch."""
         s = self.settings
         m, other = obs.camera_from_tag, obs.alt_camera_from_tag
         mine_err, other_err = obs.reprojection_error_px, obs.alt_reprojection_error_px
         if alt:
             m, other, mine_err, other_err = other, m, other_err, mine_err
-        t = m[:3, 3]
-        d = max(0.05, float(np.linalg.norm(t)))
-        normal = m[:3, 2]
-        cos_tilt = max(0.2, abs(float(np.dot(normal, t / d))))
         px = max(s.min_pixel_sigma, mine_err)
         focal = obs.focal_px if obs.focal_px is not None else s.focal_px
-        size_px = focal * obs.size_m / d
-        lateral = d * px / focal
-        depth = s.depth_sigma_scale * d * px / size_px / cos_tilt
-        rot = s.rotation_sigma_scale * px / size_px / cos_tilt
-        cov_t_cam = np.diag([lateral**2, lateral**2, depth**2])
+        cov = pnp_covariance(m, obs.size_m, focal, px)
         r = m[:3, :3]
-        cov = np.zeros((6, 6))
-        cov[:3, :3] = np.eye(3) * rot**2
         omega = np.asarray(gtsam.Rot3.Logmap(gtsam.Rot3(r.T @ np.asarray(other)[:3, :3])))
         angle = float(np.linalg.norm(omega))
         if angle > 1e-9:
@@ -344,7 +387,6 @@ class MarkerSlam:
             kp = max(s.keypoint_sigma_px, mine_err)
             flip_sigma = min(angle, angle * kp / max(other_err - mine_err, 1e-6))
             cov[:3, :3] += flip_sigma**2 * np.outer(axis, axis)
-        cov[3:, 3:] = r.T @ cov_t_cam @ r
         if obs.tracked:
             cov *= s.tracked_sigma_scale**2
         gauss = gtsam.noiseModel.Gaussian.Covariance(cov)
@@ -381,6 +423,7 @@ class MarkerSlam:
             graph.add(gtsam.PriorFactorPose3(L(tag_id), _pose3(pose), self._iso(sigma)))
         values.insert(L(tag_id), _pose3(pose))
         self.tags[tag_id] = size
+        self._tag_fragment[tag_id] = WORLD_FRAGMENT  # the anchor and tag-map priors are in the world
         self._estimate.insert(L(tag_id), _pose3(pose))
 
     def _seed_map(
@@ -454,6 +497,8 @@ class MarkerSlam:
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         map_changed = self._seed_map(observations, graph, values)
         predicted = self.predict(frame, robot=robot)
+        long_gap_from: int | None = None
+        joined = False
         mapped = [(o, wt) for o in observations if (wt := self._world_from_tag(o.tag_id)) is not None]
         # Camera initial guess: each mapped tag's view (branch chosen against the prediction or, without
         # one, against the unambiguous views), the one nearest the median position wins.
@@ -464,26 +509,47 @@ class MarkerSlam:
                 centre = np.median(np.array([g[:3, 3] for g in clear]), axis=0)
                 reference = min(clear, key=lambda g: float(np.linalg.norm(g[:3, 3] - centre)))
         alt = {o.tag_id: self._use_alt(o, wt, reference) for o, wt in mapped}
+        # Tags of several fragments in view (a join): the camera is placed by the world's tags (else the
+        # robot's own fragment's); the others are fused without the disagreement test, as their fragment
+        # is placed by the gap's guess and the join is what corrects it.
+        roots = {o.tag_id: self._fragments.find(self._tag_fragment[o.tag_id]) for o, _ in mapped}
+        lead = min(
+            roots.values(),
+            key=lambda r: (r != self._fragments.find(WORLD_FRAGMENT), r != track.fragment, r),
+            default=None,
+        )
         guesses = [
-            wt @ np.linalg.inv(o.alt_camera_from_tag if alt[o.tag_id] else o.camera_from_tag) for o, wt in mapped
+            wt @ np.linalg.inv(o.alt_camera_from_tag if alt[o.tag_id] else o.camera_from_tag)
+            for o, wt in mapped
+            if roots[o.tag_id] == lead
         ]
         if guesses:
             centre = np.median(np.array([g[:3, 3] for g in guesses]), axis=0)
             init = min(guesses, key=lambda g: float(np.linalg.norm(g[:3, 3] - centre)))
         elif predicted is not None and not s.localisation_only:
             init = predicted  # only new tags in view, shortly after the last pose: bridge with the motion
+        elif (last := self._long_gap_origin(track, observations)) is not None:
+            init = self._pose(track, last)  # only new tags, long after the last pose: start a fragment there
+            long_gap_from = last
         else:
             self.state.lost += 1
             return FrameResult(None, "lost", 0, 0, map_changed)
         used, rejected = 0, 0
+        seen_fragments: set[int] = set()
+        new_tags: list[int] = []
         for o in observations:
             wt = self._world_from_tag(o.tag_id)
             if wt is not None:
                 use_alt = alt[o.tag_id]
                 measured = o.alt_camera_from_tag if use_alt else o.camera_from_tag
-                if len(guesses) > 1 and _rot_deg(measured, np.linalg.inv(init) @ wt) > s.disagreement_deg:
+                if (
+                    roots[o.tag_id] == lead
+                    and len(guesses) > 1
+                    and _rot_deg(measured, np.linalg.inv(init) @ wt) > s.disagreement_deg
+                ):
                     rejected += 1  # disagrees with the other tags in view in either branch: an outlier
                     continue
+                seen_fragments.add(self._fragments.find(self._tag_fragment[o.tag_id]))
             elif s.localisation_only:
                 continue
             else:
@@ -495,6 +561,7 @@ class MarkerSlam:
                 measured = o.alt_camera_from_tag if use_alt else o.camera_from_tag
                 values.insert(L(o.tag_id), _pose3(init @ measured))
                 self.tags[o.tag_id] = o.size_m
+                new_tags.append(o.tag_id)
                 map_changed = True
             graph.add(
                 gtsam.BetweenFactorPose3(track.key(frame), L(o.tag_id), _pose3(measured), self.noise(o, alt=use_alt))
@@ -506,16 +573,62 @@ class MarkerSlam:
             self.state.lost += 1
             return FrameResult(None, "lost", 0, rejected, map_changed)
         values.insert(track.key(frame), _pose3(init))
+        remove: list[int] = []
+        link_at: int | None = None
+        if long_gap_from is not None:
+            gap = frame - long_gap_from
+            rot_sigma = math.radians(min(180.0, s.long_gap_sigma_deg_per_frame * gap))
+            sigmas = [rot_sigma] * 3 + [s.long_gap_sigma_m_per_frame * gap] * 3
+            link_at = graph.size()
+            graph.add(
+                gtsam.BetweenFactorPose3(
+                    track.key(long_gap_from),
+                    track.key(frame),
+                    gtsam.Pose3(),  # held still: a guess either way, and one that cannot fly off
+                    gtsam.noiseModel.Diagonal.Sigmas(np.array(sigmas)),
+                )
+            )
+            fragment = self._fragments.new()
+            self.state.fragments += 1
+        elif seen_fragments:
+            joined = len(seen_fragments) > 1
+            fragment = self._fragments.union(seen_fragments)  # a view shared by fragments joins them
+            # The joined fragments' weak links go: the shared view places them now, not the gap's guess.
+            remove = [
+                self._fragment_links.pop(f) for f in seen_fragments if f != fragment and f in self._fragment_links
+            ]
+        else:
+            fragment = track.fragment  # only new tags, bridged by the motion: the fragment goes on
+        for tag_id in new_tags:
+            self._tag_fragment[tag_id] = fragment
+        if fragment != track.fragment:
+            track.fragment_starts.append((stamp_nanos, fragment))
+        track.fragment = fragment
         motion = self._motion_factor(track, frame)  # never None when this frame is bridged (as predict)
         if motion is not None:
             graph.add(motion)
-        self.isam.update(graph, values)
+        result = self.isam.update(graph, values, remove)
+        if link_at is not None:
+            self._fragment_links[fragment] = int(result.getNewFactorsIndices()[link_at])
+        for _ in range(JOIN_ITERATIONS if joined else 0):  # a join moves a whole fragment: relinearise it
+            self.isam.update()
         self._estimate = self.isam.calculateEstimate()
         pose = self._pose(track, frame)
         track.stamps[frame] = stamp_nanos
         if sum(len(t.stamps) for t in self._tracks.values()) >= s.window_frames:
             self._marginalise_old_frames()
-        return FrameResult(pose, "tracking", used, rejected, map_changed)
+        status: Literal["tracking", "bridged"] = (
+            "tracking" if self._fragments.find(fragment) == self._fragments.find(WORLD_FRAGMENT) else "bridged"
+        )
+        return FrameResult(pose, status, used, rejected, map_changed)
+
+    def _long_gap_origin(self, track: _Track, observations: list[Observation]) -> int | None:
+        """The robot's last frame with a pose, when this frame (past the bridging gap, only new tags in
+        view) should continue the trajectory from it in a new fragment (see bridge_long_gaps)."""
+        s = self.settings
+        if not s.bridge_long_gaps or s.localisation_only or not observations or not track.stamps:
+            return None
+        return max(track.stamps)
 
     def _admit_new_tag(self, track: _Track, o: Observation, frame: int, world_from_camera: Array) -> bool | None:
         """The branch a new tag enters the map with (True: the other one), or None while it is ambiguous:
@@ -591,6 +704,8 @@ class MarkerSlam:
         self._new_isam()
         self.isam.update(graph, values)
         self._estimate = self.isam.calculateEstimate()
+        # The links left with the old graph; an unjoined fragment's tags keep their (loose) marginals.
+        self._fragment_links.clear()
 
     def trajectory(self, robot: str | None = None) -> list[tuple[int, Array]]:
         """One robot's camera poses in frame order (None: the first robot's): (stamp_nanos,
@@ -616,6 +731,20 @@ class MarkerSlam:
         live = [self._pose(track, f) for f in window]
         poses = np.concatenate([done_poses, np.array(live, np.float64).reshape(-1, 4, 4)])
         return stamps, poses
+
+    def bridged(self, stamp_nanos: int, robot: str | None = None) -> bool:
+        """Whether the robot's pose at this stamp lies in a fragment not (yet) tied to the world: begun
+        after a long gap and never seen together with the world's tags since (then its placement is
+        the gap's guess; its poses relative to each other and its own tags are as good as any)."""
+        track = self._tracks.get(robot if robot is not None else next(iter(self._tracks), ""))
+        if track is None:
+            return False
+        fragment = WORLD_FRAGMENT
+        for start, f in track.fragment_starts:
+            if start > stamp_nanos:
+                break
+            fragment = f
+        return self._fragments.find(fragment) != self._fragments.find(WORLD_FRAGMENT)
 
     def tag_map(self) -> dict[int, tuple[float, Array]]:
         """Current tag poses: id -> (size, world_from_tag)."""
@@ -644,6 +773,31 @@ def _constant_velocity_error(
         return np.asarray(log2 - ratio * log1, np.float64)
 
     return error
+
+
+def pnp_covariance(camera_from_tag: Array, size_m: float, focal_px: float, pixel_sigma: float) -> Array:
+    """Covariance (6x6, GTSAM's Pose3 tangent in the tag frame: rotation, then translation) of a pose
+    fitted to the tag's 16 lattice keypoints with independent pixel noise `pixel_sigma`: sigma^2 (J^T
+    J)^-1, J = d(pixels) / d(pose) at the pose (a right perturbation T Exp(xi), as BetweenFactor's error).
+    Variances are capped at 1 (rad^2 or m^2): a degenerate view tells nothing more, not an infinite
+    nothing (the graph stays well conditioned)."""
+    r, t = np.asarray(camera_from_tag, np.float64)[:3, :3], np.asarray(camera_from_tag, np.float64)[:3, 3]
+    pts = lattice_in_tag(size_m)
+    cam = pts @ r.T + t  # (16, 3) in the camera
+    z = np.maximum(cam[:, 2], 1e-6)
+    x, y = cam[:, 0] / z, cam[:, 1] / z
+    jac_proj = np.zeros((16, 2, 3))
+    jac_proj[:, 0, 0] = jac_proj[:, 1, 1] = focal_px / z
+    jac_proj[:, 0, 2] = -focal_px * x / z
+    jac_proj[:, 1, 2] = -focal_px * y / z
+    skew = np.zeros((16, 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -pts[:, 2], pts[:, 1], -pts[:, 0]
+    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = pts[:, 2], -pts[:, 1], pts[:, 0]
+    d_cam = np.concatenate([-r @ skew, np.broadcast_to(r, (16, 3, 3))], axis=2)  # (16, 3, 6)
+    jac = (jac_proj @ d_cam).reshape(32, 6)
+    vals, vecs = np.linalg.eigh(jac.T @ jac)
+    variances = np.minimum(pixel_sigma**2 / np.maximum(vals, 1e-300), 1.0)
+    return (vecs * variances) @ vecs.T
 
 
 def _spd(cov: Array) -> Array:

@@ -332,12 +332,27 @@ class TagPosesV1(FrameMessage):
 
 
 class CameraPose(FrameMessage):
-    """SLAM (or ground-truth) camera pose for one frame."""
+    """SLAM (or ground-truth) camera pose for one frame. "bridged": slam has a pose, but in a map
+    fragment begun after a long gap without tags, not yet tied to the world (its placement is a guess
+    until a view shared with the world's tags joins them); "lost": no pose (the last one is repeated)."""
+
+    SCHEMA: ClassVar[str] = "splittag/CameraPose/v2"
+    world_from_camera: Pose4x4
+    status: Literal["tracking", "bridged", "lost", "ground_truth"]
+    tags_used: int = Field(ge=0)
+
+
+class CameraPoseV1(FrameMessage):
+    """CameraPose before "bridged"; still decoded (as v2: every v1 status is a v2 status)."""
 
     SCHEMA: ClassVar[str] = "splittag/CameraPose/v1"
     world_from_camera: Pose4x4
     status: Literal["tracking", "lost", "ground_truth"]
     tags_used: int = Field(ge=0)
+
+    def upgrade(self) -> CameraPose:
+        """The same content as the current schema."""
+        return CameraPose(**{name: getattr(self, name) for name in CameraPoseV1.model_fields})
 
 
 class FrameStamp(FrameMessage):
@@ -471,8 +486,16 @@ MESSAGE_TYPES: Final[tuple[type[Message], ...]] = (
 SCHEMAS: Final[dict[str, type[Message]]] = {m.SCHEMA: m for m in MESSAGE_TYPES}
 # Older versions still accepted: each has `upgrade()` to the current message of its name.
 LEGACY_SCHEMAS: Final[
-    dict[str, type[TagPosesV1] | type[TagPosesV2] | type[ProbeAckV1] | type[FeaturesV1] | type[FeaturesV2]]
-] = {m.SCHEMA: m for m in (TagPosesV1, TagPosesV2, ProbeAckV1, FeaturesV1, FeaturesV2)}
+    dict[
+        str,
+        type[TagPosesV1]
+        | type[TagPosesV2]
+        | type[ProbeAckV1]
+        | type[FeaturesV1]
+        | type[FeaturesV2]
+        | type[CameraPoseV1],
+    ]
+] = {m.SCHEMA: m for m in (TagPosesV1, TagPosesV2, ProbeAckV1, FeaturesV1, FeaturesV2, CameraPoseV1)}
 _CURRENT_BY_NAME: Final[dict[str, type[Message]]] = {m.SCHEMA.rpartition("/")[0]: m for m in MESSAGE_TYPES}
 ENVELOPE_KEYS: Final[frozenset[str]] = frozenset({"schema", "body"})
 
