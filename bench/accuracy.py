@@ -136,19 +136,20 @@ class ArucoMethod:
 
 
 def stage1_method(
-    quad_decimate: float = 2.0, *, aruco: bool = True, lines: bool = True, soft_decode: bool = False
+    quad_decimate: float = 2.0, *, aruco: bool = True, lines: bool = True, soft_decode: bool = True
 ) -> Method:
     """The product's stage 1 alone (shared.vision.proposals.Stage1Detector: AprilTag 3, then the gated
     ArUco proposer and the line-quad proposer) as a "corners4" method; imports the project here only."""
     from shared.vision.detector import DetectorSettings
     from shared.vision.linequads import LineQuadSettings
-    from shared.vision.proposals import ArucoSettings, Stage1Detector, Stage1Settings
+    from shared.vision.proposals import ArucoSettings, FullResSettings, Stage1Detector, Stage1Settings
 
     detector = Stage1Detector(
         Stage1Settings(
             apriltag=DetectorSettings(quad_decimate=quad_decimate),
             aruco=ArucoSettings(enabled=aruco),
             lines=LineQuadSettings(enabled=lines, soft_decode=soft_decode),
+            full_res=FullResSettings(enabled=False),  # unrelated single images: no history to carry
         )
     )
 
@@ -158,7 +159,7 @@ def stage1_method(
     return method
 
 
-def line_quads_method(*, soft_decode: bool = False) -> Method:
+def line_quads_method(*, soft_decode: bool = True) -> Method:
     """The product's line-quad proposer alone (shared.vision.linequads) as a "corners4" method."""
     from shared.vision.linequads import LineQuadProposer, LineQuadSettings
 
@@ -175,7 +176,7 @@ class SplittagUnavailable(RuntimeError):
 
 
 def splittag_method(
-    weights_dir: Path, *, fuse: bool = True, precision: str = "fp32", soft_decode: bool = False
+    weights_dir: Path, *, fuse: bool = True, precision: str = "fp32", soft_decode: bool = True
 ) -> Method:
     """The product's chain (stage 1 -> ROI -> split network) as a "lattice16" method; imports the project here only.
 
@@ -190,7 +191,7 @@ def splittag_method(
     from shared.perception.single import perceive
     from shared.vision.camera import CameraIntrinsics
     from shared.vision.linequads import LineQuadSettings
-    from shared.vision.proposals import Stage1Detector, Stage1Settings
+    from shared.vision.proposals import FullResSettings, Stage1Detector, Stage1Settings
     from shared.vision.tagmap import TagMapFile
 
     try:
@@ -200,8 +201,10 @@ def splittag_method(
         fusion = load_keypoint_fusion(Path(weights_dir)) if fuse else None
     except Exception as exc:
         raise SplittagUnavailable(f"cannot load weights from {weights_dir}: {exc}") from exc
-    # the services' stage 1
-    detector = Stage1Detector(Stage1Settings(lines=LineQuadSettings(soft_decode=soft_decode)))
+    # the services' stage 1, on unrelated single images: no frame history (full-resolution windows off)
+    detector = Stage1Detector(
+        Stage1Settings(lines=LineQuadSettings(soft_decode=soft_decode), full_res=FullResSettings(enabled=False))
+    )
     tag_map = TagMapFile(default_size_m=0.15)
 
     def method(image: NDArray[np.uint8], camera_matrix: FloatArray) -> list[Prediction]:
@@ -520,8 +523,9 @@ def main() -> None:
     )
     ap.add_argument(
         "--soft-decode",
-        action="store_true",
-        help="stage 1 with the line quads' blind soft decode on (stage1.lines.soft_decode; off by default)",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="stage 1 with the line quads' blind soft decode (stage1.lines.soft_decode; on by default)",
     )
     args = ap.parse_args()
     soft = args.soft_decode

@@ -3,9 +3,9 @@
 The frames are bench/tagrender.py's single-tag renders (textured backgrounds, distractors, blur,
 occluders), the same as bench/accuracy's; medians over the frames, and the CPU first.
 
-    .venv/bin/python -m bench.linequads [--n 60] [--seed 0] [--soft-decode]
+    .venv/bin/python -m bench.linequads [--n 60] [--seed 0] [--no-soft-decode]
 
-`--soft-decode`: the whole proposer ("detect") with its blind soft decode on (stage1.lines.soft_decode).
+`--no-soft-decode`: the whole proposer ("detect") without its blind soft decode (stage1.lines.soft_decode).
 """
 
 from __future__ import annotations
@@ -26,7 +26,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--n", type=int, default=60)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--soft-decode", action="store_true", help="detect with the blind soft decode on")
+    ap.add_argument(
+        "--soft-decode",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="detect with the blind soft decode (on by default, as stage 1 runs it)",
+    )
     args = ap.parse_args()
     cv2.setNumThreads(1)
     print(f"CPU: {cpu_label()}", flush=True)

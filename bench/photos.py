@@ -11,8 +11,10 @@ rendered benches count ghosts exactly).
 
 Methods: AprilTag 3 at quad_decimate 2 (the services' stage-1 speed setting) and 1; OpenCV's ArUco
 on DICT_APRILTAG_36h11 with OpenCV's defaults; splittag's stage 1 (AprilTag, then the gated ArUco
-proposer: shared.vision.proposals) at decimate 2 (robot_infer's default) and 1 (`splittag detect`'s).
-Time: median over repetitions of one detect call per photo, one thread.
+proposer: shared.vision.proposals) at decimate 2 (robot_infer's default) and 1 (`splittag detect`'s);
+and robot_infer's stage 1 on each photo as a still video (its first frame a full-resolution sweep,
+the frames after it decimated with full-resolution windows around the small tags seen).
+Time: median over repetitions of one detect call per photo, one thread (the sweep frame: one call).
 """
 
 from __future__ import annotations
@@ -105,10 +107,11 @@ def main() -> None:
         "apriltag3, decimate 1": apriltag_d1,
         "opencv aruco 36h11": ArucoMethod(),
         "line quads (shared.vision.linequads)": line_quads_method(),
-        "splittag stage 1, decimate 2 (robot_infer)": stage1_method(2.0),
+        "splittag stage 1, decimate 2, no frame history": stage1_method(2.0),
         "splittag stage 1, decimate 1 (splittag detect)": stage1_method(1.0),
     }
     no_camera = np.eye(3)
+    video_rows = video_stage1(photos, args.repetitions)
     print(f"\n{len(photos)} photos, {total} annotated tags ({', '.join(f'{p.name}: {len(p.tags)}' for p in photos)})")
     head = f"{'method':48s} {'found':>8s} {'per photo':>12s} {'other':>6s} {'corner px p50':>14s}"
     print(f"{head} {'ms per photo (median)':>24s}")
@@ -132,9 +135,57 @@ def main() -> None:
                 f"{statistics.median(errors) if errors else float('nan'):>14.2f} "
                 f"{' / '.join(f'{m:.1f}' for m in ms):>24s}"
             )
+        for name, (per_photo, other, errors, ms) in video_rows.items():
+            print(
+                f"{name:48s} {sum(per_photo):>3d} / {total:<2d} {'/'.join(map(str, per_photo)):>12s} {other:>6d} "
+                f"{statistics.median(errors) if errors else float('nan'):>14.2f} "
+                f"{' / '.join(f'{m:.1f}' for m in ms):>24s}"
+            )
     finally:
         apriltag_d2.close()
         apriltag_d1.close()
+
+
+def video_stage1(
+    photos: list[Annotated], repetitions: int
+) -> dict[str, tuple[list[int], int, list[float], list[float]]]:
+    """robot_infer's stage 1 (decimate 2) with its full-resolution sweep and windows, each photo as a
+    still video: one detector per photo; frame 0 is the full-resolution sweep, the tags found and the
+    time are those of the frames after it (decimated, with windows around the small tags seen). Rows
+    for the sweep frame, the frames after, and AprilTag alone with the windows."""
+    from shared.vision.linequads import LineQuadSettings
+    from shared.vision.proposals import ArucoSettings, Stage1Detector, Stage1Settings
+
+    configs = {
+        "splittag stage 1, robot_infer: sweep frame": (Stage1Settings(), True),
+        "splittag stage 1, robot_infer: frames after it": (Stage1Settings(), False),
+        "apriltag3 d2 + full-res windows: frames after": (
+            Stage1Settings(aruco=ArucoSettings(enabled=False), lines=LineQuadSettings(enabled=False)),
+            False,
+        ),
+    }
+    rows: dict[str, tuple[list[int], int, list[float], list[float]]] = {}
+    for name, (settings, sweep_frame) in configs.items():
+        per_photo, other, errors, ms = [], 0, [], []
+        for photo in photos:
+            detector = Stage1Detector(settings)
+            t0 = time.perf_counter()
+            found = detector.detect(photo.image)  # frame 0: the sweep
+            sweep_ms = 1e3 * (time.perf_counter() - t0)
+            times = []
+            if not sweep_frame:
+                for _ in range(max(1, repetitions)):
+                    t0 = time.perf_counter()
+                    found = detector.detect(photo.image)
+                    times.append(time.perf_counter() - t0)
+            detector.close()
+            n, o, e = match(photo.tags, [Prediction(d.tag_id, d.corners_px, "corners4") for d in found])
+            per_photo.append(n)
+            other += o
+            errors += e
+            ms.append(sweep_ms if sweep_frame else 1e3 * statistics.median(times))
+        rows[name] = (per_photo, other, errors, ms)
+    return rows
 
 
 if __name__ == "__main__":

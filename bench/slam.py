@@ -84,6 +84,7 @@ class TagObservation:
     reprojection_error_px: float
     alt_camera_from_tag: FloatArray
     alt_reprojection_error_px: float
+    proposer: str | None = None  # who found it (shared.vision.proposers.Proposer)
 
 
 @dataclass
@@ -113,7 +114,7 @@ class FrameRecord:
 _worker: dict[str, Any] = {}
 
 
-def _init_worker(weights: str, soft_decode: bool = False) -> None:
+def _init_worker(weights: str, soft_decode: bool = True) -> None:
     import torch
 
     from shared.model.weights import load_keypoint_fusion, load_model
@@ -168,7 +169,7 @@ def _perceive_sequence(spec: SequenceSpec) -> list[FrameRecord]:
             if fusion is not None:
                 kp = fusion.apply(kp, d.corners_px, homs[i], edge_width_px(rois[i], homs[i]))
             pose = solve_planar_pnp(camera, lattice_in_tag(size), kp)
-            rec.splittag.append(_observation(d.tag_id, size, pose))
+            rec.splittag.append(_observation(d.tag_id, size, pose, d.proposer))
             refined[d.tag_id] = kp[[0, 3, 15, 12]]
             rec.splittag_corner_error_px.append(_corner_error(r, frame, true_tags.get(d.tag_id), kp))
         rec.perception_ms = (time.perf_counter() - t0) * 1e3
@@ -191,7 +192,7 @@ def _perceive_sequence(spec: SequenceSpec) -> list[FrameRecord]:
                 if pose.reprojection_error_px > tracker.settings.max_refined_reprojection_px:
                     rec.tracking_rejected += 1
                     continue
-                rec.tracked.append(_observation(d.tag_id, size, pose))
+                rec.tracked.append(_observation(d.tag_id, size, pose, "tracker"))
                 refined[d.tag_id] = kp[[0, 3, 15, 12]]
                 rec.tracked_corner_error_px[d.tag_id] = _corner_error(r, frame, true_tags.get(d.tag_id), kp)
         tracker.update(index, refined, {d.tag_id for d in detections})
@@ -208,7 +209,7 @@ def _corner_error(r: SequenceRenderer, frame: Any, truth: Any, keypoints: FloatA
     return float(np.linalg.norm(keypoints[[0, 3, 15, 12]] - true_corners, axis=1).mean())
 
 
-def _observation(tag_id: int, size_m: float, pose: Any) -> TagObservation:
+def _observation(tag_id: int, size_m: float, pose: Any, proposer: str | None) -> TagObservation:
     return TagObservation(
         int(tag_id),
         size_m,
@@ -216,10 +217,11 @@ def _observation(tag_id: int, size_m: float, pose: Any) -> TagObservation:
         pose.reprojection_error_px,
         pose.alt_camera_from_tag,
         pose.alt_reprojection_error_px,
+        proposer,
     )
 
 
-def _cache_key(spec: SequenceSpec, weights: Path, soft_decode: bool = False) -> str:
+def _cache_key(spec: SequenceSpec, weights: Path, soft_decode: bool = True) -> str:
     h = hashlib.sha1(json.dumps(asdict(spec), sort_keys=True).encode())
     if soft_decode:
         h.update(b"soft_decode")
@@ -232,7 +234,7 @@ def _cache_key(spec: SequenceSpec, weights: Path, soft_decode: bool = False) -> 
 
 
 def perceive_sequences(
-    specs: list[SequenceSpec], weights: Path, *, workers: int, cache_dir: Path | None, soft_decode: bool = False
+    specs: list[SequenceSpec], weights: Path, *, workers: int, cache_dir: Path | None, soft_decode: bool = True
 ) -> dict[str, list[FrameRecord]]:
     """Every frame's truth and both methods' output per sequence, one process per sequence (from the
     cache when nothing it depends on changed)."""
@@ -330,6 +332,7 @@ def _slam_observation(o: TagObservation, focal_px: float, *, tracked: bool = Fal
         o.alt_reprojection_error_px,
         focal_px,
         tracked,
+        "tracker" if tracked else o.proposer,
     )
 
 
@@ -568,7 +571,11 @@ def main() -> None:
     ap.add_argument("--cache-dir", type=Path, default=ROOT / "data" / "bench_slam")
     ap.add_argument("--no-cache", action="store_true")
     ap.add_argument(
-        "--soft-decode", action="store_true", help="stage 1 with the line quads' soft decode (off by default)"
+        "--soft-decode",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="stage 1 with the line quads' soft decode (on by default; slam leaves its reads out unless "
+        "use_soft_reads)",
     )
     ap.add_argument(
         "--room-seed-offset",

@@ -91,6 +91,7 @@ def example_messages() -> dict[str, Message]:
             tensor=rng.standard_normal((4, 2, 2)).astype(np.float16),
             edge_width_px=1.5,
             tracked=False,
+            proposer="lines_soft",
         ),
         TagFeature(
             tag_id=9,
@@ -101,6 +102,7 @@ def example_messages() -> dict[str, Message]:
             tensor=rng.integers(-128, 127, (2, 3), dtype=np.int8),
             edge_width_px=1.5,
             tracked=True,
+            proposer="tracker",
         ),
     ]
     features = Features(
@@ -124,6 +126,7 @@ def example_messages() -> dict[str, Message]:
         alt_camera_from_tag=_pose(2),
         alt_reprojection_error_px=2.5,
         tracked=True,
+        proposer="tracker",
     )
     poses = TagPoses(
         robot_id="robot1",

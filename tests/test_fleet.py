@@ -64,13 +64,13 @@ def test_fleet_view_with_discovered_robots_follows_their_tokens() -> None:
 
 
 def test_fleet_keys() -> None:
-    assert keys.for_every_robot(keys.tag_poses("r1")) == "splittag/*/tag_poses/v3"
-    assert keys.robot_of("splittag/r7/features/v3") == "r7"
+    assert keys.for_every_robot(keys.tag_poses("r1")) == "splittag/*/tag_poses/v4"
+    assert keys.robot_of("splittag/r7/features/v4") == "r7"
     assert keys.worker_of(keys.edge_worker("fleet", "edge2")) == "edge2"
     with pytest.raises(ValueError, match="not a"):
         keys.worker_of(keys.alive("r1", "edge_infer"))
     with pytest.raises(ValueError, match="robot id"):
-        keys.robot_of("splittag/*/features/v3")
+        keys.robot_of("splittag/*/features/v4")
     import zenoh
 
     # The fleet's keys can never be taken for a robot's: '@fleet' is a verbatim chunk.

@@ -82,8 +82,9 @@ def _flip(bits: NDArray[np.bool_], n: int, seed: int) -> NDArray[np.bool_]:
 
 def test_the_decode_takes_three_bit_errors_and_refuses_four() -> None:
     """Up to max_hamming (3) flipped data bits still read as the tag's own id; 4 read as nothing (36h11's
-    minimum distance 11 keeps every other word >= 7 bits away, so no wrong id either way)."""
-    proposer = LineQuadProposer()
+    minimum distance 11 keeps every other word >= 7 bits away, so no wrong id either way). The hard
+    decode alone: the blind soft decode may read the 4-bit one as its own id (never as another)."""
+    proposer = LineQuadProposer(HARD)
     tag_id = 117
     own = tag_cells(tag_id)[2:-2, 2:-2].ravel() > 0
     assert [d.tag_id for d in proposer.detect(_draw(None, tag_id))] == [tag_id]
@@ -171,7 +172,8 @@ def test_a_tag_the_image_edge_cuts_through_its_white_ring_gives_nothing() -> Non
     assert [d.tag_id for d in proposer.detect(np.ascontiguousarray(image[:, x1:]))] == [9]
 
 
-SOFT = LineQuadSettings(soft_decode=True)  # off by default (see the setting)
+SOFT = LineQuadSettings(soft_decode=True)  # the default, said where a test is about it
+HARD = LineQuadSettings(soft_decode=False)  # the hard decode alone
 # the occluded renders' settings with the occluder swapped for exposure blur, on smaller tags
 SMALL_BLURRED = replace(OCCLUDED, p_occluder=0.0, p_motion_blur=1.0, span_px=(30.0, 60.0))
 
@@ -179,7 +181,7 @@ SMALL_BLURRED = replace(OCCLUDED, p_occluder=0.0, p_motion_blur=1.0, span_px=(30
 def test_the_soft_decode_reads_small_tags_that_motion_blur_smeared_past_the_bits() -> None:
     """30-60 px tags under >= 10 px of exposure blur (bench/tagrender, not the project's code): the hard
     decode reads some, the blind soft decode (shared.vision.softdecode) reads more, never a wrong id."""
-    soft, hard = LineQuadProposer(SOFT), LineQuadProposer()
+    soft, hard = LineQuadProposer(SOFT), LineQuadProposer(HARD)
     n = hard_found = soft_found = 0
     for index in range(60):
         sample = render_sample(index, 3, SMALL_BLURRED)
@@ -253,16 +255,16 @@ def test_stage1_counts_the_soft_decodes_and_skips_quads_inside_tags_it_has() -> 
         s
         for s in (render_sample(i, 3, SMALL_BLURRED) for i in range(60))
         if s.meta["blur_px"] >= 10.0
-        and not LineQuadProposer().detect(s.image)
+        and not LineQuadProposer(HARD).detect(s.image)
         and LineQuadProposer(SOFT).detect(s.image)
     )
     no_apriltag = DetectorSettings(min_decision_margin=1e9)
     stage1 = Stage1Detector(Stage1Settings(apriltag=no_apriltag, aruco=ArucoSettings(enabled=False), lines=SOFT))
-    assert [(d.tag_id, d.proposer) for d in stage1.detect(sample.image)] == [(sample.tags[0].tag_id, "lines")]
+    assert [(d.tag_id, d.proposer) for d in stage1.detect(sample.image)] == [(sample.tags[0].tag_id, "lines_soft")]
     assert (stage1.counts.lines_added, stage1.counts.lines_soft) == (1, 1)
-    default = Stage1Detector(Stage1Settings(apriltag=no_apriltag, aruco=ArucoSettings(enabled=False)))
-    assert default.detect(sample.image) == [] and default.counts.lines_soft == 0  # off unless asked
-    default.close()
+    off = Stage1Detector(Stage1Settings(apriltag=no_apriltag, aruco=ArucoSettings(enabled=False), lines=HARD))
+    assert off.detect(sample.image) == [] and off.counts.lines_soft == 0  # nothing read blind when off
+    off.close()
     # a tag another proposer already has is not read again
     lines = LineQuadProposer(SOFT)
     assert lines.detect(sample.image, known=[sample.tags[0].corners_px]) == []

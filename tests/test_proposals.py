@@ -14,7 +14,7 @@ from bench.photos import load_photos, match
 from bench.tagrender import clean_settings, render_sample
 from shared.vision.detector import Detection, DetectorSettings, Stage1, TagDetector, merge_proposals
 from shared.vision.linequads import LineQuadProposer, LineQuadSettings
-from shared.vision.proposals import ArucoProposer, Stage1Detector, Stage1Settings
+from shared.vision.proposals import ArucoProposer, ArucoSettings, FullResSettings, Stage1Detector, Stage1Settings
 
 
 def _square(centre: tuple[float, float], side: float) -> NDArray[np.float64]:
@@ -98,7 +98,11 @@ def test_real_photos_second_proposer_recovers_what_decimation_and_apriltag_lose(
     decimate 1; stage 1 with the second proposer finds more at either setting, and >= 46 at decimate 1."""
     full = DetectorSettings(quad_decimate=1.0)
     apriltag_d2, apriltag_d1 = TagDetector(), TagDetector(full)
-    stage1_d2, stage1_d1 = Stage1Detector(), Stage1Detector(Stage1Settings(apriltag=full))
+    single = FullResSettings(enabled=False)  # one image each: no full-resolution sweep or windows
+    stage1_d2, stage1_d1 = (
+        Stage1Detector(Stage1Settings(full_res=single)),
+        Stage1Detector(Stage1Settings(apriltag=full)),
+    )
     base_d2, base_d1 = _found(apriltag_d2), _found(apriltag_d1)
     ours_d2, ours_d1 = _found(stage1_d2), _found(stage1_d1)
     print(f"\nreal photos, 47 tags: AprilTag d2 {base_d2}, d1 {base_d1}; stage 1 d2 {ours_d2}, d1 {ours_d1}")
@@ -106,6 +110,75 @@ def test_real_photos_second_proposer_recovers_what_decimation_and_apriltag_lose(
     assert ours_d1 >= 46
     for d in (apriltag_d2, apriltag_d1, stage1_d2, stage1_d1):
         d.close()
+
+
+def _found_per_frame(
+    settings: Stage1Settings, frames: int, shift_px: int = 0
+) -> tuple[list[int], list[Stage1Detector]]:
+    """Each real photo as a short video (shifted by `shift_px` right and down per frame, as a moving
+    camera would), one detector per photo: annotated tags found per frame, summed over the photos."""
+    per_frame = [0] * frames
+    detectors = []
+    for photo in load_photos():
+        detector = Stage1Detector(settings)
+        for f in range(frames):
+            image = np.roll(photo.image, (f * shift_px, f * shift_px), axis=(0, 1))
+            tags = [(i, c + f * shift_px) for i, c in photo.tags]
+            found = [Prediction(d.tag_id, d.corners_px, "corners4") for d in detector.detect(image)]
+            per_frame[f] += match(tags, found)[0]
+        detectors.append(detector)
+    return per_frame, detectors
+
+
+def test_small_tags_stay_found_between_full_resolution_sweeps() -> None:
+    """robot_infer's stage 1 (decimate 2) on the real photos as videos: the first frame runs AprilTag at
+    full resolution (a sweep) and finds 46 of 47; the next frames run decimated, and windows at full
+    resolution around the small tags seen keep all 46 (38 without them); while the picture moves 3 px a
+    frame, 45-46. AprilTag alone with the windows: 44 on every frame against 29 decimated."""
+    default, detectors = _found_per_frame(Stage1Settings(), 4)
+    assert default[0] >= 46 and min(default[1:]) >= 46, default
+    assert sum(d.counts.fullres_sweeps for d in detectors) == 3
+    moving, _ = _found_per_frame(Stage1Settings(), 4, shift_px=3)
+    assert min(moving) >= 45, moving
+    assert sum(d.counts.fullres_added for d in detectors) > 0
+    without, _ = _found_per_frame(Stage1Settings(full_res=FullResSettings(enabled=False)), 2)
+    assert without[1] <= default[1] - 6, (without, default)
+    alone = Stage1Settings(
+        aruco=ArucoSettings(enabled=False),
+        lines=LineQuadSettings(enabled=False),
+        full_res=FullResSettings(max_regions=32),
+    )
+    apriltag_only, detectors = _found_per_frame(alone, 3)
+    assert min(apriltag_only) >= 44, apriltag_only
+    assert all(d.counts.fullres_windows > 0 for d in detectors)
+    decimated, _ = _found_per_frame(
+        Stage1Settings(aruco=alone.aruco, lines=alone.lines, full_res=FullResSettings(enabled=False)), 1
+    )
+    assert decimated[0] <= 30
+
+
+def test_full_resolution_windows_forget_tags_not_seen_for_a_while_and_stay_bounded() -> None:
+    """A tag seen once is looked for in the `remember_frames` frames after, then forgotten; at most
+    `max_regions` windows a frame; nothing of it at decimate 1 (the detector is full resolution already)."""
+    photo = load_photos()[1]
+    settings = Stage1Settings(
+        aruco=ArucoSettings(enabled=False),
+        lines=LineQuadSettings(enabled=False),
+        full_res=FullResSettings(sweep_every_frames=0, remember_frames=3, max_regions=2),
+    )
+    detector = Stage1Detector(settings)
+    blank = np.full_like(photo.image, 128)
+    assert detector.detect(blank) == []  # frame 0
+    detector._remember([Detection(i, 50.0, 0, c) for i, c in photo.tags], 0)  # as if frame 0 had found them
+    windows = []
+    for _ in range(5):
+        before = detector.counts.fullres_windows
+        assert detector.detect(blank) == []
+        windows.append(detector.counts.fullres_windows - before)
+    assert windows == [2, 2, 2, 0, 0]  # looked for in the 3 frames after the sighting, 2 windows each
+    full = Stage1Detector(Stage1Settings(apriltag=DetectorSettings(quad_decimate=1.0)))
+    full.detect(photo.image)
+    assert (full.counts.fullres_sweeps, full.counts.fullres_windows) == (0, 0)
 
 
 def test_bad_threshold_windows_are_refused_with_the_values() -> None:

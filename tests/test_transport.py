@@ -33,7 +33,7 @@ def test_missing_config_file_is_a_clear_error(tmp_path: Path) -> None:
 
 
 def test_keys_are_versioned_and_under_root() -> None:
-    assert keys.features("r1") == "splittag/r1/features/v3"
+    assert keys.features("r1") == "splittag/r1/features/v4"
     assert keys.split("r1") == "splittag/r1/split"
     assert keys.alive("r1", "edge_infer") == "splittag/r1/alive/edge_infer"
     for bad in ["", "a/b", "*", "a b"]:

@@ -32,8 +32,10 @@ from shared.wire.messages import (
     TagFeature,
     TagFeatureV1,
     TagFeatureV2,
+    TagFeatureV3,
     TagPoses,
     TagPoseV2,
+    TagPoseV3,
     decode,
     encode,
 )
@@ -44,8 +46,10 @@ GOLDEN = Path(__file__).parent / "golden"
 LEGACY_TAG_TYPES: dict[str, type[TagFeatureV1] | type[TagPoseV2]] = {
     "splittag/Features/v1": TagFeatureV1,
     "splittag/Features/v2": TagFeatureV2,
+    "splittag/Features/v3": TagFeatureV3,
     "splittag/TagPoses/v1": TagPoseV2,
     "splittag/TagPoses/v2": TagPoseV2,
+    "splittag/TagPoses/v3": TagPoseV3,
 }
 EXAMPLES = example_messages()
 # Legacy versions with the current fields but fewer allowed values (CameraPose/v1: no "bridged").
@@ -243,7 +247,7 @@ def test_size_limit() -> None:
 
 
 def test_unexpected_type_is_refused() -> None:
-    with pytest.raises(SchemaError, match="where splittag/Features/v3 was expected"):
+    with pytest.raises(SchemaError, match="where splittag/Features/v4 was expected"):
         decode(encode(EXAMPLES[Frame.SCHEMA]), Features)
 
 
@@ -309,8 +313,8 @@ EVIL_ARRAY = {"dtype": "uint8", "shape": [0, 2**63], "data": b""}  # right byte 
     ("schema", "path"),
     [
         ("splittag/Frame/v1", ("image",)),
-        ("splittag/Features/v3", ("tags", 0, "tensor")),
-        ("splittag/TagPoses/v3", ("tags", 0, "keypoints_px")),
+        ("splittag/Features/v4", ("tags", 0, "tensor")),
+        ("splittag/TagPoses/v4", ("tags", 0, "keypoints_px")),
     ],
 )
 def test_an_impossible_shape_is_a_wire_error_not_a_crash(schema: str, path: tuple[str | int, ...]) -> None:
@@ -421,7 +425,7 @@ def test_a_non_finite_split_tensor_is_refused_by_the_edge_not_the_wire() -> None
 def test_a_homography_with_a_huge_entry_is_a_schema_error_not_an_overflow(big: float) -> None:
     """Found by the mutation fuzzer: a flipped exponent made one homography entry ~1e200 and the
     invertibility check cubed it (OverflowError escaped decode). Scaled first, it is a typed refusal."""
-    features = EXAMPLES["splittag/Features/v3"]
+    features = EXAMPLES["splittag/Features/v4"]
     assert isinstance(features, Features)
     h = np.eye(3)
     h[0, 1] = big

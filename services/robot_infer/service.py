@@ -139,6 +139,9 @@ class RobotInfer:
             "stage1_aruco_refused": self.detector.counts.aruco_refused,
             "stage1_lines_added": self.detector.counts.lines_added,
             "stage1_lines_soft": self.detector.counts.lines_soft,
+            "stage1_fullres_sweeps": self.detector.counts.fullres_sweeps,
+            "stage1_fullres_windows": self.detector.counts.fullres_windows,
+            "stage1_fullres_added": self.detector.counts.fullres_added,
         }
 
     # Zenoh callbacks: bookkeeping only.

@@ -112,6 +112,7 @@ def robot_head(
             tensor=tensors[i],
             edge_width_px=edge_width_px(rois[i], roi_to_image[i]),
             tracked=i >= s1.n_detected,
+            proposer="tracker" if i >= s1.n_detected else d.proposer,
         )
         for i, d in enumerate(detections)
     ]
@@ -274,6 +275,7 @@ def _poses(
                 alt_camera_from_tag=cand.alt_camera_from_tag,
                 alt_reprojection_error_px=cand.alt_reprojection_error_px,
                 tracked=tag.tracked,
+                proposer=tag.proposer,
             )
         )
     edge_secs = tail_secs + time.perf_counter() - t0

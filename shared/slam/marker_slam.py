@@ -77,6 +77,10 @@ class SlamSettings(BaseModel):
     # Tags the tracker carried through blur: their quads drift in scale by a few % (bench/slam), so
     # every sigma of theirs is this much larger.
     tracked_sigma_scale: float = Field(default=4.0, ge=1)
+    # Tags stage 1 read blind (the line quads' soft decode, proposer "lines_soft") are the most blurred:
+    # their ids are right but their keypoints are 1.5-4 px off at 3-4 m, biased alike from frame to frame
+    # (bench/slam's fast sequence: ATE with the map 4.7 -> 11.8 cm with them). Left out unless this is on.
+    use_soft_reads: bool = False
     # After a gap longer than motion_max_gap_frames, a frame whose tags are all new would be lost for
     # good (nothing ties them to the map). With this on, it continues the trajectory instead: its pose
     # starts where the robot was last seen, tied to it by a weak link (these sigmas), and the tags it
@@ -101,6 +105,7 @@ class Observation:
     alt_reprojection_error_px: float
     focal_px: float | None = None  # the camera's focal length when the message said (else the settings')
     tracked: bool = False  # carried by the tracker through frames stage 1 missed (noisier: see settings)
+    proposer: str | None = None  # who found it (shared.vision.proposers.Proposer; None: not said)
 
     @staticmethod
     def from_message(tag: TagPose, focal_px: float | None = None) -> Observation:
@@ -114,6 +119,7 @@ class Observation:
             tag.alt_reprojection_error_px,
             focal_px,
             tag.tracked,
+            tag.proposer,
         )
 
 
@@ -137,6 +143,7 @@ class SlamState:
     rejected_ambiguous: int = 0
     observations: dict[int, int] = field(default_factory=dict)
     fragments: int = 0  # fragments started after long gaps (see SlamSettings.bridge_long_gaps)
+    soft_reads_skipped: int = 0  # observations of blind soft reads left out (SlamSettings.use_soft_reads)
 
 
 def _pose3(m: Array) -> gtsam.Pose3:
@@ -243,6 +250,9 @@ class _Pending:
 
 WORLD_FRAGMENT: Final[int] = 0
 JOIN_ITERATIONS: Final[int] = 5
+# A frame this close after the robot's last pose is held to it by the motion prior as firmly as by a
+# tag: it joins their fragments.
+TIED_FRAMES: Final[int] = 2
 
 
 class _Fragments:
@@ -291,6 +301,9 @@ class _Track:
     # (first stamp, fragment) each time the fragment changed: a frame's fragment is the last start at or
     # before its stamp (one entry per long gap or join, so bounded by the gaps, not the frames)
     fragment_starts: list[tuple[int, int]] = field(default_factory=lambda: [(-1, 0)])
+    # (first, last stamp) of frames that left the graph while their fragment was not tied to the world:
+    # they stay bridged (their poses are final as they were; a later join no longer moves them)
+    sealed: list[tuple[int, int]] = field(default_factory=list)
 
     def key(self, frame: int) -> int:
         """The GTSAM key of this robot's camera pose at `frame`."""
@@ -494,10 +507,14 @@ class MarkerSlam:
         track = self._track(robot)
         s = self.settings
         self.state.frames += 1
+        if not s.use_soft_reads:
+            kept = [o for o in observations if o.proposer != "lines_soft"]
+            self.state.soft_reads_skipped += len(observations) - len(kept)
+            observations = kept
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         map_changed = self._seed_map(observations, graph, values)
         predicted = self.predict(frame, robot=robot)
-        long_gap_from: int | None = None
+        still_from: int | None = None
         joined = False
         mapped = [(o, wt) for o in observations if (wt := self._world_from_tag(o.tag_id)) is not None]
         # Camera initial guess: each mapped tag's view (branch chosen against the prediction or, without
@@ -515,7 +532,7 @@ class MarkerSlam:
         roots = {o.tag_id: self._fragments.find(self._tag_fragment[o.tag_id]) for o, _ in mapped}
         lead = min(
             roots.values(),
-            key=lambda r: (r != self._fragments.find(WORLD_FRAGMENT), r != track.fragment, r),
+            key=lambda r: (r != self._fragments.find(WORLD_FRAGMENT), r != self._fragments.find(track.fragment), r),
             default=None,
         )
         guesses = [
@@ -528,9 +545,11 @@ class MarkerSlam:
             init = min(guesses, key=lambda g: float(np.linalg.norm(g[:3, 3] - centre)))
         elif predicted is not None and not s.localisation_only:
             init = predicted  # only new tags in view, shortly after the last pose: bridge with the motion
-        elif (last := self._long_gap_origin(track, observations)) is not None:
-            init = self._pose(track, last)  # only new tags, long after the last pose: start a fragment there
-            long_gap_from = last
+        elif (last := self._still_origin(track, observations)) is not None:
+            # only new tags and no motion to extrapolate (a long gap, or a single recent pose): held still
+            # from the last pose, tied to it by a weak link; after a long gap in a new fragment
+            init = self._pose(track, last)
+            still_from = last
         else:
             self.state.lost += 1
             return FrameResult(None, "lost", 0, 0, map_changed)
@@ -548,6 +567,9 @@ class MarkerSlam:
                     and _rot_deg(measured, np.linalg.inv(init) @ wt) > s.disagreement_deg
                 ):
                     rejected += 1  # disagrees with the other tags in view in either branch: an outlier
+                    continue
+                if roots[o.tag_id] != lead and self.is_ambiguous(o):
+                    rejected += 1  # a join (and its link's removal) only on a view whose branch is sure
                     continue
                 seen_fragments.add(self._fragments.find(self._tag_fragment[o.tag_id]))
             elif s.localisation_only:
@@ -575,38 +597,44 @@ class MarkerSlam:
         values.insert(track.key(frame), _pose3(init))
         remove: list[int] = []
         link_at: int | None = None
-        if long_gap_from is not None:
-            gap = frame - long_gap_from
+        long_gap = still_from is not None and frame - still_from > s.motion_max_gap_frames
+        if still_from is not None:
+            gap = frame - still_from
             rot_sigma = math.radians(min(180.0, s.long_gap_sigma_deg_per_frame * gap))
             sigmas = [rot_sigma] * 3 + [s.long_gap_sigma_m_per_frame * gap] * 3
-            link_at = graph.size()
+            if long_gap:
+                link_at = graph.size()
             graph.add(
                 gtsam.BetweenFactorPose3(
-                    track.key(long_gap_from),
+                    track.key(still_from),
                     track.key(frame),
                     gtsam.Pose3(),  # held still: a guess either way, and one that cannot fly off
                     gtsam.noiseModel.Diagonal.Sigmas(np.array(sigmas)),
                 )
             )
+        motion = self._motion_factor(track, frame)  # never None when this frame is bridged (as predict)
+        if motion is not None:
+            graph.add(motion)
+        if long_gap:
             fragment = self._fragments.new()
             self.state.fragments += 1
-        elif seen_fragments:
+        else:
+            last = max(track.stamps, default=None)
+            if not seen_fragments or (last is not None and frame - last <= TIED_FRAMES):
+                # this frame is tied to the robot's last ones (its only tags are new, or it comes right
+                # after them: the motion factor holds it): their fragment is in view too
+                seen_fragments.add(self._fragments.find(track.fragment))
             joined = len(seen_fragments) > 1
             fragment = self._fragments.union(seen_fragments)  # a view shared by fragments joins them
             # The joined fragments' weak links go: the shared view places them now, not the gap's guess.
             remove = [
                 self._fragment_links.pop(f) for f in seen_fragments if f != fragment and f in self._fragment_links
             ]
-        else:
-            fragment = track.fragment  # only new tags, bridged by the motion: the fragment goes on
         for tag_id in new_tags:
             self._tag_fragment[tag_id] = fragment
         if fragment != track.fragment:
             track.fragment_starts.append((stamp_nanos, fragment))
         track.fragment = fragment
-        motion = self._motion_factor(track, frame)  # never None when this frame is bridged (as predict)
-        if motion is not None:
-            graph.add(motion)
         result = self.isam.update(graph, values, remove)
         if link_at is not None:
             self._fragment_links[fragment] = int(result.getNewFactorsIndices()[link_at])
@@ -622,9 +650,10 @@ class MarkerSlam:
         )
         return FrameResult(pose, status, used, rejected, map_changed)
 
-    def _long_gap_origin(self, track: _Track, observations: list[Observation]) -> int | None:
-        """The robot's last frame with a pose, when this frame (past the bridging gap, only new tags in
-        view) should continue the trajectory from it in a new fragment (see bridge_long_gaps)."""
+    def _still_origin(self, track: _Track, observations: list[Observation]) -> int | None:
+        """The robot's last frame with a pose, when this frame (only new tags in view, no motion to
+        extrapolate: past the bridging gap, or a single recent pose) should be held still from it
+        (see bridge_long_gaps)."""
         s = self.settings
         if not s.bridge_long_gaps or s.localisation_only or not observations or not track.stamps:
             return None
@@ -697,6 +726,17 @@ class MarkerSlam:
                 )
                 values.insert(track.key(f), _pose3(poses[f]))
             old = [f for f in sorted(track.stamps) if f not in keep]
+            run_open = False  # runs of consecutive bridged frames leaving the graph, one entry each
+            for f in old:
+                stamp = track.stamps[f]
+                if self._bridged_in(track, stamp):
+                    if run_open:
+                        track.sealed[-1] = (track.sealed[-1][0], stamp)
+                    else:
+                        track.sealed.append((stamp, stamp))
+                    run_open = True
+                else:
+                    run_open = False
             track.done.extend([track.stamps[f] for f in old], [poses[f] for f in old])
             for f in old:
                 del track.stamps[f]
@@ -735,10 +775,14 @@ class MarkerSlam:
     def bridged(self, stamp_nanos: int, robot: str | None = None) -> bool:
         """Whether the robot's pose at this stamp lies in a fragment not (yet) tied to the world: begun
         after a long gap and never seen together with the world's tags since (then its placement is
-        the gap's guess; its poses relative to each other and its own tags are as good as any)."""
+        the gap's guess; its poses relative to each other and its own tags are as good as any). A frame
+        that left the graph while bridged stays bridged."""
         track = self._tracks.get(robot if robot is not None else next(iter(self._tracks), ""))
-        if track is None:
-            return False
+        return track is not None and self._bridged_in(track, stamp_nanos)
+
+    def _bridged_in(self, track: _Track, stamp_nanos: int) -> bool:
+        if any(first <= stamp_nanos <= last for first, last in track.sealed):
+            return True
         fragment = WORLD_FRAGMENT
         for start, f in track.fragment_starts:
             if start > stamp_nanos:

@@ -630,8 +630,9 @@ def _add_model_commands(sub: Any) -> None:
     )
     p.add_argument(
         "--soft-decode",
-        action="store_true",
-        help="the line quads also read tags whose bits blur or an occluder smeared (blind soft decode)",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="the line quads also read tags whose bits blur or an occluder smeared (blind soft decode; on)",
     )
     p.set_defaults(func=_cmd_detect)
 

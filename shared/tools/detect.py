@@ -33,7 +33,7 @@ def run_detect(
     quad_decimate: float = 1.0,
     aruco: bool = True,
     lines: bool = True,
-    soft_decode: bool = False,
+    soft_decode: bool = True,
 ) -> int:
     """Process every image; unreadable ones are reported in the JSON and on stderr. Exit 0 if any ran."""
     camera = camera_from_yaml(camera_path)

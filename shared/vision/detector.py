@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from shared.vision.geometry import Array, check_image
+from shared.vision.proposers import Proposer
 
 CORNER_OFFSET_PX: Final[float] = 0.5
 _TO_TL_TR_BR_BL: Final[list[int]] = [3, 2, 1, 0]
@@ -39,13 +40,13 @@ class DetectorSettings(BaseModel):
 @dataclass(frozen=True)
 class Detection:
     """One decoded tag: id, decode quality, the black square's corners TL, TR, BR, BL, and which stage-1
-    proposer found it ("apriltag", "aruco"; shared.vision.proposals)."""
+    proposer found it (`Proposer`; shared.vision.proposals)."""
 
     tag_id: int
     decision_margin: float
     hamming: int
     corners_px: Array
-    proposer: str = "apriltag"
+    proposer: Proposer = "apriltag"
 
 
 class Stage1(Protocol):

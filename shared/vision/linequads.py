@@ -77,9 +77,9 @@ class LineQuadSettings(BaseModel):
     min_ring_contrast: float = Field(default=20.0, ge=0.0)  # white ring median - black ring median
     refine_corners: bool = True
     # step 8: quads whose hard decode failed but whose rings stand out are read by a blind soft decode.
-    # Off by default: the tags it adds are right (no wrong id or ghost measured) but under 10-17 px of
-    # blur their keypoints are 2-4 px off, and on bench/slam's fast sequence SLAM got worse (README).
-    soft_decode: bool = False
+    # Its tags (proposer "lines_soft") are right (no wrong id or ghost measured), but under 10-17 px of
+    # blur their keypoints are 2-4 px off: slam leaves them out unless asked (SlamSettings.use_soft_reads).
+    soft_decode: bool = True
     soft_min_ring_fraction: float = Field(default=0.6, gt=0.5, le=1.0)
     soft_max_per_frame: int = Field(default=8, ge=0)  # bounds the cost (1.5-3 ms a quad) on cluttered frames
     soft_min_side_px: float = Field(default=24.0, ge=0.0)  # smaller quads have too few pixels a cell
@@ -537,7 +537,7 @@ class LineQuadProposer:
             [], [Detection(r.tag_id, r.contrast, r.hamming, r.corners_px, "lines") for r, _ in found]
         )
         read, _ = merge_proposals(
-            hard, [Detection(r.tag_id, r.contrast, r.hamming, r.corners_px, "lines") for r in soft]
+            hard, [Detection(r.tag_id, r.contrast, r.hamming, r.corners_px, "lines_soft") for r in soft]
         )
         self.soft_decoded += len(read)
         best = hard + read

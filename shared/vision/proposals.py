@@ -27,7 +27,14 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from shared.vision.detector import Detection, DetectorSettings, Stage1, TagDetector, merge_proposals
+from shared.vision.detector import (
+    Detection,
+    DetectorSettings,
+    Stage1,
+    TagDetector,
+    merge_proposals,
+    quad_side_px,
+)
 from shared.vision.geometry import check_image
 from shared.vision.linequads import LineQuadProposer, LineQuadSettings
 from shared.vision.tracking import Prediction as TrackPrediction
@@ -67,6 +74,26 @@ class ArucoSettings(BaseModel):
         return v
 
 
+class FullResSettings(BaseModel):
+    """Small tags at full resolution where they were seen (module docstring). Only when AprilTag runs
+    decimated (`apriltag.quad_decimate > 1`); state carries from frame to frame, so a detector that is
+    fed unrelated images (single-image benches) should turn it off."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    enabled: bool = True
+    # A whole frame at full resolution every this many frames (the first frame is one; 0: never): finds
+    # the small tags decimation loses, at AprilTag's full-resolution cost on that frame only.
+    sweep_every_frames: int = Field(default=30, ge=0)
+    # Tags up to this side (px) found in the last `remember_frames` frames are looked for again at full
+    # resolution in a window around their last quad (`margin_sides` of their side on each side, for the
+    # motion) when the decimated pass misses them; at most `max_regions` windows a frame.
+    small_side_px: float = Field(default=64.0, gt=0.0)
+    remember_frames: int = Field(default=30, ge=1)
+    margin_sides: float = Field(default=1.0, ge=0.0)
+    max_regions: int = Field(default=8, ge=0)
+
+
 class Stage1Settings(BaseModel):
     """Stage 1 as robot_infer, `splittag detect` and the benches run it."""
 
@@ -75,6 +102,7 @@ class Stage1Settings(BaseModel):
     apriltag: DetectorSettings = Field(default_factory=DetectorSettings)
     aruco: ArucoSettings = Field(default_factory=ArucoSettings)
     lines: LineQuadSettings = Field(default_factory=LineQuadSettings)
+    full_res: FullResSettings = Field(default_factory=FullResSettings)
     # A tag both proposers report is one tag when their centres are closer than this fraction of the
     # larger quad side (one id may appear several times in one image: all are kept).
     same_tag_fraction: float = Field(default=0.5, gt=0.0, le=1.0)
@@ -92,6 +120,28 @@ class Stage1Counts:
     lines_added: int = 0  # tags only the line-quad proposer decoded
     lines_merged: int = 0  # line-quad tags the others had already
     lines_soft: int = 0  # line-quad tags read by the blind soft decode (added or merged)
+    fullres_sweeps: int = 0  # frames AprilTag ran on at full resolution (FullResSettings.sweep_every_frames)
+    fullres_windows: int = 0  # windows around small tags seen before, searched at full resolution
+    fullres_added: int = 0  # tags those windows found that the decimated pass had missed
+
+
+@dataclass(frozen=True)
+class _Seen:
+    """A small tag's last sighting: the frame, its id and its quad (one id may be on several tags)."""
+
+    frame: int
+    tag_id: int
+    corners_px: NDArray[np.float64]
+
+    def gap_sides(self, d: Detection) -> float:
+        """How far `d` is from this sighting, in sides of this quad (inf for another id)."""
+        if d.tag_id != self.tag_id:
+            return float("inf")
+        gap = float(np.linalg.norm(d.corners_px.mean(axis=0) - self.corners_px.mean(axis=0)))
+        return gap / max(quad_side_px(self.corners_px), 1e-9)
+
+
+_MAX_SEEN: Final[int] = 256  # sightings remembered at most (the oldest go first)
 
 
 class ArucoProposer:
@@ -135,6 +185,9 @@ class Stage1Detector:
         self._apriltag = TagDetector(s.apriltag)
         self._aruco: Stage1 | None = second or (ArucoProposer(s.aruco) if s.aruco.enabled else None)
         self._lines = LineQuadProposer(s.lines) if s.lines.enabled else None
+        full = s.full_res.enabled and s.apriltag.quad_decimate > 1.0
+        self._full = TagDetector(s.apriltag.model_copy(update={"quad_decimate": 1.0})) if full else None
+        self._seen: list[_Seen] = []  # small tags seen lately (the latest sighting of each)
         self._gate = TrackingSettings(
             search_px=s.aruco.gate_search_px,
             search_step_px=max(s.aruco.gate_search_px, 0.5),
@@ -146,9 +199,17 @@ class Stage1Detector:
     def detect(self, image: NDArray[np.uint8]) -> list[Detection]:
         """Both proposers on one uint8 grayscale image, merged."""
         img = np.ascontiguousarray(check_image(image))
-        found = self._apriltag.detect(img)
+        frame = self.counts.frames
+        every = self.settings.full_res.sweep_every_frames
+        sweep = self._full is not None and every > 0 and frame % every == 0
+        found = (self._full if sweep and self._full is not None else self._apriltag).detect(img)
         self.counts.frames += 1
         self.counts.apriltag += len(found)
+        self.counts.fullres_sweeps += int(sweep)
+        if self._full is not None and not sweep:
+            windows = self._windows(img, found, frame)
+            self.counts.fullres_added += len(windows)
+            found.extend(windows)
         if self._aruco is not None:
             new, duplicates = merge_proposals(
                 found, self._aruco.detect(img), same_tag_fraction=self.settings.same_tag_fraction
@@ -171,8 +232,56 @@ class Stage1Detector:
             self.counts.lines_merged += len(duplicates)
             self.counts.lines_added += len(new)
             found.extend(new)
+        if self._full is not None:
+            self._remember(found, frame)
         return sorted(found, key=lambda d: d.tag_id)
 
+    def _windows(self, img: NDArray[np.uint8], found: list[Detection], frame: int) -> list[Detection]:
+        """Full-resolution AprilTag in a window around each small tag seen lately that the decimated
+        pass missed (most recently seen first); what it finds that is new, as proposer "fullres"."""
+        s = self.settings.full_res
+        assert self._full is not None
+        out: list[Detection] = []
+        searched = 0
+        h, w = img.shape[:2]
+        for seen in sorted(self._seen, key=lambda x: -x.frame):
+            if searched >= s.max_regions:
+                break
+            if any(seen.gap_sides(d) < 0.5 for d in (*found, *out)):
+                continue  # found where it was: nothing to look for (one id may be on tags a side apart)
+            side = quad_side_px(seen.corners_px)
+            pad = s.margin_sides * side + 8.0
+            x0, y0 = np.floor(seen.corners_px.min(axis=0) - pad).astype(int)
+            x1, y1 = np.ceil(seen.corners_px.max(axis=0) + pad).astype(int)
+            x0, y0, x1, y1 = max(0, x0), max(0, y0), min(w, x1), min(h, y1)
+            if x1 - x0 < 16 or y1 - y0 < 16:
+                continue  # left the image
+            searched += 1
+            offset = np.array([x0, y0], np.float64)
+            hits = [
+                Detection(d.tag_id, d.decision_margin, d.hamming, d.corners_px + offset, "fullres")
+                for d in self._full.detect(np.ascontiguousarray(img[y0:y1, x0:x1]))
+            ]
+            new, _ = merge_proposals([*found, *out], hits, same_tag_fraction=self.settings.same_tag_fraction)
+            out.extend(new)
+        self.counts.fullres_windows += searched
+        return out
+
+    def _remember(self, found: list[Detection], frame: int) -> None:
+        s = self.settings.full_res
+        old = [x for x in self._seen if frame + 1 - x.frame <= s.remember_frames]  # kept for the next frame
+        new: list[_Seen] = []
+        for d in found:
+            if quad_side_px(d.corners_px) <= s.small_side_px:
+                # the sighting it updates: the nearest of its id within 1.5 sides (it may have moved)
+                gaps = [x.gap_sides(d) for x in old]
+                if gaps and min(gaps) < 1.5:
+                    del old[int(np.argmin(gaps))]
+                new.append(_Seen(frame, d.tag_id, np.array(d.corners_px, np.float64)))
+        self._seen = (old + new)[-_MAX_SEEN:]
+
     def close(self) -> None:
-        """Free the AprilTag detector now; idempotent."""
+        """Free the AprilTag detectors now; idempotent."""
         self._apriltag.close()
+        if self._full is not None:
+            self._full.close()

@@ -25,8 +25,8 @@ def frames(robot_id: str) -> str:
 
 
 def ground_truth(robot_id: str) -> str:
-    """CameraPose v1 (status ground_truth): camera -> evaluators, when the source knows it."""
-    return f"{ROOT}/{_check(robot_id, 'robot id')}/ground_truth/v1"
+    """CameraPose v2 (status ground_truth): camera -> evaluators, when the source knows it."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/ground_truth/v2"
 
 
 def frame_stamp(robot_id: str) -> str:
@@ -35,13 +35,13 @@ def frame_stamp(robot_id: str) -> str:
 
 
 def features(robot_id: str) -> str:
-    """Features v3: robot_infer -> edge_infer (the split tensor crosses the link here)."""
-    return f"{ROOT}/{_check(robot_id, 'robot id')}/features/v3"
+    """Features v4: robot_infer -> edge_infer (the split tensor crosses the link here)."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/features/v4"
 
 
 def tag_poses(robot_id: str) -> str:
-    """TagPoses v3: edge_infer -> slam, controller, robot_infer (credits)."""
-    return f"{ROOT}/{_check(robot_id, 'robot id')}/tag_poses/v3"
+    """TagPoses v4: edge_infer -> slam, controller, robot_infer (credits)."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/tag_poses/v4"
 
 
 def frame_sent(robot_id: str) -> str:
@@ -50,8 +50,8 @@ def frame_sent(robot_id: str) -> str:
 
 
 def camera_pose(robot_id: str) -> str:
-    """CameraPose v1: slam -> anyone."""
-    return f"{ROOT}/{_check(robot_id, 'robot id')}/camera_pose/v1"
+    """CameraPose v2: slam -> anyone."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/camera_pose/v2"
 
 
 def tag_map(robot_id: str) -> str:

@@ -29,6 +29,7 @@ from pydantic import (
 from pydantic_core import core_schema
 
 from shared.vision.camera import CameraIntrinsics
+from shared.vision.proposers import Proposer
 from shared.wire.codec import (
     DEFAULT_MAX_BYTES,
     FRAMING,
@@ -192,15 +193,44 @@ class TagFeatureV2(TagFeatureV1):
     edge_width_px: float | None = Field(ge=0, le=1000, allow_inf_nan=False)
 
 
-class TagFeature(TagFeatureV2):
+class TagFeatureV3(TagFeatureV2):
     """TagFeatureV2 plus whether stage 1 decoded the tag (False) or the tracker carried it from earlier
     frames and the soft decode accepted it (True: its corners are a prediction, not a detection)."""
 
     tracked: bool
 
 
+def _check_proposer(tracked: bool, proposer: str | None) -> None:
+    if proposer is not None and tracked != (proposer == "tracker"):
+        raise ValueError(f"tracked={tracked} but proposer={proposer!r}: tracked tags are the tracker's")
+
+
+class TagFeature(TagFeatureV3):
+    """TagFeatureV3 plus who found the tag (`shared.vision.detector.Proposer`; "tracker" exactly when
+    tracked; None in messages upgraded from v3 and older): slam weighs blind soft reads apart."""
+
+    proposer: Proposer | None = None
+
+    @model_validator(mode="after")
+    def _proposer_agrees(self) -> Self:
+        _check_proposer(self.tracked, self.proposer)
+        return self
+
+
 class Features(FrameMessage):
     """Everything robot_infer computed for one frame at split k (possibly zero tags)."""
+
+    SCHEMA: ClassVar[str] = "splittag/Features/v4"
+    publish_nanos: int = Field(ge=0)
+    split_k: SplitIndex
+    codec: CodecName
+    intrinsics: CameraIntrinsics
+    robot_compute_secs: NonNegFloat
+    tags: list[TagFeature]
+
+
+class FeaturesV3(FrameMessage):
+    """Features before the proposer; still decoded (as v4 with proposer None)."""
 
     SCHEMA: ClassVar[str] = "splittag/Features/v3"
     publish_nanos: int = Field(ge=0)
@@ -208,7 +238,12 @@ class Features(FrameMessage):
     codec: CodecName
     intrinsics: CameraIntrinsics
     robot_compute_secs: NonNegFloat
-    tags: list[TagFeature]
+    tags: list[TagFeatureV3]
+
+    def upgrade(self) -> Features:
+        """The same content as the current schema."""
+        fields = {name: getattr(self, name) for name in FeaturesV3.model_fields if name != "tags"}
+        return Features(**fields, tags=[TagFeature(**dict(t), proposer=None) for t in self.tags])
 
 
 class FeaturesV2(FrameMessage):
@@ -225,7 +260,7 @@ class FeaturesV2(FrameMessage):
     def upgrade(self) -> Features:
         """The same content as the current schema."""
         fields = {name: getattr(self, name) for name in FeaturesV2.model_fields if name != "tags"}
-        return Features(**fields, tags=[TagFeature(**dict(t), tracked=False) for t in self.tags])
+        return Features(**fields, tags=[TagFeature(**dict(t), tracked=False, proposer=None) for t in self.tags])
 
 
 class FeaturesV1(FrameMessage):
@@ -242,7 +277,7 @@ class FeaturesV1(FrameMessage):
     def upgrade(self) -> Features:
         """The same content as the current schema."""
         fields = {name: getattr(self, name) for name in FeaturesV1.model_fields if name != "tags"}
-        tags = [TagFeature(**dict(t), edge_width_px=None, tracked=False) for t in self.tags]
+        tags = [TagFeature(**dict(t), edge_width_px=None, tracked=False, proposer=None) for t in self.tags]
         return Features(**fields, tags=tags)
 
 
@@ -268,10 +303,21 @@ class TagPoseV2(WireModel):
     alt_reprojection_error_px: NonNegFloat
 
 
-class TagPose(TagPoseV2):
+class TagPoseV3(TagPoseV2):
     """TagPoseV2 plus whether the tag was detected by stage 1 (False) or tracked (True; see TagFeature)."""
 
     tracked: bool
+
+
+class TagPose(TagPoseV3):
+    """TagPoseV3 plus who found the tag (as TagFeature.proposer; None in messages upgraded from v3)."""
+
+    proposer: Proposer | None = None
+
+    @model_validator(mode="after")
+    def _proposer_agrees(self) -> Self:
+        _check_proposer(self.tracked, self.proposer)
+        return self
 
 
 class LinkStamps(WireModel):
@@ -288,13 +334,30 @@ class TagPoses(FrameMessage):
     """Edge output for one frame: the tags' poses, the frame's per-hop timings, its link stamps and the
     camera intrinsics the poses were solved with (both None only in messages upgraded from v1)."""
 
-    SCHEMA: ClassVar[str] = "splittag/TagPoses/v3"
+    SCHEMA: ClassVar[str] = "splittag/TagPoses/v4"
     split_k: SplitIndex
     payload_bytes: int = Field(ge=0)
     timings: HopTimings
     link: LinkStamps | None
     intrinsics: CameraIntrinsics | None
     tags: list[TagPose]
+
+
+class TagPosesV3(FrameMessage):
+    """TagPoses before the proposer; still decoded (as v4 with proposer None)."""
+
+    SCHEMA: ClassVar[str] = "splittag/TagPoses/v3"
+    split_k: SplitIndex
+    payload_bytes: int = Field(ge=0)
+    timings: HopTimings
+    link: LinkStamps | None
+    intrinsics: CameraIntrinsics | None
+    tags: list[TagPoseV3]
+
+    def upgrade(self) -> TagPoses:
+        """The same content as the current schema."""
+        fields = {name: getattr(self, name) for name in TagPosesV3.model_fields if name != "tags"}
+        return TagPoses(**fields, tags=[TagPose(**dict(t), proposer=None) for t in self.tags])
 
 
 class TagPosesV2(FrameMessage):
@@ -311,7 +374,7 @@ class TagPosesV2(FrameMessage):
     def upgrade(self) -> TagPoses:
         """The same content as the current schema."""
         fields = {name: getattr(self, name) for name in TagPosesV2.model_fields if name != "tags"}
-        return TagPoses(**fields, tags=[TagPose(**dict(t), tracked=False) for t in self.tags])
+        return TagPoses(**fields, tags=[TagPose(**dict(t), tracked=False, proposer=None) for t in self.tags])
 
 
 class TagPosesV1(FrameMessage):
@@ -327,7 +390,7 @@ class TagPosesV1(FrameMessage):
     def upgrade(self) -> TagPoses:
         """The same content as the current schema."""
         fields = {name: getattr(self, name) for name in TagPosesV1.model_fields if name != "tags"}
-        tags = [TagPose(**dict(t), tracked=False) for t in self.tags]
+        tags = [TagPose(**dict(t), tracked=False, proposer=None) for t in self.tags]
         return TagPoses(**fields, link=None, intrinsics=None, tags=tags)
 
 
@@ -490,12 +553,17 @@ LEGACY_SCHEMAS: Final[
         str,
         type[TagPosesV1]
         | type[TagPosesV2]
+        | type[TagPosesV3]
         | type[ProbeAckV1]
         | type[FeaturesV1]
         | type[FeaturesV2]
+        | type[FeaturesV3]
         | type[CameraPoseV1],
     ]
-] = {m.SCHEMA: m for m in (TagPosesV1, TagPosesV2, ProbeAckV1, FeaturesV1, FeaturesV2, CameraPoseV1)}
+] = {
+    m.SCHEMA: m
+    for m in (TagPosesV1, TagPosesV2, TagPosesV3, ProbeAckV1, FeaturesV1, FeaturesV2, FeaturesV3, CameraPoseV1)
+}
 _CURRENT_BY_NAME: Final[dict[str, type[Message]]] = {m.SCHEMA.rpartition("/")[0]: m for m in MESSAGE_TYPES}
 ENVELOPE_KEYS: Final[frozenset[str]] = frozenset({"schema", "body"})
 

@@ -26,6 +26,7 @@ def probe_features(tensor_bytes: int, *, robot_id: str = "probe", seq: int = 0) 
         tensor=tensor,
         edge_width_px=1.0,  # a measured width (a float), as real Features carry
         tracked=False,
+        proposer="apriltag",  # as real Features say
     )
     now = time.time_ns()
     return Features(
