@@ -119,13 +119,14 @@ def _init_worker(weights: str, soft_decode: bool = True) -> None:
 
     from shared.model.weights import load_keypoint_fusion, load_model
     from shared.vision.linequads import LineQuadSettings
-    from shared.vision.proposals import Stage1Detector, Stage1Settings
+    from shared.vision.proposals import Stage1Settings
 
     torch.set_num_threads(1)
     _worker["model"] = load_model(Path(weights))
     _worker["fusion"] = load_keypoint_fusion(Path(weights))
-    # the services' stage 1 (with the line quads' soft decode when asked)
-    _worker["detector"] = Stage1Detector(Stage1Settings(lines=LineQuadSettings(soft_decode=soft_decode)))
+    # the services' stage 1 settings (the soft decode as asked); a fresh detector per sequence, as its
+    # full-resolution sweeps and windows carry state from frame to frame
+    _worker["stage1"] = Stage1Settings(lines=LineQuadSettings(soft_decode=soft_decode))
     _worker["apriltag"] = AprilTagMethod()
     _worker["renderers"] = {}
 
@@ -141,6 +142,7 @@ def _perceive_sequence(spec: SequenceSpec) -> list[FrameRecord]:
     from shared.vision.fusion import edge_width_px
     from shared.vision.geometry import keypoints_to_image, lattice_in_tag
     from shared.vision.pnp import solve_planar_pnp
+    from shared.vision.proposals import Stage1Detector
     from shared.vision.tagmap import TagMapFile
     from shared.vision.tracking import TagTracker, verify_tag
 
@@ -152,7 +154,8 @@ def _perceive_sequence(spec: SequenceSpec) -> list[FrameRecord]:
     tag_map = TagMapFile.model_validate(r.tag_map_json())  # the sizes, as a deployment's tag map gives them
     true_tags = {t.tag_id: t for t in r.tags}
     tracker = TagTracker()
-    model, fusion, detector = _worker["model"], _worker["fusion"], _worker["detector"]
+    model, fusion = _worker["model"], _worker["fusion"]
+    detector = Stage1Detector(_worker["stage1"])  # this sequence's own: no state from another
     records = []
     for index in range(s.n_frames):
         frame = r.render(index)
@@ -198,6 +201,7 @@ def _perceive_sequence(spec: SequenceSpec) -> list[FrameRecord]:
         tracker.update(index, refined, {d.tag_id for d in detections})
         rec.tracking_ms = (time.perf_counter() - t0) * 1e3
         records.append(rec)
+    detector.close()
     return records
 
 

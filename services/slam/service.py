@@ -207,6 +207,7 @@ class SlamNode:
             tag_map = self.slam.tag_map()
             state = self.slam.state
             frames, lost, rejected = state.frames, state.lost, state.rejected_ambiguous
+            fragments, soft_skipped = state.fragments, state.soft_reads_skipped
             robots = sorted(self.runs)
         per_robot = {robot: self._write_robot(run_dir, robot) for robot in robots}
         if self.resumed is not None:  # tags of the checkpoint not seen again are kept as they were
@@ -224,6 +225,8 @@ class SlamNode:
             "tags": len(tag_map),
             "lost_frames": lost,
             "rejected_ambiguous": rejected,
+            "fragments": fragments,  # map fragments begun after long gaps without tags
+            "soft_reads_skipped": soft_skipped,  # blind soft reads left out (SlamSettings.use_soft_reads)
         }
         if self.fleet:
             out["robots"] = per_robot
@@ -370,7 +373,12 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
 
     def robots_served() -> dict[str, object]:
         with node.lock:  # on Zenoh's thread while the main loop may add a robot
-            return {"robots": sorted(node.runs)}
+            state = node.slam.state
+            return {
+                "robots": sorted(node.runs),
+                "fragments": state.fragments,
+                "soft_reads_skipped": state.soft_reads_skipped,
+            }
 
     stats = serve_stats(session, key(lambda r: keys.stats(r, "slam")), guard, robots_served)
 

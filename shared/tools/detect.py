@@ -16,7 +16,7 @@ from shared.runtime.sources import expand_paths
 from shared.vision.detector import DetectorSettings
 from shared.vision.geometry import GeometryError, camera_from_yaml
 from shared.vision.linequads import LineQuadSettings
-from shared.vision.proposals import ArucoSettings, Stage1Detector, Stage1Settings
+from shared.vision.proposals import ArucoSettings, FullResSettings, Stage1Detector, Stage1Settings
 from shared.vision.tagmap import TagMapFile, load_tag_map
 
 DEFAULT_WEIGHTS: Final[Path] = Path(__file__).resolve().parents[2] / "models"
@@ -45,6 +45,7 @@ def run_detect(
             apriltag=DetectorSettings(quad_decimate=quad_decimate),
             aruco=ArucoSettings(enabled=aruco),
             lines=LineQuadSettings(enabled=lines, soft_decode=soft_decode),
+            full_res=FullResSettings(enabled=False),  # unrelated images: no state from one to the next
         )
     )
     images: list[dict[str, Any]] = []

@@ -142,6 +142,12 @@ class _Seen:
 
 
 _MAX_SEEN: Final[int] = 256  # sightings remembered at most (the oldest go first)
+# A detection of the same id this close (in sides) is the sighting moved on (one id may be on tags a
+# few sides apart: the nearest takes it).
+_SAME_SIGHTING_SIDES: Final[float] = 1.5
+# AprilTag thresholds on 4 x 4 px tiles counted from the image origin: a window that starts on that grid
+# finds the tag exactly as the whole image would (off the grid its corners differ by up to ~0.9 px).
+_TILE_PX: Final[int] = 4
 
 
 class ArucoProposer:
@@ -188,6 +194,8 @@ class Stage1Detector:
         full = s.full_res.enabled and s.apriltag.quad_decimate > 1.0
         self._full = TagDetector(s.apriltag.model_copy(update={"quad_decimate": 1.0})) if full else None
         self._seen: list[_Seen] = []  # small tags seen lately (the latest sighting of each)
+        self._shape: tuple[int, ...] | None = None  # the last image's shape
+        self._since_sweep = 0  # frames since the last full-resolution sweep
         self._gate = TrackingSettings(
             search_px=s.aruco.gate_search_px,
             search_step_px=max(s.aruco.gate_search_px, 0.5),
@@ -201,7 +209,11 @@ class Stage1Detector:
         img = np.ascontiguousarray(check_image(image))
         frame = self.counts.frames
         every = self.settings.full_res.sweep_every_frames
-        sweep = self._full is not None and every > 0 and frame % every == 0
+        resized = img.shape != self._shape
+        if resized:  # a new camera (or resolution): old sightings are elsewhere; look at it all at once
+            self._seen, self._shape, self._since_sweep = [], img.shape, every
+        sweep = self._full is not None and every > 0 and self._since_sweep >= every
+        self._since_sweep = 1 if sweep else self._since_sweep + 1
         found = (self._full if sweep and self._full is not None else self._apriltag).detect(img)
         self.counts.frames += 1
         self.counts.apriltag += len(found)
@@ -244,16 +256,26 @@ class Stage1Detector:
         out: list[Detection] = []
         searched = 0
         h, w = img.shape[:2]
-        for seen in sorted(self._seen, key=lambda x: -x.frame):
+        # Each detection takes the nearest sighting of its id within _SAME_SIGHTING_SIDES (as _remember
+        # will): a tag that moved is found, not looked for again where it was; one id on tags a side
+        # apart still leaves the missed one's sighting free.
+        taken = {
+            min(near, key=lambda i: self._seen[i].gap_sides(d))
+            for d in found
+            if (near := [i for i, x in enumerate(self._seen) if x.gap_sides(d) < _SAME_SIGHTING_SIDES])
+        }
+        for i in sorted(range(len(self._seen)), key=lambda i: -self._seen[i].frame):
+            seen = self._seen[i]
             if searched >= s.max_regions:
                 break
-            if any(seen.gap_sides(d) < 0.5 for d in (*found, *out)):
-                continue  # found where it was: nothing to look for (one id may be on tags a side apart)
+            if i in taken or any(seen.gap_sides(d) < 0.5 for d in out):
+                continue  # found: nothing to look for
             side = quad_side_px(seen.corners_px)
             pad = s.margin_sides * side + 8.0
             x0, y0 = np.floor(seen.corners_px.min(axis=0) - pad).astype(int)
             x1, y1 = np.ceil(seen.corners_px.max(axis=0) + pad).astype(int)
-            x0, y0, x1, y1 = max(0, x0), max(0, y0), min(w, x1), min(h, y1)
+            x0, y0 = max(0, x0) // _TILE_PX * _TILE_PX, max(0, y0) // _TILE_PX * _TILE_PX
+            x1, y1 = min(w, x1), min(h, y1)
             if x1 - x0 < 16 or y1 - y0 < 16:
                 continue  # left the image
             searched += 1
@@ -275,7 +297,7 @@ class Stage1Detector:
             if quad_side_px(d.corners_px) <= s.small_side_px:
                 # the sighting it updates: the nearest of its id within 1.5 sides (it may have moved)
                 gaps = [x.gap_sides(d) for x in old]
-                if gaps and min(gaps) < 1.5:
+                if gaps and min(gaps) < _SAME_SIGHTING_SIDES:
                     del old[int(np.argmin(gaps))]
                 new.append(_Seen(frame, d.tag_id, np.array(d.corners_px, np.float64)))
         self._seen = (old + new)[-_MAX_SEEN:]
