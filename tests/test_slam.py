@@ -443,8 +443,9 @@ def test_a_bridged_fragment_stays_flagged_until_it_is_joined() -> None:
 
 def test_slam_publishes_bridged_poses_as_such(tmp_path: Path) -> None:
     """The service's CameraPose says "bridged" for a fragment's frames (CameraPose/v2), "tracking" again
-    once a view joins it to the world, and "lost" (the last pose repeated) in between."""
-    from shared.wire.messages import CameraPose, decode, encode
+    once a view joins it to the world, and "lost" (the last pose repeated) in between; its TagMap flags
+    the fragment's tags until the join."""
+    from shared.wire.messages import CameraPose, TagMap, decode, encode
 
     node = SlamNode(SlamServiceSettings(run_dir=tmp_path))
     poses = _constant_velocity(70)
@@ -453,6 +454,9 @@ def test_slam_publishes_bridged_poses_as_such(tmp_path: Path) -> None:
         wanted = {4, 5} if i < 10 else set() if i < 45 else {7} if i < 55 else {5, 7}
         cam = decode(encode(node.on_poses(_tag_poses(i, 1_000 + i, poses[i], wanted))[0]), CameraPose)
         statuses.append(cam.status)
+        if i in (54, 69):  # the map says which tags are placed by the gap's guess, until the join
+            flags = {t.tag_id: t.bridged for t in decode(encode(node.current_map("r1")), TagMap).tags}
+            assert flags == ({4: False, 5: False, 7: True} if i == 54 else {4: False, 5: False, 7: False})
     assert statuses == ["tracking"] * 10 + ["lost"] * 35 + ["bridged"] * 10 + ["tracking"] * 15
 
 

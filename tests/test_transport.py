@@ -56,7 +56,7 @@ def test_access_rules_per_role() -> None:
     assert "splittag/*/controller/**" not in rules["controllers-no-publish"]["key_exprs"]
     # Each role may serve only its own queryables: slam its map and stats, nobody the split.
     assert "splittag/*/slam/stats" not in rules["slam-no-serve"]["key_exprs"]
-    assert "splittag/*/map/v1" not in rules["slam-no-serve"]["key_exprs"]
+    assert "splittag/*/map/v2" not in rules["slam-no-serve"]["key_exprs"]
     assert "splittag/*/split" in rules["slam-no-serve"]["key_exprs"]
     assert "splittag/*/slam/stats" in rules["cameras-no-serve"]["key_exprs"]
 

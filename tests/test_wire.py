@@ -28,11 +28,13 @@ from shared.wire.messages import (
     SCHEMAS,
     Features,
     Frame,
+    MapTagV1,
     SplitConfig,
     TagFeature,
     TagFeatureV1,
     TagFeatureV2,
     TagFeatureV3,
+    TagMap,
     TagPoses,
     TagPoseV2,
     TagPoseV3,
@@ -43,13 +45,14 @@ from tests.examples import INTRINSICS, assert_messages_equal, example_messages, 
 
 GOLDEN = Path(__file__).parent / "golden"
 # The per-tag model each legacy version's tags had.
-LEGACY_TAG_TYPES: dict[str, type[TagFeatureV1] | type[TagPoseV2]] = {
+LEGACY_TAG_TYPES: dict[str, type[TagFeatureV1] | type[TagPoseV2] | type[MapTagV1]] = {
     "splittag/Features/v1": TagFeatureV1,
     "splittag/Features/v2": TagFeatureV2,
     "splittag/Features/v3": TagFeatureV3,
     "splittag/TagPoses/v1": TagPoseV2,
     "splittag/TagPoses/v2": TagPoseV2,
     "splittag/TagPoses/v3": TagPoseV3,
+    "splittag/TagMap/v1": MapTagV1,
 }
 EXAMPLES = example_messages()
 # Legacy versions with the current fields but fewer allowed values (CameraPose/v1: no "bridged").
@@ -97,11 +100,11 @@ def test_legacy_golden_bytes_still_decode_as_the_current_version(schema: str) ->
         name: None for name in type(example).model_fields if name not in LEGACY_SCHEMAS[schema].model_fields
     }
     expected = example.model_copy(update=lacking)
-    if isinstance(example, Features | TagPoses):  # older tags lack fields: tracked (v1, v2), edge width (v1)
+    if isinstance(example, Features | TagPoses | TagMap):  # older tags lack fields (tracked, edge width, ...)
         tag_type = type(example.tags[0])
         legacy_tag_fields = LEGACY_TAG_TYPES[schema].model_fields
         tag_lacking: dict[str, object] = {
-            name: (False if name == "tracked" else None)
+            name: (False if name in ("tracked", "bridged") else None)
             for name in tag_type.model_fields
             if name not in legacy_tag_fields
         }

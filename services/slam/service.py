@@ -1,6 +1,6 @@
 """slam loop: TagPoses -> MarkerSlam -> CameraPose every frame, TagMap on change; files at exit/on request.
 
-Map queryable on `splittag/<robot_id>/map/v1`: a get replies the current TagMap; `?save=1` also
+Map queryable on `splittag/<robot_id>/map/v2`: a get replies the current TagMap; `?save=1` also
 writes trajectory.tum, map.json (a tag map), slam.json (run statistics) and, when ground truth was seen,
 groundtruth.tum / ate.json now.
 """
@@ -189,7 +189,13 @@ class SlamNode:
 
     def _map(self, robot_id: str) -> TagMap:
         tags = [
-            MapTag(tag_id=t, size_m=size, world_from_tag=pose, observations=self.slam.state.observations.get(t, 0))
+            MapTag(
+                tag_id=t,
+                size_m=size,
+                world_from_tag=pose,
+                observations=self.slam.state.observations.get(t, 0),
+                bridged=self.slam.tag_bridged(t),
+            )
             for t, (size, pose) in sorted(self.slam.tag_map().items())
         ]
         return TagMap(robot_id=robot_id, revision=self.revision, anchor_tag_id=self.slam.anchor or 0, tags=tags)

@@ -790,6 +790,11 @@ class MarkerSlam:
             fragment = f
         return self._fragments.find(fragment) != self._fragments.find(WORLD_FRAGMENT)
 
+    def tag_bridged(self, tag_id: int) -> bool:
+        """Whether a mapped tag lies in a fragment not (yet) tied to the world (its pose is a gap's guess)."""
+        fragment = self._tag_fragment.get(tag_id, WORLD_FRAGMENT)
+        return self._fragments.find(fragment) != self._fragments.find(WORLD_FRAGMENT)
+
     def tag_map(self) -> dict[int, tuple[float, Array]]:
         """Current tag poses: id -> (size, world_from_tag)."""
         return {t: (size, pose) for t, size in self.tags.items() if (pose := self._world_from_tag(t)) is not None}

@@ -48,7 +48,7 @@ DATA_KEYS: Final[dict[str, str]] = {
     "controller": "splittag/*/controller/**",
 }
 SPLIT_KEY: Final[str] = "splittag/*/split"
-MAP_KEY: Final[str] = "splittag/*/map/v1"
+MAP_KEY: Final[str] = "splittag/*/map/v2"
 # The queryables the services declare; a role may declare only its own (MAY_SERVE).
 SERVICE_QUERYABLES: Final[dict[str, str]] = {
     "split": "splittag/*/split",

@@ -426,8 +426,8 @@ class FrameStamp(FrameMessage):
     source_stamp_nanos: int = Field(ge=0)
 
 
-class MapTag(WireModel):
-    """One tag in the map."""
+class MapTagV1(WireModel):
+    """One tag in the map (TagMap v1)."""
 
     tag_id: int = Field(ge=0)
     size_m: float = Field(gt=0, allow_inf_nan=False)
@@ -435,14 +435,36 @@ class MapTag(WireModel):
     observations: int = Field(ge=0)
 
 
+class MapTag(MapTagV1):
+    """MapTagV1 plus whether the tag lies in a map fragment not (yet) tied to the world: mapped after a
+    long gap without tags, its world pose is the gap's guess (see CameraPose "bridged")."""
+
+    bridged: bool
+
+
 class TagMap(Message):
     """The SLAM map: tag poses in the world frame anchored at `anchor_tag_id`."""
+
+    SCHEMA: ClassVar[str] = "splittag/TagMap/v2"
+    robot_id: RobotId
+    revision: int = Field(ge=0)
+    anchor_tag_id: int = Field(ge=0)
+    tags: list[MapTag]
+
+
+class TagMapV1(Message):
+    """TagMap before `bridged`; still decoded (as v2 with every tag tied to the world)."""
 
     SCHEMA: ClassVar[str] = "splittag/TagMap/v1"
     robot_id: RobotId
     revision: int = Field(ge=0)
     anchor_tag_id: int = Field(ge=0)
-    tags: list[MapTag]
+    tags: list[MapTagV1]
+
+    def upgrade(self) -> TagMap:
+        """The same content as the current schema."""
+        fields = {name: getattr(self, name) for name in TagMapV1.model_fields if name != "tags"}
+        return TagMap(**fields, tags=[MapTag(**dict(t), bridged=False) for t in self.tags])
 
 
 class SplitConfig(Message):
@@ -558,11 +580,22 @@ LEGACY_SCHEMAS: Final[
         | type[FeaturesV1]
         | type[FeaturesV2]
         | type[FeaturesV3]
-        | type[CameraPoseV1],
+        | type[CameraPoseV1]
+        | type[TagMapV1],
     ]
 ] = {
     m.SCHEMA: m
-    for m in (TagPosesV1, TagPosesV2, TagPosesV3, ProbeAckV1, FeaturesV1, FeaturesV2, FeaturesV3, CameraPoseV1)
+    for m in (
+        TagPosesV1,
+        TagPosesV2,
+        TagPosesV3,
+        ProbeAckV1,
+        FeaturesV1,
+        FeaturesV2,
+        FeaturesV3,
+        CameraPoseV1,
+        TagMapV1,
+    )
 }
 _CURRENT_BY_NAME: Final[dict[str, type[Message]]] = {m.SCHEMA.rpartition("/")[0]: m for m in MESSAGE_TYPES}
 ENVELOPE_KEYS: Final[frozenset[str]] = frozenset({"schema", "body"})
