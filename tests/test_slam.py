@@ -520,6 +520,17 @@ def test_blind_soft_reads_are_left_out_unless_asked() -> None:
     assert default.state.soft_reads_skipped == 10 and used.state.soft_reads_skipped == 0
 
 
+def test_rerun_draws_bridged_poses_apart_from_the_worlds(tmp_path: Path) -> None:
+    """A real recording: tracking poses at world/camera, bridged ones at world/camera_bridged."""
+    from shared.viz.recording import RerunSettings, RerunViz, recording_entities
+
+    viz = RerunViz(RerunSettings(enabled=True), service="slam", run_dir=tmp_path)
+    viz.camera_pose(1_000, np.eye(4), CAM)
+    viz.camera_pose(2_000, make_pose(np.eye(3), [1.0, 0.0, 0.0]), CAM, bridged=True)
+    viz.close()
+    assert {"/world/camera", "/world/camera_bridged"} <= recording_entities(tmp_path / "slam.rrd")
+
+
 def test_with_bridging_off_new_tags_after_a_long_gap_stay_lost() -> None:
     _, _, statuses = _fragment_run(SlamSettings(bridge_long_gaps=False))
     assert all(statuses[i] == "lost" for i in range(10, 55))

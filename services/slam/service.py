@@ -398,10 +398,16 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
         cam_pub, map_pub = publishers(robot)
         cam_pub.put(encode(cam))
         run = node.runs[robot]
-        if cam.status == "tracking":
+        if cam.status in ("tracking", "bridged"):
             new_camera = msg.intrinsics if msg.intrinsics != run.intrinsics else None
             run.intrinsics = msg.intrinsics or run.intrinsics
-            viz.camera_pose(cam.capture_nanos, cam.world_from_camera, new_camera, robot if node.fleet else "")
+            viz.camera_pose(
+                cam.capture_nanos,
+                cam.world_from_camera,
+                msg.intrinsics if cam.status == "bridged" else new_camera,  # (rare: its own frustum each time)
+                robot if node.fleet else "",
+                bridged=cam.status == "bridged",
+            )
         if tag_map is not None:
             map_pub.put(encode(tag_map))
             viz.tag_map(cam.capture_nanos, {t.tag_id: (t.size_m, t.world_from_tag) for t in tag_map.tags})

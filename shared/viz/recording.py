@@ -55,7 +55,13 @@ class Viz(Protocol):
     def keypoints_gt(self, capture_nanos: int, points_px: list[Array]) -> None: ...
     def tag_poses(self, msg: TagPoses) -> None: ...
     def camera_pose(
-        self, capture_nanos: int, world_from_camera: Array, camera: CameraIntrinsics | None, robot: str = ""
+        self,
+        capture_nanos: int,
+        world_from_camera: Array,
+        camera: CameraIntrinsics | None,
+        robot: str = "",
+        *,
+        bridged: bool = False,
     ) -> None: ...
     def trajectory(self, capture_nanos: int, path: str, positions: Array) -> None: ...
     def tag_map(self, capture_nanos: int, tags: dict[int, tuple[float, Array]]) -> None: ...
@@ -76,7 +82,13 @@ class NullViz:
         """No-op."""
 
     def camera_pose(
-        self, capture_nanos: int, world_from_camera: Array, camera: CameraIntrinsics | None, robot: str = ""
+        self,
+        capture_nanos: int,
+        world_from_camera: Array,
+        camera: CameraIntrinsics | None,
+        robot: str = "",
+        *,
+        bridged: bool = False,
     ) -> None:
         """No-op."""
 
@@ -173,12 +185,21 @@ class RerunViz:
         )
 
     def camera_pose(
-        self, capture_nanos: int, world_from_camera: Array, camera: CameraIntrinsics | None, robot: str = ""
+        self,
+        capture_nanos: int,
+        world_from_camera: Array,
+        camera: CameraIntrinsics | None,
+        robot: str = "",
+        *,
+        bridged: bool = False,
     ) -> None:
-        """SLAM camera pose (and its frustum); a fleet's robots each at world/robots/<robot>/camera."""
+        """SLAM camera pose (and its frustum); a fleet's robots each at world/robots/<robot>/camera. A
+        bridged pose (in a map fragment not yet tied to the world) goes to .../camera_bridged instead, so
+        the world's trajectory never jumps to a gap's guess and both can be shown or hidden apart."""
         rr = self._rr
         self._at(capture_nanos)
         entity = f"world/robots/{robot}/camera" if robot else "world/camera"
+        entity += "_bridged" if bridged else ""
         self._log(entity, rr.Transform3D(translation=world_from_camera[:3, 3], mat3x3=world_from_camera[:3, :3]))
         if camera is not None:
             self._log(
