@@ -527,8 +527,15 @@ def test_rerun_draws_bridged_poses_apart_from_the_worlds(tmp_path: Path) -> None
     viz = RerunViz(RerunSettings(enabled=True), service="slam", run_dir=tmp_path)
     viz.camera_pose(1_000, np.eye(4), CAM)
     viz.camera_pose(2_000, make_pose(np.eye(3), [1.0, 0.0, 0.0]), CAM, bridged=True)
+    # tags coloured and labelled by who found them (a tracked tag, a blind soft read, one not said)
+    from tests.examples import example_messages
+
+    poses = example_messages()[TagPoses.SCHEMA]
+    tags = [poses.tags[0], poses.tags[0].model_copy(update={"tracked": False, "proposer": "lines_soft"})]
+    viz.tag_poses(poses.model_copy(update={"tags": [*tags, tags[0].model_copy(update={"proposer": None})]}))
     viz.close()
-    assert {"/world/camera", "/world/camera_bridged"} <= recording_entities(tmp_path / "slam.rrd")
+    entities = recording_entities(tmp_path / "slam.rrd")
+    assert {"/world/camera", "/world/camera_bridged", "/camera/image/tag_quads"} <= entities
 
 
 def test_with_bridging_off_new_tags_after_a_long_gap_stay_lost() -> None:

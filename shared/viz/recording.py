@@ -156,17 +156,18 @@ class RerunViz:
         self._at(msg.capture_nanos)
         # Rerun's 2D space puts pixel centres at +0.5; our convention has them at integers.
         if msg.tags:
-            # detected tags yellow keypoints / green quads; tracked ones (stage 1 missed them) magenta
+            # detected tags yellow keypoints / green quads; tracked ones (stage 1 missed them) magenta;
+            # blind soft reads (slam leaves them out by default) orange; the label says the proposer
             kps = np.concatenate([t.keypoints_px for t in msg.tags]) + 0.5
-            kp_colors = np.repeat([TRACKED_RGB if t.tracked else [255, 210, 0] for t in msg.tags], 16, axis=0)
+            kp_colors = np.repeat([_tag_rgb(t.tracked, t.proposer, [255, 210, 0]) for t in msg.tags], 16, axis=0)
             self._log("camera/image/keypoints", rr.Points2D(kps, colors=kp_colors, radii=2.0))
             quads = [np.vstack([t.corners_px, t.corners_px[:1]]) + 0.5 for t in msg.tags]
             self._log(
                 "camera/image/tag_quads",
                 rr.LineStrips2D(
                     quads,
-                    colors=[TRACKED_RGB if t.tracked else [0, 220, 0] for t in msg.tags],
-                    labels=[f"{t.tag_id} (tracked)" if t.tracked else str(t.tag_id) for t in msg.tags],
+                    colors=[_tag_rgb(t.tracked, t.proposer, [0, 220, 0]) for t in msg.tags],
+                    labels=[f"{t.tag_id} ({t.proposer or 'detected'})" for t in msg.tags],
                 ),
             )
         else:
@@ -256,6 +257,12 @@ class RerunViz:
 
 
 TRACKED_RGB: Final[list[int]] = [255, 0, 200]
+SOFT_READ_RGB: Final[list[int]] = [255, 120, 0]
+
+
+def _tag_rgb(tracked: bool, proposer: str | None, detected: list[int]) -> list[int]:
+    """A tag's colour in the image: tracked magenta, a blind soft read orange, else `detected`."""
+    return TRACKED_RGB if tracked else SOFT_READ_RGB if proposer == "lines_soft" else detected
 
 
 def make_viz(settings: RerunSettings, *, service: str, run_dir: Path) -> Viz:
