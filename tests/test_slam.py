@@ -530,7 +530,7 @@ def test_rerun_draws_bridged_poses_apart_from_the_worlds(tmp_path: Path) -> None
     # tags coloured and labelled by who found them (a tracked tag, a blind soft read, one not said)
     from tests.examples import example_messages
 
-    poses = example_messages()[TagPoses.SCHEMA]
+    poses = cast(TagPoses, example_messages()[TagPoses.SCHEMA])
     tags = [poses.tags[0], poses.tags[0].model_copy(update={"tracked": False, "proposer": "lines_soft"})]
     viz.tag_poses(poses.model_copy(update={"tags": [*tags, tags[0].model_copy(update={"proposer": None})]}))
     viz.close()
