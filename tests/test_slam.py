@@ -538,6 +538,16 @@ def test_rerun_draws_bridged_poses_apart_from_the_worlds(tmp_path: Path) -> None
     assert {"/world/camera", "/world/camera_bridged", "/camera/image/tag_quads"} <= entities
 
 
+def test_the_anchor_is_the_tag_whose_pose_the_first_view_pins_best() -> None:
+    """The world is the anchor's frame, so the anchor is the best-determined view (near, face-on), not
+    the one with the luckiest reprojection error: here the near tag fits worse (0.3 vs 0.01 px)."""
+    near = make_pose(cv2.Rodrigues(np.array([0.1, 0.2, 0.0]))[0], [0.2, 0.0, 1.2])
+    far = make_pose(cv2.Rodrigues(np.array([0.1, -0.2, 0.0]))[0], [-0.4, 0.0, 3.5])
+    slam = MarkerSlam(SlamSettings())
+    slam.update(0, 0, [Observation(1, 0.15, near, 0.3, near, 5.0), Observation(2, 0.15, far, 0.01, far, 5.0)])
+    assert slam.anchor == 1
+
+
 def test_with_bridging_off_new_tags_after_a_long_gap_stay_lost() -> None:
     _, _, statuses = _fragment_run(SlamSettings(bridge_long_gaps=False))
     assert all(statuses[i] == "lost" for i in range(10, 55))

@@ -459,12 +459,22 @@ class MarkerSlam:
             # The anchor's view sets the first camera pose: wait a little for an unambiguous one.
             clear = [o for o in chosen if not self.is_ambiguous(o)]
             if clear or (chosen and self.state.frames > s.anchor_wait_frames):
-                a = min(clear or chosen, key=lambda o: o.reprojection_error_px)
+                # the world is this tag's frame: the one whose pose the view pins best (the smallest
+                # rotation uncertainty: a near, large, face-on tag), not the luck of a reprojection error
+                a = min(clear or chosen, key=self._rotation_variance)
                 pose = self.known[a.tag_id][1] if a.tag_id in self.known else np.eye(4)
                 self.anchor = a.tag_id
                 self._add_tag(graph, values, a.tag_id, a.size_m, pose, s.anchor_sigma)
                 changed = True
         return changed
+
+    def _rotation_variance(self, obs: Observation) -> float:
+        """Total rotation variance (rad^2) of an observation's noise model, flip included."""
+        robust = self.noise(obs)
+        assert isinstance(robust, gtsam.noiseModel.Robust)
+        gauss = robust.noise()
+        assert isinstance(gauss, gtsam.noiseModel.Gaussian)
+        return float(np.trace(np.asarray(gauss.covariance())[:3, :3]))
 
     def _pose(self, track: _Track, frame: int) -> Array:
         return np.asarray(self._estimate.atPose3(track.key(frame)).matrix())
