@@ -548,6 +548,24 @@ def test_the_anchor_is_the_tag_whose_pose_the_first_view_pins_best() -> None:
     assert slam.anchor == 1
 
 
+def test_a_checkpoint_keeps_a_bridged_tags_size_but_not_its_guessed_pose(tmp_path: Path) -> None:
+    """map.json is what a restarted slam resumes from, every pose in it a world prior: a tag of an
+    unjoined fragment goes in with its size only, so a restart does not pin the gap's guess."""
+    node = SlamNode(SlamServiceSettings(run_dir=tmp_path))
+    poses = _constant_velocity(70)
+    for i in range(55):
+        wanted = {4, 5} if i < 10 else set() if i < 45 else {7}
+        node.on_poses(_tag_poses(i, 1_000 + i, poses[i], wanted))
+    node.write_outputs(tmp_path)
+    saved = {t.id: t for t in load_tag_map(tmp_path / "map.json").tags}
+    assert set(saved) == {4, 5, 7}
+    assert saved[4].pose() is not None and saved[7].pose() is None and saved[7].size_m > 0
+    again = SlamNode(SlamServiceSettings(run_dir=tmp_path))  # the restarted process
+    assert set(again.slam.known) == {4, 5}
+    again.write_outputs(tmp_path)  # a tag of the checkpoint not seen again keeps its size
+    assert {t.id for t in load_tag_map(tmp_path / "map.json").tags} == {4, 5, 7}
+
+
 def test_with_bridging_off_new_tags_after_a_long_gap_stay_lost() -> None:
     _, _, statuses = _fragment_run(SlamSettings(bridge_long_gaps=False))
     assert all(statuses[i] == "lost" for i in range(10, 55))

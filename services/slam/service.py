@@ -38,7 +38,7 @@ from shared.transport.session import declare_fifo_subscriber, encoding_for
 from shared.vision.camera import CameraIntrinsics
 from shared.vision.files import atomic_write_text
 from shared.vision.geometry import check_rigid
-from shared.vision.tagmap import load_tag_map, tag_map_from_poses, write_tag_map
+from shared.vision.tagmap import TagSpec, load_tag_map, tag_map_from_poses, write_tag_map
 from shared.vision.trajectory import PoseLog, StampMap, read_tum, write_tum_arrays
 from shared.viz.recording import make_viz
 from shared.wire import keys
@@ -211,20 +211,32 @@ class SlamNode:
         run_dir.mkdir(parents=True, exist_ok=True)
         with self.lock:
             tag_map = self.slam.tag_map()
+            bridged = {t for t in tag_map if self.slam.tag_bridged(t)}
             state = self.slam.state
             frames, lost, rejected = state.frames, state.lost, state.rejected_ambiguous
             fragments, soft_skipped = state.fragments, state.soft_reads_skipped
             robots = sorted(self.runs)
         per_robot = {robot: self._write_robot(run_dir, robot) for robot in robots}
+        sizes_only: dict[int, float] = {}
         if self.resumed is not None:  # tags of the checkpoint not seen again are kept as they were
             for t in self.resumed.tags:
-                if t.id not in tag_map and (pose := t.pose()) is not None:
-                    tag_map[t.id] = (t.size_m, pose)
+                if t.id not in tag_map:
+                    if (pose := t.pose()) is not None:
+                        tag_map[t.id] = (t.size_m, pose)
+                    else:
+                        sizes_only[t.id] = t.size_m
         # map.json is a tag map (loadable as slam's or edge_infer's `tag_map`); run statistics go apart.
+        # A tag in a fragment not tied to the world goes in with its size but no pose: its pose is a
+        # gap's guess, and a resumed slam takes every pose in map.json as a world prior.
         anchor = (
             self.slam.anchor if self.slam.anchor is not None else (self.resumed.anchor_tag_id if self.resumed else None)
         )
-        write_tag_map(run_dir / "map.json", tag_map_from_poses(tag_map, anchor_tag_id=anchor))
+        checkpoint = tag_map_from_poses({t: v for t, v in tag_map.items() if t not in bridged}, anchor_tag_id=anchor)
+        sizes_only |= {t: tag_map[t][0] for t in bridged}
+        checkpoint.tags = sorted(
+            [*checkpoint.tags, *(TagSpec(id=t, size_m=size) for t, size in sizes_only.items())], key=lambda t: t.id
+        )
+        write_tag_map(run_dir / "map.json", checkpoint)
         out: dict[str, Any] = {
             "frames": frames,
             "poses": sum(r["poses"] for r in per_robot.values()),
