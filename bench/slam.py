@@ -42,7 +42,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -51,6 +51,9 @@ from bench.accuracy import AprilTagMethod, solve_pose
 from bench.machine import cpu_label
 from bench.tagrender import corners_in_tag, project_points
 from bench.tagseq import SEQUENCES, SequenceRenderer, SequenceSpec, place_tags
+
+if TYPE_CHECKING:
+    from shared.vision.proposers import Proposer
 
 FloatArray = np.ndarray
 ROOT = Path(__file__).resolve().parent.parent
@@ -84,7 +87,7 @@ class TagObservation:
     reprojection_error_px: float
     alt_camera_from_tag: FloatArray
     alt_reprojection_error_px: float
-    proposer: str | None = None  # who found it (shared.vision.proposers.Proposer)
+    proposer: Proposer | None = None  # who found it
 
 
 @dataclass
@@ -213,7 +216,7 @@ def _corner_error(r: SequenceRenderer, frame: Any, truth: Any, keypoints: FloatA
     return float(np.linalg.norm(keypoints[[0, 3, 15, 12]] - true_corners, axis=1).mean())
 
 
-def _observation(tag_id: int, size_m: float, pose: Any, proposer: str | None) -> TagObservation:
+def _observation(tag_id: int, size_m: float, pose: Any, proposer: Proposer | None) -> TagObservation:
     return TagObservation(
         int(tag_id),
         size_m,
@@ -540,8 +543,7 @@ def noise_check(records: list[FrameRecord], spec: SequenceSpec) -> dict[str, lis
             obs = _slam_observation(o, focal)
             truth = np.linalg.inv(rec.world_from_camera) @ tag_map[o.tag_id][1]
             err = np.asarray(gtsam.Pose3.Logmap(gtsam.Pose3(o.camera_from_tag).between(gtsam.Pose3(truth))))
-            robust = cast(gtsam.noiseModel.Robust, slam.noise(obs))
-            cov = np.asarray(cast(gtsam.noiseModel.Gaussian, robust.noise()).covariance())
+            cov = slam.covariance(obs)
             ratios.append(np.abs(err) / np.sqrt(np.diag(cov)))
     if not ratios:
         return {"rms_error_over_sigma": []}

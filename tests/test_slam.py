@@ -369,8 +369,7 @@ def test_observation_noise_uses_the_cameras_focal_length() -> None:
 
     def sigmas(focal: float | None) -> np.ndarray:
         obs = Observation(1, 0.15, pose, 0.8, pose, 2.0, focal)
-        robust = cast(gtsam.noiseModel.Robust, slam.noise(obs))
-        cov = np.asarray(cast(gtsam.noiseModel.Gaussian, robust.noise()).covariance())
+        cov = slam.covariance(obs)
         return np.sqrt(np.diag(cov))
 
     wide, long = sigmas(500.0), sigmas(2000.0)

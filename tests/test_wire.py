@@ -119,6 +119,28 @@ def test_legacy_golden_bytes_still_decode_as_the_current_version(schema: str) ->
         decode(golden, Frame)
 
 
+@pytest.mark.parametrize(
+    ("tracked", "proposer", "reason"),
+    [
+        (False, "tracker", "tracked=False but proposer='tracker'"),
+        (True, "aruco", "tracked=True but"),
+        (False, "sift", "proposer"),
+    ],
+)
+def test_a_tag_whose_proposer_is_unknown_or_contradicts_tracked_is_refused(
+    tracked: bool, proposer: str, reason: str
+) -> None:
+    """Features/v4 and TagPoses/v4 carry who found each tag: a name outside the list, or one that
+    disagrees with `tracked` (tracked exactly when the tracker), is refused with what was wrong."""
+    for schema in ("splittag/Features/v4", "splittag/TagPoses/v4"):
+        msg = EXAMPLES[schema]
+        assert isinstance(msg, Features | TagPoses)
+        bad_tag = msg.tags[0].model_copy(update={"tracked": tracked, "proposer": proposer})  # unvalidated
+        payload = encode(msg.model_copy(update={"tags": [bad_tag]}))
+        with pytest.raises(SchemaError, match=reason):
+            decode(payload, type(msg))
+
+
 def test_a_bridged_camera_pose_is_refused_by_the_v1_schema_and_kept_by_v2() -> None:
     """The version bump is needed: v1 peers' model cannot hold the new status."""
     from pydantic import ValidationError

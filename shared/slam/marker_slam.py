@@ -1,7 +1,8 @@
 """Marker SLAM core: a factor graph over camera poses X_i and tag poses L_j, solved incrementally
 with GTSAM's iSAM2. No I/O: the slam service feeds it TagPoses and publishes what it returns.
 
-- World frame: anchored at a configured tag (or the first one seen), whose pose gets a tight prior
+- World frame: anchored at a configured tag (or, of the first unambiguous view's tags, the one whose
+  pose that view pins best), whose pose gets a tight prior
   (identity, or its world pose from a tag map).
 - Each tag observation is a BetweenFactorPose3(X_i, L_j, camera_from_tag) with a Huber-robust
   Gaussian noise model: the 16-keypoint PnP fit's covariance at that pose (pixel noise >= the
@@ -38,6 +39,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from shared.vision.geometry import Array, lattice_in_tag
+from shared.vision.proposers import Proposer
 from shared.vision.trajectory import PoseLog
 from shared.wire.messages import TagPose
 
@@ -48,7 +50,7 @@ class SlamSettings(BaseModel):
     """Tuning of the SLAM core."""
 
     model_config = ConfigDict(extra="forbid")
-    anchor_tag_id: int | None = None  # None: the first tag seen
+    anchor_tag_id: int | None = None  # None: of the first clear view's tags, the best-determined one
     localisation_only: bool = False
     focal_px: float = Field(default=1045.0, gt=0)  # only for observations whose message had no intrinsics (v1)
     min_pixel_sigma: float = Field(default=0.5, gt=0)
@@ -105,7 +107,7 @@ class Observation:
     alt_reprojection_error_px: float
     focal_px: float | None = None  # the camera's focal length when the message said (else the settings')
     tracked: bool = False  # carried by the tracker through frames stage 1 missed (noisier: see settings)
-    proposer: str | None = None  # who found it (shared.vision.proposers.Proposer; None: not said)
+    proposer: Proposer | None = None  # who found it (None: the message did not say)
 
     @staticmethod
     def from_message(tag: TagPose, focal_px: float | None = None) -> Observation:
@@ -374,7 +376,12 @@ class MarkerSlam:
         return obs.alt_reprojection_error_px < self.settings.ambiguity_ratio * floor
 
     def noise(self, obs: Observation, *, alt: bool = False) -> gtsam.noiseModel.Base:
-        """Robust Gaussian noise of one observation, in the tag frame (rotation first, as GTSAM).
+        """Robust (Huber) Gaussian noise of one observation: `covariance` in GTSAM's model."""
+        gauss = gtsam.noiseModel.Gaussian.Covariance(self.covariance(obs, alt=alt))
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.settings.huber_k), gauss)
+
+    def covariance(self, obs: Observation, *, alt: bool = False) -> Array:
+        """Covariance (6x6) of one observation, in the tag frame (rotation first, as GTSAM).
 
         The PnP estimate's covariance at this pose: sigma_px^2 (J^T J)^-1, J the Jacobian of the 16
         lattice keypoints' pixels with respect to the pose (the Cramer-Rao bound of the 16-point fit;
@@ -402,8 +409,7 @@ class MarkerSlam:
             cov[:3, :3] += flip_sigma**2 * np.outer(axis, axis)
         if obs.tracked:
             cov *= s.tracked_sigma_scale**2
-        gauss = gtsam.noiseModel.Gaussian.Covariance(cov)
-        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(s.huber_k), gauss)
+        return cov
 
     def _check_input(self, robot: str, frame: int, observations: list[Observation]) -> None:
         if not 0 <= frame <= MAX_FRAME_INDEX:
@@ -470,11 +476,7 @@ class MarkerSlam:
 
     def _rotation_variance(self, obs: Observation) -> float:
         """Total rotation variance (rad^2) of an observation's noise model, flip included."""
-        robust = self.noise(obs)
-        assert isinstance(robust, gtsam.noiseModel.Robust)
-        gauss = robust.noise()
-        assert isinstance(gauss, gtsam.noiseModel.Gaussian)
-        return float(np.trace(np.asarray(gauss.covariance())[:3, :3]))
+        return float(np.trace(self.covariance(obs)[:3, :3]))
 
     def _pose(self, track: _Track, frame: int) -> Array:
         return np.asarray(self._estimate.atPose3(track.key(frame)).matrix())
@@ -655,9 +657,7 @@ class MarkerSlam:
         track.stamps[frame] = stamp_nanos
         if sum(len(t.stamps) for t in self._tracks.values()) >= s.window_frames:
             self._marginalise_old_frames()
-        status: Literal["tracking", "bridged"] = (
-            "tracking" if self._fragments.find(fragment) == self._fragments.find(WORLD_FRAGMENT) else "bridged"
-        )
+        status: Literal["tracking", "bridged"] = "tracking" if self._tied(fragment) else "bridged"
         return FrameResult(pose, status, used, rejected, map_changed)
 
     def _still_origin(self, track: _Track, observations: list[Observation]) -> int | None:
@@ -798,12 +798,15 @@ class MarkerSlam:
             if start > stamp_nanos:
                 break
             fragment = f
-        return self._fragments.find(fragment) != self._fragments.find(WORLD_FRAGMENT)
+        return not self._tied(fragment)
 
     def tag_bridged(self, tag_id: int) -> bool:
         """Whether a mapped tag lies in a fragment not (yet) tied to the world (its pose is a gap's guess)."""
-        fragment = self._tag_fragment.get(tag_id, WORLD_FRAGMENT)
-        return self._fragments.find(fragment) != self._fragments.find(WORLD_FRAGMENT)
+        return not self._tied(self._tag_fragment.get(tag_id, WORLD_FRAGMENT))
+
+    def _tied(self, fragment: int) -> bool:
+        """Whether a fragment has been joined to the world's."""
+        return self._fragments.find(fragment) == self._fragments.find(WORLD_FRAGMENT)
 
     def tag_map(self) -> dict[int, tuple[float, Array]]:
         """Current tag poses: id -> (size, world_from_tag)."""

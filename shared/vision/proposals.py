@@ -127,18 +127,25 @@ class Stage1Counts:
 
 @dataclass(frozen=True)
 class _Seen:
-    """A small tag's last sighting: the frame, its id and its quad (one id may be on several tags)."""
+    """A small tag's last sighting: the frame, its id and its quad (one id may be on several tags), with
+    the quad's centre and side worked out once."""
 
     frame: int
     tag_id: int
     corners_px: NDArray[np.float64]
+    centre_px: NDArray[np.float64]
+    side_px: float
+
+    @staticmethod
+    def of(frame: int, d: Detection) -> _Seen:
+        corners = np.array(d.corners_px, np.float64)
+        return _Seen(frame, d.tag_id, corners, corners.mean(axis=0), max(quad_side_px(corners), 1e-9))
 
     def gap_sides(self, d: Detection) -> float:
         """How far `d` is from this sighting, in sides of this quad (inf for another id)."""
         if d.tag_id != self.tag_id:
             return float("inf")
-        gap = float(np.linalg.norm(d.corners_px.mean(axis=0) - self.corners_px.mean(axis=0)))
-        return gap / max(quad_side_px(self.corners_px), 1e-9)
+        return float(np.linalg.norm(d.corners_px.mean(axis=0) - self.centre_px)) / self.side_px
 
 
 _MAX_SEEN: Final[int] = 256  # sightings remembered at most (the oldest go first)
@@ -270,8 +277,7 @@ class Stage1Detector:
                 break
             if i in taken or any(seen.gap_sides(d) < 0.5 for d in out):
                 continue  # found: nothing to look for
-            side = quad_side_px(seen.corners_px)
-            pad = s.margin_sides * side + 8.0
+            pad = s.margin_sides * seen.side_px + 8.0
             x0, y0 = np.floor(seen.corners_px.min(axis=0) - pad).astype(int)
             x1, y1 = np.ceil(seen.corners_px.max(axis=0) + pad).astype(int)
             x0, y0 = max(0, x0) // _TILE_PX * _TILE_PX, max(0, y0) // _TILE_PX * _TILE_PX
@@ -290,6 +296,8 @@ class Stage1Detector:
         return out
 
     def _remember(self, found: list[Detection], frame: int) -> None:
+        """Keep this frame's small tags as the latest sightings (each replacing the one it moved on
+        from) and forget what the next frame would no longer look for."""
         s = self.settings.full_res
         old = [x for x in self._seen if frame + 1 - x.frame <= s.remember_frames]  # kept for the next frame
         new: list[_Seen] = []
@@ -299,7 +307,7 @@ class Stage1Detector:
                 gaps = [x.gap_sides(d) for x in old]
                 if gaps and min(gaps) < _SAME_SIGHTING_SIDES:
                     del old[int(np.argmin(gaps))]
-                new.append(_Seen(frame, d.tag_id, np.array(d.corners_px, np.float64)))
+                new.append(_Seen.of(frame, d))
         self._seen = (old + new)[-_MAX_SEEN:]
 
     def close(self) -> None:
