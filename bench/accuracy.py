@@ -365,6 +365,8 @@ BINS: Final[list[Bin]] = [
     _range_bin("blur", "blur_px", 0, 3, "px"),
     _range_bin("blur", "blur_px", 3, 8, "px"),
     _range_bin("blur", "blur_px", 8, math.inf, "px"),
+    # blur that is large for the tag's size (what the fast room of bench/slam.py is full of)
+    Bin("blur / tag span", ">= 0.15", lambda m: float(m["blur_px"]) >= 0.15 * float(m["span_px"])),
     _range_bin("distance", "distance_m", 0, 1, "m"),
     _range_bin("distance", "distance_m", 1, 2, "m"),
     _range_bin("distance", "distance_m", 2, 3, "m"),

@@ -23,7 +23,8 @@ homography. Only a window around the tag is materialised; coordinates stay full-
 from __future__ import annotations
 
 import math
-from typing import Any, Final, Literal
+from collections.abc import Sequence
+from typing import Any, Final, Literal, Protocol
 
 import cv2
 import numpy as np
@@ -77,7 +78,15 @@ class SynthSettings(BaseModel):
     camera_model: Literal["linear", "display"] = "linear"
     texture_sampling: Literal["nearest", "bilinear"] = "nearest"
     max_motion_blur_px: float = Field(default=15.0, ge=3)
+    p_linear_motion_blur: float = Field(default=0.6, ge=0, le=1)  # "linear" camera model
     p_occluder: float = Field(default=0.2, ge=0, le=1)
+    # Who finds the tag the ROI is warped from: "apriltag" (AprilTag 3 alone, the data sets up to
+    # synth2) or "product" (robot_infer's stage 1: AprilTag, ArUco, line quads and their soft decode),
+    # which also finds tags AprilTag misses (heavy blur on small tags) so the network is trained on them.
+    stage1: Literal["apriltag", "product"] = "apriltag"
+    # "product" stage 1: a quad whose corners are farther than this fraction of its side from the truth
+    # is counted as a miss (its ROI may not hold the tag).
+    max_stage1_error_frac: float = Field(default=0.15, gt=0, le=1)
 
 
 # What the first data sets (and the first shipped weights' regression check) were generated with.
@@ -86,6 +95,20 @@ FIRST_DATA_SETS: Final[dict[str, Any]] = {
     "texture_sampling": "bilinear",
     "supersample": 4,
     "p_unperturbed": 0.0,
+}
+
+
+# Tags that the first stages could never show the network (synth3): small and far, with motion blur
+# up to half the tag's side, found by the product's stage 1 (AprilTag misses most of them). Measured
+# before these: keypoints 1.3-2.4 px off on such tags in bench/slam.py's fast room vs 0.05 px on sharp
+# ones (blur / side >= 0.2).
+BLURRED_SMALL_TAGS: Final[dict[str, Any]] = {
+    "stage1": "product",
+    "tag_size_m": (0.08, 0.22),
+    "distance_m": (1.2, 5.0),
+    "max_motion_blur_px": 26.0,
+    "p_linear_motion_blur": 0.9,
+    "p_occluder": 0.1,
 }
 
 
@@ -130,7 +153,7 @@ def augment_linear(rng: np.random.Generator, img: Image, s: SynthSettings) -> ND
         img = cv2.filter2D(img, -1, disc_kernel(float(rng.uniform(0.5, 2.5))), borderType=cv2.BORDER_REFLECT)
     elif u < 0.55:
         img = cv2.GaussianBlur(img, (0, 0), float(rng.uniform(0.3, 1.5)), borderType=cv2.BORDER_REFLECT)
-    if rng.random() < 0.6:
+    if rng.random() < s.p_linear_motion_blur:
         length = float(rng.uniform(0.5, s.max_motion_blur_px))
         kernel = line_kernel(length, float(rng.uniform(0, 2 * np.pi)))
         img = cv2.filter2D(img, -1, kernel, borderType=cv2.BORDER_REFLECT)
@@ -276,8 +299,14 @@ def perturb_quad(rng: np.random.Generator, corners_px: Array, frac: float) -> Ar
     return corners_px
 
 
+class _Finds(Protocol):
+    """A stage 1: `detect(image)` -> detections with `tag_id` and `corners_px` (TL TR BR BL)."""
+
+    def detect(self, image: NDArray[np.uint8]) -> Sequence[Any]: ...
+
+
 def make_sample(
-    index: int, camera: CameraIntrinsics, s: SynthSettings, detector: TagDetector
+    index: int, camera: CameraIntrinsics, s: SynthSettings, detector: _Finds
 ) -> tuple[dict[str, Any] | None, dict[str, float]]:
     """Generate sample `index`; returns (sample or None if stage 1 missed the tag, its meta)."""
     if camera.distortion_model != "none" and any(camera.distortion):
@@ -313,6 +342,12 @@ def make_sample(
     found = [d for d in detector.detect(window) if d.tag_id == tag_id]
     if not found:
         return None, meta
+    if s.stage1 == "product":
+        true_corners = project(camera, pose, corners_in_tag(size)) - np.array([x0, y0])
+        side = float(np.mean(np.linalg.norm(np.roll(true_corners, -1, 0) - true_corners, axis=1)))
+        error = float(np.abs(np.asarray(found[0].corners_px) - true_corners).max())
+        if error > s.max_stage1_error_frac * side:
+            return None, meta
     return label_sample(
         rng,
         window,
@@ -366,15 +401,25 @@ def label_sample(
     }
 
 
+def make_stage1(s: SynthSettings) -> _Finds:
+    """The settings' stage 1 (one per process: neither detector is thread-safe)."""
+    if s.stage1 == "apriltag":
+        return TagDetector(s.detector)
+    from shared.vision.proposals import FullResSettings, Stage1Detector, Stage1Settings
+
+    # unrelated windows: no state from one to the next
+    return Stage1Detector(Stage1Settings(apriltag=s.detector, full_res=FullResSettings(enabled=False)))
+
+
 class SynthMaker:
     """Picklable per-process sample maker (owns its own detector)."""
 
     def __init__(self, camera: CameraIntrinsics, settings: SynthSettings) -> None:
         self.camera = camera
         self.settings = settings
-        self._detector: TagDetector | None = None
+        self._detector: _Finds | None = None
 
     def __call__(self, index: int) -> tuple[dict[str, Any] | None, dict[str, float]]:
         if self._detector is None:
-            self._detector = TagDetector(self.settings.detector)
+            self._detector = make_stage1(self.settings)
         return make_sample(index, self.camera, self.settings, self._detector)

@@ -117,9 +117,10 @@ def _cmd_data_generate(args: argparse.Namespace) -> int:
     camera = camera_from_yaml(args.camera) if args.camera else default_camera()
     maker: SampleMaker
     if args.data_command == "synth":
-        from shared.datasets.synth import FIRST_DATA_SETS, SynthMaker, SynthSettings
+        from shared.datasets.synth import BLURRED_SMALL_TAGS, FIRST_DATA_SETS, SynthMaker, SynthSettings
 
-        synth = SynthSettings(seed=args.seed, **(FIRST_DATA_SETS if args.generator == "first" else {}))
+        preset = {"first": FIRST_DATA_SETS, "blurred-small": BLURRED_SMALL_TAGS}.get(args.generator, {})
+        synth = SynthSettings(seed=args.seed, **preset)
         settings, maker, shard_size = synth.model_dump(mode="json"), SynthMaker(camera, synth), 250
     else:
         from shared.datasets.render import RenderMaker, RenderSettings
@@ -545,9 +546,11 @@ def _add_data_commands(sub: Any) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
         "--generator",
-        choices=["current", "first"],
+        choices=["current", "first", "blurred-small"],
         default="current",
-        help="first: the first data sets' settings (display-order degradations, all ROIs perturbed)",
+        help="first: the first data sets' settings (display-order degradations, all ROIs perturbed); "
+        "blurred-small: small far tags with motion blur up to half their side, found by the product's "
+        "stage 1 (AprilTag, ArUco, line quads), most of which AprilTag alone misses",
     )
     p.add_argument("--camera", type=Path, help="ROS camera_info YAML (default: the paper's camera)")
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
