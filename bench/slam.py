@@ -499,12 +499,14 @@ def sequence_facts(records: list[FrameRecord]) -> dict[str, float]:
     blur = [b for r in records for b in r.blur_px.values()]
     st_err = [e for r in records for e in r.splittag_corner_error_px]
     # the tags only the product's stage 1 finds (AprilTag 3 missed them: mostly heavy blur on small tags)
-    missed_err = [
-        e
-        for r in records
-        for o, e in zip(r.splittag, r.splittag_corner_error_px, strict=True)
-        if e < float("inf") and o.tag_id not in {i for i, _ in r.apriltag}
-    ]
+    missed_err = []
+    for r in records:
+        apriltag_ids = {i for i, _ in r.apriltag}
+        missed_err += [
+            e
+            for o, e in zip(r.splittag, r.splittag_corner_error_px, strict=True)
+            if e < float("inf") and o.tag_id not in apriltag_ids
+        ]
     return {
         "frames": len(records),
         "frames_with_tag_in_view_pct": 100.0 * sum(1 for r in records if r.in_view) / len(records),

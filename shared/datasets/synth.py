@@ -23,8 +23,7 @@ homography. Only a window around the tag is materialised; coordinates stay full-
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from typing import Any, Final, Literal, Protocol
+from typing import Any, Final, Literal
 
 import cv2
 import numpy as np
@@ -34,7 +33,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from shared.sim.backgrounds import procedural_background
 from shared.vision.blur import line_kernel
 from shared.vision.camera import CameraIntrinsics
-from shared.vision.detector import DetectorSettings, TagDetector
+from shared.vision.detector import DetectorSettings, Stage1, TagDetector, quad_side_px
 from shared.vision.geometry import (
     ROI_MARGIN,
     Array,
@@ -299,14 +298,8 @@ def perturb_quad(rng: np.random.Generator, corners_px: Array, frac: float) -> Ar
     return corners_px
 
 
-class _Finds(Protocol):
-    """A stage 1: `detect(image)` -> detections with `tag_id` and `corners_px` (TL TR BR BL)."""
-
-    def detect(self, image: NDArray[np.uint8]) -> Sequence[Any]: ...
-
-
 def make_sample(
-    index: int, camera: CameraIntrinsics, s: SynthSettings, detector: _Finds
+    index: int, camera: CameraIntrinsics, s: SynthSettings, detector: Stage1
 ) -> tuple[dict[str, Any] | None, dict[str, float]]:
     """Generate sample `index`; returns (sample or None if stage 1 missed the tag, its meta)."""
     if camera.distortion_model != "none" and any(camera.distortion):
@@ -344,9 +337,8 @@ def make_sample(
         return None, meta
     if s.stage1 == "product":
         true_corners = project(camera, pose, corners_in_tag(size)) - np.array([x0, y0])
-        side = float(np.mean(np.linalg.norm(np.roll(true_corners, -1, 0) - true_corners, axis=1)))
-        error = float(np.abs(np.asarray(found[0].corners_px) - true_corners).max())
-        if error > s.max_stage1_error_frac * side:
+        error = float(np.abs(found[0].corners_px - true_corners).max())
+        if error > s.max_stage1_error_frac * quad_side_px(true_corners):
             return None, meta
     return label_sample(
         rng,
@@ -401,7 +393,7 @@ def label_sample(
     }
 
 
-def make_stage1(s: SynthSettings) -> _Finds:
+def make_stage1(s: SynthSettings) -> Stage1:
     """The settings' stage 1 (one per process: neither detector is thread-safe)."""
     if s.stage1 == "apriltag":
         return TagDetector(s.detector)
@@ -417,7 +409,7 @@ class SynthMaker:
     def __init__(self, camera: CameraIntrinsics, settings: SynthSettings) -> None:
         self.camera = camera
         self.settings = settings
-        self._detector: _Finds | None = None
+        self._detector: Stage1 | None = None
 
     def __call__(self, index: int) -> tuple[dict[str, Any] | None, dict[str, float]]:
         if self._detector is None:
