@@ -13,7 +13,9 @@ gated); with --weights, the whole chain.
 Metrics per method and bin: detection % (right id), corner error (px, per corner), keypoint error over the 16
 lattice points (kp16, px; a corners4 method's lattice is its corners' homography), e_t (cm), e_r (deg),
 the lattice's signed scale bias (least-squares scale of the predicted 16 points about their centroid
-against the truth's, in %; a corners4 method's lattice is its corners' homography), wrong ids (a
+against the truth's, in %; a corners4 method's lattice is its corners' homography), its scale along the
+motion blur's direction on images blurred by >= 3 px (blur-axis %: a blurred black square that looks
+narrower along the blur shortens the grid there, which PnP reads as a tilt), wrong ids (a
 decoded tag on a true tag with another id) and ghosts (a decoded tag where there is none).
 """
 
@@ -242,6 +244,7 @@ class TagScore:
     e_t_cm: float | None = None
     e_r_deg: float | None = None
     scale_bias_pct: float | None = None
+    blur_axis_scale_pct: float | None = None  # the lattice's scale along the blur (images blurred >= 3 px)
 
 
 @dataclass
@@ -302,6 +305,16 @@ def scale_bias_pct(pred_px: FloatArray, true_px: FloatArray) -> float:
     return float((np.sum(p * q) / np.sum(q * q) - 1.0) * 100.0)
 
 
+def axis_scale_pct(pred_px: FloatArray, true_px: FloatArray, direction: FloatArray) -> float:
+    """Signed scale of the predicted points along one image direction against the truth, in %: the
+    least-squares linear map from the truth's centred points to the prediction's, read along the
+    (unit) direction."""
+    p = pred_px - pred_px.mean(axis=0)
+    q = true_px - true_px.mean(axis=0)
+    m, *_ = np.linalg.lstsq(q, p, rcond=None)  # p ~ q @ m
+    return float((direction @ m.T @ direction - 1.0) * 100.0)
+
+
 def rotation_error_deg(r_a: FloatArray, r_b: FloatArray) -> float:
     """Angle of the rotation between two rotation matrices, in degrees."""
     c = (np.trace(r_a.T @ r_b) - 1.0) / 2.0
@@ -313,8 +326,14 @@ def _inside_outer_square(point: FloatArray, truth: TagTruth) -> bool:
     return cv2.pointPolygonTest(outer.astype(np.float32), (float(point[0]), float(point[1])), False) >= 0
 
 
-def score_image(predictions: list[Prediction], truths: list[TagTruth], camera_matrix: FloatArray) -> ImageScore:
-    """Match predictions to true tags by id (nearest centre) and measure each matched tag's errors."""
+def score_image(
+    predictions: list[Prediction],
+    truths: list[TagTruth],
+    camera_matrix: FloatArray,
+    blur_direction: FloatArray | None = None,
+) -> ImageScore:
+    """Match predictions to true tags by id (nearest centre) and measure each matched tag's errors
+    (with the image's motion-blur direction, if any, also the grid's scale along it)."""
     unused = list(predictions)
     scores = []
     for truth in truths:
@@ -332,6 +351,9 @@ def score_image(predictions: list[Prediction], truths: list[TagTruth], camera_ma
             corner_errors_px=np.linalg.norm(corners - truth.corners_px, axis=1).tolist(),
             lattice_errors_px=np.linalg.norm(lattice - truth.keypoints_px, axis=1).tolist(),
             scale_bias_pct=scale_bias_pct(lattice, truth.keypoints_px),
+            blur_axis_scale_pct=None
+            if blur_direction is None
+            else axis_scale_pct(lattice, truth.keypoints_px, blur_direction),
         )
         pose = solve_pose(pred.points_px, pred.point_layout, truth.size_m, camera_matrix)
         if pose is not None:
@@ -400,6 +422,7 @@ def summarise(records: list[tuple[dict[str, Any], ImageScore]]) -> dict[str, Any
         "e_t_cm": stats([t.e_t_cm for t in found if t.e_t_cm is not None]),
         "e_r_deg": stats([t.e_r_deg for t in found if t.e_r_deg is not None]),
         "scale_bias_pct": stats([t.scale_bias_pct for t in found if t.scale_bias_pct is not None]),
+        "blur_axis_scale_pct": stats([t.blur_axis_scale_pct for t in found if t.blur_axis_scale_pct is not None]),
         "wrong_ids": sum(img.wrong_ids for _, img in records),
         "ghosts": sum(img.ghosts for _, img in records),
     }
@@ -418,6 +441,7 @@ _COLUMNS: Final[list[tuple[str, int]]] = [
     ("e_t cm", 11),
     ("e_r deg", 11),
     ("scale %", 7),
+    ("blur-axis %", 11),
     ("wrong", 5),
     ("ghost", 5),
 ]
@@ -426,6 +450,7 @@ _COLUMNS: Final[list[tuple[str, int]]] = [
 def _cells(summary: dict[str, Any]) -> list[str]:
     det = summary["detection_pct"]
     scale = summary["scale_bias_pct"]["median"]
+    along = summary["blur_axis_scale_pct"]["median"]
     return [
         "-" if det is None else f"{det:.1f}",
         _pair(summary["corner_err_px"], 2),
@@ -433,6 +458,7 @@ def _cells(summary: dict[str, Any]) -> list[str]:
         _pair(summary["e_t_cm"], 2),
         _pair(summary["e_r_deg"], 2),
         "-" if scale is None else f"{scale:+.2f}",
+        "-" if along is None else f"{along:+.2f}",
         str(summary["wrong_ids"]),
         str(summary["ghosts"]),
     ]
@@ -480,6 +506,18 @@ def _samples(n: int, seed: int, settings: RenderSettings, workers: int) -> Itera
         yield from pool.imap(_render, jobs, chunksize=4)
 
 
+# Below this the blur direction says little about a grid's shape.
+MIN_BLUR_FOR_AXIS_PX: Final[float] = 3.0
+
+
+def _blur_direction(meta: dict[str, Any]) -> FloatArray | None:
+    """The image's motion-blur direction (unit, image x right, y down), if it is blurred enough."""
+    if float(meta.get("blur_px", 0.0)) < MIN_BLUR_FOR_AXIS_PX:
+        return None
+    a = math.radians(float(meta["blur_angle_deg"]))
+    return np.array([math.cos(a), math.sin(a)])
+
+
 def run(
     *, n: int, seed: int, settings: RenderSettings, methods: dict[str, Method], workers: int = 1
 ) -> tuple[dict[str, dict[str, dict[str, Any]]], list[dict[str, Any]], dict[str, float]]:
@@ -496,7 +534,7 @@ def run(
             t0 = time.perf_counter()
             preds = method(sample.image, k)
             secs[name] += time.perf_counter() - t0
-            score = score_image(preds, sample.tags, k)
+            score = score_image(preds, sample.tags, k, _blur_direction(sample.meta))
             per_method[name].append((sample.meta, score))
             row[name] = asdict(score)
         rows.append(row)
@@ -529,13 +567,22 @@ def main() -> None:
         default=True,
         help="stage 1 with the line quads' blind soft decode (stage1.lines.soft_decode; on by default)",
     )
+    ap.add_argument(
+        "--gamma",
+        type=float,
+        nargs=2,
+        metavar=("LO", "HI"),
+        default=None,
+        help="the rendered camera response's gamma range (default: the renderer's 0.6-1.6; an sRGB camera "
+        "is 2.2: --gamma 2.2 2.2)",
+    )
     args = ap.parse_args()
     soft = args.soft_decode
     command = "python -m bench.accuracy " + shlex.join(sys.argv[1:])
     print(f"CPU: {cpu_label()}")
     print(f"command: {command}", flush=True)
 
-    settings = RenderSettings()
+    settings = RenderSettings() if args.gamma is None else RenderSettings(gamma=(args.gamma[0], args.gamma[1]))
     apriltag = AprilTagMethod()
     methods: dict[str, Method] = {
         "apriltag3 (corners)": apriltag,
@@ -563,7 +610,8 @@ def main() -> None:
     names = list(methods)
     print(
         f"\n{args.n} images from bench/tagrender.py (seed {args.seed}), 1 tag each; "
-        "cells: median/p90, scale = median signed lattice scale bias"
+        "cells: median/p90, scale = median signed lattice scale bias, blur-axis = its median along the blur "
+        f"(images blurred >= {MIN_BLUR_FOR_AXIS_PX:g} px); camera gamma {settings.gamma[0]:g}-{settings.gamma[1]:g}"
     )
     print(format_table(table, names))
     timing = ", ".join(f"{name} {s:.1f} s" for name, s in secs.items())

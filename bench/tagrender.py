@@ -73,6 +73,9 @@ class RenderSettings:
     p_occluder: float = 0.3
     p_distractors: float = 0.5
     max_distractors: int = 4
+    # The camera response's gamma (out = in ** (1 / gamma)), uniform in this range. An sRGB camera is
+    # ~2.2, outside the default range: `bench.accuracy --gamma 2.2 2.2` renders that case alone.
+    gamma: tuple[float, float] = (0.6, 1.6)
 
     def camera_matrix(self) -> FloatArray:
         """The 3x3 pinhole matrix K."""
@@ -698,7 +701,7 @@ def _degrade(
     applied.append("noise")
     meta["full_well_e"] = full_well
     meta["read_noise_dn"] = read_sigma * 255.0
-    gamma = float(rng.uniform(0.6, 1.6))
+    gamma = float(rng.uniform(*s.gamma))
     contrast = float(rng.uniform(0.7, 1.2))
     brightness = float(rng.uniform(-0.08, 0.08))
     img = np.clip(img, 0.0, 1.0) ** (1.0 / gamma)

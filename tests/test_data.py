@@ -99,3 +99,33 @@ def test_blurred_small_preset_trains_on_tags_only_the_product_stage1_finds() -> 
     print(f"of 60 attempts: {only_product} samples only the product's stage 1 found, {both} both found")
     assert only_product >= 3, (only_product, both)
     assert both >= 3, (only_product, both)
+
+
+def test_tone_exponent_range_is_validated_and_applied() -> None:
+    """The tone curve's exponent range (synth4/synth5 widen it to cover an sRGB camera's ~1/2.2):
+    bad ranges are refused; the same sample under a brightening curve is brighter, geometry unchanged."""
+    import pytest
+    from pydantic import ValidationError
+
+    from shared.datasets.synth import make_sample
+    from shared.vision.detector import TagDetector
+
+    for bad in [(1.5, 0.5), (0.0, 1.0), (-1.0, 1.0)]:
+        with pytest.raises(ValidationError):
+            SynthSettings(tone_exponent=bad)
+    cam = default_camera()
+    bright, dark = SynthSettings(seed=3, tone_exponent=(0.4, 0.4)), SynthSettings(seed=3, tone_exponent=(1.6, 1.6))
+    detector = TagDetector(bright.detector)
+    compared = 0
+    try:
+        for index in range(12):
+            a, _ = make_sample(index, cam, bright, detector)
+            b, _ = make_sample(index, cam, dark, detector)
+            if a is None or b is None:
+                continue
+            np.testing.assert_array_equal(a["keypoints_px"], b["keypoints_px"])
+            assert float(a["roi"].mean()) > float(b["roi"].mean()) + 10, index
+            compared += 1
+    finally:
+        detector.close()
+    assert compared >= 3, compared

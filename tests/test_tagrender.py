@@ -134,3 +134,18 @@ def test_truth_is_the_projection_of_the_lattice() -> None:
             assert key in sample.meta
         assert sample.meta["blur_px"] <= settings.max_motion_blur_px + 1e-6
         assert sample.meta["tilt_deg"] <= settings.tilt_deg[1]
+
+
+def test_axis_scale_reads_a_stretch_along_one_direction() -> None:
+    """bench.accuracy's blur-axis metric: a grid stretched 2 % along a direction reads +2 % along it
+    and ~0 across it; the renderer's gamma setting is what each image's meta reports."""
+    from bench.accuracy import axis_scale_pct
+
+    true = np.stack(np.meshgrid(np.arange(4.0), np.arange(4.0)), axis=-1).reshape(-1, 2) * 30 + 100
+    d = np.array([np.cos(0.6), np.sin(0.6)])
+    centred = true - true.mean(axis=0)
+    pred = true + 0.02 * np.outer(centred @ d, d) + 3.0  # stretched along d, shifted
+    assert abs(axis_scale_pct(pred, true, d) - 2.0) < 1e-9
+    assert abs(axis_scale_pct(pred, true, np.array([-d[1], d[0]]))) < 1e-9
+    srgb = replace(RenderSettings(), gamma=(2.2, 2.2))
+    assert render_sample(0, 5, srgb).meta["gamma"] == 2.2

@@ -61,3 +61,37 @@ def test_trajectory_metrics_are_zero_on_the_truth_and_see_an_offset() -> None:
     ate, aligned = m["ate_cm"], m["aligned_ate_cm"]
     assert ate is not None and aligned is not None
     assert abs(ate - 2.0) < 1e-9 and aligned < 1e-6
+
+
+def test_grid_along_blur_is_zero_on_the_truth_and_reads_a_shrunk_grid() -> None:
+    """bench.slam's grid-along-blur fact: exact poses read 0 %, poses 2 % too far (a grid 2 % small)
+    read about -2 %, tags blurred < 3 px are left out."""
+    from bench.slam import FrameRecord, TagObservation, grid_along_blur, place_tags_map
+    from bench.tagseq import Trajectory
+
+    spec = SEQUENCES["fast"]
+    tag_map, trajectory = place_tags_map(spec), Trajectory(spec)
+
+    def records(scale: float, blur_px: float) -> list[FrameRecord]:
+        out = []
+        for index in range(0, 60, 3):
+            stamp = index / spec.fps
+            world_from_camera = trajectory.world_from_camera(stamp)
+            obs, blur = [], {}
+            for tag_id, (size_m, world_from_tag) in tag_map.items():
+                camera_from_tag = np.linalg.inv(world_from_camera) @ world_from_tag
+                if camera_from_tag[2, 3] < 0.5:
+                    continue
+                seen = camera_from_tag.copy()
+                seen[:3, 3] *= scale
+                obs.append(TagObservation(tag_id, size_m, seen, 0.0, seen, 1.0))
+                blur[tag_id] = blur_px
+            out.append(FrameRecord(index, stamp, world_from_camera, list(blur), blur, splittag=obs))
+        return out
+
+    exact = grid_along_blur(records(1.0, 10.0), spec)
+    assert exact["blur_>=8_px_tags"] and abs(exact["blur_>=8_px_median_pct"]) < 1e-6  # type: ignore[arg-type]
+    far = grid_along_blur(records(1.02, 5.0), spec)
+    assert far["blur_3-8_px_tags"] and abs(far["blur_3-8_px_median_pct"] + 100 * (1 - 1 / 1.02)) < 0.05  # type: ignore[operator]
+    sharp = grid_along_blur(records(1.0, 2.0), spec)
+    assert sharp["blur_3-8_px_tags"] == sharp["blur_>=8_px_tags"] == 0

@@ -28,7 +28,7 @@ from typing import Any, Final, Literal
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from shared.sim.backgrounds import procedural_background
 from shared.vision.blur import line_kernel
@@ -79,6 +79,19 @@ class SynthSettings(BaseModel):
     max_motion_blur_px: float = Field(default=15.0, ge=3)
     p_linear_motion_blur: float = Field(default=0.6, ge=0, le=1)  # "linear" camera model
     p_occluder: float = Field(default=0.2, ge=0, le=1)
+    # "linear" camera model: the tone curve's exponent (out = in ** e), log-uniform in this range. The
+    # default is what synth2 and synth3 were made with; it misses an sRGB camera's ~1/2.2, where a blurred
+    # black square looks narrower along the blur (bench/slam's fast room renders at 1/2.2: the third
+    # weights' grids came out 0.5-3.6 % short along the blur there; synth4 and synth5 cover 1/3 .. 1.6).
+    tone_exponent: tuple[float, float] = (1 / 1.8, 1.8)
+
+    @model_validator(mode="after")
+    def _tone_range(self) -> SynthSettings:
+        lo, hi = self.tone_exponent
+        if not 0 < lo <= hi:
+            raise ValueError(f"tone_exponent must be 0 < lo <= hi, got {self.tone_exponent}")
+        return self
+
     # Who finds the tag the ROI is warped from: "apriltag" (AprilTag 3 alone, the data sets up to
     # synth2) or "product" (robot_infer's stage 1: AprilTag, ArUco, line quads and their soft decode),
     # which also finds tags AprilTag misses (heavy blur on small tags) so the network is trained on them.
@@ -160,7 +173,8 @@ def augment_linear(rng: np.random.Generator, img: Image, s: SynthSettings) -> ND
     read_sigma = float(rng.uniform(0.5, 3.5)) / 255.0
     sigma = np.sqrt(np.clip(img, 0, None) / full_well + read_sigma**2)
     img = img + sigma * rng.standard_normal(img.shape, dtype=np.float32)
-    exponent = float(math.exp(rng.uniform(math.log(1 / 1.8), math.log(1.8))))
+    lo, hi = s.tone_exponent
+    exponent = float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
     img = np.clip(img, 0.0, 1.0) ** exponent
     img = (img - 0.5) * rng.uniform(0.65, 1.25) + 0.5 + rng.uniform(-0.1, 0.1)
     out = to_uint8(np.clip(img, 0, 1).astype(np.float32))

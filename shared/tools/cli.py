@@ -120,7 +120,8 @@ def _cmd_data_generate(args: argparse.Namespace) -> int:
         from shared.datasets.synth import BLURRED_SMALL_TAGS, FIRST_DATA_SETS, SynthMaker, SynthSettings
 
         preset = {"first": FIRST_DATA_SETS, "blurred-small": BLURRED_SMALL_TAGS}.get(args.generator, {})
-        synth = SynthSettings(seed=args.seed, **preset)
+        tone = {"tone_exponent": tuple(args.tone_exponent)} if args.tone_exponent else {}
+        synth = SynthSettings(seed=args.seed, **{**preset, **tone})
         settings, maker, shard_size = synth.model_dump(mode="json"), SynthMaker(camera, synth), 250
     else:
         from shared.datasets.render import RenderMaker, RenderSettings
@@ -551,6 +552,14 @@ def _add_data_commands(sub: Any) -> None:
         help="first: the first data sets' settings (display-order degradations, all ROIs perturbed); "
         "blurred-small: small far tags with motion blur up to half their side, found by the product's "
         "stage 1 (AprilTag, ArUco, line quads), most of which AprilTag alone misses",
+    )
+    p.add_argument(
+        "--tone-exponent",
+        type=float,
+        nargs=2,
+        metavar=("LO", "HI"),
+        help="the camera tone curve's exponent range, log-uniform (default: 1/1.8 .. 1.8, what synth2 and "
+        "synth3 were made with; an sRGB camera is ~1/2.2, which that range misses)",
     )
     p.add_argument("--camera", type=Path, help="ROS camera_info YAML (default: the paper's camera)")
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
