@@ -577,6 +577,8 @@ def main() -> None:
         "is 2.2: --gamma 2.2 2.2)",
     )
     args = ap.parse_args()
+    if args.gamma is not None and not 0 < args.gamma[0] <= args.gamma[1]:
+        ap.error(f"--gamma needs 0 < LO <= HI, got {args.gamma}")
     soft = args.soft_decode
     command = "python -m bench.accuracy " + shlex.join(sys.argv[1:])
     print(f"CPU: {cpu_label()}")

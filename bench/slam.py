@@ -47,7 +47,7 @@ from typing import TYPE_CHECKING, Any
 import cv2
 import numpy as np
 
-from bench.accuracy import AprilTagMethod, axis_scale_pct, solve_pose
+from bench.accuracy import MIN_BLUR_FOR_AXIS_PX, AprilTagMethod, axis_scale_pct, solve_pose
 from bench.machine import cpu_label
 from bench.tagrender import corners_in_tag, project_points
 from bench.tagseq import SEQUENCES, SequenceRenderer, SequenceSpec, Trajectory, place_tags
@@ -549,7 +549,7 @@ def grid_along_blur(records: list[FrameRecord], spec: SequenceSpec) -> dict[str,
     for rec in records:
         for o in rec.splittag:
             blur = rec.blur_px.get(o.tag_id, 0.0)
-            if o.tag_id not in tag_map or blur < 3.0:
+            if o.tag_id not in tag_map or blur < MIN_BLUR_FOR_AXIS_PX:
                 continue
             size_m, world_from_tag = tag_map[o.tag_id]
             lattice = lattice_in_tag(size_m)

@@ -129,3 +129,14 @@ def test_tone_exponent_range_is_validated_and_applied() -> None:
     finally:
         detector.close()
     assert compared >= 3, compared
+
+
+def test_cli_refuses_a_bad_tone_exponent_range(tmp_path: Path) -> None:
+    """`splittag data synth --tone-exponent HI LO` stops with a message naming the option, writes nothing."""
+    import pytest
+
+    from shared.tools.cli import main
+
+    with pytest.raises(SystemExit, match="--tone-exponent needs 0 < LO <= HI"):
+        main(["data", "synth", "--out", str(tmp_path / "d"), "--n", "1", "--tone-exponent", "2", "1"])
+    assert not (tmp_path / "d").exists()

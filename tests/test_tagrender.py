@@ -149,3 +149,19 @@ def test_axis_scale_reads_a_stretch_along_one_direction() -> None:
     assert abs(axis_scale_pct(pred, true, np.array([-d[1], d[0]]))) < 1e-9
     srgb = replace(RenderSettings(), gamma=(2.2, 2.2))
     assert render_sample(0, 5, srgb).meta["gamma"] == 2.2
+
+
+def test_accuracy_bench_refuses_a_bad_gamma_range(capsys: pytest.CaptureFixture[str]) -> None:
+    """`bench.accuracy --gamma 0 1` stops before rendering anything, naming the option."""
+    import sys
+
+    from bench import accuracy
+
+    argv = sys.argv
+    sys.argv = ["accuracy", "--gamma", "0", "1"]
+    try:
+        with pytest.raises(SystemExit):
+            accuracy.main()
+    finally:
+        sys.argv = argv
+    assert "--gamma needs 0 < LO <= HI" in capsys.readouterr().err

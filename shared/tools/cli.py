@@ -121,6 +121,8 @@ def _cmd_data_generate(args: argparse.Namespace) -> int:
 
         preset = {"first": FIRST_DATA_SETS, "blurred-small": BLURRED_SMALL_TAGS}.get(args.generator, {})
         tone = {"tone_exponent": tuple(args.tone_exponent)} if args.tone_exponent else {}
+        if tone and not 0 < args.tone_exponent[0] <= args.tone_exponent[1]:
+            raise SystemExit(f"splittag data synth: --tone-exponent needs 0 < LO <= HI, got {args.tone_exponent}")
         synth = SynthSettings(seed=args.seed, **{**preset, **tone})
         settings, maker, shard_size = synth.model_dump(mode="json"), SynthMaker(camera, synth), 250
     else:
