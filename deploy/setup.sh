@@ -12,6 +12,13 @@ if [[ -x "$VENV/bin/python" && -f "$STAMP" && "$(cat "$STAMP")" == "$want" ]]; t
     exit 0
 fi
 echo "[setup] creating $VENV and installing splittag (one-time, a few minutes)" >&2
+# The environment takes ~2.9 GB (torch alone ~1.8). Warn plainly before pip's "[Errno 28] No space left on
+# device" halfway through (a CI run once failed that way on a disk filled by old clones in /tmp).
+free_kib="$(df -Pk . | awk 'NR==2 {print $4}')"
+if [[ -n "$free_kib" && "$free_kib" -lt $((4 * 1024 * 1024)) ]]; then
+    echo "[setup] only $((free_kib / 1024)) MiB free on $(df -P . | awk 'NR==2 {print $6}'); the environment needs ~3 GiB plus pip's" \
+        "temporary files: if pip fails with 'No space left on device', free some (old clones, /tmp)" >&2
+fi
 [[ -x "$VENV/bin/python" ]] || "$PYTHON" -m venv "$VENV"
 "$VENV/bin/python" -m pip install -q --disable-pip-version-check --upgrade pip
 "$VENV/bin/python" -m pip install -q --disable-pip-version-check "torch==2.13.0"

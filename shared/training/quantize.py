@@ -193,7 +193,15 @@ def quantize(settings: QuantizeSettings) -> dict[str, Any]:
                 },
                 ckpt,
             )
-    metrics = {"val_e_px": best, "fp32_val_e_px": fp32_val, "steps": step, "val_samples": len(val_roi)}
+    # `steps`: how many ran; `best_step`: the one whose graph is kept (0 = calibration alone)
+    best_step = min(history, key=lambda r: r["val_e_px"])["step"] if history else 0
+    metrics = {
+        "val_e_px": best,
+        "fp32_val_e_px": fp32_val,
+        "steps": step,
+        "best_step": best_step,
+        "val_samples": len(val_roi),
+    }
     (out / "best" / "metrics.json").write_text(json.dumps(metrics, indent=2))
     shutil.copy(out / "curve.jsonl", out / "best" / "curve.jsonl")  # the curve travels with the weights
     if settings.install:
