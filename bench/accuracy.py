@@ -546,7 +546,7 @@ def run(
     return table, rows, secs
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     """Parse the command line, run the benchmark, print the table (and write JSON when asked)."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--n", type=int, default=600, help="images to render")
@@ -576,11 +576,11 @@ def main() -> None:
         help="the rendered camera response's gamma range (default: the renderer's 0.6-1.6; an sRGB camera "
         "is 2.2: --gamma 2.2 2.2)",
     )
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     if args.gamma is not None and not 0 < args.gamma[0] <= args.gamma[1]:
         ap.error(f"--gamma needs 0 < LO <= HI, got {args.gamma}")
     soft = args.soft_decode
-    command = "python -m bench.accuracy " + shlex.join(sys.argv[1:])
+    command = "python -m bench.accuracy " + shlex.join(sys.argv[1:] if argv is None else argv)
     print(f"CPU: {cpu_label()}")
     print(f"command: {command}", flush=True)
 

@@ -137,6 +137,6 @@ def test_cli_refuses_a_bad_tone_exponent_range(tmp_path: Path) -> None:
 
     from shared.tools.cli import main
 
-    with pytest.raises(SystemExit, match="--tone-exponent needs 0 < LO <= HI"):
+    with pytest.raises(SystemExit, match=r"--tone-exponent.*tone_exponent must be 0 < lo <= hi"):
         main(["data", "synth", "--out", str(tmp_path / "d"), "--n", "1", "--tone-exponent", "2", "1"])
     assert not (tmp_path / "d").exists()

@@ -120,10 +120,14 @@ def _cmd_data_generate(args: argparse.Namespace) -> int:
         from shared.datasets.synth import BLURRED_SMALL_TAGS, FIRST_DATA_SETS, SynthMaker, SynthSettings
 
         preset = {"first": FIRST_DATA_SETS, "blurred-small": BLURRED_SMALL_TAGS}.get(args.generator, {})
+        from pydantic import ValidationError
+
         tone = {"tone_exponent": tuple(args.tone_exponent)} if args.tone_exponent else {}
-        if tone and not 0 < args.tone_exponent[0] <= args.tone_exponent[1]:
-            raise SystemExit(f"splittag data synth: --tone-exponent needs 0 < LO <= HI, got {args.tone_exponent}")
-        synth = SynthSettings(seed=args.seed, **{**preset, **tone})
+        try:
+            synth = SynthSettings(seed=args.seed, **{**preset, **tone})
+        except ValidationError as exc:  # SynthSettings holds the rules (e.g. 0 < lo <= hi); say them plainly
+            why = "; ".join(str(e["msg"]).removeprefix("Value error, ") for e in exc.errors(include_url=False))
+            raise SystemExit(f"splittag data synth: bad --tone-exponent LO HI or preset: {why}") from None
         settings, maker, shard_size = synth.model_dump(mode="json"), SynthMaker(camera, synth), 250
     else:
         from shared.datasets.render import RenderMaker, RenderSettings
