@@ -14,7 +14,14 @@ from bench.photos import load_photos, match
 from bench.tagrender import clean_settings, render_sample
 from shared.vision.detector import Detection, DetectorSettings, Stage1, TagDetector, merge_proposals
 from shared.vision.linequads import LineQuadProposer, LineQuadSettings
-from shared.vision.proposals import ArucoProposer, ArucoSettings, FullResSettings, Stage1Detector, Stage1Settings
+from shared.vision.proposals import (
+    ArucoProposer,
+    ArucoSettings,
+    FullResSettings,
+    Stage1Detector,
+    Stage1Settings,
+    clear_of_border,
+)
 
 
 def _square(centre: tuple[float, float], side: float) -> NDArray[np.float64]:
@@ -225,3 +232,37 @@ def test_bad_threshold_windows_are_refused_with_the_values() -> None:
     for bad in ((2, 17, 10), (17, 7, 10), (7, 17, 0)):
         with pytest.raises(pydantic.ValidationError, match="threshold_window_px"):
             ArucoSettings(threshold_window_px=bad)
+
+
+def test_clear_of_border_in_opencv_pixels() -> None:
+    """The image spans -0.5 .. size - 0.5 in OpenCV pixels; a corner must be `margin` inside that."""
+    shape = (100, 200)
+    assert clear_of_border(_square((100, 50), 40), shape, 2.0)
+    assert clear_of_border(np.array([[1.5, 1.5], [197.5, 1.5], [197.5, 97.5], [1.5, 97.5]]), shape, 2.0)
+    for corner in ([1.4, 50.0], [197.6, 50.0], [100.0, 1.4], [100.0, 97.6]):
+        quad = _square((100, 50), 40)
+        quad[0] = corner
+        assert not clear_of_border(quad, shape, 2.0), corner
+    assert clear_of_border(np.array([[-0.5, -0.5], [199.5, -0.5], [199.5, 99.5], [-0.5, 99.5]]), shape, 0.0)
+
+
+def test_a_tag_touching_the_image_edge_is_refused_and_counted() -> None:
+    """The same tag, its outer edge 0.3 px from the image's edge: refused (its corners cannot be measured);
+    5 px in: found. Whoever proposed it (here the scripted second proposer, past the gate)."""
+    sample = render_sample(3, 11, clean_settings(span_px=(120.0, 160.0), tilt_deg=(0.0, 10.0)))
+    truth = sample.tags[0]
+    only_second = Stage1Settings(
+        apriltag=DetectorSettings(min_decision_margin=1e9), lines=LineQuadSettings(enabled=False)
+    )
+    right = float(truth.corners_px[:, 0].max())
+    for room_px, expected in ((0.3, []), (5.0, [truth.tag_id])):
+        width = int(np.floor(right + 0.5 + room_px))  # the last column's right edge at x = width - 0.5
+        image = np.ascontiguousarray(sample.image[:, :width])
+        stage1 = Stage1Detector(
+            only_second, second=_Scripted([Detection(truth.tag_id, 0.0, 0, truth.corners_px, "aruco")])
+        )
+        found = stage1.detect(image)
+        assert [d.tag_id for d in found] == expected, room_px
+        assert stage1.counts.at_border == (1 if not expected else 0)
+        assert stage1.counts.aruco_added == 1  # the gate passed it; the border check refused it
+        stage1.close()

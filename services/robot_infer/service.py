@@ -142,6 +142,7 @@ class RobotInfer:
             "stage1_fullres_sweeps": self.detector.counts.fullres_sweeps,
             "stage1_fullres_windows": self.detector.counts.fullres_windows,
             "stage1_fullres_added": self.detector.counts.fullres_added,
+            "stage1_at_border": self.detector.counts.at_border,
         }
 
     # Zenoh callbacks: bookkeeping only.

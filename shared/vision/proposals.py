@@ -11,6 +11,9 @@ decoded is added, marked with `proposer = "aruco"`, once it passes the gate that
 (`shared.vision.tracking.verify_tag`, a soft decode against every tag36h11 code word): OpenCV corrects
 up to 3 bit errors, the gate refuses what is not clearly the tag it claims to be.
 
+A quad with a corner within `border_margin_px` (4 px) of the image's edge is refused whoever found it:
+with no white beyond its outer edge there, its corners and the network's keypoints are guesses.
+
 Conventions: OpenCV's `DICT_APRILTAG_36h11` marker images are AprilTag's canonical tags rotated by
 180 deg, so ArUco's corner 0 (its marker's top-left) is the canonical tag's bottom-right: ArUco's
 corners c0..c3 are our BR, BL, TL, TR. OpenCV's corners are in OpenCV's pixel convention already
@@ -106,6 +109,11 @@ class Stage1Settings(BaseModel):
     # A tag both proposers report is one tag when their centres are closer than this fraction of the
     # larger quad side (one id may appear several times in one image: all are kept).
     same_tag_fraction: float = Field(default=0.5, gt=0.0, le=1.0)
+    # A quad with a corner closer than this to the image's edge is refused: the tag's outer edge has no
+    # white beyond it there, so neither its corners nor the network's keypoints can be measured (bench.slam's
+    # slow room: a tag 0.3 px from the edge read 42 deg off, 29 cm off through its other branch, and
+    # SLAM's ATE went 0.85 -> 1.25 cm because of that one read).
+    border_margin_px: float = Field(default=4.0, ge=0.0)
 
 
 @dataclass
@@ -123,6 +131,7 @@ class Stage1Counts:
     fullres_sweeps: int = 0  # frames AprilTag ran on at full resolution (FullResSettings.sweep_every_frames)
     fullres_windows: int = 0  # windows around small tags seen before, searched at full resolution
     fullres_added: int = 0  # tags those windows found that the decimated pass had missed
+    at_border: int = 0  # quads refused for touching the image's edge (Stage1Settings.border_margin_px)
 
 
 @dataclass(frozen=True)
@@ -185,6 +194,16 @@ class ArucoProposer:
             for c, i in zip(corners, ids.ravel(), strict=True)
         ]
         return sorted(out, key=lambda d: d.tag_id)
+
+
+def clear_of_border(corners_px: NDArray[np.float64], shape: tuple[int, ...], margin_px: float) -> bool:
+    """Whether every corner (OpenCV pixels: centres at integers, the image spans -0.5 .. size - 0.5) lies
+    at least `margin_px` inside the image's edge."""
+    height, width = shape[:2]
+    c = np.asarray(corners_px, np.float64)
+    lo, hi = c.min(axis=0), c.max(axis=0)
+    edge = margin_px - 0.5
+    return bool(lo[0] >= edge and lo[1] >= edge and hi[0] <= width - 1 - edge and hi[1] <= height - 1 - edge)
 
 
 class Stage1Detector:
@@ -253,7 +272,9 @@ class Stage1Detector:
             found.extend(new)
         if self._full is not None:
             self._remember(found, frame)
-        return sorted(found, key=lambda d: d.tag_id)
+        inside = [d for d in found if clear_of_border(d.corners_px, img.shape, self.settings.border_margin_px)]
+        self.counts.at_border += len(found) - len(inside)
+        return sorted(inside, key=lambda d: d.tag_id)
 
     def _windows(self, img: NDArray[np.uint8], found: list[Detection], frame: int) -> list[Detection]:
         """Full-resolution AprilTag in a window around each small tag seen lately that the decimated
