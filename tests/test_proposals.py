@@ -13,6 +13,7 @@ from bench.accuracy import Prediction
 from bench.photos import load_photos, match
 from bench.tagrender import clean_settings, render_sample
 from shared.vision.detector import Detection, DetectorSettings, Stage1, TagDetector, merge_proposals
+from shared.vision.geometry import clear_of_border
 from shared.vision.linequads import LineQuadProposer, LineQuadSettings
 from shared.vision.proposals import (
     ArucoProposer,
@@ -20,7 +21,6 @@ from shared.vision.proposals import (
     FullResSettings,
     Stage1Detector,
     Stage1Settings,
-    clear_of_border,
 )
 
 

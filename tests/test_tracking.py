@@ -62,6 +62,9 @@ def test_a_missed_tag_is_predicted_at_constant_velocity() -> None:
     assert tracker.predict(3, detected={7}, image_size=(400, 300)) == []  # stage 1 has it
     assert tracker.predict(6, detected=set(), image_size=(400, 300)) == []  # older than max_age
     assert tracker.predict(3, detected=set(), image_size=(110, 300)) == []  # would leave the image
+    # its right edge at x = 135: it must stay border_margin_px + search_px (4 + 6 px) inside the image
+    assert tracker.predict(3, detected=set(), image_size=(145, 300)) == []
+    assert len(tracker.predict(3, detected=set(), image_size=(146, 300))) == 1
 
 
 def test_tracking_stops_coasting_without_a_fresh_detection() -> None:

@@ -299,3 +299,13 @@ def tilt_deg(camera_from_tag: Array) -> float:
     normal = camera_from_tag[:3, 2]  # tag z axis (into the tag) in the camera frame
     c = float(np.dot(normal, t) / max(1e-12, np.linalg.norm(t)))
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def clear_of_border(corners_px: NDArray[np.float64], shape: tuple[int, ...], margin_px: float) -> bool:
+    """Whether every corner (OpenCV pixels: centres at integers, the image spans -0.5 .. size - 0.5) lies
+    at least `margin_px` inside the image's edge."""
+    height, width = shape[:2]
+    c = np.asarray(corners_px, np.float64)
+    lo, hi = c.min(axis=0), c.max(axis=0)
+    edge = margin_px - 0.5
+    return bool(lo[0] >= edge and lo[1] >= edge and hi[0] <= width - 1 - edge and hi[1] <= height - 1 - edge)

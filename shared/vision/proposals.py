@@ -38,7 +38,7 @@ from shared.vision.detector import (
     merge_proposals,
     quad_side_px,
 )
-from shared.vision.geometry import check_image
+from shared.vision.geometry import check_image, clear_of_border
 from shared.vision.linequads import LineQuadProposer, LineQuadSettings
 from shared.vision.tracking import Prediction as TrackPrediction
 from shared.vision.tracking import TrackingSettings, verify_tag
@@ -194,16 +194,6 @@ class ArucoProposer:
             for c, i in zip(corners, ids.ravel(), strict=True)
         ]
         return sorted(out, key=lambda d: d.tag_id)
-
-
-def clear_of_border(corners_px: NDArray[np.float64], shape: tuple[int, ...], margin_px: float) -> bool:
-    """Whether every corner (OpenCV pixels: centres at integers, the image spans -0.5 .. size - 0.5) lies
-    at least `margin_px` inside the image's edge."""
-    height, width = shape[:2]
-    c = np.asarray(corners_px, np.float64)
-    lo, hi = c.min(axis=0), c.max(axis=0)
-    edge = margin_px - 0.5
-    return bool(lo[0] >= edge and lo[1] >= edge and hi[0] <= width - 1 - edge and hi[1] <= height - 1 - edge)
 
 
 class Stage1Detector:

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from shared.vision.geometry import Array
+from shared.vision.geometry import Array, clear_of_border
 from shared.vision.softdecode import DATA_CELLS, SIDE_PX, blur_operator, code_book, normalise, rectify
 
 
@@ -46,6 +46,9 @@ class TrackingSettings(BaseModel):
     min_correlation: float = Field(default=0.75, gt=0, le=1)  # own pattern vs the rectified cells
     min_margin: float = Field(default=0.15, ge=0)  # own pattern's correlation minus the best other's
     min_side_px: float = Field(default=12.0, gt=0)  # smaller predicted quads are not verifiable
+    # A predicted quad must lie this far inside the image's edge, plus search_px (the gate may move it
+    # that far): as stage 1's border_margin_px, a tag at the edge cannot be measured.
+    border_margin_px: float = Field(default=4.0, ge=0)
     # The keypoint-confidence gate after the network refined a tracked tag: the 16 points must lie on a
     # plane's projection (RMS PnP reprojection error), as a sure keypoint set does.
     max_refined_reprojection_px: float = Field(default=1.0, gt=0)
@@ -84,7 +87,7 @@ class TagTracker:
 
     def predict(self, frame: int, detected: set[int], image_size: tuple[int, int]) -> list[Prediction]:
         """Quads for the recently seen tags stage 1 missed in `frame`, the freshest first; only those
-        inside the image (width, height) and large enough to verify."""
+        clear of the image's edge (width, height; see border_margin_px) and large enough to verify."""
         s = self.settings
         out = []
         width, height = image_size
@@ -96,8 +99,8 @@ class TagTracker:
                 continue
             quad, velocity = self._extrapolate(tr, frame)
             sides = np.linalg.norm(quad - np.roll(quad, 1, axis=0), axis=1)
-            inside = (quad[:, 0] >= 0) & (quad[:, 0] <= width - 1) & (quad[:, 1] >= 0) & (quad[:, 1] <= height - 1)
-            if sides.min() < s.min_side_px or not inside.all():
+            inside = clear_of_border(quad, (height, width), s.border_margin_px + s.search_px)
+            if sides.min() < s.min_side_px or not inside:
                 continue
             out.append(Prediction(tag_id, quad, velocity, age))
         out.sort(key=lambda p: p.age_frames)
