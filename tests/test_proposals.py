@@ -244,6 +244,10 @@ def test_clear_of_border_in_opencv_pixels() -> None:
         quad[0] = corner
         assert not clear_of_border(quad, shape, 2.0), corner
     assert clear_of_border(np.array([[-0.5, -0.5], [199.5, -0.5], [199.5, 99.5], [-0.5, 99.5]]), shape, 0.0)
+    import pydantic
+
+    with pytest.raises(pydantic.ValidationError, match="border_margin_px"):
+        Stage1Settings(border_margin_px=-1.0)
 
 
 def test_a_tag_touching_the_image_edge_is_refused_and_counted() -> None:
