@@ -93,18 +93,32 @@ def test_v4l2_source_when_a_device_exists(tmp_path: Path) -> None:
 
 
 def _stream(
-    settings: CameraSettings, key_prefix: str, expect: int, stamps: list[FrameStamp] | None = None
+    settings: CameraSettings,
+    key_prefix: str,
+    expect: int,
+    stamps: list[FrameStamp] | None = None,
+    *,
+    expect_gts: int = 0,
 ) -> tuple[list[Frame], list[CameraPose], int]:
     """Run the camera service into a hub session; collect its frames, ground truth (and FrameStamps
-    into `stamps`, waiting for `expect` of them too, when given)."""
+    into `stamps`, waiting for `expect` of them too, when given), waiting for `expect` frames and
+    `expect_gts` ground-truth poses (the last pose can arrive after the last frame)."""
     port = free_tcp_port()
     hub = open_session(ZenohSettings(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
     frames: list[Frame] = []
     gts: list[CameraPose] = []
     got = threading.Event()
     got_stamps = threading.Event()
+    got_gts = threading.Event()
     if stamps is None:
         got_stamps.set()
+    if expect_gts == 0:
+        got_gts.set()
+
+    def on_gt(sample: object) -> None:
+        gts.append(decode(sample.payload.to_bytes(), CameraPose))  # type: ignore[attr-defined]
+        if len(gts) >= expect_gts:
+            got_gts.set()
 
     def on_stamp(sample: object) -> None:
         assert stamps is not None
@@ -119,10 +133,7 @@ def _stream(
 
     subs = [
         hub.declare_subscriber(keys.frames(key_prefix), on_frame),
-        hub.declare_subscriber(
-            keys.ground_truth(key_prefix),
-            lambda s: gts.append(decode(s.payload.to_bytes(), CameraPose)),
-        ),
+        hub.declare_subscriber(keys.ground_truth(key_prefix), on_gt),
         hub.declare_subscriber(keys.frame_stamp(key_prefix), on_stamp),
     ]
     cam_session = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
@@ -132,6 +143,7 @@ def _stream(
         )
         assert got.wait(10), f"received {len(frames)} of {expect} frames"
         assert got_stamps.wait(10), f"received {len(stamps or [])} of {expect} frame stamps"
+        assert got_gts.wait(10), f"received {len(gts)} of {expect_gts} ground-truth poses"
     finally:
         cam_session.close()
         for s in subs:
@@ -159,7 +171,7 @@ def _looping_folder(tmp_path: Path, robot_id: str, *, max_frames: int, start_fra
 
 def test_camera_service_streams_a_folder_and_loops(tmp_path: Path) -> None:
     settings = _looping_folder(tmp_path, "src1", max_frames=7)
-    frames, gts, published = _stream(settings, "src1", 7)
+    frames, gts, published = _stream(settings, "src1", 7, expect_gts=7)
     assert published == 7
     assert [f.seq for f in frames] == list(range(7))
     assert np.array_equal(frames[4].image, _tag_image(1))  # 0 1 2 0 1 2 0: looped
@@ -171,7 +183,7 @@ def test_camera_service_starts_later_in_the_source_and_refuses_a_start_past_its_
     """`start_frame` (a fleet's robots at different places of one source) skips the first pass's first
     frames only; a start past the source's end is an error, not a camera that loops publishing nothing."""
     settings = _looping_folder(tmp_path, "src3", max_frames=4, start_frame=2)
-    frames, gts, published = _stream(settings, "src3", 4)
+    frames, gts, published = _stream(settings, "src3", 4, expect_gts=4)
     assert published == 4 and [f.seq for f in frames] == list(range(4))
     assert [g.world_from_camera[0, 3] for g in gts] == [2, 0, 1, 2]  # 2, then the whole source again
     session = open_session(ZenohSettings(mode="peer", listen=[], multicast_scouting=False))
