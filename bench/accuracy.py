@@ -178,17 +178,19 @@ class SplittagUnavailable(RuntimeError):
 
 
 def splittag_method(
-    weights_dir: Path, *, fuse: bool = True, precision: str = "fp32", soft_decode: bool = True
+    weights_dir: Path, *, fuse: bool = True, precision: str = "fp32", soft_decode: bool = True, views: int = 1
 ) -> Method:
     """The product's chain (stage 1 -> ROI -> split network) as a "lattice16" method; imports the project here only.
 
     `fuse=True` is the product's default (the lattice fitted to the network's points and stage 1's
     corners with the sigmas calibrated into the weights' config.json); `fuse=False` scores the
     network's 16 points as they are. `precision`: fp32 (PyTorch, as `splittag detect`), bf16, or int8
-    (the weights folder's OpenVINO variant). The tag map's size only affects `perceive`'s own pose, which the
-    bench ignores (it solves the pose from the keypoints with the true size).
+    (the weights folder's OpenVINO variant). `views`: test-time views per ROI (shared.model.views).
+    The tag map's size only affects `perceive`'s own pose, which the bench ignores (it solves the pose
+    from the keypoints with the true size).
     """
-    from shared.model.runtime import load_split_net
+    from shared.model.runtime import TorchSplitNet, load_split_net
+    from shared.model.views import with_views
     from shared.model.weights import load_keypoint_fusion, load_model
     from shared.perception.single import perceive
     from shared.vision.camera import CameraIntrinsics
@@ -200,6 +202,8 @@ def splittag_method(
         model = (
             load_model(Path(weights_dir)) if precision == "fp32" else load_split_net(Path(weights_dir), precision)  # type: ignore[arg-type]
         )
+        if views > 1:
+            model = with_views(TorchSplitNet(model, bf16=False) if precision == "fp32" else model, views)  # type: ignore[arg-type]
         fusion = load_keypoint_fusion(Path(weights_dir)) if fuse else None
     except Exception as exc:
         raise SplittagUnavailable(f"cannot load weights from {weights_dir}: {exc}") from exc
@@ -568,6 +572,14 @@ def main(argv: list[str] | None = None) -> None:
         help="stage 1 with the line quads' blind soft decode (stage1.lines.soft_decode; on by default)",
     )
     ap.add_argument(
+        "--views",
+        type=int,
+        nargs="+",
+        default=[1],
+        choices=[1, 2, 4, 8],
+        help="test-time views per ROI (shared/model/views.py): the split network's columns per count",
+    )
+    ap.add_argument(
         "--gamma",
         type=float,
         nargs=2,
@@ -596,12 +608,15 @@ def main(argv: list[str] | None = None) -> None:
         from shared.model.weights import load_keypoint_fusion
 
         for precision in args.precisions:
-            tag = "" if precision == "fp32" else f" {precision}"
-            methods[f"splittag{tag} (network)"] = splittag_method(
-                args.weights, fuse=False, precision=precision, soft_decode=soft
-            )
-            if load_keypoint_fusion(args.weights) is not None:
-                methods[f"splittag{tag} (fused)"] = splittag_method(args.weights, precision=precision, soft_decode=soft)
+            for views in args.views:
+                tag = ("" if precision == "fp32" else f" {precision}") + ("" if views == 1 else f" x{views}")
+                methods[f"splittag{tag} (network)"] = splittag_method(
+                    args.weights, fuse=False, precision=precision, soft_decode=soft, views=views
+                )
+                if load_keypoint_fusion(args.weights) is not None:
+                    methods[f"splittag{tag} (fused)"] = splittag_method(
+                        args.weights, precision=precision, soft_decode=soft, views=views
+                    )
     t0 = time.perf_counter()
     try:
         table, rows, secs = run(n=args.n, seed=args.seed, settings=settings, methods=methods, workers=args.workers)

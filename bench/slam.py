@@ -6,10 +6,10 @@ bench renders the image and runs:
 - AprilTag 3 (the product's stage-1 settings, restated in bench/accuracy.py) and, on a known tag map,
   PnP over every mapped tag's corners (IPPE_SQUARE for one tag, SQPnP + Levenberg-Marquardt for more):
   what an engineer gets from AprilTag alone;
-- the product's perception (stage 1 -> ROI -> network in bf16 as the services run it -> keypoint
-  fusion -> PnP on 16 points), whose tag poses then feed the SLAM core (shared/slam) as slam feeds it:
-  without a map ("splittag SLAM"), with the known map as priors ("splittag SLAM + map"), and
-  localisation-only on the map.
+- the product's perception (stage 1 -> ROI -> network at the services' precision, `auto` by default:
+  int8 where the weights folder has it -> keypoint fusion -> PnP on 16 points), whose tag poses then
+  feed the SLAM core (shared/slam) as slam feeds it: without a map ("splittag SLAM"), with the known
+  map as priors ("splittag SLAM + map"), and localisation-only on the map.
 
 Metrics over the frames of the sequence: frames with a pose; ATE (RMSE of position, cm) and rotation
 RMSE (deg) in the true world frame, without fitting (the known-map methods work in the map's frame;
@@ -117,15 +117,17 @@ class FrameRecord:
 _worker: dict[str, Any] = {}
 
 
-def _init_worker(weights: str, soft_decode: bool = True) -> None:
+def _init_worker(weights: str, soft_decode: bool = True, precision: str = "bf16", views: int = 1) -> None:
     import torch
 
-    from shared.model.weights import load_keypoint_fusion, load_model
+    from shared.model.runtime import load_split_net
+    from shared.model.views import with_views
+    from shared.model.weights import load_keypoint_fusion
     from shared.vision.linequads import LineQuadSettings
     from shared.vision.proposals import Stage1Settings
 
     torch.set_num_threads(1)
-    _worker["model"] = load_model(Path(weights))
+    _worker["model"] = with_views(load_split_net(Path(weights), precision, threads=1), views)  # type: ignore[arg-type]
     _worker["fusion"] = load_keypoint_fusion(Path(weights))
     # the services' stage 1 settings (the soft decode as asked); a fresh detector per sequence, as its
     # full-resolution sweeps and windows carry state from frame to frame
@@ -136,7 +138,7 @@ def _init_worker(weights: str, soft_decode: bool = True) -> None:
 
 def _perceive_sequence(spec: SequenceSpec) -> list[FrameRecord]:
     """One sequence, frame after frame (the tracker needs the order): stage 1, the network on its ROIs
-    (bf16, as the services run it) with keypoint fusion and PnP; then track-then-refine for the tags
+    (at the precision robot_infer runs it) with keypoint fusion and PnP; then track-then-refine for the tags
     stage 1 missed (prediction, soft-decode gate, the network on the predicted ROI, the keypoint
     confidence gate); AprilTag 3 alone as the baseline."""
     from shared.perception.single import extract_rois, run_network
@@ -167,7 +169,7 @@ def _perceive_sequence(spec: SequenceSpec) -> list[FrameRecord]:
         t0 = time.perf_counter()
         detections = detector.detect(frame.image)
         rois, homs = extract_rois(frame.image, detections)
-        kps = run_network(model, rois, bf16=True)
+        kps = run_network(model, rois)
         refined: dict[int, FloatArray] = {}
         for i, d in enumerate(detections):
             size = tag_map.size_of(d.tag_id)
@@ -190,7 +192,7 @@ def _perceive_sequence(spec: SequenceSpec) -> list[FrameRecord]:
                 rec.tracking_rejected += 1
         if accepted:
             rois, homs = extract_rois(frame.image, accepted)
-            kps = run_network(model, rois, bf16=True)
+            kps = run_network(model, rois)
             for i, d in enumerate(accepted):
                 size = tag_map.size_of(d.tag_id)
                 kp = keypoints_to_image(kps[i], homs[i])
@@ -228,10 +230,17 @@ def _observation(tag_id: int, size_m: float, pose: Any, proposer: Proposer | Non
     )
 
 
-def _cache_key(spec: SequenceSpec, weights: Path, soft_decode: bool = True) -> str:
+def _cache_key(
+    spec: SequenceSpec, weights: Path, soft_decode: bool = True, precision: str = "bf16", views: int = 1
+) -> str:
     h = hashlib.sha1(json.dumps(asdict(spec), sort_keys=True).encode())
     if soft_decode:
         h.update(b"soft_decode")
+    h.update(f"{precision} views {views}".encode())
+    if precision == "int8":
+        for f in sorted((weights / "int8").glob("*")):
+            st = f.stat()
+            h.update(f"{f.name}:{st.st_size}:{st.st_mtime_ns}".encode())
     for rel in _CACHE_SOURCES:
         h.update((ROOT / rel).read_bytes())
     h.update((weights / "config.json").read_bytes())
@@ -241,17 +250,22 @@ def _cache_key(spec: SequenceSpec, weights: Path, soft_decode: bool = True) -> s
 
 
 def perceive_sequences(
-    specs: list[SequenceSpec], weights: Path, *, workers: int, cache_dir: Path | None, soft_decode: bool = True
+    specs: list[SequenceSpec],
+    weights: Path,
+    *,
+    workers: int,
+    cache_dir: Path | None,
+    soft_decode: bool = True,
+    precision: str = "bf16",
+    views: int = 1,
 ) -> dict[str, list[FrameRecord]]:
     """Every frame's truth and both methods' output per sequence, one process per sequence (from the
-    cache when nothing it depends on changed)."""
+    cache when nothing it depends on changed). `precision`: the network's (fp32, bf16 or int8; resolve
+    `auto` with shared.model.precision.resolve_for_folder first); `views`: test-time views per ROI
+    (shared.model.views)."""
     out: dict[str, list[FrameRecord]] = {}
-    paths = {
-        spec.name: (
-            cache_dir / f"{spec.name}-{_cache_key(spec, weights, soft_decode)}.pkl" if cache_dir is not None else None
-        )
-        for spec in specs
-    }
+    keys = {s.name: _cache_key(s, weights, soft_decode, precision, views) for s in specs}
+    paths = {name: None if cache_dir is None else cache_dir / f"{name}-{key}.pkl" for name, key in keys.items()}
     todo = []
     for spec in specs:
         path = paths[spec.name]
@@ -261,7 +275,9 @@ def perceive_sequences(
             todo.append(spec.name)
     if todo:
         ctx = multiprocessing.get_context("spawn")
-        with ctx.Pool(min(workers, len(todo)), initializer=_init_worker, initargs=(str(weights), soft_decode)) as pool:
+        with ctx.Pool(
+            min(workers, len(todo)), initializer=_init_worker, initargs=(str(weights), soft_decode, precision, views)
+        ) as pool:
             by_name = {spec.name: spec for spec in specs}
             for name, records in zip(todo, pool.imap(_perceive_sequence, [by_name[n] for n in todo]), strict=True):
                 out[name] = records
@@ -643,12 +659,29 @@ def main() -> None:
         help="add this to every sequence's seed: other rooms, tag layouts and camera paths of the same kinds "
         "(held-out checks for anything tuned on the default ones)",
     )
+    ap.add_argument(
+        "--precision",
+        choices=["auto", "fp32", "bf16", "int8"],
+        default="auto",
+        help="the network's, as robot_infer's `precision` (auto: int8 where the weights folder has it, else "
+        "bf16 where the CPU has it, else fp32)",
+    )
+    ap.add_argument(
+        "--views",
+        type=int,
+        choices=[1, 2, 4, 8],
+        default=1,
+        help="test-time views per ROI, as robot_infer's and edge_infer's `views` (shared/model/views.py)",
+    )
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
+    from shared.model.precision import resolve_for_folder
+
+    precision = resolve_for_folder(args.precision, args.weights)
     specs = {n: replace(SEQUENCES[n], seed=SEQUENCES[n].seed + args.room_seed_offset) for n in args.sequences}
     command = "python -m bench.slam " + shlex.join(sys.argv[1:])
     print(f"CPU: {cpu_label()}")
-    print(f"command: {command}", flush=True)
+    print(f"command: {command}; network precision {precision}, {args.views} view(s) per ROI", flush=True)
     results: dict[str, dict[str, Any]] = {}
     t_all = time.perf_counter()
     t0 = time.perf_counter()
@@ -658,6 +691,8 @@ def main() -> None:
         workers=args.workers,
         cache_dir=None if args.no_cache else args.cache_dir,
         soft_decode=args.soft_decode,
+        precision=precision,
+        views=args.views,
     )
     perceive_s = time.perf_counter() - t0
     for name in args.sequences:

@@ -37,3 +37,14 @@ def test_light_cuts_teach_nothing_and_stale_scale_decays_to_calibration() -> Non
 def test_bad_calibration_is_rejected() -> None:
     with pytest.raises(ValueError, match="8 non-negative"):
         ComputeEstimator([1.0, 2.0])
+
+
+def test_views_multiply_only_the_whole_network_passes() -> None:
+    """Test-time views run where one side has the whole network: the robot at the last cut, the edge
+    from cut 0; at the split cuts each half runs once per tag."""
+    robot = head_per_tag_ms(CUMULATIVE, views=4)
+    assert robot[:7] == head_per_tag_ms(CUMULATIVE)[:7]
+    assert robot[7] == pytest.approx(4 * 32.0)
+    edge = tail_per_tag_ms(CUMULATIVE, pnp_ms=0.1, views=4)
+    assert edge[1:] == tail_per_tag_ms(CUMULATIVE, pnp_ms=0.1)[1:]
+    assert edge[0] == pytest.approx(4 * (32.0 - 0.1) + 0.1)

@@ -262,3 +262,39 @@ def test_int8_on_both_sides_at_a_middle_cut(tmp_path: Path, deploy_config: Deplo
             for s in subs:
                 s.undeclare()
             session.close()
+
+
+def test_test_time_views_on_the_edge_at_cut_0(tmp_path: Path, deploy_config: DeployConfig) -> None:
+    """edge_infer with views = 2 (shared/model/views.py) and the robot cut at 0, so the edge runs the
+    whole network on each ROI and its half turn: every frame gets poses, as accurate as one view's must
+    be, and the edge says it runs two views."""
+    cfg, topology = deploy_config(
+        {
+            "common": {"robot_id": ROBOT},
+            "robot_infer": {"split_k": 0},
+            "edge_infer": {"views": 2},
+            "camera": {"fps": FPS, "loop": False, "max_frames": 12},
+        }
+    )
+    with processes(tmp_path) as procs:
+        for name in ("edge_infer", "robot_infer"):
+            procs.append(start_process(name, ["-m", f"services.{name}", "--config", str(cfg)], tmp_path))
+        session = open_session(ZenohSettings(mode="client", connect=[topology.robot_router]))
+        monitor = Monitor(demo_tag_map())
+        subs = attach_monitor(session, ROBOT, monitor)
+        try:
+            wait_for_liveliness(
+                session, [keys.alive(ROBOT, "edge_infer"), keys.alive(ROBOT, "robot_infer")], timeout_secs=90
+            )
+            procs.append(start_process("camera", ["-m", "services.camera", "--config", str(cfg)], tmp_path))
+            wait_until(lambda: len(monitor.records) >= 12, 120, "12 TagPoses with two views on the edge")
+            assert sorted(r["seq"] for r in monitor.records) == list(range(12))
+            assert {r["k"] for r in monitor.records} == {0}
+            errs = [e for r in monitor.records for e in r["errors_cm"]]
+            print(f"two views: median e_t {np.median(errs):.2f} cm over {len(errs)} tag observations")
+            assert np.median(errs) <= MEDIAN_E_T_CM_MAX and monitor.bad == 0
+            assert "views=2" in next(p for p in procs if p.name == "edge_infer").log_text()
+        finally:
+            for s in subs:
+                s.undeclare()
+            session.close()

@@ -26,6 +26,7 @@ from services.edge_infer.settings import EdgeInferSettings
 from shared.control.compute import ComputeEstimator, tail_per_tag_ms
 from shared.model.profile import calibrate_pnp_ms
 from shared.model.runtime import calibrate_cumulative_ms, load_split_net
+from shared.model.views import with_views
 from shared.model.weights import load_keypoint_fusion
 from shared.perception.split import EdgeInput, check_features, edge_batch
 from shared.runtime.guard import InputGuard, serve_stats
@@ -46,10 +47,11 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
     torch.set_num_threads(settings.threads)
     node = EdgeInfer(settings, session, stop)
     log.info(
-        "edge_infer worker %s ready: precision=%s (configured %s), robots %s",
+        "edge_infer worker %s ready: precision=%s (configured %s) views=%d, robots %s",
         settings.worker_id,
         node.net.precision,
         settings.precision,
+        settings.views,
         settings.robots or [settings.robot_id],
     )
     try:
@@ -104,11 +106,14 @@ class EdgeInfer:
         self.settings = s = settings
         self.session = session
         self.stop = stop
-        self.net = load_split_net(s.weights, s.precision, threads=s.threads)
+        one_view = load_split_net(s.weights, s.precision, threads=s.threads)
+        self.net = with_views(one_view, s.views)
         self.fusion = load_keypoint_fusion(s.weights) if s.fuse_corners else None
         self.net.warm_up(0, max_batch=6)
         self.emulated = s.emulated_ms_per_tag_by_k
-        self.per_tag_ms = self.emulated or tail_per_tag_ms(calibrate_cumulative_ms(self.net), pnp_ms=calibrate_pnp_ms())
+        self.per_tag_ms = self.emulated or tail_per_tag_ms(
+            calibrate_cumulative_ms(one_view), pnp_ms=calibrate_pnp_ms(), views=s.views
+        )
         self.default_map = load_tag_map(s.tag_map) if s.tag_map else TagMapFile(default_size_m=s.default_tag_size_m)
         # Every robot's own map is read now: a bad file stops the worker at start, not when the robot arrives.
         self.tag_maps = {robot: load_tag_map(path) for robot, path in s.tag_maps.items()}

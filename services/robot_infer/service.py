@@ -15,6 +15,7 @@ import zenoh
 from services.robot_infer.settings import RobotInferSettings
 from shared.control.compute import ComputeEstimator, head_per_tag_ms
 from shared.model.runtime import calibrate_cumulative_ms, load_split_net
+from shared.model.views import with_views
 from shared.model.weights import load_keypoint_fusion
 from shared.perception.split import RobotTimings, Stage1Output, edge_step, robot_head, robot_stage1
 from shared.runtime.guard import InputGuard, serve_stats
@@ -55,11 +56,12 @@ def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading
     torch.set_num_threads(settings.threads)
     node = RobotInfer(settings, session)
     log.info(
-        "robot_infer ready: k=%d codec=%s precision=%s (configured %s) gamma=%.2f",
+        "robot_infer ready: k=%d codec=%s precision=%s (configured %s) views=%d gamma=%.2f",
         settings.split_k,
         settings.codec,
         node.net.precision,
         settings.precision,
+        settings.views,
         settings.gamma,
     )
     try:
@@ -73,11 +75,12 @@ class RobotInfer:
 
     def __init__(self, settings: RobotInferSettings, session: zenoh.Session) -> None:
         self.settings = s = settings
-        self.net = load_split_net(s.weights, s.precision, threads=s.threads)
+        one_view = load_split_net(s.weights, s.precision, threads=s.threads)
+        self.net = with_views(one_view, s.views)
         self.fusion = load_keypoint_fusion(s.weights) if s.fuse_corners else None
         self.net.warm_up(s.split_k, max_batch=6)
         self.emulated = s.emulated_ms_per_tag_by_k
-        self.per_tag_ms = self.emulated or head_per_tag_ms(calibrate_cumulative_ms(self.net))
+        self.per_tag_ms = self.emulated or head_per_tag_ms(calibrate_cumulative_ms(one_view), views=s.views)
         self.estimator = ComputeEstimator(self.per_tag_ms)
         self.detector = Stage1Detector(s.stage1)
         self.tracker = TagTracker(s.tracking) if s.tracking.enabled else None

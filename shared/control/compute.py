@@ -105,12 +105,18 @@ class ComputeEstimator:
         )
 
 
-def head_per_tag_ms(cumulative_ms: Sequence[float]) -> list[float]:
-    """Robot side: the cumulative head time up to each cut is what the robot computes per tag."""
-    return [max(0.0, float(v)) for v in cumulative_ms]
+def head_per_tag_ms(cumulative_ms: Sequence[float], *, views: int = 1) -> list[float]:
+    """Robot side: the cumulative head time up to each cut is what the robot computes per tag; at the
+    last cut (the whole network) once per test-time view (shared.model.views)."""
+    out = [max(0.0, float(v)) for v in cumulative_ms]
+    out[-1] *= views
+    return out
 
 
-def tail_per_tag_ms(cumulative_ms: Sequence[float], pnp_ms: float) -> list[float]:
-    """Edge side: the rest of the network after each cut, plus PnP, per tag."""
+def tail_per_tag_ms(cumulative_ms: Sequence[float], pnp_ms: float, *, views: int = 1) -> list[float]:
+    """Edge side: the rest of the network after each cut, plus PnP, per tag; from cut 0 (the whole
+    network) once per test-time view. `cumulative_ms` is one view's (calibrated without views)."""
     full = float(cumulative_ms[-1])
-    return [max(0.0, full - float(v)) + pnp_ms for v in cumulative_ms]
+    out = [max(0.0, full - float(v)) + pnp_ms for v in cumulative_ms]
+    out[0] = max(0.0, views * (full - float(cumulative_ms[0]))) + pnp_ms
+    return out

@@ -10,10 +10,16 @@ from pathlib import Path
 from typing import Any
 
 from shared.model.precision import PRECISION_CHOICES, PRECISIONS, ModelFileError
+from shared.model.views import VIEW_COUNTS
 from shared.runtime.logs import setup_logging
 from shared.tools.options import add_model_options, model_from_args
 from shared.tools.topology import EDGE_PORT, Topology
 from shared.training.settings import QuantizeSettings, TrainSettings
+
+VIEWS_HELP = (
+    "test-time views: the network on each ROI and 1, 3 or 7 of its flips and turns, keypoints averaged "
+    "(that many times the network time; shared/model/views.py)"
+)
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -205,7 +211,9 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     import json
 
     from shared.datasets.shards import load_dataset
-    from shared.model.runtime import load_split_net
+    from shared.model.net import SplitKeypointNet
+    from shared.model.runtime import SplitNet, TorchSplitNet, load_split_net
+    from shared.model.views import with_views
     from shared.model.weights import load_model
     from shared.training.evaluate import evaluate, format_report
 
@@ -220,9 +228,14 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         write_keypoint_fusion(args.weights, fusion)
         print(f"wrote keypoint_fusion to {args.weights}/config.json: {fusion.model_dump_json()}")
         return 0
-    net = model if args.precision == "fp32" else load_split_net(args.weights, args.precision)
+    net: SplitKeypointNet | SplitNet = (
+        model if args.precision == "fp32" else load_split_net(args.weights, args.precision)
+    )
+    if args.views > 1:
+        net = with_views(TorchSplitNet(model, bf16=False) if isinstance(net, SplitKeypointNet) else net, args.views)
     result = evaluate(net, load_dataset(args.data), split=args.split, limit=args.limit)
     result["precision"] = args.precision
+    result["views"] = args.views
     print(format_report(result))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
@@ -245,6 +258,7 @@ def _cmd_detect(args: argparse.Namespace) -> int:
         aruco=not args.no_aruco,
         lines=not args.no_lines,
         soft_decode=args.soft_decode,
+        views=args.views,
     )
 
 
@@ -621,6 +635,7 @@ def _add_model_commands(sub: Any) -> None:
         "--precision", choices=PRECISIONS, default="fp32", help="fp32/bf16: PyTorch; int8: the OpenVINO variant"
     )
     p.add_argument("--limit", type=int, default=None)
+    p.add_argument("--views", type=int, choices=VIEW_COUNTS, default=1, help=VIEWS_HELP)
     p.add_argument(
         "--calibrate-fusion",
         action="store_true",
@@ -652,6 +667,7 @@ def _add_model_commands(sub: Any) -> None:
         default=True,
         help="the line quads also read tags whose bits blur or an occluder smeared (blind soft decode; on)",
     )
+    p.add_argument("--views", type=int, choices=VIEW_COUNTS, default=1, help=VIEWS_HELP)
     p.set_defaults(func=_cmd_detect)
 
 

@@ -10,6 +10,8 @@ from typing import Any, Final
 import cv2
 import numpy as np
 
+from shared.model.runtime import TorchSplitNet
+from shared.model.views import with_views
 from shared.model.weights import load_keypoint_fusion, load_model
 from shared.perception.single import perceive
 from shared.runtime.sources import expand_paths
@@ -34,11 +36,14 @@ def run_detect(
     aruco: bool = True,
     lines: bool = True,
     soft_decode: bool = True,
+    views: int = 1,
 ) -> int:
     """Process every image; unreadable ones are reported in the JSON and on stderr. Exit 0 if any ran."""
     camera = camera_from_yaml(camera_path)
     tag_map = load_tag_map(tags_path) if tags_path else TagMapFile(default_size_m=tag_size_m or 0.16)
-    model = load_model(weights or DEFAULT_WEIGHTS)
+    # fp32 PyTorch, as always; with views, each ROI's views averaged (shared.model.views)
+    torch_model = load_model(weights or DEFAULT_WEIGHTS)
+    model = torch_model if views == 1 else with_views(TorchSplitNet(torch_model, bf16=False), views)
     fusion = load_keypoint_fusion(weights or DEFAULT_WEIGHTS)
     detector = Stage1Detector(
         Stage1Settings(
