@@ -41,8 +41,8 @@ class RobotInferSettings(ServiceSettings):
     threads: int = Field(default=1, ge=1)
     # Test-time views (shared/model/views.py): where this side runs the whole network (k = 7, and on
     # board without the edge), each ROI also goes through 1, 3 or 7 of its flips and turns and the
-    # keypoints are averaged: 2 views
-    # cut synth7's e_px 0.409 -> 0.372 (4: 0.362, 8: 0.353) for 2x (4x, 8x) that network time.
+    # keypoints are averaged (README *Test-time views*: synth7 int8 e_px 0.419 -> 0.383 / 0.372 /
+    # 0.360 with 2 / 4 / 8 views) for 2x / 4x / 8x that network time.
     # Where the network is split (cuts 1..6) it runs once per ROI whatever this says.
     views: Views = 1
     # Stage 1 of the next frame on a thread of its own while the network runs on this one, whenever
