@@ -51,7 +51,7 @@ def run(settings: EdgeInferSettings, *, session: zenoh.Session, stop: threading.
         settings.worker_id,
         node.net.precision,
         settings.precision,
-        settings.views,
+        getattr(node.net, "views", 1),  # what runs, not only what was asked
         settings.robots or [settings.robot_id],
     )
     try:
@@ -110,7 +110,10 @@ class EdgeInfer:
         self.net = with_views(one_view, s.views)
         self.fusion = load_keypoint_fusion(s.weights) if s.fuse_corners else None
         self.net.warm_up(0, max_batch=6)
-        self.emulated = s.emulated_ms_per_tag_by_k
+        # an emulated edge CPU's fixed profile is one view's: from cut 0 (the whole network, PnP included:
+        # the profile does not separate them) it runs once per view
+        emulated = s.emulated_ms_per_tag_by_k
+        self.emulated = [emulated[0] * s.views, *emulated[1:]] if emulated else None
         self.per_tag_ms = self.emulated or tail_per_tag_ms(
             calibrate_cumulative_ms(one_view), pnp_ms=calibrate_pnp_ms(), views=s.views
         )

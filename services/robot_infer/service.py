@@ -61,7 +61,7 @@ def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading
         settings.codec,
         node.net.precision,
         settings.precision,
-        settings.views,
+        getattr(node.net, "views", 1),  # what runs, not only what was asked
         settings.gamma,
     )
     try:
@@ -79,7 +79,9 @@ class RobotInfer:
         self.net = with_views(one_view, s.views)
         self.fusion = load_keypoint_fusion(s.weights) if s.fuse_corners else None
         self.net.warm_up(s.split_k, max_batch=6)
-        self.emulated = s.emulated_ms_per_tag_by_k
+        # an emulated robot CPU's fixed profile is one view's: its whole-network pass runs once per view too
+        emulated = s.emulated_ms_per_tag_by_k
+        self.emulated = head_per_tag_ms(emulated, views=s.views) if emulated else None
         self.per_tag_ms = self.emulated or head_per_tag_ms(calibrate_cumulative_ms(one_view), views=s.views)
         self.estimator = ComputeEstimator(self.per_tag_ms)
         self.detector = Stage1Detector(s.stage1)

@@ -29,6 +29,7 @@ if TYPE_CHECKING:
     from shared.model.runtime import SplitNet
 
 LAST_CUT = N_CUTS - 1
+MAX_PASS_BATCH = 64  # ROI views per inner network call
 
 VIEW_COUNTS: tuple[int, ...] = (1, 2, 4, 8)
 # Which transforms each count uses: 2 = the ROI and its half turn (flip x and y), 4 = every flip.
@@ -84,7 +85,7 @@ def untransform_keypoints(kp: NDArray[np.floating], t: int) -> NDArray[np.float3
 
 
 def expand_views(rois: NDArray[np.uint8], views: int) -> NDArray[np.uint8]:
-    """ROIs (N, H, W) -> (N * views, H, W), each ROI's views consecutive (tag-major)."""
+    """ROIs (N, H, W) or (N, 1, H, W) -> (N * views, ...), each ROI's views consecutive (tag-major)."""
     ts = transforms(views)
     if views == 1:
         return rois
@@ -117,7 +118,6 @@ class ViewAveragedNet:
         transforms(views)
         self.net = net
         self.views = views
-        self.last_spread: NDArray[np.float32] = np.zeros(0, np.float32)  # per ROI, of the last averaged pass
 
     @property
     def precision(self) -> Precision:
@@ -125,9 +125,14 @@ class ViewAveragedNet:
         return self.net.precision
 
     def _averaged(self, run: Callable[[NDArray[Any]], NDArray[Any]], rois: NDArray[Any]) -> NDArray[np.float32]:
-        out = np.asarray(run(expand_views(rois, self.views)), np.float32)
-        kp, self.last_spread = merge_views(out.reshape(-1, 16, 2), self.views)
-        return kp.reshape(len(kp), *out.shape[1:])
+        # at most MAX_PASS_BATCH ROIs per inner call: a batch of 64 at 8 views is 512 ROIs (GBs of activations)
+        step = max(1, MAX_PASS_BATCH // self.views)
+        parts = []
+        for i in range(0, len(rois), step):
+            out = np.asarray(run(expand_views(rois[i : i + step], self.views)), np.float32)
+            kp, _ = merge_views(out.reshape(-1, 16, 2), self.views)
+            parts.append(kp.reshape(len(kp), *out.shape[1:]))
+        return np.concatenate(parts)
 
     def head(self, rois_u8: NDArray[np.uint8], k: int) -> NDArray[np.float32]:
         """The wrapped head; at the last cut (the whole network) averaged over the views."""
@@ -148,7 +153,10 @@ class ViewAveragedNet:
         if k in (0, LAST_CUT):
             for n in range(1, max_batch + 1):
                 x = np.zeros((n, 256, 256), np.uint8)
-                self.head(x, k) if k == LAST_CUT else self.tail(x, 0)
+                if k == LAST_CUT:
+                    self.head(x, k)
+                else:
+                    self.tail(x, 0)
 
 
 def with_views(net: SplitNet, views: int) -> SplitNet:
