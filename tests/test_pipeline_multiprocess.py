@@ -229,17 +229,16 @@ def test_two_host_profile_on_loopback(tmp_path: Path) -> None:
             session.close()
 
 
-def test_int8_on_both_sides_at_a_middle_cut(tmp_path: Path, deploy_config: DeployConfig) -> None:
-    """precision = "int8" (the weights' OpenVINO variant) in robot_infer and edge_infer, cut at block 3:
-    every frame gets poses, as accurate as the services' default precision must be."""
+def _run_at_a_fixed_cut(
+    tmp_path: Path, deploy_config: DeployConfig, services: dict[str, dict[str, object]], frames: int
+) -> tuple[list[Service], Monitor]:
+    """edge_infer and robot_infer with these settings (controller off), then a camera of `frames`
+    frames: every frame must come back with poses as accurate as the services' defaults must be.
+    Returns the processes (for their logs, read before they stop) and the monitor."""
     cfg, topology = deploy_config(
-        {
-            "common": {"robot_id": ROBOT},
-            "robot_infer": {"split_k": 3, "precision": "int8"},
-            "edge_infer": {"precision": "int8"},
-            "camera": {"fps": FPS, "loop": False, "max_frames": 20},
-        }
+        {"common": {"robot_id": ROBOT}, **services, "camera": {"fps": FPS, "loop": False, "max_frames": frames}}
     )
+    k = services["robot_infer"]["split_k"]
     with processes(tmp_path) as procs:
         for name in ("edge_infer", "robot_infer"):
             procs.append(start_process(name, ["-m", f"services.{name}", "--config", str(cfg)], tmp_path))
@@ -251,50 +250,36 @@ def test_int8_on_both_sides_at_a_middle_cut(tmp_path: Path, deploy_config: Deplo
                 session, [keys.alive(ROBOT, "edge_infer"), keys.alive(ROBOT, "robot_infer")], timeout_secs=90
             )
             procs.append(start_process("camera", ["-m", "services.camera", "--config", str(cfg)], tmp_path))
-            wait_until(lambda: len(monitor.records) >= 20, 120, "20 TagPoses at int8")
-            assert sorted(r["seq"] for r in monitor.records) == list(range(20))
-            assert {r["k"] for r in monitor.records} == {3}
+            wait_until(lambda: len(monitor.records) >= frames, 120, f"{frames} TagPoses at k = {k}")
+            assert sorted(r["seq"] for r in monitor.records) == list(range(frames))
+            assert {r["k"] for r in monitor.records} == {k}
             errs = [e for r in monitor.records for e in r["errors_cm"]]
-            print(f"int8: median e_t {np.median(errs):.2f} cm over {len(errs)} tag observations")
+            print(f"{services}: median e_t {np.median(errs):.2f} cm over {len(errs)} tag observations")
             assert np.median(errs) <= MEDIAN_E_T_CM_MAX and monitor.bad == 0
-            assert "precision=int8" in next(p for p in procs if p.name == "robot_infer").log_text()
+            return list(procs), monitor
         finally:
             for s in subs:
                 s.undeclare()
             session.close()
+
+
+def test_int8_on_both_sides_at_a_middle_cut(tmp_path: Path, deploy_config: DeployConfig) -> None:
+    """precision = "int8" (the weights' OpenVINO variant) in robot_infer and edge_infer, cut at block 3:
+    every frame gets poses, as accurate as the services' default precision must be."""
+    procs, _ = _run_at_a_fixed_cut(
+        tmp_path,
+        deploy_config,
+        {"robot_infer": {"split_k": 3, "precision": "int8"}, "edge_infer": {"precision": "int8"}},
+        frames=20,
+    )
+    assert "precision=int8" in next(p for p in procs if p.name == "robot_infer").log_text()
 
 
 def test_test_time_views_on_the_edge_at_cut_0(tmp_path: Path, deploy_config: DeployConfig) -> None:
     """edge_infer with views = 2 (shared/model/views.py) and the robot cut at 0, so the edge runs the
     whole network on each ROI and its half turn: every frame gets poses, as accurate as one view's must
-    be, and the edge says it runs two views."""
-    cfg, topology = deploy_config(
-        {
-            "common": {"robot_id": ROBOT},
-            "robot_infer": {"split_k": 0},
-            "edge_infer": {"views": 2},
-            "camera": {"fps": FPS, "loop": False, "max_frames": 12},
-        }
+    be, and the edge says its net runs two views."""
+    procs, _ = _run_at_a_fixed_cut(
+        tmp_path, deploy_config, {"robot_infer": {"split_k": 0}, "edge_infer": {"views": 2}}, frames=12
     )
-    with processes(tmp_path) as procs:
-        for name in ("edge_infer", "robot_infer"):
-            procs.append(start_process(name, ["-m", f"services.{name}", "--config", str(cfg)], tmp_path))
-        session = open_session(ZenohSettings(mode="client", connect=[topology.robot_router]))
-        monitor = Monitor(demo_tag_map())
-        subs = attach_monitor(session, ROBOT, monitor)
-        try:
-            wait_for_liveliness(
-                session, [keys.alive(ROBOT, "edge_infer"), keys.alive(ROBOT, "robot_infer")], timeout_secs=90
-            )
-            procs.append(start_process("camera", ["-m", "services.camera", "--config", str(cfg)], tmp_path))
-            wait_until(lambda: len(monitor.records) >= 12, 120, "12 TagPoses with two views on the edge")
-            assert sorted(r["seq"] for r in monitor.records) == list(range(12))
-            assert {r["k"] for r in monitor.records} == {0}
-            errs = [e for r in monitor.records for e in r["errors_cm"]]
-            print(f"two views: median e_t {np.median(errs):.2f} cm over {len(errs)} tag observations")
-            assert np.median(errs) <= MEDIAN_E_T_CM_MAX and monitor.bad == 0
-            assert "views=2" in next(p for p in procs if p.name == "edge_infer").log_text()
-        finally:
-            for s in subs:
-                s.undeclare()
-            session.close()
+    assert "views=2" in next(p for p in procs if p.name == "edge_infer").log_text()

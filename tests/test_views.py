@@ -10,6 +10,7 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
+import torch
 from numpy.typing import NDArray
 
 from services.edge_infer.settings import EdgeInferSettings
@@ -29,6 +30,7 @@ from shared.model.views import (
 )
 from shared.perception.single import extract_rois
 from shared.perception.split import edge_step, robot_step
+from shared.training.train import dihedral
 from shared.vision.camera import CameraIntrinsics
 from shared.vision.detector import Detection
 from shared.vision.proposals import Stage1Detector, Stage1Settings
@@ -100,6 +102,18 @@ def test_each_transform_maps_keypoints_back_exactly(t: int) -> None:
     truth = lattice_points(np.random.default_rng(t))
     seen = DotNet()._keypoints(np.ascontiguousarray(transform_image(dot_roi(truth), t))[None])
     np.testing.assert_allclose(untransform_keypoints(seen, t)[0], truth, atol=1e-6)
+
+
+@pytest.mark.parametrize("t", range(8))
+def test_views_are_the_training_augmentations(t: int) -> None:
+    """Transform t here is training's dihedral transform t (shared.training.train.dihedral): the same
+    image, and keypoints that map back to the sample's own."""
+    rng = np.random.default_rng(t)
+    roi = rng.integers(0, 256, (S, S), dtype=np.uint8)
+    kp = lattice_points(rng).astype(np.float32)
+    img_t, kp_t = dihedral(torch.from_numpy(roi)[None, None], torch.from_numpy(kp)[None], t)
+    np.testing.assert_array_equal(img_t[0, 0].numpy(), transform_image(roi, t))
+    np.testing.assert_allclose(untransform_keypoints(kp_t.numpy(), t)[0], kp, atol=1e-6)
 
 
 @pytest.mark.parametrize("views", VIEW_COUNTS)
