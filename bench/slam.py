@@ -18,7 +18,9 @@ the map's errors count too); RPE over 1 s (RMSE of the relative translation erro
 SE(3) alignment (Umeyama, as TUM's evaluation tool does); and the online ATE (the pose slam published
 for each frame as it came, not the final smoothed trajectory); and "bridged %": frames slam posed in a
 map fragment begun after a long gap without tags and never tied back to the world (their placement
-is the gap's guess: left out of pose % and every ATE). Perception results are cached
+is the gap's guess: left out of pose % and every ATE); "sigma cm" and "in 95 %": how the online poses'
+own covariance (CameraPose.covariance_world) compares with their errors (the median position sigma,
+sqrt of the trace, and the share of errors inside the 95 % ellipsoid). Perception results are cached
 (data/bench_slam, keyed by renderer, weights and perception code) so SLAM changes re-run in seconds.
 
     .venv/bin/python -m bench.slam [--sequences slow medium fast] [--workers 2] [--weights models]
@@ -380,6 +382,7 @@ def splittag_slam(
     online: dict[int, FloatArray] = {}
     focal = (spec.fx + spec.fy) / 2
     stamp_to_index = {}
+    online_cov: dict[int, FloatArray] = {}
     t0 = time.perf_counter()
     for rec in records:
         stamp = round(rec.stamp_s * 1e9)
@@ -392,6 +395,8 @@ def splittag_slam(
         res = slam.update(rec.index, stamp, obs)
         if res.world_from_camera is not None:
             online[rec.index] = res.world_from_camera
+            if res.covariance_world is not None:
+                online_cov[rec.index] = res.covariance_world[:3, :3]
     secs = time.perf_counter() - t0
     trajectory = slam.trajectory()
     # Poses in a fragment begun after a long gap and never tied back to the world: counted apart (their
@@ -405,6 +410,9 @@ def splittag_slam(
         world_from_anchor = dict(place_tags_map(spec))[slam.anchor][1]
         final = {i: world_from_anchor @ p for i, p in final.items()}
         online = {i: world_from_anchor @ p for i, p in online.items()}
+        r = world_from_anchor[:3, :3]
+        online_cov = {i: r @ c @ r.T for i, c in online_cov.items()}
+    gt = {rec.index: rec.world_from_camera for rec in records}
     st = slam.state
     return (
         final,
@@ -413,12 +421,34 @@ def splittag_slam(
             "slam_ms_per_frame": secs * 1e3 / max(1, len(records)),
             "rejected_ambiguous": st.rejected_ambiguous,
             "bridged_pct": 100.0 * len(bridged) / max(1, len(records)),
+            **covariance_check(online, online_cov, gt),
         },
     )
 
 
+def covariance_check(
+    est: dict[int, FloatArray], position_cov: dict[int, FloatArray], gt: dict[int, FloatArray]
+) -> dict[str, float | None]:
+    """How the poses' own covariance (CameraPose.covariance_world, its position block) compares with
+    their true errors: the median position sigma (sqrt of the trace, cm: comparable to an error's
+    length) and the share of poses whose error lies inside their 95 % ellipsoid (chi-square, 3 dof: 95 %
+    when calibrated, more when pessimistic)."""
+    common = [i for i in est if i in position_cov and i in gt]
+    if not common:
+        return {"sigma_cm": None, "inside95_pct": None}
+    sigma = [100 * math.sqrt(float(np.trace(position_cov[i]))) for i in common]
+    inside = []
+    for i in common:
+        err = est[i][:3, 3] - gt[i][:3, 3]
+        inside.append(float(err @ np.linalg.solve(position_cov[i], err)) <= CHI2_3DOF_95)
+    return {"sigma_cm": float(np.median(sigma)), "inside95_pct": 100.0 * float(np.mean(inside))}
+
+
 # ----------------------------------------------------------------------------------------------------
 # Metrics
+
+
+CHI2_3DOF_95 = 7.815  # 95 % quantile of chi-square with 3 degrees of freedom
 
 
 def _umeyama(src: FloatArray, dst: FloatArray) -> FloatArray:
@@ -630,14 +660,15 @@ def _fmt(v: float | None, digits: int = 2) -> str:
 def format_table(results: dict[str, dict[str, Any]]) -> str:
     lines = [
         f"{'sequence':<8} {'method':<24} {'pose %':>7} {'ATE cm':>7} {'rot deg':>8} {'RPE1s cm':>9} "
-        f"{'aligned ATE':>12} {'online ATE':>11} {'bridged %':>10}"
+        f"{'aligned ATE':>12} {'online ATE':>11} {'bridged %':>10} {'sigma cm':>9} {'in 95 %':>8}"
     ]
     for seq, res in results.items():
         for name, row in res["methods"].items():
             lines.append(
                 f"{seq:<8} {name:<24} {_fmt(row['pose_pct'], 1):>7} {_fmt(row['ate_cm']):>7} "
                 f"{_fmt(row['rot_deg']):>8} {_fmt(row['rpe_cm']):>9} {_fmt(row['aligned_ate_cm']):>12} "
-                f"{_fmt(row.get('online_ate_cm')):>11} {_fmt(row.get('bridged_pct'), 1):>10}"
+                f"{_fmt(row.get('online_ate_cm')):>11} {_fmt(row.get('bridged_pct'), 1):>10} "
+                f"{_fmt(row.get('sigma_cm')):>9} {_fmt(row.get('inside95_pct'), 0):>8}"
             )
     return "\n".join(lines)
 

@@ -155,6 +155,7 @@ def example_messages() -> dict[str, Message]:
         world_from_camera=_pose(3),
         status="tracking",
         tags_used=1,
+        covariance_world=_covariance6(),
     )
     tag_map = TagMap(
         robot_id="robot1",
@@ -208,6 +209,12 @@ def example_messages() -> dict[str, Message]:
     )
     msgs: list[Message] = [frame, features, poses, camera_pose, tag_map, split, ack, compute, controller, sent, stamp]
     return {m.SCHEMA: m for m in msgs}
+
+
+def _covariance6() -> np.ndarray:
+    """A fixed symmetric positive-definite 6x6 (position m^2, then rotation rad^2), with correlations."""
+    a = np.arange(36, dtype=np.float64).reshape(6, 6) % 7 / 7 - 0.4
+    return a @ a.T * 1e-4 + np.diag([4e-4, 4e-4, 9e-4, 1e-5, 1e-5, 4e-5])
 
 
 def golden_name(schema: str, framing: int = 2) -> str:

@@ -43,6 +43,7 @@ class Record:
         self.lock = threading.Lock()
         self.poses: dict[str, dict[int, tuple[float, bool, list[int]]]] = {}  # robot -> seq -> (t, edge, ids)
         self.cameras: dict[str, dict[int, str]] = {}  # robot -> seq -> status
+        self.sigma_m: dict[str, dict[int, float | None]] = {}  # robot -> seq -> position sigma (None: none sent)
 
     def on_poses(self, sample: zenoh.Sample) -> None:
         msg = decode(sample.payload.to_bytes(), TagPoses)
@@ -55,6 +56,10 @@ class Record:
         msg = decode(sample.payload.to_bytes(), CameraPose)
         with self.lock:
             self.cameras.setdefault(msg.robot_id, {})[msg.seq] = msg.status
+            cov = msg.covariance_world
+            self.sigma_m.setdefault(msg.robot_id, {})[msg.seq] = (
+                None if cov is None else float(np.sqrt(np.trace(cov[:3, :3])))
+            )
 
 
 def test_two_robots_two_workers_one_slam_and_a_worker_dies(tmp_path: Path) -> None:
@@ -156,6 +161,12 @@ def test_two_robots_two_workers_one_slam_and_a_worker_dies(tmp_path: Path) -> No
                 assert tracking >= FRAMES - 4, (
                     f"{robot}: only {tracking} of {FRAMES} frames localised in the shared map"
                 )
+                # Each pose says how sure it is (CameraPose/v3 over real Zenoh): a covariance with every
+                # SLAM pose, none with the last pose repeated while lost.
+                for seq, status in record.cameras[robot].items():
+                    sigma = record.sigma_m[robot][seq]
+                    assert (sigma is None) == (status == "lost"), (robot, seq, status, sigma)
+                    assert sigma is None or 0 < sigma < 1.0, (robot, seq, sigma)
 
             # One map, a trajectory each.
             for reply in session.get(keys.tag_map("robot1") + "?save=1", timeout=30):

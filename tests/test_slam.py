@@ -111,6 +111,74 @@ def test_noisy_measurements_beat_frame_by_frame_pnp() -> None:
     assert slam_ate < pnp_ate
 
 
+def test_world_covariance_is_the_graphs_tangent_covariance_in_the_world_frame() -> None:
+    """Monte Carlo: poses T Exp(xi), xi ~ N(0, tangent covariance) (GTSAM's right perturbation in the
+    camera frame, rotation first), moved camera centres and world-axis turns; their covariance is
+    world_covariance's (position first)."""
+    from shared.slam.marker_slam import world_covariance
+
+    rng = np.random.default_rng(5)
+    pose = make_pose(cv2.Rodrigues(np.array([0.4, -1.1, 0.3]))[0], [1.0, -2.0, 0.5])
+    a = rng.normal(size=(6, 6))
+    tangent = (a @ a.T + np.eye(6)) * 1e-6  # small: first order holds
+    xis = rng.multivariate_normal(np.zeros(6), tangent, size=20000)
+    moved = []
+    for xi in xis:
+        p = pose @ np.asarray(gtsam.Pose3.Expmap(xi).matrix())
+        turn = cv2.Rodrigues(p[:3, :3] @ pose[:3, :3].T)[0].ravel()
+        moved.append(np.concatenate([p[:3, 3] - pose[:3, 3], turn]))
+    expected = world_covariance(tangent, pose)
+    np.testing.assert_allclose(np.cov(np.array(moved).T), expected, atol=0.05 * float(np.abs(expected).max()))
+
+
+def test_each_pose_says_how_sure_it_is() -> None:
+    """Noisy keypoints (0.5 px, the noise model's floor) through real PnP, on a path the motion prior
+    holds (constant velocity): every pose has a symmetric positive-definite covariance, the position
+    errors lie inside its 95 % ellipsoid about as often as they should, and while only the farthest
+    mapped tag is in view the position grows less sure."""
+    rng = np.random.default_rng(1)
+    anchor = SCENE.tags[3]
+    slam = MarkerSlam(SlamSettings(anchor_tag_id=anchor.id), known_tags={anchor.id: (anchor.size_m, anchor.pose())})
+    inside: list[bool] = []
+    sigma_m: dict[int, float] = {}
+    for i, wfc in enumerate(_constant_velocity(60)):
+        seen = _visible(wfc)
+        lone = 25 <= i < 35
+        if lone:  # the farthest tag already in the map, alone
+            seen = [max((v for v in seen if v[0] in slam.tags), key=lambda v: float(v[2][2, 3]))]
+        obs = []
+        for tag_id, size, cft in seen:
+            px = project(CAM, cft, lattice_in_tag(size)) + rng.normal(0, 0.5, (16, 2))
+            fit = solve_planar_pnp(CAM, lattice_in_tag(size), px)
+            obs.append(
+                Observation(
+                    tag_id,
+                    size,
+                    fit.camera_from_tag,
+                    fit.reprojection_error_px,
+                    fit.alt_camera_from_tag,
+                    fit.alt_reprojection_error_px,
+                )
+            )
+        res = slam.update(i, i, obs)
+        if res.world_from_camera is None:
+            continue
+        cov = res.covariance_world
+        assert cov is not None and cov.shape == (6, 6)
+        np.testing.assert_allclose(cov, cov.T)
+        assert np.linalg.eigvalsh(cov).min() > 0
+        err = res.world_from_camera[:3, 3] - wfc[:3, 3]
+        inside.append(float(err @ np.linalg.solve(cov[:3, :3], err)) <= 7.815)  # chi2(3) 95 %
+        sigma_m[i] = float(np.sqrt(np.trace(cov[:3, :3])))
+    assert len(inside) >= 45 and all(i in sigma_m for i in range(24, 35))
+    print(
+        f"inside the 95 % ellipsoid: {100 * np.mean(inside):.0f} %; position sigma before / after ten frames "
+        f"of the farthest tag alone: {100 * sigma_m[24]:.1f} / {100 * sigma_m[34]:.1f} cm"
+    )
+    assert np.mean(inside) >= 0.9
+    assert sigma_m[34] > 1.3 * sigma_m[24]
+
+
 def _flip(camera_from_tag: np.ndarray, axis: tuple[float, float, float] = (1.0, 0.0, 0.0)) -> np.ndarray:
     """The other IPPE branch, caricatured: the tag tilted by 0.5 rad about an axis in its plane (which
     axis depends on the view, as the real mirror branch does)."""
@@ -441,7 +509,7 @@ def test_a_bridged_fragment_stays_flagged_until_it_is_joined() -> None:
 
 
 def test_slam_publishes_bridged_poses_as_such(tmp_path: Path) -> None:
-    """The service's CameraPose says "bridged" for a fragment's frames (CameraPose/v2), "tracking" again
+    """The service's CameraPose says "bridged" for a fragment's frames (CameraPose/v2+), "tracking" again
     once a view joins it to the world, and "lost" (the last pose repeated) in between; its TagMap flags
     the fragment's tags until the join."""
     from shared.wire.messages import CameraPose, TagMap, decode, encode
@@ -456,6 +524,7 @@ def test_slam_publishes_bridged_poses_as_such(tmp_path: Path) -> None:
         if i in (54, 69):  # the map says which tags are placed by the gap's guess, until the join
             flags = {t.tag_id: t.bridged for t in decode(encode(node.current_map("r1")), TagMap).tags}
             assert flags == ({4: False, 5: False, 7: True} if i == 54 else {4: False, 5: False, 7: False})
+        assert (cam.covariance_world is None) == (cam.status == "lost")  # a repeated pose says nothing
     assert statuses == ["tracking"] * 10 + ["lost"] * 35 + ["bridged"] * 10 + ["tracking"] * 15
 
 
@@ -520,12 +589,14 @@ def test_blind_soft_reads_are_left_out_unless_asked() -> None:
 
 
 def test_rerun_draws_bridged_poses_apart_from_the_worlds(tmp_path: Path) -> None:
-    """A real recording: tracking poses at world/camera, bridged ones at world/camera_bridged."""
+    """A real recording: tracking poses at world/camera, bridged ones at world/camera_bridged, a pose's
+    2-sigma position ellipsoid at world/camera_sigma."""
     from shared.viz.recording import RerunSettings, RerunViz, recording_entities
 
     viz = RerunViz(RerunSettings(enabled=True), service="slam", run_dir=tmp_path)
     viz.camera_pose(1_000, np.eye(4), CAM)
     viz.camera_pose(2_000, make_pose(np.eye(3), [1.0, 0.0, 0.0]), CAM, bridged=True)
+    viz.camera_pose(3_000, np.eye(4), None, covariance_world=np.diag([1e-4, 4e-4, 9e-4, 1e-5, 1e-5, 1e-5]))
     # tags coloured and labelled by who found them (a tracked tag, a blind soft read, one not said)
     from tests.examples import example_messages
 
@@ -534,7 +605,7 @@ def test_rerun_draws_bridged_poses_apart_from_the_worlds(tmp_path: Path) -> None
     viz.tag_poses(poses.model_copy(update={"tags": [*tags, tags[0].model_copy(update={"proposer": None})]}))
     viz.close()
     entities = recording_entities(tmp_path / "slam.rrd")
-    assert {"/world/camera", "/world/camera_bridged", "/camera/image/tag_quads"} <= entities
+    assert {"/world/camera", "/world/camera_bridged", "/world/camera_sigma", "/camera/image/tag_quads"} <= entities
 
 
 def test_the_anchor_is_the_tag_whose_pose_the_first_view_pins_best() -> None:

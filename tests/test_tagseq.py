@@ -63,6 +63,22 @@ def test_trajectory_metrics_are_zero_on_the_truth_and_see_an_offset() -> None:
     assert abs(ate - 2.0) < 1e-9 and aligned < 1e-6
 
 
+def test_the_covariance_check_counts_errors_inside_the_95_percent_ellipsoid() -> None:
+    """bench.slam's covariance columns: 3 cm off along x with a 1 cm sigma per axis is outside (chi-square
+    9 > 7.8), with a 2 cm sigma it is inside (2.25); the sigma column is sqrt of the trace."""
+    from bench.slam import covariance_check
+
+    truth = {i: np.eye(4) for i in range(4)}
+    est = {i: p.copy() for i, p in truth.items()}
+    for p in est.values():
+        p[0, 3] += 0.03
+    cov = {i: np.eye(3) * (0.01 if i < 3 else 0.02) ** 2 for i in est}
+    got = covariance_check(est, cov, truth)
+    assert got["inside95_pct"] == 25.0
+    assert got["sigma_cm"] is not None and abs(got["sigma_cm"] - 100 * 0.01 * np.sqrt(3)) < 1e-9
+    assert covariance_check(est, {}, truth) == {"sigma_cm": None, "inside95_pct": None}
+
+
 def test_grid_along_blur_is_zero_on_the_truth_and_reads_a_shrunk_grid() -> None:
     """bench.slam's grid-along-blur fact: exact poses read 0 %, poses 2 % too far (a grid 2 % small)
     read about -2 %, tags blurred < 3 px are left out."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import struct
+from collections.abc import Callable
 from pathlib import Path
 
 import msgpack
@@ -150,7 +151,27 @@ def test_a_bridged_camera_pose_is_refused_by_the_v1_schema_and_kept_by_v2() -> N
     bridged = EXAMPLES[CameraPose.SCHEMA].model_copy(update={"status": "bridged"})
     assert decode(encode(bridged), CameraPose).status == "bridged"
     with pytest.raises(ValidationError):
-        CameraPoseV1.model_validate({**bridged.model_dump(), "status": "bridged"})
+        CameraPoseV1.model_validate({**bridged.model_dump(exclude={"covariance_world"}), "status": "bridged"})
+
+
+@pytest.mark.parametrize(
+    ("change", "reason"),
+    [
+        (lambda c: c + np.triu(np.full((6, 6), 1e-3), 1), "not symmetric"),
+        (lambda c: c - np.diag(np.full(6, 1.0)), "negative variance"),
+        (lambda c: np.where(np.eye(6, dtype=bool), np.nan, c), "non-finite"),
+        (lambda c: c[:3, :3].copy(), "shape"),
+    ],
+)
+def test_a_camera_pose_covariance_must_be_one(change: Callable[[np.ndarray], np.ndarray], reason: str) -> None:
+    """CameraPose/v3's covariance_world: a finite symmetric 6x6 without negative variances, or refused."""
+    from shared.wire.messages import CameraPose
+
+    good = EXAMPLES[CameraPose.SCHEMA]
+    assert isinstance(good, CameraPose) and good.covariance_world is not None
+    body = {**good.model_dump(), "covariance_world": change(good.covariance_world)}
+    with pytest.raises(SchemaError, match=reason):
+        decode(pack({"schema": CameraPose.SCHEMA, "body": body}), CameraPose)
 
 
 @pytest.mark.parametrize("dtype", sorted(WIRE_DTYPES))

@@ -177,6 +177,7 @@ class SlamNode:
                 world_from_camera=pose,
                 status=res.status,  # "tracking" | "bridged" (a fragment not yet tied to the world) | "lost"
                 tags_used=res.tags_used,
+                covariance_world=res.covariance_world,  # None when lost (the pose is the last one repeated)
             )
             run.frames += 1
             if res.map_changed:  # one shared map: every robot's map key carries the change
@@ -419,6 +420,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
                 msg.intrinsics if cam.status == "bridged" else new_camera,  # (rare: its own frustum each time)
                 robot if node.fleet else "",
                 bridged=cam.status == "bridged",
+                covariance_world=cam.covariance_world,
             )
         if tag_map is not None:
             map_pub.put(encode(tag_map))

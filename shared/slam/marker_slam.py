@@ -139,6 +139,9 @@ class FrameResult:
     tags_used: int
     rejected_ambiguous: int
     map_changed: bool
+    # 6x6 covariance of world_from_camera in the world frame: position (m), then rotation (rad) about the
+    # world's axes (ROS PoseWithCovariance's order); None when lost or when the graph could not give it.
+    covariance_world: Array | None = None
 
 
 @dataclass
@@ -659,11 +662,22 @@ class MarkerSlam:
             self.isam.update()
         self._estimate = self.isam.calculateEstimate()
         pose = self._pose(track, frame)
+        covariance = self._covariance_world(track, frame, pose)
         track.stamps[frame] = stamp_nanos
         if sum(len(t.stamps) for t in self._tracks.values()) >= s.window_frames:
             self._marginalise_old_frames()
         status: Literal["tracking", "bridged"] = "tracking" if self._tied(fragment) else "bridged"
-        return FrameResult(pose, status, used, rejected, map_changed)
+        return FrameResult(pose, status, used, rejected, map_changed, covariance)
+
+    def _covariance_world(self, track: _Track, frame: int, world_from_camera: Array) -> Array | None:
+        """The camera pose's marginal covariance (everything fused so far, this frame included), in the
+        world frame (`world_covariance`); None if GTSAM cannot give it (an indeterminate system raises):
+        the pose itself is still returned."""
+        try:
+            tangent = np.asarray(self.isam.marginalCovariance(track.key(frame)))
+        except RuntimeError:
+            return None
+        return world_covariance(tangent, world_from_camera)
 
     def _still_origin(self, track: _Track, observations: list[Observation]) -> int | None:
         """The robot's last frame with a pose, when this frame (only new tags in view, no motion to
@@ -865,6 +879,20 @@ def pnp_covariance(camera_from_tag: Array, size_m: float, focal_px: float, pixel
     vals, vecs = np.linalg.eigh(jac.T @ jac)
     variances = np.minimum(pixel_sigma**2 / np.maximum(vals, 1e-300), 1.0)
     return (vecs * variances) @ vecs.T
+
+
+def world_covariance(tangent: Array, world_from_camera: Array) -> Array:
+    """GTSAM's Pose3 covariance (6x6: rotation, then translation, as a right perturbation T Exp(xi) in the
+    camera frame) -> the same uncertainty in the world frame, position (m) first, then rotation (rad)
+    about the world's axes (ROS PoseWithCovariance's order). To first order T Exp(xi) moves the camera
+    centre by R v and turns it by R w about the world's axes (R: world_from_camera's rotation)."""
+    r = np.asarray(world_from_camera, np.float64)[:3, :3]
+    c = np.asarray(tangent, np.float64)
+    swap = np.block([[c[3:, 3:], c[3:, :3]], [c[:3, 3:], c[:3, :3]]])  # (v, w) order
+    rot = np.zeros((6, 6))
+    rot[:3, :3] = rot[3:, 3:] = r
+    out = rot @ swap @ rot.T
+    return (out + out.T) / 2
 
 
 def _spd(cov: Array) -> Array:

@@ -20,6 +20,7 @@ import logging
 from pathlib import Path
 from typing import Any, Final, Protocol
 
+import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -48,6 +49,18 @@ class RerunSettings(BaseModel):
     jpeg_quality: int = Field(default=80, ge=10, le=100)
 
 
+def sigma_ellipsoid(position_covariance: Array, *, sigmas: float) -> tuple[Array, Array, float]:
+    """A 3x3 position covariance (m^2) as an ellipsoid: half sizes (m, `sigmas` standard deviations along
+    its principal axes) and the axis-angle rotation (unit axis, radians) that turns x, y, z onto them."""
+    values, vectors = np.linalg.eigh((np.asarray(position_covariance, np.float64) + position_covariance.T) / 2)
+    if np.linalg.det(vectors) < 0:
+        vectors[:, 0] = -vectors[:, 0]  # a rotation, not a reflection
+    rvec = cv2.Rodrigues(vectors)[0].ravel()
+    angle = float(np.linalg.norm(rvec))
+    axis = rvec / angle if angle > 1e-12 else np.array([0.0, 0.0, 1.0])
+    return sigmas * np.sqrt(np.clip(values, 0.0, None)), axis, angle
+
+
 class Viz(Protocol):
     """What services log; implemented by RerunViz and NullViz."""
 
@@ -62,6 +75,7 @@ class Viz(Protocol):
         robot: str = "",
         *,
         bridged: bool = False,
+        covariance_world: Array | None = None,
     ) -> None: ...
     def trajectory(self, capture_nanos: int, path: str, positions: Array) -> None: ...
     def tag_map(self, capture_nanos: int, tags: dict[int, tuple[float, Array]]) -> None: ...
@@ -89,6 +103,7 @@ class NullViz:
         robot: str = "",
         *,
         bridged: bool = False,
+        covariance_world: Array | None = None,
     ) -> None:
         """No-op."""
 
@@ -193,15 +208,28 @@ class RerunViz:
         robot: str = "",
         *,
         bridged: bool = False,
+        covariance_world: Array | None = None,
     ) -> None:
         """SLAM camera pose (and its frustum); a fleet's robots each at world/robots/<robot>/camera. A
         bridged pose (in a map fragment not yet tied to the world) goes to .../camera_bridged instead, so
-        the world's trajectory never jumps to a gap's guess and both can be shown or hidden apart."""
+        the world's trajectory never jumps to a gap's guess and both can be shown or hidden apart. With
+        `covariance_world` (CameraPose's), the position's 2-sigma ellipsoid goes to <entity>_sigma."""
         rr = self._rr
         self._at(capture_nanos)
         entity = f"world/robots/{robot}/camera" if robot else "world/camera"
         entity += "_bridged" if bridged else ""
         self._log(entity, rr.Transform3D(translation=world_from_camera[:3, 3], mat3x3=world_from_camera[:3, :3]))
+        if covariance_world is not None:
+            half_sizes, axis, angle_rad = sigma_ellipsoid(covariance_world[:3, :3], sigmas=2.0)
+            self._log(
+                f"{entity}_sigma",
+                rr.Ellipsoids3D(
+                    centers=[world_from_camera[:3, 3]],
+                    half_sizes=[half_sizes],
+                    rotation_axis_angles=[rr.RotationAxisAngle(axis=axis, angle=rr.Angle(rad=angle_rad))],
+                    colors=[255, 200, 0, 90],
+                ),
+            )
         if camera is not None:
             self._log(
                 entity,

@@ -25,8 +25,8 @@ def frames(robot_id: str) -> str:
 
 
 def ground_truth(robot_id: str) -> str:
-    """CameraPose v2 (status ground_truth): camera -> evaluators, when the source knows it."""
-    return f"{ROOT}/{_check(robot_id, 'robot id')}/ground_truth/v2"
+    """CameraPose v3 (status ground_truth): camera -> evaluators, when the source knows it."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/ground_truth/v3"
 
 
 def frame_stamp(robot_id: str) -> str:
@@ -50,8 +50,8 @@ def frame_sent(robot_id: str) -> str:
 
 
 def camera_pose(robot_id: str) -> str:
-    """CameraPose v2: slam -> anyone."""
-    return f"{ROOT}/{_check(robot_id, 'robot id')}/camera_pose/v2"
+    """CameraPose v3: slam -> anyone."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/camera_pose/v3"
 
 
 def tag_map(robot_id: str) -> str:

@@ -113,6 +113,7 @@ Corners = Annotated[NDArray[np.float32], ArraySpec(F32, shape=(4, 2))]
 Keypoints16 = Annotated[NDArray[np.float32], ArraySpec(F32, shape=(16, 2))]
 Homography = Annotated[NDArray[np.float64], ArraySpec(F64, shape=(3, 3))]
 Pose4x4 = Annotated[NDArray[np.float64], ArraySpec(F64, shape=(4, 4))]
+Covariance6 = Annotated[NDArray[np.float64], ArraySpec(F64, shape=(6, 6))]
 # Split tensors: ROI pixels (k=0, uint8), feature maps (k=1..5), pooled/keypoints (k=6,7).
 SplitTensor = Annotated[NDArray[Any], ArraySpec(("float16", "float32", "uint8", "int8"), ndims=(1, 2, 3), finite=False)]
 
@@ -397,16 +398,44 @@ class TagPosesV1(FrameMessage):
 class CameraPose(FrameMessage):
     """SLAM (or ground-truth) camera pose for one frame. "bridged": slam has a pose, but in a map
     fragment begun after a long gap without tags, not yet tied to the world (its placement is a guess
-    until a view shared with the world's tags joins them); "lost": no pose (the last one is repeated)."""
+    until a view shared with the world's tags joins them); "lost": no pose (the last one is repeated).
+    `covariance_world`: how sure slam is of the pose, 6x6, position (m) then rotation (rad) about the
+    world's axes (ROS PoseWithCovariance's order), the factor graph's marginal with everything fused up
+    to this frame; None for ground truth, "lost" and older peers. It follows the observation noise
+    model, which is deliberately pessimistic (README, *Pose covariance*)."""
+
+    SCHEMA: ClassVar[str] = "splittag/CameraPose/v3"
+    world_from_camera: Pose4x4
+    status: Literal["tracking", "bridged", "lost", "ground_truth"]
+    tags_used: int = Field(ge=0)
+    covariance_world: Covariance6 | None = None
+
+    @model_validator(mode="after")
+    def _covariance_is_one(self) -> Self:
+        c = self.covariance_world
+        if c is not None:
+            if not np.allclose(c, c.T, rtol=0, atol=1e-9 * max(1e-300, float(np.abs(c).max()))):
+                raise ValueError("covariance_world is not symmetric")
+            if float(np.diag(c).min()) < 0:
+                raise ValueError("covariance_world has a negative variance")
+        return self
+
+
+class CameraPoseV2(FrameMessage):
+    """CameraPose before the covariance; still decoded (as v3 with covariance_world None)."""
 
     SCHEMA: ClassVar[str] = "splittag/CameraPose/v2"
     world_from_camera: Pose4x4
     status: Literal["tracking", "bridged", "lost", "ground_truth"]
     tags_used: int = Field(ge=0)
 
+    def upgrade(self) -> CameraPose:
+        """The same content as the current schema."""
+        return CameraPose(**{name: getattr(self, name) for name in CameraPoseV2.model_fields})
+
 
 class CameraPoseV1(FrameMessage):
-    """CameraPose before "bridged"; still decoded (as v2: every v1 status is a v2 status)."""
+    """CameraPose before "bridged"; still decoded (as v3: every v1 status is a v3 status; no covariance)."""
 
     SCHEMA: ClassVar[str] = "splittag/CameraPose/v1"
     world_from_camera: Pose4x4
@@ -581,6 +610,7 @@ LEGACY_SCHEMAS: Final[
         | type[FeaturesV2]
         | type[FeaturesV3]
         | type[CameraPoseV1]
+        | type[CameraPoseV2]
         | type[TagMapV1],
     ]
 ] = {
@@ -594,6 +624,7 @@ LEGACY_SCHEMAS: Final[
         FeaturesV2,
         FeaturesV3,
         CameraPoseV1,
+        CameraPoseV2,
         TagMapV1,
     )
 }
