@@ -27,6 +27,50 @@ def test_settings_override_a_json5_file(tmp_path: Path) -> None:
     assert json.loads(config.get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]
 
 
+def test_a_smaller_batch_size_still_carries_a_large_tensor_whole() -> None:
+    """transport/link/tx/batch_size comes from the settings (zenoh's maximum by default; the smaller
+    end's is used): a router and a client at 4 KiB batches move a 300 kB split tensor in fragments and it
+    arrives whole over real TCP on loopback."""
+    import threading
+
+    import zenoh
+
+    from shared.transport.session import free_tcp_port, open_session, wait_for_liveliness
+
+    assert json.loads(build_config(ZenohSettings()).get_json("transport/link/tx/batch_size")) == 65535
+    with pytest.raises(ValueError, match="65535"):
+        ZenohSettings(batch_size_bytes=65536)
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    edge = open_session(ZenohSettings(mode="router", listen=[endpoint], batch_size_bytes=4096))
+    robot = open_session(ZenohSettings(mode="client", connect=[endpoint], batch_size_bytes=4096))
+    try:
+        assert (
+            json.loads(build_config(ZenohSettings(batch_size_bytes=4096)).get_json("transport/link/tx/batch_size"))
+            == 4096
+        )
+        got: list[bytes] = []
+        arrived = threading.Event()
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            got.append(sample.payload.to_bytes())
+            arrived.set()
+
+        sub = edge.declare_subscriber("bench/batch", on_sample)
+        token = edge.liveliness().declare_token("bench/batch/alive")
+        wait_for_liveliness(robot, ["bench/batch/alive"], timeout_secs=20)
+        tensor = bytes(range(256)) * 1200  # 307,200 bytes: 75 batches of 4 KiB
+        deadline = threading.Event()
+        while not arrived.is_set() and not deadline.wait(0.2):  # the subscriber's interest may lag the token
+            robot.put("bench/batch", tensor, congestion_control=zenoh.CongestionControl.BLOCK)
+            arrived.wait(1.0)
+        assert got[0] == tensor
+        token.undeclare()
+        sub.undeclare()
+    finally:
+        robot.close()
+        edge.close()
+
+
 def test_missing_config_file_is_a_clear_error(tmp_path: Path) -> None:
     with pytest.raises(FileNotFoundError, match=r"nope\.json5"):
         build_config(ZenohSettings(config_file=tmp_path / "nope.json5"))

@@ -671,13 +671,15 @@ class MarkerSlam:
 
     def _covariance_world(self, track: _Track, frame: int, world_from_camera: Array) -> Array | None:
         """The camera pose's marginal covariance (everything fused so far, this frame included), in the
-        world frame (`world_covariance`); None if GTSAM cannot give it (an indeterminate system raises):
-        the pose itself is still returned."""
+        world frame (`world_covariance`); None if GTSAM cannot give it (an indeterminate system raises, a
+        near-singular one returns non-finite or negative variances): the pose itself is still returned."""
         try:
             tangent = np.asarray(self.isam.marginalCovariance(track.key(frame)))
         except RuntimeError:
             return None
-        return world_covariance(tangent, world_from_camera)
+        out = world_covariance(tangent, world_from_camera)
+        # A near-singular marginal comes back without an exception: never publish it (the wire refuses it).
+        return out if np.isfinite(out).all() and float(np.diag(out).min()) >= 0 else None
 
     def _still_origin(self, track: _Track, observations: list[Observation]) -> int | None:
         """The robot's last frame with a pose, when this frame (only new tags in view, no motion to

@@ -72,6 +72,10 @@ class ZenohSettings(BaseModel):
     connect_timeout_secs: float = Field(default=30.0, gt=0)  # open() fails after this long
     # Larger messages are refused by the transport before they are reassembled (zenoh's default: 1 GiB).
     max_message_bytes: int = Field(default=MAX_MESSAGE_BYTES, gt=0)
+    # Largest batch a link sends (the smaller of the two ends is used); a larger message goes in
+    # fragments. zenoh's default and its maximum: on loopback 8 KiB batches take a 0.9 MB tensor 4.5x
+    # as long, on the emulated 5G uplink every size is link-bound (bench/zenoh_options.py, README).
+    batch_size_bytes: int = Field(default=65535, ge=1024, le=65535)
     tls: TlsSettings | None = None  # needed by tls/ endpoints
     # Enforced by a router on the messages of the peers and clients it serves (shared.transport.access).
     access_control: AccessControlSettings = Field(default_factory=AccessControlSettings)
@@ -97,6 +101,7 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
     config.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
     config.insert_json5("transport/shared_memory/enabled", json.dumps(settings.shared_memory))
     config.insert_json5("transport/link/rx/max_message_size", json.dumps(settings.max_message_bytes))
+    config.insert_json5("transport/link/tx/batch_size", json.dumps(settings.batch_size_bytes))
     uses_tls = any(e.startswith("tls/") for e in (*settings.listen, *settings.connect))
     if uses_tls and settings.tls is None:
         raise ValueError("tls/ endpoints need zenoh.tls settings (certificates: deploy/make-certs.sh)")

@@ -20,7 +20,6 @@ import logging
 from pathlib import Path
 from typing import Any, Final, Protocol
 
-import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -52,6 +51,8 @@ class RerunSettings(BaseModel):
 def sigma_ellipsoid(position_covariance: Array, *, sigmas: float) -> tuple[Array, Array, float]:
     """A 3x3 position covariance (m^2) as an ellipsoid: half sizes (m, `sigmas` standard deviations along
     its principal axes) and the axis-angle rotation (unit axis, radians) that turns x, y, z onto them."""
+    import cv2  # only where Rerun draws: the services that never do need not load it
+
     values, vectors = np.linalg.eigh((np.asarray(position_covariance, np.float64) + position_covariance.T) / 2)
     if np.linalg.det(vectors) < 0:
         vectors[:, 0] = -vectors[:, 0]  # a rotation, not a reflection
@@ -135,6 +136,7 @@ class RerunViz:
         self._robot = ""
         self._time_set = False
         self._trajectory_logged: dict[str, int] = {}
+        self._sigma_drawn: set[str] = set()  # entities whose covariance ellipsoid is shown
 
     def _log(self, path: str, *args: Any, **kwargs: Any) -> None:
         if self._prefix and not path.startswith("world/"):
@@ -219,7 +221,12 @@ class RerunViz:
         entity = f"world/robots/{robot}/camera" if robot else "world/camera"
         entity += "_bridged" if bridged else ""
         self._log(entity, rr.Transform3D(translation=world_from_camera[:3, 3], mat3x3=world_from_camera[:3, :3]))
-        if covariance_world is not None:
+        if covariance_world is None:
+            if f"{entity}_sigma" in self._sigma_drawn:  # no stale ellipsoid left at an older pose
+                self._log(f"{entity}_sigma", rr.Clear(recursive=False))
+                self._sigma_drawn.discard(f"{entity}_sigma")
+        else:
+            self._sigma_drawn.add(f"{entity}_sigma")
             half_sizes, axis, angle_rad = sigma_ellipsoid(covariance_world[:3, :3], sigmas=2.0)
             self._log(
                 f"{entity}_sigma",
