@@ -31,3 +31,35 @@ def test_unbounded_by_default_for_benchmarks() -> None:
     for seq in range(50):
         monitor.on_poses(encode(poses.model_copy(update={"seq": seq})))
     assert len(monitor.records) == 50  # benchmarks slice records by index
+
+
+def test_the_live_line_and_summary_say_how_sure_slam_is_and_how_far_off() -> None:
+    """SLAM poses with covariance: the line shows slam's status, median position sigma and error against
+    ground truth (with a tag map that fixes slam's world), the summary counts statuses."""
+    import numpy as np
+
+    from shared.tools.launch import demo_tag_map
+
+    poses, gt = EXAMPLES[TagPoses.SCHEMA], EXAMPLES[CameraPose.SCHEMA]
+    assert isinstance(poses, TagPoses) and isinstance(gt, CameraPose)
+    monitor = Monitor(demo_tag_map())
+    cov = np.diag([1e-4, 1e-4, 2e-4, 1e-6, 1e-6, 1e-6])  # position sigma sqrt(4e-4) = 2 cm
+    for seq in range(5):
+        truth = gt.model_copy(update={"seq": seq, "status": "ground_truth", "covariance_world": None})
+        monitor.on_gt(encode(truth))
+        slam_pose = np.array(truth.world_from_camera)
+        slam_pose[0, 3] += 0.03  # 3 cm off
+        status = "lost" if seq == 4 else "tracking"
+        cam = truth.model_copy(
+            update={"status": status, "world_from_camera": slam_pose, "covariance_world": None if seq == 4 else cov}
+        )
+        monitor.on_camera(encode(cam))
+        monitor.on_poses(encode(poses.model_copy(update={"seq": seq})))
+    monitor.on_camera(b"not a message")
+    line = monitor.line()
+    assert "| slam lost sigma 2.0 cm e 3.0 cm" in line, line
+    summary = monitor.summary()
+    assert summary["slam_frames"] == {"tracking": 4, "lost": 1}
+    assert abs(summary["slam_sigma_cm_median"] - 2.0) < 1e-9
+    assert abs(summary["slam_online_error_cm_median"] - 3.0) < 1e-9
+    assert summary["bad_messages"] == 1

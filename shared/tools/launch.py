@@ -144,7 +144,8 @@ def stop_services(services: list[Service], timeout_secs: float = 15.0) -> dict[s
 
 @dataclass
 class Monitor:
-    """Subscribes to TagPoses and ground truth; keeps per-frame records and prints a line per second.
+    """Subscribes to TagPoses, SLAM poses and ground truth; keeps per-frame records and prints a line per
+    second (with slam's status, position sigma and, against ground truth, its error).
 
     `max_records` bounds the records a long deployment keeps (the oldest half is dropped when full; the
     summary then covers the newest ones, `frames_total` counts all); ground truth is kept for the newest
@@ -158,7 +159,11 @@ class Monitor:
     max_ground_truth: int = 3000
     frames_total: int = 0
     controller: ControllerState | None = None
+    slam_status: dict[str, int] = field(default_factory=dict)  # CameraPose status -> frames
     _recent: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=400))
+    _slam_recent: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=400))
+    _slam_sigma_cm: deque[float] = field(default_factory=lambda: deque(maxlen=200_000))
+    _slam_error_cm: deque[float] = field(default_factory=lambda: deque(maxlen=200_000))
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
     def on_poses(self, payload: bytes) -> None:
@@ -196,6 +201,30 @@ class Monitor:
         except WireError as exc:
             self.bad += 1
             log.warning("monitor: bad ControllerState: %s", exc)
+
+    def on_camera(self, payload: bytes) -> None:
+        """Record one SLAM CameraPose: its status, its position sigma (sqrt of the covariance's position
+        trace) and, with ground truth and a tag map that fixes slam's world, its position error."""
+        try:
+            msg = decode(payload, CameraPose)
+        except WireError as exc:
+            self.bad += 1
+            log.warning("monitor: bad CameraPose: %s", exc)
+            return
+        cov = msg.covariance_world
+        sigma = None if cov is None else 100 * float(np.sqrt(np.trace(cov[:3, :3])))
+        with self._lock:
+            mapped = self.tag_map is not None and any(t.world_from_tag is not None for t in self.tag_map.tags)
+            truth = self.gt.get(msg.seq) if mapped else None  # slam's world is the map's only with poses
+            error = None
+            if truth is not None and msg.status == "tracking":
+                error = 100 * float(np.linalg.norm(msg.world_from_camera[:3, 3] - truth[:3, 3]))
+            self.slam_status[msg.status] = self.slam_status.get(msg.status, 0) + 1
+            self._slam_recent.append({"t": time.monotonic(), "status": msg.status, "sigma": sigma, "error": error})
+            if sigma is not None:
+                self._slam_sigma_cm.append(sigma)
+            if error is not None:
+                self._slam_error_cm.append(error)
 
     def on_gt(self, payload: bytes) -> None:
         """Record one ground-truth camera pose."""
@@ -237,8 +266,20 @@ class Monitor:
         return (
             f"{len(recent):>3} fps  k={recent[-1]['k']}  payload {recent[-1]['payload_bytes'] / 1024:7.1f} kB  "
             f"robot {med['robot_ms']:6.1f} ms  link {med['transport_ms']:5.1f} ms  edge {med['edge_ms']:5.1f} ms  "
-            f"capture->pose {med['e2e_ms']:6.1f} ms  tags {recent[-1]['tags']}{err}{self._controller_part()}"
+            f"capture->pose {med['e2e_ms']:6.1f} ms  tags {recent[-1]['tags']}{err}{self._slam_part(now)}"
+            f"{self._controller_part()}"
         )
+
+    def _slam_part(self, now: float) -> str:
+        with self._lock:
+            recent = [r for r in self._slam_recent if now - r["t"] <= 1.0]
+        if not recent:
+            return ""
+        sigmas = [r["sigma"] for r in recent if r["sigma"] is not None]
+        errors = [r["error"] for r in recent if r["error"] is not None]
+        sigma = f" sigma {np.median(sigmas):.1f} cm" if sigmas else ""
+        error = f" e {np.median(errors):.1f} cm" if errors else ""
+        return f"  | slam {recent[-1]['status']}{sigma}{error}"
 
     def _controller_part(self) -> str:
         c = self.controller
@@ -260,6 +301,13 @@ class Monitor:
         if recs:
             e2e = [r["e2e_ms"] for r in recs]
             out.update({"e2e_ms_p50": float(np.percentile(e2e, 50)), "e2e_ms_p99": float(np.percentile(e2e, 99))})
+        with self._lock:
+            if self.slam_status:
+                out["slam_frames"] = dict(self.slam_status)
+            if self._slam_sigma_cm:
+                out["slam_sigma_cm_median"] = float(np.median(self._slam_sigma_cm))
+            if self._slam_error_cm:
+                out["slam_online_error_cm_median"] = float(np.median(self._slam_error_cm))
         if errs:
             out.update(
                 {
@@ -272,9 +320,10 @@ class Monitor:
 
 
 def attach_monitor(session: zenoh.Session, robot_id: str, monitor: Monitor) -> list[Any]:
-    """Subscribe the monitor (callbacks) to TagPoses and ground truth."""
+    """Subscribe the monitor (callbacks) to TagPoses, SLAM poses, the controller and ground truth."""
     return [
         session.declare_subscriber(keys.ground_truth(robot_id), lambda s: monitor.on_gt(s.payload.to_bytes())),
+        session.declare_subscriber(keys.camera_pose(robot_id), lambda s: monitor.on_camera(s.payload.to_bytes())),
         session.declare_subscriber(keys.tag_poses(robot_id), lambda s: monitor.on_poses(s.payload.to_bytes())),
         session.declare_subscriber(keys.controller(robot_id), lambda s: monitor.on_controller(s.payload.to_bytes())),
     ]
