@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import queue
 import threading
 import time
@@ -82,6 +83,7 @@ class SlamNode:
         self.settings = settings
         self.fleet = settings.robots is not None
         known: dict[int, tuple[float, np.ndarray]] = {}
+        known_sigmas: dict[int, tuple[float | None, float | None]] = {}
         slam_settings = settings.slam
         # A restarted slam resumes from its last checkpoint in run_dir: the map it had (as priors, its
         # anchor fixing the world frame) and each trajectory so far (kept, continued, never shortened).
@@ -91,11 +93,12 @@ class SlamNode:
             if tm is None:
                 continue  # the configured map (second) wins over the checkpoint
             known |= {t.id: (t.size_m, pose) for t in tm.tags if (pose := t.pose()) is not None}
+            known_sigmas |= {t.id: t.stated_sigmas() for t in tm.tags if t.world_from_tag is not None}
             if tm.anchor_tag_id is not None:
                 slam_settings = slam_settings.model_copy(
                     update={"anchor_tag_id": slam_settings.anchor_tag_id or tm.anchor_tag_id}
                 )
-        self.slam = MarkerSlam(slam_settings, known_tags=known)
+        self.slam = MarkerSlam(slam_settings, known_tags=known, known_sigmas=known_sigmas)
         self.runs: dict[str, RobotRun] = {}
         for robot in (
             settings.robots if isinstance(settings.robots, list) else [] if self.fleet else [settings.robot_id]
@@ -219,11 +222,17 @@ class SlamNode:
             robots = sorted(self.runs)
         per_robot = {robot: self._write_robot(run_dir, robot) for robot in robots}
         sizes_only: dict[int, float] = {}
+        # How well each tag is known goes with it (the graph's marginals), so a resumed slam, or a run fed
+        # this map as its tag_map, believes each pose only as far as this run could place it.
+        sigmas = {t: _clip_sigmas(v) for t, v in self.slam.tag_sigmas().items()}
         if self.resumed is not None:  # tags of the checkpoint not seen again are kept as they were
             for t in self.resumed.tags:
                 if t.id not in tag_map:
                     if (pose := t.pose()) is not None:
                         tag_map[t.id] = (t.size_m, pose)
+                        rot, pos = t.stated_sigmas()
+                        if rot is not None and pos is not None:
+                            sigmas[t.id] = (rot, pos)
                     else:
                         sizes_only[t.id] = t.size_m
         # map.json is a tag map (loadable as slam's or edge_infer's `tag_map`); run statistics go apart.
@@ -232,7 +241,9 @@ class SlamNode:
         anchor = (
             self.slam.anchor if self.slam.anchor is not None else (self.resumed.anchor_tag_id if self.resumed else None)
         )
-        checkpoint = tag_map_from_poses({t: v for t, v in tag_map.items() if t not in bridged}, anchor_tag_id=anchor)
+        checkpoint = tag_map_from_poses(
+            {t: v for t, v in tag_map.items() if t not in bridged}, anchor_tag_id=anchor, sigmas=sigmas
+        )
         sizes_only |= {t: tag_map[t][0] for t in bridged}
         checkpoint.tags = sorted(
             [*checkpoint.tags, *(TagSpec(id=t, size_m=size) for t, size in sizes_only.items())], key=lambda t: t.id
@@ -297,6 +308,13 @@ class SlamNode:
             except ValueError as exc:
                 out["ate_error"] = str(exc)
         return out
+
+
+def _clip_sigmas(sigmas: tuple[float, float]) -> tuple[float, float]:
+    """(rotation rad, position m) within what a tag map may state (0 < rotation <= 180 deg, position <=
+    100 m): a tag the graph barely holds is written as barely known, not refused."""
+    rot, pos = sigmas
+    return min(max(rot, 1e-9), math.pi), min(max(pos, 1e-9), 100.0)
 
 
 class SlamBusyError(RuntimeError):

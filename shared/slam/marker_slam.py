@@ -323,9 +323,16 @@ class _Track:
 class MarkerSlam:
     """Incremental marker SLAM (see module docstring)."""
 
-    def __init__(self, settings: SlamSettings, known_tags: dict[int, tuple[float, Array]] | None = None) -> None:
+    def __init__(
+        self,
+        settings: SlamSettings,
+        known_tags: dict[int, tuple[float, Array]] | None = None,
+        known_sigmas: dict[int, tuple[float | None, float | None]] | None = None,
+    ) -> None:
         self.settings = settings
         self.known = known_tags or {}  # id -> (size, world_from_tag) from a tag map
+        # id -> (rotation rad, position m): how well the tag map says it knows a pose (None: known_tag_sigma)
+        self.known_sigmas = known_sigmas or {}
         self.tags: dict[int, float] = {}  # ids in the graph -> size
         # One trajectory per robot ("" = a single-robot graph's); frames marginalised out of the graph
         # (memory stays bounded) keep their stamps and final poses in the track's compact log.
@@ -444,10 +451,10 @@ class MarkerSlam:
         tag_id: int,
         size: float,
         pose: Array,
-        sigma: float | None,
+        noise: gtsam.noiseModel.Base | None,
     ) -> None:
-        if sigma is not None:
-            graph.add(gtsam.PriorFactorPose3(L(tag_id), _pose3(pose), self._iso(sigma)))
+        if noise is not None:
+            graph.add(gtsam.PriorFactorPose3(L(tag_id), _pose3(pose), noise))
         values.insert(L(tag_id), _pose3(pose))
         self.tags[tag_id] = size
         self._tag_fragment[tag_id] = WORLD_FRAGMENT  # the anchor and tag-map priors are in the world
@@ -464,7 +471,14 @@ class MarkerSlam:
             if o.tag_id in self.known and o.tag_id not in self.tags:
                 size, pose = self.known[o.tag_id]
                 anchor = o.tag_id == s.anchor_tag_id or (self.anchor is None and s.anchor_tag_id is None)
-                self._add_tag(graph, values, o.tag_id, size, pose, s.anchor_sigma if anchor else s.known_tag_sigma)
+                self._add_tag(
+                    graph,
+                    values,
+                    o.tag_id,
+                    size,
+                    pose,
+                    self._iso(s.anchor_sigma) if anchor else self._known_noise(o.tag_id),
+                )
                 if anchor:
                     self.anchor = o.tag_id
                 changed = True
@@ -478,9 +492,36 @@ class MarkerSlam:
                 a = min(clear or chosen, key=self._rotation_variance)
                 pose = self.known[a.tag_id][1] if a.tag_id in self.known else np.eye(4)
                 self.anchor = a.tag_id
-                self._add_tag(graph, values, a.tag_id, a.size_m, pose, s.anchor_sigma)
+                self._add_tag(graph, values, a.tag_id, a.size_m, pose, self._iso(s.anchor_sigma))
                 changed = True
         return changed
+
+    def _known_noise(self, tag_id: int) -> gtsam.noiseModel.Base:
+        """A tag-map pose's prior: the sigmas the map states for it, else known_tag_sigma (rad and m)."""
+        rot, pos = self.known_sigmas.get(tag_id, (None, None))
+        default = self.settings.known_tag_sigma
+        rot, pos = default if rot is None else rot, default if pos is None else pos
+        return gtsam.noiseModel.Diagonal.Sigmas(np.array([rot] * 3 + [pos] * 3))
+
+    def tag_sigmas(self) -> dict[int, tuple[float, float]]:
+        """How well the graph knows each mapped tag's pose (not the anchor, which defines the world):
+        id -> (rotation rad, position m), each the largest axis of its marginal covariance (in the tag's
+        frame, as a prior takes it). Tags whose marginal GTSAM cannot give are left out."""
+        out: dict[int, tuple[float, float]] = {}
+        for tag_id in self.tags:
+            if tag_id == self.anchor or not self._estimate.exists(L(tag_id)):
+                continue
+            try:
+                cov = np.asarray(self.isam.marginalCovariance(L(tag_id)))
+            except RuntimeError:
+                continue
+            if not np.isfinite(cov).all():
+                continue
+            rot = math.sqrt(max(0.0, float(np.linalg.eigvalsh(cov[:3, :3]).max())))
+            pos = math.sqrt(max(0.0, float(np.linalg.eigvalsh(cov[3:, 3:]).max())))
+            if rot > 0 and pos > 0:
+                out[tag_id] = (rot, pos)
+        return out
 
     def _rotation_variance(self, obs: Observation) -> float:
         """Total rotation variance (rad^2) of an observation's noise model, flip included."""

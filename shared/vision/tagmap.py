@@ -23,6 +23,11 @@ class TagSpec(BaseModel):
     id: int = Field(ge=0)
     size_m: float = Field(gt=0, le=100)
     world_from_tag: list[list[float]] | None = None
+    # How well world_from_tag is known (1 sigma per axis, in the tag's frame): slam takes the pose as a
+    # prior with these; None = slam's `known_tag_sigma` (1 mm / 1 mrad: a surveyed map). slam writes
+    # its own map's marginals here, so a map it built and fed back is believed only as far as it holds.
+    position_sigma_m: float | None = Field(default=None, gt=0, le=100)
+    rotation_sigma_deg: float | None = Field(default=None, gt=0, le=180)
 
     @field_validator("world_from_tag")
     @classmethod
@@ -34,6 +39,11 @@ class TagSpec(BaseModel):
     def pose(self) -> Array | None:
         """4x4 world_from_tag, or None when the map gives only the size."""
         return None if self.world_from_tag is None else np.asarray(self.world_from_tag, np.float64)
+
+    def stated_sigmas(self) -> tuple[float | None, float | None]:
+        """(rotation sigma in rad, position sigma in m) as the map states them (None: not stated)."""
+        rot = None if self.rotation_sigma_deg is None else float(np.radians(self.rotation_sigma_deg))
+        return rot, self.position_sigma_m
 
 
 class TagMapFile(BaseModel):
@@ -67,14 +77,26 @@ def write_tag_map(path: Path, tag_map: TagMapFile) -> None:
 
 
 def tag_map_from_poses(
-    poses: dict[int, tuple[float, np.ndarray]], *, anchor_tag_id: int | None, default_size_m: float = 0.16
+    poses: dict[int, tuple[float, np.ndarray]],
+    *,
+    anchor_tag_id: int | None,
+    default_size_m: float = 0.16,
+    sigmas: dict[int, tuple[float, float]] | None = None,
 ) -> TagMapFile:
-    """A tag map from {id: (size_m, world_from_tag 4x4)}."""
+    """A tag map from {id: (size_m, world_from_tag 4x4)}; `sigmas` {id: (rotation rad, position m)}
+    states how well each pose is known."""
+    sigmas = sigmas or {}
     return TagMapFile(
         default_size_m=default_size_m,
         anchor_tag_id=anchor_tag_id,
         tags=[
-            TagSpec(id=t, size_m=size, world_from_tag=np.asarray(pose, np.float64).tolist())
+            TagSpec(
+                id=t,
+                size_m=size,
+                world_from_tag=np.asarray(pose, np.float64).tolist(),
+                position_sigma_m=sigmas[t][1] if t in sigmas else None,
+                rotation_sigma_deg=float(np.degrees(sigmas[t][0])) if t in sigmas else None,
+            )
             for t, (size, pose) in sorted(poses.items())
         ],
     )
