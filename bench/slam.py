@@ -9,7 +9,9 @@ bench renders the image and runs:
 - the product's perception (stage 1 -> ROI -> network at the services' precision, `auto` by default:
   int8 where the weights folder has it -> keypoint fusion -> PnP on 16 points), whose tag poses then
   feed the SLAM core (shared/slam) as slam feeds it: without a map ("splittag SLAM"), with the known
-  map as priors ("splittag SLAM + map"), and localisation-only on the map.
+  map as priors ("splittag SLAM + map"), and localisation-only on the map;
+- on a rough map (every tag but the anchor 2 cm / 1 deg off per axis, as a tape measure gives):
+  AprilTag PnP on it, SLAM given it with those stated sigmas, and SLAM taking it as surveyed.
 
 Metrics over the frames of the sequence: frames with a pose; ATE (RMSE of position, cm) and rotation
 RMSE (deg) in the true world frame, without fitting (the known-map methods work in the map's frame;
@@ -313,6 +315,28 @@ def place_tags_map(spec: SequenceSpec) -> TagMap:
     return _tag_map(spec)[0]
 
 
+ROUGH_POSITION_SIGMA_M = 0.02  # a map measured with a tape and a protractor, not surveyed
+ROUGH_ROTATION_SIGMA_DEG = 1.0
+
+
+def rough_tag_map(spec: SequenceSpec) -> tuple[TagMap, int, dict[int, tuple[float, float]]]:
+    """The true map with every tag but the anchor moved by N(0, 2 cm) per axis and turned by N(0, 1 deg)
+    per axis (fixed seed per room), and the sigmas such a map would state: (map, anchor, {id: (rotation
+    rad, position m)})."""
+    true, anchor = _tag_map(spec)
+    rng = np.random.default_rng(spec.seed + 1000)
+    rough: TagMap = {}
+    for tag_id, (size, pose) in sorted(true.items()):
+        moved = np.array(pose, np.float64)
+        if tag_id != anchor:
+            turn = cv2.Rodrigues(rng.normal(0.0, math.radians(ROUGH_ROTATION_SIGMA_DEG), 3))[0]
+            moved[:3, :3] = moved[:3, :3] @ turn
+            moved[:3, 3] += rng.normal(0.0, ROUGH_POSITION_SIGMA_M, 3)
+        rough[tag_id] = (size, moved)
+    sigmas = {t: (math.radians(ROUGH_ROTATION_SIGMA_DEG), ROUGH_POSITION_SIGMA_M) for t in rough if t != anchor}
+    return rough, anchor, sigmas
+
+
 def _corners_world(size_m: float, world_from_tag: FloatArray) -> FloatArray:
     h = size_m / 2
     tl_tr_br_bl = np.array([[-h, -h, 0, 1], [h, -h, 0, 1], [h, h, 0, 1], [-h, h, 0, 1]], np.float64)
@@ -373,12 +397,14 @@ def splittag_slam(
     anchor: int | None,
     localisation_only: bool,
     tracking: bool = False,
+    known_sigmas: dict[int, tuple[float, float]] | None = None,
 ) -> tuple[dict[int, FloatArray], dict[int, FloatArray], dict[str, Any]]:
-    """The slam core fed frame by frame: (final trajectory, online poses, counters)."""
+    """The slam core fed frame by frame: (final trajectory, online poses, counters). `known_sigmas`: how
+    well the known map states each tag (rotation rad, position m; none: as surveyed)."""
     from shared.slam.marker_slam import MarkerSlam, SlamSettings
 
     settings = SlamSettings(anchor_tag_id=anchor, localisation_only=localisation_only)
-    slam = MarkerSlam(settings, known_tags=known)
+    slam = MarkerSlam(settings, known_tags=known, known_sigmas=dict(known_sigmas or {}))
     online: dict[int, FloatArray] = {}
     focal = (spec.fx + spec.fy) / 2
     stamp_to_index = {}
@@ -512,6 +538,10 @@ def evaluate(records: list[FrameRecord], spec: SequenceSpec) -> dict[str, dict[s
     rows: dict[str, dict[str, Any]] = {}
     pnp = apriltag_known_map(records, tag_map, spec.camera_matrix())
     rows["apriltag3 known-map PnP"] = trajectory_metrics(pnp, gt, fps=spec.fps)
+    rough, _, rough_sigmas = rough_tag_map(spec)
+    rows["apriltag3 rough-map PnP"] = trajectory_metrics(
+        apriltag_known_map(records, rough, spec.camera_matrix()), gt, fps=spec.fps
+    )
     runs: dict[str, Callable[[], tuple[dict[int, FloatArray], dict[int, FloatArray], dict[str, Any]]]] = {
         "splittag SLAM": lambda: splittag_slam(records, spec, known=None, anchor=None, localisation_only=False),
         "splittag SLAM + map": lambda: splittag_slam(
@@ -519,6 +549,12 @@ def evaluate(records: list[FrameRecord], spec: SequenceSpec) -> dict[str, dict[s
         ),
         "splittag localisation": lambda: splittag_slam(
             records, spec, known=tag_map, anchor=anchor, localisation_only=True
+        ),
+        "splittag SLAM + rough map": lambda: splittag_slam(
+            records, spec, known=rough, anchor=anchor, localisation_only=False, known_sigmas=rough_sigmas
+        ),
+        "splittag SLAM + rough map as surveyed": lambda: splittag_slam(
+            records, spec, known=rough, anchor=anchor, localisation_only=False
         ),
         "splittag SLAM, tracking": lambda: splittag_slam(
             records, spec, known=None, anchor=None, localisation_only=False, tracking=True
@@ -659,13 +695,13 @@ def _fmt(v: float | None, digits: int = 2) -> str:
 
 def format_table(results: dict[str, dict[str, Any]]) -> str:
     lines = [
-        f"{'sequence':<8} {'method':<24} {'pose %':>7} {'ATE cm':>7} {'rot deg':>8} {'RPE1s cm':>9} "
+        f"{'sequence':<8} {'method':<38} {'pose %':>7} {'ATE cm':>7} {'rot deg':>8} {'RPE1s cm':>9} "
         f"{'aligned ATE':>12} {'online ATE':>11} {'bridged %':>10} {'sigma cm':>9} {'in 95 %':>8}"
     ]
     for seq, res in results.items():
         for name, row in res["methods"].items():
             lines.append(
-                f"{seq:<8} {name:<24} {_fmt(row['pose_pct'], 1):>7} {_fmt(row['ate_cm']):>7} "
+                f"{seq:<8} {name:<38} {_fmt(row['pose_pct'], 1):>7} {_fmt(row['ate_cm']):>7} "
                 f"{_fmt(row['rot_deg']):>8} {_fmt(row['rpe_cm']):>9} {_fmt(row['aligned_ate_cm']):>12} "
                 f"{_fmt(row.get('online_ate_cm')):>11} {_fmt(row.get('bridged_pct'), 1):>10} "
                 f"{_fmt(row.get('sigma_cm')):>9} {_fmt(row.get('inside95_pct'), 0):>8}"
