@@ -163,7 +163,15 @@ def example_messages() -> dict[str, Message]:
         anchor_tag_id=5,
         tags=[
             MapTag(tag_id=5, size_m=0.16, world_from_tag=np.eye(4), observations=10, bridged=False),
-            MapTag(tag_id=9, size_m=0.2, world_from_tag=_pose(4), observations=3, bridged=True),
+            MapTag(
+                tag_id=9,
+                size_m=0.2,
+                world_from_tag=_pose(4),
+                observations=3,
+                bridged=True,
+                position_sigma_m=0.004,
+                rotation_sigma_deg=0.3,
+            ),
         ],
     )
     split = SplitConfig(k=5, codec="fp16", pinned=True, source="user")

@@ -568,8 +568,12 @@ def test_slam_publishes_bridged_poses_as_such(tmp_path: Path) -> None:
         cam = decode(encode(node.on_poses(_tag_poses(i, 1_000 + i, poses[i], wanted))[0]), CameraPose)
         statuses.append(cam.status)
         if i in (54, 69):  # the map says which tags are placed by the gap's guess, until the join
-            flags = {t.tag_id: t.bridged for t in decode(encode(node.current_map("r1")), TagMap).tags}
+            published = decode(encode(node.current_map("r1")), TagMap)
+            flags = {t.tag_id: t.bridged for t in published.tags}
             assert flags == ({4: False, 5: False, 7: True} if i == 54 else {4: False, 5: False, 7: False})
+            # ... and how well it knows each pose (TagMap/v3): none for the anchor or a bridged tag
+            known = {t.tag_id for t in published.tags if t.position_sigma_m and t.rotation_sigma_deg}
+            assert known == {t for t, bridged in flags.items() if not bridged} - {published.anchor_tag_id}
         assert (cam.covariance_world is None) == (cam.status == "lost")  # a repeated pose says nothing
     assert statuses == ["tracking"] * 10 + ["lost"] * 35 + ["bridged"] * 10 + ["tracking"] * 15
 

@@ -30,6 +30,7 @@ from shared.wire.messages import (
     Features,
     Frame,
     MapTagV1,
+    MapTagV2,
     SplitConfig,
     TagFeature,
     TagFeatureV1,
@@ -46,7 +47,7 @@ from tests.examples import INTRINSICS, assert_messages_equal, example_messages, 
 
 GOLDEN = Path(__file__).parent / "golden"
 # The per-tag model each legacy version's tags had.
-LEGACY_TAG_TYPES: dict[str, type[TagFeatureV1] | type[TagPoseV2] | type[MapTagV1]] = {
+LEGACY_TAG_TYPES: dict[str, type[TagFeatureV1] | type[TagPoseV2] | type[MapTagV1] | type[MapTagV2]] = {
     "splittag/Features/v1": TagFeatureV1,
     "splittag/Features/v2": TagFeatureV2,
     "splittag/Features/v3": TagFeatureV3,
@@ -54,6 +55,7 @@ LEGACY_TAG_TYPES: dict[str, type[TagFeatureV1] | type[TagPoseV2] | type[MapTagV1
     "splittag/TagPoses/v2": TagPoseV2,
     "splittag/TagPoses/v3": TagPoseV3,
     "splittag/TagMap/v1": MapTagV1,
+    "splittag/TagMap/v2": MapTagV2,
 }
 EXAMPLES = example_messages()
 # Legacy versions with the current fields but fewer allowed values (CameraPose/v1: no "bridged").

@@ -192,16 +192,22 @@ class SlamNode:
             return cam, (self._map(msg.robot_id) if publish_map else None)
 
     def _map(self, robot_id: str) -> TagMap:
-        tags = [
-            MapTag(
-                tag_id=t,
-                size_m=size,
-                world_from_tag=pose,
-                observations=self.slam.state.observations.get(t, 0),
-                bridged=self.slam.tag_bridged(t),
+        sigmas = {t: _clip_sigmas(v) for t, v in self.slam.tag_sigmas().items()}
+        tags = []
+        for t, (size, pose) in sorted(self.slam.tag_map().items()):
+            bridged = self.slam.tag_bridged(t)
+            rot, pos = sigmas[t] if t in sigmas and not bridged else (None, None)  # the anchor has none
+            tags.append(
+                MapTag(
+                    tag_id=t,
+                    size_m=size,
+                    world_from_tag=pose,
+                    observations=self.slam.state.observations.get(t, 0),
+                    bridged=bridged,
+                    position_sigma_m=pos,
+                    rotation_sigma_deg=None if rot is None else math.degrees(rot),
+                )
             )
-            for t, (size, pose) in sorted(self.slam.tag_map().items())
-        ]
         return TagMap(robot_id=robot_id, revision=self.revision, anchor_tag_id=self.slam.anchor or 0, tags=tags)
 
     def current_map(self, robot_id: str) -> TagMap:

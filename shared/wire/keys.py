@@ -55,8 +55,8 @@ def camera_pose(robot_id: str) -> str:
 
 
 def tag_map(robot_id: str) -> str:
-    """TagMap v2: slam publishes on change and answers gets (queryable) on the same key."""
-    return f"{ROOT}/{_check(robot_id, 'robot id')}/map/v2"
+    """TagMap v3: slam publishes on change and answers gets (queryable) on the same key."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/map/v3"
 
 
 def split(robot_id: str) -> str:

@@ -464,25 +464,49 @@ class MapTagV1(WireModel):
     observations: int = Field(ge=0)
 
 
-class MapTag(MapTagV1):
+class MapTagV2(MapTagV1):
     """MapTagV1 plus whether the tag lies in a map fragment not (yet) tied to the world: mapped after a
     long gap without tags, its world pose is the gap's guess (see CameraPose "bridged")."""
 
     bridged: bool
 
 
+class MapTag(MapTagV2):
+    """MapTagV2 plus how well slam knows the pose (its marginal's largest axis, 1 sigma, in the tag's
+    frame; as a tag map file states it): None for the anchor (it defines the world), bridged tags and
+    older peers."""
+
+    position_sigma_m: float | None = Field(default=None, gt=0, le=100, allow_inf_nan=False)
+    rotation_sigma_deg: float | None = Field(default=None, gt=0, le=180, allow_inf_nan=False)
+
+
 class TagMap(Message):
     """The SLAM map: tag poses in the world frame anchored at `anchor_tag_id`."""
 
-    SCHEMA: ClassVar[str] = "splittag/TagMap/v2"
+    SCHEMA: ClassVar[str] = "splittag/TagMap/v3"
     robot_id: RobotId
     revision: int = Field(ge=0)
     anchor_tag_id: int = Field(ge=0)
     tags: list[MapTag]
 
 
+class TagMapV2(Message):
+    """TagMap before the per-tag uncertainty; still decoded (as v3 with no sigmas)."""
+
+    SCHEMA: ClassVar[str] = "splittag/TagMap/v2"
+    robot_id: RobotId
+    revision: int = Field(ge=0)
+    anchor_tag_id: int = Field(ge=0)
+    tags: list[MapTagV2]
+
+    def upgrade(self) -> TagMap:
+        """The same content as the current schema."""
+        fields = {name: getattr(self, name) for name in TagMapV2.model_fields if name != "tags"}
+        return TagMap(**fields, tags=[MapTag(**dict(t)) for t in self.tags])
+
+
 class TagMapV1(Message):
-    """TagMap before `bridged`; still decoded (as v2 with every tag tied to the world)."""
+    """TagMap before `bridged`; still decoded (as v3 with every tag tied to the world, no sigmas)."""
 
     SCHEMA: ClassVar[str] = "splittag/TagMap/v1"
     robot_id: RobotId
@@ -611,7 +635,8 @@ LEGACY_SCHEMAS: Final[
         | type[FeaturesV3]
         | type[CameraPoseV1]
         | type[CameraPoseV2]
-        | type[TagMapV1],
+        | type[TagMapV1]
+        | type[TagMapV2],
     ]
 ] = {
     m.SCHEMA: m
@@ -626,6 +651,7 @@ LEGACY_SCHEMAS: Final[
         CameraPoseV1,
         CameraPoseV2,
         TagMapV1,
+        TagMapV2,
     )
 }
 _CURRENT_BY_NAME: Final[dict[str, type[Message]]] = {m.SCHEMA.rpartition("/")[0]: m for m in MESSAGE_TYPES}
