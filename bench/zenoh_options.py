@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -77,17 +78,17 @@ def serve(listen: str, batch_size: int) -> None:
     session.close()
 
 
-def _round_trips(querier: zenoh.Querier, size: int, repetitions: int) -> list[float]:
+def _round_trips(querier: zenoh.Querier, size: int, repetitions: int, *, warmup: int = 2) -> list[float]:
     payload = bytes(size)
     out = []
-    for i in range(repetitions + 2):
+    for i in range(repetitions + warmup):
         t0 = time.perf_counter()
         for reply in querier.get(payload=payload):
             if reply.ok is None:
                 raise RuntimeError("the echo replied an error")
             reply.ok.payload.to_bytes()
             break
-        if i >= 2:  # the first ones open TCP windows
+        if i >= warmup:  # the first ones open TCP windows
             out.append((time.perf_counter() - t0) * 1e3)
     return out
 
@@ -136,11 +137,20 @@ def _under_load(session: zenoh.Session, repetitions: int) -> dict[str, Any]:
     time.sleep(2.0)  # the stream fills the link and the queues
     out: dict[str, Any] = {}
     t0, n0 = time.monotonic(), sent[0]
-    for name, priority in PRIORITIES.items():
-        querier = session.declare_querier(
+    queriers = {
+        name: session.declare_querier(
             KEY_ECHO, timeout=30.0, congestion_control=zenoh.CongestionControl.BLOCK, priority=priority
         )
-        out[name] = _round_trips(querier, PROBE_BYTES, repetitions)
+        for name, priority in PRIORITIES.items()
+    }
+    for name in PRIORITIES:
+        out[name] = []
+    for querier in queriers.values():
+        _round_trips(querier, PROBE_BYTES, 0, warmup=1)
+    for _ in range(repetitions):  # interleaved, so a drift of the queues is not read as a priority's effect
+        for name, querier in queriers.items():
+            out[name] += _round_trips(querier, PROBE_BYTES, 1, warmup=0)
+    for querier in queriers.values():
         querier.undeclare()
     out["stream_mbit_s"] = (sent[0] - n0) * LOAD_BYTES * 8 / 1e6 / (time.monotonic() - t0)
     stop.set()
@@ -159,11 +169,17 @@ def _run_pair(
     try:
         argv = [sys.executable, "-m", "bench.zenoh_options", "--measure", listen, "--batch-size", str(batch_size)]
         argv += ["--repetitions", str(repetitions), *(["--load"] if load else [])]
-        done = subprocess.run([*robot_wrap, *argv], capture_output=True, text=True, timeout=900, check=True)
+        done = subprocess.run([*robot_wrap, *argv], capture_output=True, text=True, timeout=900)
+        if done.returncode != 0:
+            raise RuntimeError(f"the robot end failed ({done.returncode}):\n{done.stderr[-4000:]}")
         return dict(json.loads(done.stdout.strip().splitlines()[-1]))
     finally:
         server.send_signal(signal.SIGTERM)
-        server.wait(timeout=30)
+        try:
+            server.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            os.killpg(server.pid, signal.SIGKILL)  # never leave it in a namespace about to go
+            server.wait(timeout=30)
 
 
 def _p50(values: list[float]) -> float:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from shared.tools.launch import Monitor
 from shared.wire.messages import CameraPose, TagPoses, encode
 from tests.examples import example_messages
@@ -48,8 +50,8 @@ def test_the_live_line_and_summary_say_how_sure_slam_is_and_how_far_off() -> Non
         truth = gt.model_copy(update={"seq": seq, "status": "ground_truth", "covariance_world": None})
         monitor.on_gt(encode(truth))
         slam_pose = np.array(truth.world_from_camera)
-        slam_pose[0, 3] += 0.03  # 3 cm off
-        status = "lost" if seq == 4 else "tracking"
+        status = "tracking" if seq < 2 else "bridged" if seq < 4 else "lost"
+        slam_pose[0, 3] += 0.03 if status == "tracking" else 0.5  # a bridged or repeated pose is no measure
         cam = truth.model_copy(
             update={"status": status, "world_from_camera": slam_pose, "covariance_world": None if seq == 4 else cov}
         )
@@ -59,7 +61,23 @@ def test_the_live_line_and_summary_say_how_sure_slam_is_and_how_far_off() -> Non
     line = monitor.line()
     assert "| slam lost sigma 2.0 cm e 3.0 cm" in line, line
     summary = monitor.summary()
-    assert summary["slam_frames"] == {"tracking": 4, "lost": 1}
+    assert summary["slam_frames"] == {"tracking": 2, "bridged": 2, "lost": 1}
     assert abs(summary["slam_sigma_cm_median"] - 2.0) < 1e-9
     assert abs(summary["slam_online_error_cm_median"] - 3.0) < 1e-9
     assert summary["bad_messages"] == 1
+
+
+def test_the_monitor_measures_in_the_world_of_the_map_slam_is_given(tmp_path: Path) -> None:
+    """The launcher's monitor takes the run config's `slam.tag_map` (the demo map when it names none)."""
+    from shared.tools.launch import demo_tag_map, run_tag_map
+    from shared.vision.tagmap import TagMapFile, TagSpec, write_tag_map
+
+    own = TagMapFile(
+        tags=[TagSpec(id=42, size_m=0.2, world_from_tag=[[1, 0, 0, 1], [0, 1, 0, 2], [0, 0, 1, 3], [0, 0, 0, 1]])]
+    )
+    write_tag_map(tmp_path / "map.json", own)
+    config = tmp_path / "config.toml"
+    config.write_text(f'[slam]\ntag_map = "{tmp_path / "map.json"}"\n')
+    assert run_tag_map(config) == own
+    config.write_text("[slam]\n")
+    assert run_tag_map(config) == demo_tag_map()

@@ -452,19 +452,27 @@ def test_a_restarted_slam_resumes_its_map_and_trajectory(tmp_path: Path) -> None
 def test_a_tag_maps_stated_uncertainty_is_how_far_slam_believes_it() -> None:
     """A tag map with one tag placed 5 cm off: stated as surveyed (no sigmas: known_tag_sigma, 1 mm) slam
     holds it near where the map says (a tug of war with 60 frames of views: still over 1.5 cm off the
-    truth); stated loosely (10 cm, 5 deg) the exact views pull it to within 5 mm of where it really is.
-    The anchor fixes the world either way."""
-    from shared.vision.tagmap import TagSpec
+    truth); its position stated loosely (10 cm) the exact views pull it to within 5 mm of where it
+    really is. The anchor fixes the world either way. In localisation-only mode the map is held fixed
+    and its marginals say nothing: slam reports none."""
+    from shared.vision.tagmap import TagSpec, tag_map_from_poses
 
     anchor = SCENE.tags[3]
     wrong = SCENE.tags[4]
     misplaced = wrong.pose().copy()
     misplaced[:3, 3] += [0.05, 0.0, 0.0]
     known = {anchor.id: (anchor.size_m, anchor.pose()), wrong.id: (wrong.size_m, misplaced)}
-    loose = TagSpec(id=wrong.id, size_m=wrong.size_m, position_sigma_m=0.1, rotation_sigma_deg=5.0)
+    # Position loose, rotation tight: distinct numbers, so an order or unit mix-up shows.
+    loose = TagSpec(id=wrong.id, size_m=wrong.size_m, position_sigma_m=0.1, rotation_sigma_deg=0.05)
+    assert loose.stated_sigmas() == (pytest.approx(np.radians(0.05)), 0.1)
+    back = tag_map_from_poses({wrong.id: known[wrong.id]}, anchor_tag_id=None, sigmas={wrong.id: (0.002, 0.1)})
+    assert back.tags[0].stated_sigmas() == (pytest.approx(0.002), 0.1)
+    assert back.tags[0].rotation_sigma_deg == pytest.approx(np.degrees(0.002))
     placed = {}
     for name, sigmas in (("surveyed", None), ("loose", {wrong.id: loose.stated_sigmas()})):
         slam = MarkerSlam(SlamSettings(anchor_tag_id=anchor.id), known_tags=known, known_sigmas=sigmas)
+        want = [np.radians(0.05)] * 3 + [0.1] * 3 if sigmas else [1e-3] * 6  # rotation first, as GTSAM's Pose3
+        np.testing.assert_allclose(slam._known_noise(wrong.id).sigmas(), want)
         for i, wfc in enumerate(_constant_velocity(60)):
             slam.update(i, i, [_exact_obs(*v) for v in _visible(wfc)])
         assert wrong.id in slam.tag_map(), "the test's path must see the misplaced tag"
@@ -473,6 +481,14 @@ def test_a_tag_maps_stated_uncertainty_is_how_far_slam_believes_it() -> None:
     print({n: round(100 * float(np.linalg.norm(p - true)), 2) for n, p in placed.items()}, "cm from the truth")
     assert np.linalg.norm(placed["surveyed"] - true) > 0.015
     assert np.linalg.norm(placed["loose"] - true) < 0.005
+    fixed = MarkerSlam(
+        SlamSettings(anchor_tag_id=anchor.id, localisation_only=True),
+        known_tags=known,
+        known_sigmas={wrong.id: loose.stated_sigmas()},
+    )
+    for i, wfc in enumerate(_constant_velocity(20)):
+        fixed.update(i, i, [_exact_obs(*v) for v in _visible(wfc)])
+    assert fixed.tag_sigmas() == {}
 
 
 def test_observation_noise_uses_the_cameras_focal_length() -> None:
@@ -680,10 +696,14 @@ def test_a_checkpoint_keeps_a_bridged_tags_size_but_not_its_guessed_pose(tmp_pat
     saved = {t.id: t for t in load_tag_map(tmp_path / "map.json").tags}
     assert set(saved) == {4, 5, 7}
     assert saved[4].pose() is not None and saved[7].pose() is None and saved[7].size_m > 0
+    assert saved[7].stated_sigmas() == (None, None)  # a bridged tag states nothing
     again = SlamNode(SlamServiceSettings(run_dir=tmp_path))  # the restarted process
     assert set(again.slam.known) == {4, 5}
-    again.write_outputs(tmp_path)  # a tag of the checkpoint not seen again keeps its size
-    assert {t.id for t in load_tag_map(tmp_path / "map.json").tags} == {4, 5, 7}
+    again.write_outputs(tmp_path)  # a tag of the checkpoint not seen again keeps its size (and sigmas)
+    resaved = {t.id: t for t in load_tag_map(tmp_path / "map.json").tags}
+    assert set(resaved) == {4, 5, 7}
+    for t in (4, 5):
+        assert resaved[t].stated_sigmas() == saved[t].stated_sigmas()
 
 
 def test_with_bridging_off_new_tags_after_a_long_gap_stay_lost() -> None:

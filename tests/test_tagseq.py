@@ -82,17 +82,26 @@ def test_the_covariance_check_counts_errors_inside_the_95_percent_ellipsoid() ->
 def test_the_rough_map_moves_every_tag_but_the_anchor_and_states_it() -> None:
     """bench.slam's rough map: the anchor exact, the others a few cm and about a degree off (seeded: the
     same every run), each stated at the sigmas it was drawn with."""
-    from bench.slam import ROUGH_POSITION_SIGMA_M, place_tags_map, rough_tag_map
+    import math
+
+    import cv2
+
+    from bench.slam import ROUGH_POSITION_SIGMA_M, ROUGH_ROTATION_SIGMA_DEG, place_tags_map, rough_tag_map
 
     spec = SEQUENCES["medium"]
     true = place_tags_map(spec)
     rough, anchor, sigmas = rough_tag_map(spec)
-    assert rough_tag_map(spec)[0].keys() == rough.keys() and set(sigmas) == set(rough) - {anchor}
+    assert rough.keys() == true.keys() and set(sigmas) == set(rough) - {anchor}
+    assert all(v == (math.radians(ROUGH_ROTATION_SIGMA_DEG), ROUGH_POSITION_SIGMA_M) for v in sigmas.values())
     np.testing.assert_array_equal(rough[anchor][1], true[anchor][1])
     offsets = [np.linalg.norm(rough[t][1][:3, 3] - true[t][1][:3, 3]) for t in sigmas]
-    assert 0.5 * ROUGH_POSITION_SIGMA_M < np.median(offsets) < 3 * ROUGH_POSITION_SIGMA_M
+    turns = [np.degrees(np.linalg.norm(cv2.Rodrigues(true[t][1][:3, :3].T @ rough[t][1][:3, :3])[0])) for t in sigmas]
+    # |3-D offset| of N(0, s) per axis: median about 1.5 s
+    assert 0.7 * ROUGH_POSITION_SIGMA_M < np.median(offsets) < 2.5 * ROUGH_POSITION_SIGMA_M
+    assert 0.7 * ROUGH_ROTATION_SIGMA_DEG < np.median(turns) < 2.5 * ROUGH_ROTATION_SIGMA_DEG
+    again = rough_tag_map(spec)[0]
     for t in sigmas:
-        np.testing.assert_array_equal(rough_tag_map(spec)[0][t][1], rough[t][1])
+        np.testing.assert_array_equal(again[t][1], rough[t][1])
 
 
 def test_grid_along_blur_is_zero_on_the_truth_and_reads_a_shrunk_grid() -> None:

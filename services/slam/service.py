@@ -191,8 +191,29 @@ class SlamNode:
             run.map_due = False
             return cam, (self._map(msg.robot_id) if publish_map else None)
 
+    def _tag_sigmas(self, tag_map: dict[int, tuple[float, np.ndarray]]) -> dict[int, tuple[float, float]]:
+        """(rotation rad, position m) per mapped tag but the anchor (call with the lock held): the graph's
+        marginal. In localisation-only mode the map is held fixed: what the tag map stated (a tag it
+        stated nothing for stays as surveyed). Where GTSAM gives no marginal: what the map stated, else
+        as loose as a tag map may state (a pose whose uncertainty is unknown must not come back as
+        surveyed)."""
+        marginals = self.slam.tag_sigmas()
+        anchors = {self.slam.anchor, self.slam.settings.anchor_tag_id}
+        out = {}
+        for t in tag_map:
+            if t in anchors:
+                continue
+            rot, pos = self.slam.known_sigmas.get(t, (None, None))
+            if t in marginals:
+                out[t] = _clip_sigmas(marginals[t])
+            elif rot is not None and pos is not None:
+                out[t] = _clip_sigmas((rot, pos))
+            elif not self.slam.settings.localisation_only:
+                out[t] = _clip_sigmas((math.inf, math.inf))
+        return out
+
     def _map(self, robot_id: str) -> TagMap:
-        sigmas = {t: _clip_sigmas(v) for t, v in self.slam.tag_sigmas().items()}
+        sigmas = self._tag_sigmas(self.slam.tag_map())
         tags = []
         for t, (size, pose) in sorted(self.slam.tag_map().items()):
             bridged = self.slam.tag_bridged(t)
@@ -222,6 +243,7 @@ class SlamNode:
         with self.lock:
             tag_map = self.slam.tag_map()
             bridged = {t for t in tag_map if self.slam.tag_bridged(t)}
+            marginals = self._tag_sigmas(tag_map)
             state = self.slam.state
             frames, lost, rejected = state.frames, state.lost, state.rejected_ambiguous
             fragments, soft_skipped = state.fragments, state.soft_reads_skipped
@@ -230,7 +252,7 @@ class SlamNode:
         sizes_only: dict[int, float] = {}
         # How well each tag is known goes with it (the graph's marginals), so a resumed slam, or a run fed
         # this map as its tag_map, believes each pose only as far as this run could place it.
-        sigmas = {t: _clip_sigmas(v) for t, v in self.slam.tag_sigmas().items()}
+        sigmas = dict(marginals)
         if self.resumed is not None:  # tags of the checkpoint not seen again are kept as they were
             for t in self.resumed.tags:
                 if t.id not in tag_map:

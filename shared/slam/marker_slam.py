@@ -506,10 +506,13 @@ class MarkerSlam:
     def tag_sigmas(self) -> dict[int, tuple[float, float]]:
         """How well the graph knows each mapped tag's pose (not the anchor, which defines the world):
         id -> (rotation rad, position m), each the largest axis of its marginal covariance (in the tag's
-        frame, as a prior takes it). Tags whose marginal GTSAM cannot give are left out."""
+        frame, as a prior takes it). Tags whose marginal GTSAM cannot give are left out; so is every tag
+        in localisation-only mode, where the map is held fixed (its marginals say nothing of it)."""
         out: dict[int, tuple[float, float]] = {}
+        if self.settings.localisation_only:
+            return out
         for tag_id in self.tags:
-            if tag_id == self.anchor or not self._estimate.exists(L(tag_id)):
+            if tag_id in (self.anchor, self.settings.anchor_tag_id) or not self._estimate.exists(L(tag_id)):
                 continue
             try:
                 cov = np.asarray(self.isam.marginalCovariance(L(tag_id)))

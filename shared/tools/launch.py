@@ -31,7 +31,7 @@ from shared.tools.supervise import Supervisor
 from shared.tools.topology import Topology, merge, write_config
 from shared.transport.session import TlsSettings, ZenohSettings, open_session, wait_for_liveliness
 from shared.vision.metrics import translation_error_cm
-from shared.vision.tagmap import TagMapFile, TagSpec
+from shared.vision.tagmap import TagMapFile, TagSpec, load_tag_map
 from shared.viz.recording import merge_recordings
 from shared.wire import keys
 from shared.wire.codec import WireError
@@ -372,6 +372,13 @@ def loopback_config(
     return write_run_config(run_dir, base_config, topology=topology, extra=extra), topology
 
 
+def run_tag_map(config: Path) -> TagMapFile:
+    """The tag map the run's slam uses (its config's `slam.tag_map`), so the monitor measures errors in
+    slam's world; the demo map when the config names none."""
+    path = tomllib.loads(config.read_text()).get("slam", {}).get("tag_map")
+    return load_tag_map(Path(path)) if path else demo_tag_map()
+
+
 def monitor_settings(config: Path) -> tuple[str, ZenohSettings]:
     """robot_id and a client session to the edge router, from the run config."""
     doc = tomllib.loads(config.read_text())
@@ -486,7 +493,7 @@ def run_pipeline(
         print(f"emulated link up: profile {link}; `sudo splittag link set PROFILE` switches it live", flush=True)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    monitor = Monitor(demo_tag_map(), max_records=200_000)  # a deployment may run for days
+    monitor = Monitor(run_tag_map(run_config), max_records=200_000)  # a deployment may run for days
     running = _Services(run_config, run_dir, wrappers)
     try:
         (run_dir / "launcher.pid").write_text(f"{os.getpid()}\n")  # `splittag down` stops the run through it

@@ -101,7 +101,9 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
     config.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
     config.insert_json5("transport/shared_memory/enabled", json.dumps(settings.shared_memory))
     config.insert_json5("transport/link/rx/max_message_size", json.dumps(settings.max_message_bytes))
-    config.insert_json5("transport/link/tx/batch_size", json.dumps(settings.batch_size_bytes))
+    if settings.config_file is None or "batch_size_bytes" in settings.model_fields_set:
+        # (a config file's own batch size stands unless the setting is given explicitly)
+        config.insert_json5("transport/link/tx/batch_size", json.dumps(settings.batch_size_bytes))
     uses_tls = any(e.startswith("tls/") for e in (*settings.listen, *settings.connect))
     if uses_tls and settings.tls is None:
         raise ValueError("tls/ endpoints need zenoh.tls settings (certificates: deploy/make-certs.sh)")
