@@ -51,6 +51,20 @@ def _exact_obs(tag_id: int, size: float, cft: np.ndarray) -> Observation:
     return Observation(tag_id, size, cft, 0.0, cft, 5.0)
 
 
+def _noisy_obs(tag_id: int, size: float, cft: np.ndarray, rng: np.random.Generator, sigma_px: float) -> Observation:
+    """A tag's view as the edge makes it: its 16 keypoints with Gaussian pixel noise through real PnP."""
+    px = project(CAM, cft, lattice_in_tag(size)) + rng.normal(0, sigma_px, (16, 2))
+    fit = solve_planar_pnp(CAM, lattice_in_tag(size), px)
+    return Observation(
+        tag_id,
+        size,
+        fit.camera_from_tag,
+        fit.reprojection_error_px,
+        fit.alt_camera_from_tag,
+        fit.alt_reprojection_error_px,
+    )
+
+
 def _constant_velocity(n: int) -> list[np.ndarray]:
     # The motion prior is exact for constant velocity, so exact measurements must be recovered exactly.
     return [
@@ -85,20 +99,7 @@ def test_noisy_measurements_beat_frame_by_frame_pnp() -> None:
     truth = {t.id: t.pose() for t in SCENE.tags}
     pnp_est, gt = {}, {}
     for i, wfc in enumerate(TRAJ):
-        obs = []
-        for tag_id, size, cft in _visible(wfc):
-            px = project(CAM, cft, lattice_in_tag(size)) + rng.normal(0, 0.6, (16, 2))
-            cand = solve_planar_pnp(CAM, lattice_in_tag(size), px)
-            obs.append(
-                Observation(
-                    tag_id,
-                    size,
-                    cand.camera_from_tag,
-                    cand.reprojection_error_px,
-                    cand.alt_camera_from_tag,
-                    cand.alt_reprojection_error_px,
-                )
-            )
+        obs = [_noisy_obs(tag_id, size, cft, rng, 0.6) for tag_id, size, cft in _visible(wfc)]
         slam.update(i, i, obs)
         gt[i] = wfc
         # Frame-by-frame: camera from the best single tag with the map's true tag pose.
@@ -146,20 +147,7 @@ def test_each_pose_says_how_sure_it_is() -> None:
         lone = 25 <= i < 35
         if lone:  # the farthest tag already in the map, alone
             seen = [max((v for v in seen if v[0] in slam.tags), key=lambda v: float(v[2][2, 3]))]
-        obs = []
-        for tag_id, size, cft in seen:
-            px = project(CAM, cft, lattice_in_tag(size)) + rng.normal(0, 0.5, (16, 2))
-            fit = solve_planar_pnp(CAM, lattice_in_tag(size), px)
-            obs.append(
-                Observation(
-                    tag_id,
-                    size,
-                    fit.camera_from_tag,
-                    fit.reprojection_error_px,
-                    fit.alt_camera_from_tag,
-                    fit.alt_reprojection_error_px,
-                )
-            )
+        obs = [_noisy_obs(tag_id, size, cft, rng, 0.5) for tag_id, size, cft in seen]
         res = slam.update(i, i, obs)
         if res.world_from_camera is None:
             continue

@@ -176,6 +176,25 @@ def test_a_camera_pose_covariance_must_be_one(change: Callable[[np.ndarray], np.
         decode(pack({"schema": CameraPose.SCHEMA, "body": body}), CameraPose)
 
 
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("position_sigma_m", 0.0),
+        ("position_sigma_m", float("nan")),
+        ("rotation_sigma_deg", -1.0),
+        ("rotation_sigma_deg", 181.0),
+    ],
+)
+def test_a_map_tags_uncertainty_must_be_a_real_one(field: str, value: float) -> None:
+    """TagMap/v3's per-tag sigmas: finite, positive, rotation at most 180 deg, or the message is refused."""
+    good = EXAMPLES[TagMap.SCHEMA]
+    assert isinstance(good, TagMap)
+    body = good.model_dump()
+    body["tags"][1][field] = value
+    with pytest.raises(SchemaError, match=field):
+        decode(pack({"schema": TagMap.SCHEMA, "body": body}), TagMap)
+
+
 @pytest.mark.parametrize("dtype", sorted(WIRE_DTYPES))
 def test_array_round_trip_every_dtype(dtype: str) -> None:
     rng = np.random.default_rng(0)

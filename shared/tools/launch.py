@@ -19,7 +19,7 @@ import tomllib
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar, cast
 
 import numpy as np
 import yaml
@@ -35,12 +35,13 @@ from shared.vision.tagmap import TagMapFile, TagSpec, load_tag_map
 from shared.viz.recording import merge_recordings
 from shared.wire import keys
 from shared.wire.codec import WireError
-from shared.wire.messages import CameraPose, ControllerState, TagPoses, decode
+from shared.wire.messages import CameraPose, ControllerState, Message, TagPoses, decode
 
 if TYPE_CHECKING:
     from shared.tools.linkemu import LinkEmulator
 
 log = logging.getLogger(__name__)
+M = TypeVar("M", bound=Message)
 REPO = Path(__file__).resolve().parents[2]
 SERVICES = ("edge_infer", "slam", "robot_infer", "camera")
 
@@ -166,13 +167,20 @@ class Monitor:
     _slam_error_cm: deque[float] = field(default_factory=lambda: deque(maxlen=200_000))
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
+    def _decode(self, payload: bytes, kind: type[M]) -> M | None:
+        """One message of `kind`, or None (counted in `bad`, logged) when the payload is not one."""
+        try:
+            return cast(M, decode(payload, kind))
+        except WireError as exc:
+            with self._lock:
+                self.bad += 1
+            log.warning("monitor: bad %s: %s", kind.__name__, exc)
+            return None
+
     def on_poses(self, payload: bytes) -> None:
         """Record one TagPoses message."""
-        try:
-            msg = decode(payload, TagPoses)
-        except WireError as exc:
-            self.bad += 1
-            log.warning("monitor: bad TagPoses: %s", exc)
+        msg = self._decode(payload, TagPoses)
+        if msg is None:
             return
         rec: dict[str, Any] = {
             "seq": msg.seq,
@@ -196,20 +204,15 @@ class Monitor:
 
     def on_controller(self, payload: bytes) -> None:
         """Keep the latest controller state for the live line."""
-        try:
-            self.controller = decode(payload, ControllerState)
-        except WireError as exc:
-            self.bad += 1
-            log.warning("monitor: bad ControllerState: %s", exc)
+        state = self._decode(payload, ControllerState)
+        if state is not None:
+            self.controller = state
 
     def on_camera(self, payload: bytes) -> None:
         """Record one SLAM CameraPose: its status, its position sigma (sqrt of the covariance's position
         trace) and, with ground truth and a tag map that fixes slam's world, its position error."""
-        try:
-            msg = decode(payload, CameraPose)
-        except WireError as exc:
-            self.bad += 1
-            log.warning("monitor: bad CameraPose: %s", exc)
+        msg = self._decode(payload, CameraPose)
+        if msg is None:
             return
         cov = msg.covariance_world
         sigma = None if cov is None else 100 * float(np.sqrt(np.trace(cov[:3, :3])))
@@ -228,10 +231,8 @@ class Monitor:
 
     def on_gt(self, payload: bytes) -> None:
         """Record one ground-truth camera pose."""
-        try:
-            msg = decode(payload, CameraPose)
-        except WireError:
-            self.bad += 1
+        msg = self._decode(payload, CameraPose)
+        if msg is None:
             return
         with self._lock:
             self.gt[msg.seq] = msg.world_from_camera
