@@ -6,12 +6,13 @@ effect, and measures capture->pose latency over a window.
 
     .venv/bin/python -m bench.pipeline [--fps 15] [--window-secs 10] [--tracking off|on|both]
         [--precision fp32|bf16|int8] [--pace on|off|both] [--aruco on|off|both]
-        [--lines on|off|both] [--overlap on|off|both]
+        [--lines on|off|both] [--overlap on|off|both] [--fresh 0 0.33 ...]
 
 `--tracking both` runs everything twice, robot_infer's track-then-refine off and then on, in one run;
 `--aruco both` likewise with stage 1's ArUco proposer (shared.vision.proposals) off and on, `--lines both`
 with its line-quad proposer (shared.vision.linequads), `--overlap both` with robot_infer's stage 1 of the
-next frame running alongside the network (`overlap_stage1`).
+next frame running alongside the network (`overlap_stage1`); `--fresh` takes one or more values of
+robot_infer's `fresh_frame_fraction` (0 = take the newest frame at once), a table each.
 """
 
 from __future__ import annotations
@@ -54,17 +55,25 @@ def main() -> None:
     ap.add_argument(
         "--overlap", choices=("on", "off", "both"), default="on", help="robot_infer's stage 1 ahead of the network"
     )
+    ap.add_argument(
+        "--fresh",
+        type=float,
+        nargs="+",
+        default=[1 / 3],
+        help="robot_infer's fresh_frame_fraction (one table per value)",
+    )
     args = ap.parse_args()
     args.precision = resolve_for_folder(args.precision, Path("models"))  # what auto stands for here
     print(f"CPU: {cpu_label()}", flush=True)
     modes = {"off": [False], "on": [True], "both": [False, True]}
     runs = [
-        Mode(tracking, pace, aruco, lines, overlap)
+        Mode(tracking, pace, aruco, lines, overlap, fresh)
         for tracking in modes[args.tracking]
         for pace in modes[args.pace]
         for aruco in modes[args.aruco]
         for lines in modes[args.lines]
         for overlap in modes[args.overlap]
+        for fresh in args.fresh
     ]
     tables = [(mode, measure(args, mode)) for mode in runs]
     for mode, rows in tables:
@@ -80,9 +89,10 @@ class Mode:
     aruco: bool
     lines: bool
     overlap: bool = True
+    fresh: float = 1 / 3
 
 
-Row = tuple[CutInfo, float, float, float, float, float, float, float, float]
+Row = tuple[CutInfo, float, float, float, float, float, float, float, float, float, float]
 
 
 def measure(args: argparse.Namespace, mode: Mode) -> list[Row]:
@@ -97,6 +107,7 @@ def measure(args: argparse.Namespace, mode: Mode) -> list[Row]:
         "SPLITTAG_ROBOT_INFER_STAGE1__ARUCO__ENABLED": "true" if mode.aruco else "false",
         "SPLITTAG_ROBOT_INFER_STAGE1__LINES__ENABLED": "true" if mode.lines else "false",
         "SPLITTAG_ROBOT_INFER_OVERLAP_STAGE1": "true" if mode.overlap else "false",
+        "SPLITTAG_ROBOT_INFER_FRESH_FRAME_FRACTION": str(mode.fresh),
         "SPLITTAG_ROBOT_INFER_PRECISION": args.precision,
         "SPLITTAG_EDGE_INFER_PRECISION": args.precision,
     }
@@ -129,6 +140,8 @@ def measure(args: argparse.Namespace, mode: Mode) -> list[Row]:
                     np.median([r["edge_ms"] for r in recs]),
                     np.mean([r["tags"] for r in recs]),
                     np.median([r["payload_bytes"] for r in recs]),
+                    float(np.nanmedian([r["before_robot_ms"] for r in recs])),
+                    float(np.nanmedian([r["at_edge_ms"] for r in recs])),
                 )
             )
         for s in subs:
@@ -143,25 +156,30 @@ def print_table(args: argparse.Namespace, rows: list[Row], mode: Mode) -> None:
     """One table per mode. `path` = robot + link + edge medians (the critical path); `e2e/path` is what
     waiting adds; `fps x slowest` = throughput x the slower side's per-frame time (1.0 = that side never
     idles); `fps/cap` = throughput / min(camera rate, 1 / slower side's per-frame time): the share of
-    the frames the pipeline could have turned into poses (1.0 = nothing lost to waiting)."""
+    the frames the pipeline could have turned into poses (1.0 = nothing lost to waiting). Where the
+    waiting is: `age` = capture -> sent minus the robot's compute (how old the frame was when the robot
+    took it, and any wait inside the robot), `edge q` = received -> pose minus the edge's compute
+    (queueing at the edge); medians."""
     print(
         f"camera {args.fps} fps, window {args.window_secs} s per k, loopback, 2-core CPU, {args.precision}, rerun "
         f"{'on' if args.rerun else 'off'}, tracking {'on' if mode.tracking else 'off'}, "
         f"pacing {'on' if mode.pace else 'off'}, aruco {'on' if mode.aruco else 'off'}, "
-        f"lines {'on' if mode.lines else 'off'}, overlap {'on' if mode.overlap else 'off'}; "
+        f"lines {'on' if mode.lines else 'off'}, overlap {'on' if mode.overlap else 'off'}, "
+        f"fresh frame fraction {mode.fresh:.2f}; "
         "latencies in ms"
     )
     print(
         f"{'k':>2} {'cut':<10} {'fps':>6} {'e2e p50':>8} {'e2e p99':>8} {'robot':>7} {'link':>6} {'edge':>6} "
-        f"{'path':>6} {'e2e/path':>9} {'fps x slowest':>14} {'fps/cap':>8} {'tags':>5} {'msg kB':>8}"
+        f"{'path':>6} {'e2e/path':>9} {'age':>6} {'edge q':>7} {'fps x slowest':>14} {'fps/cap':>8} {'tags':>5} "
+        f"{'msg kB':>8}"
     )
-    for cut, fps, p50, p99, rb, tr, ed, tags, size in rows:
+    for cut, fps, p50, p99, rb, tr, ed, tags, size, age, edge_q in rows:
         path = rb + tr + ed
         cap = min(args.fps, 1e3 / max(rb, ed))
         print(
             f"{cut.k:>2} {cut.name:<10} {fps:>6.1f} {p50:>8.1f} {p99:>8.1f} {rb:>7.1f} {tr:>6.1f} {ed:>6.1f} "
-            f"{path:>6.1f} {p50 / path:>9.2f} {fps * max(rb, ed) / 1e3:>14.2f} {fps / cap:>8.2f} {tags:>5.1f} "
-            f"{size / 1024:>8.1f}"
+            f"{path:>6.1f} {p50 / path:>9.2f} {age:>6.1f} {edge_q:>7.1f} {fps * max(rb, ed) / 1e3:>14.2f} "
+            f"{fps / cap:>8.2f} {tags:>5.1f} {size / 1024:>8.1f}"
         )
 
 

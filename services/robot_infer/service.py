@@ -137,6 +137,8 @@ class RobotInfer:
             "on_board_frames": self.on_board_frames,
             "recovered_frames": self.recovered_frames,
             "stage1_ahead_frames": self.stage1_ahead_frames,
+            "fresh_frame_waits": self.frames.fresh_waits,
+            "fresh_frame_wait_ms": round(1e3 * self.frames.fresh_wait_secs),
             "edge_outages": self.watch.outages,
             "stage1_frames": self.detector.counts.frames,
             "stage1_apriltag_tags": self.detector.counts.apriltag,
@@ -215,7 +217,7 @@ class RobotInfer:
         """The newest frame's stage 1 (None: stopping, orphans to recover first, or a frame it refused)."""
         # self.halt: serve() ended (the look-ahead thread must not wait for frames then)
         wake = lambda: self.window.has_orphans or self.halt.is_set()  # noqa: E731
-        if (frame := self.frames.take(stop, wake=wake)) is None:
+        if (frame := self.frames.take(stop, wake=wake, fresh_fraction=self.settings.fresh_frame_fraction)) is None:
             return None
         try:
             return robot_stage1(frame, detector=self.detector, tracker=self.tracker)

@@ -143,6 +143,22 @@ def stop_services(services: list[Service], timeout_secs: float = 15.0) -> dict[s
     return {s.name: codes[s.name] for s in services}
 
 
+def _waits_ms(msg: TagPoses) -> dict[str, float]:
+    """Where a frame waited outside the critical path (robot + link + edge compute), from its stamps:
+    `before_robot_ms` = capture -> sent minus the robot's compute (the frame's age when the robot took it,
+    plus any wait between its stage 1 and its network); `at_edge_ms` = received -> pose minus the edge's
+    compute (queueing behind earlier frames). NaN for a frame computed on board (no link stamps). Each
+    difference is on one clock (the robot's, the edge's)."""
+    t, link = msg.timings, msg.link
+    if link is None:
+        return {"before_robot_ms": float("nan"), "at_edge_ms": float("nan")}
+    done_nanos = msg.capture_nanos + t.capture_to_pose_secs * 1e9  # on the edge's clock
+    return {
+        "before_robot_ms": (link.sent_nanos - msg.capture_nanos) / 1e6 - 1e3 * t.robot_compute_secs,
+        "at_edge_ms": (done_nanos - link.received_nanos) / 1e6 - 1e3 * t.edge_compute_secs,
+    }
+
+
 @dataclass
 class Monitor:
     """Subscribes to TagPoses, SLAM poses and ground truth; keeps per-frame records and prints a line per
@@ -192,6 +208,7 @@ class Monitor:
             "transport_ms": 1e3 * msg.timings.transport_secs,
             "edge_ms": 1e3 * msg.timings.edge_compute_secs,
             "e2e_ms": 1e3 * msg.timings.capture_to_pose_secs,
+            **_waits_ms(msg),
             "t": time.monotonic(),
             "errors_cm": self._errors(msg),
         }
