@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.machine import cpu_label
+from services.robot_infer.settings import RobotInferSettings
 from shared.model.precision import resolve_for_folder
 from shared.tools.launch import Monitor, attach_monitor, demo_tag_map, loopback_config, start_service, stop_services
 from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
@@ -59,8 +60,8 @@ def main() -> None:
         "--fresh",
         type=float,
         nargs="+",
-        default=[1 / 3],
-        help="robot_infer's fresh_frame_fraction (one table per value)",
+        default=[RobotInferSettings.model_fields["fresh_frame_fraction"].default],
+        help="robot_infer's fresh_frame_fraction (one table per value; default: the service's)",
     )
     args = ap.parse_args()
     args.precision = resolve_for_folder(args.precision, Path("models"))  # what auto stands for here
@@ -89,7 +90,7 @@ class Mode:
     aruco: bool
     lines: bool
     overlap: bool = True
-    fresh: float = 1 / 3
+    fresh: float = 0.5
 
 
 Row = tuple[CutInfo, float, float, float, float, float, float, float, float, float, float]

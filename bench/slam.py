@@ -720,8 +720,8 @@ def main() -> None:
         "--soft-decode",
         action=argparse.BooleanOptionalAction,
         default=True,
-        help="stage 1 with the line quads' soft decode (on by default; slam leaves its reads out unless "
-        "use_soft_reads)",
+        help="stage 1 with the line quads' soft decode (on by default; slam localises with its reads against "
+        "a known map's tags and maps nothing from them: SlamSettings.soft_reads)",
     )
     ap.add_argument(
         "--room-seed-offset",

@@ -7,7 +7,7 @@ cd "$(dirname "${BASH_SOURCE[0]}")/.."
 PYTHON="${PYTHON:-python3}"
 VENV=.venv
 STAMP="$VENV/.splittag-setup"
-want="$(cat pyproject.toml deploy/setup.sh | sha256sum | cut -d' ' -f1)"
+want="$(cat pyproject.toml deploy/setup.sh deploy/constraints.txt | sha256sum | cut -d' ' -f1)"
 if [[ -x "$VENV/bin/python" && -f "$STAMP" && "$(cat "$STAMP")" == "$want" ]]; then
     exit 0
 fi
@@ -21,7 +21,9 @@ if [[ -n "$free_kib" && "$free_kib" -lt $((4 * 1024 * 1024)) ]]; then
 fi
 [[ -x "$VENV/bin/python" ]] || "$PYTHON" -m venv "$VENV"
 "$VENV/bin/python" -m pip install -q --disable-pip-version-check --upgrade pip
-"$VENV/bin/python" -m pip install -q --disable-pip-version-check "torch==2.13.0"
-"$VENV/bin/python" -m pip install -q --disable-pip-version-check -e ".[dev]"
+# Every version as deploy/constraints.txt says (the suite's): the open ranges of pyproject.toml alone let a
+# new release on the registry (gtsam 4.3.0 in session 18) change what a fresh clone installs and tests.
+"$VENV/bin/python" -m pip install -q --disable-pip-version-check -c deploy/constraints.txt "torch==2.13.0"
+"$VENV/bin/python" -m pip install -q --disable-pip-version-check -c deploy/constraints.txt -e ".[dev]"
 echo "$want" > "$STAMP"
 echo "[setup] done" >&2

@@ -55,8 +55,8 @@ class RobotInferSettings(ServiceSettings):
     # the camera's interval (measured from the frames' arrivals), it waits for that one instead: the
     # frame it then takes is fresh rather than most of an interval old. The robot's time per frame grows
     # by f^2/2 of an interval on average and the frames' median age at pickup falls from 1/2 of one to
-    # (1 - 2f) / (2 - 2f). The default 0.5 waits exactly when the next frame comes sooner than the one
-    # waiting is old (README *Fresh frames*). 0 = always take the newest frame at once.
+    # 1/2 - f. The default 0.5 waits exactly when the next frame comes sooner than the one waiting is
+    # old (README *Fresh frames*). 0 = always take the newest frame at once.
     fresh_frame_fraction: float = Field(default=0.5, ge=0.0, lt=1.0)
     max_in_flight: int = Field(default=2, ge=0)  # frames sent without TagPoses back yet; 0 = no limit
     # Start each frame when it would reach the edge as the edge becomes free (shared.transport.flow.EdgePacer)

@@ -246,7 +246,8 @@ class SlamNode:
             marginals = self._tag_sigmas(tag_map)
             state = self.slam.state
             frames, lost, rejected = state.frames, state.lost, state.rejected_ambiguous
-            fragments, soft_skipped = state.fragments, state.soft_reads_skipped
+            fragments = state.fragments
+            soft_skipped, soft_localised = state.soft_reads_skipped, state.soft_reads_localised
             robots = sorted(self.runs)
         per_robot = {robot: self._write_robot(run_dir, robot) for robot in robots}
         sizes_only: dict[int, float] = {}
@@ -284,7 +285,8 @@ class SlamNode:
             "lost_frames": lost,
             "rejected_ambiguous": rejected,
             "fragments": fragments,  # map fragments begun after long gaps without tags
-            "soft_reads_skipped": soft_skipped,  # blind soft reads left out (SlamSettings.use_soft_reads)
+            "soft_reads_skipped": soft_skipped,  # blind soft reads left out (SlamSettings.soft_reads)
+            "soft_reads_localised": soft_localised,  # soft reads that placed the camera against a known tag
         }
         if self.fleet:
             out["robots"] = per_robot
@@ -443,6 +445,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
                 "robots": sorted(node.runs),
                 "fragments": state.fragments,
                 "soft_reads_skipped": state.soft_reads_skipped,
+                "soft_reads_localised": state.soft_reads_localised,
             }
 
     stats = serve_stats(session, key(lambda r: keys.stats(r, "slam")), guard, robots_served)

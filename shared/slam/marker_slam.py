@@ -27,6 +27,8 @@ with GTSAM's iSAM2. No I/O: the slam service feeds it TagPoses and publishes wha
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -36,7 +38,7 @@ from typing import Final, Literal
 import gtsam
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from shared.vision.geometry import Array, lattice_in_tag
 from shared.vision.proposers import Proposer
@@ -85,9 +87,15 @@ class SlamSettings(BaseModel):
     # every sigma of theirs is this much larger.
     tracked_sigma_scale: float = Field(default=4.0, ge=1)
     # Tags stage 1 read blind (the line quads' soft decode, proposer "lines_soft") are the most blurred:
-    # their ids are right but their keypoints are 1.5-4 px off at 3-4 m, biased alike from frame to frame
-    # (bench/slam's fast sequence: ATE with the map 4.7 -> 11.8 cm with them). Left out unless this is on.
-    use_soft_reads: bool = False
+    # their ids are right but their keypoints are off by about five times a detected tag's (bench/slam's
+    # fast room, seventh weights: corner error p50 / p90 0.51 / 0.72 px against 0.10 / 0.41), biased alike
+    # from frame to frame, so mapped from they move the map (SLAM without a map on that room: 8.0 -> 39 cm).
+    # "localise" (default): a soft read of a tag already in the map places the camera against that tag's
+    # current estimate (a prior on the camera pose, its covariance scaled by soft_sigma_scale) and moves
+    # no tag: it never maps a tag, seeds the anchor or joins fragments. "ignore": left out. "map": fused
+    # like any other view.
+    soft_reads: Literal["ignore", "localise", "map"] = "localise"
+    soft_sigma_scale: float = Field(default=1.0, ge=1)
     # After a gap longer than motion_max_gap_frames, a frame whose tags are all new would be lost for
     # good (nothing ties them to the map). With this on, it continues the trajectory instead: its pose
     # starts where the robot was last seen, tied to it by a weak link (these sigmas), and the tags it
@@ -98,6 +106,19 @@ class SlamSettings(BaseModel):
     bridge_long_gaps: bool = True
     long_gap_sigma_m_per_frame: float = Field(default=0.05, gt=0)
     long_gap_sigma_deg_per_frame: float = Field(default=2.0, gt=0)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _old_soft_reads_switch(cls, data: object) -> object:
+        """`use_soft_reads` (until session 18) still reads: true = "map", false = "ignore"."""
+        if isinstance(data, dict) and "use_soft_reads" in data:
+            data = dict(data)
+            old = bool(data.pop("use_soft_reads"))
+            data.setdefault("soft_reads", "map" if old else "ignore")
+            logging.getLogger(__name__).warning(
+                "slam: use_soft_reads is replaced by soft_reads (now %r)", data["soft_reads"]
+            )
+        return data
 
 
 @dataclass(frozen=True)
@@ -153,7 +174,8 @@ class SlamState:
     rejected_ambiguous: int = 0
     observations: dict[int, int] = field(default_factory=dict)
     fragments: int = 0  # fragments started after long gaps (see SlamSettings.bridge_long_gaps)
-    soft_reads_skipped: int = 0  # observations of blind soft reads left out (SlamSettings.use_soft_reads)
+    soft_reads_skipped: int = 0  # observations of blind soft reads left out (SlamSettings.soft_reads)
+    soft_reads_localised: int = 0  # soft reads that placed the camera against a mapped tag ("localise")
 
 
 def _pose3(m: Array) -> gtsam.Pose3:
@@ -461,10 +483,17 @@ class MarkerSlam:
         self._estimate.insert(L(tag_id), _pose3(pose))
 
     def _seed_map(
-        self, observations: list[Observation], graph: gtsam.NonlinearFactorGraph, values: gtsam.Values
+        self,
+        observations: list[Observation],
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        *,
+        soft: list[Observation] | None = None,
     ) -> bool:
-        """Known tags in view enter as priors; the first anchor fixes the world frame. Returns whether
-        the map changed."""
+        """Known tags in view enter as priors; the first anchor fixes the world frame. A known tag only a
+        soft read sees enters too (its pose is the map's, not the read's), but never as the anchor: not
+        the anchor tag itself, and not before there is an anchor unless the settings name which tag it
+        is to be. Returns whether the map changed."""
         s = self.settings
         changed = False
         for o in observations:
@@ -482,6 +511,16 @@ class MarkerSlam:
                 if anchor:
                     self.anchor = o.tag_id
                 changed = True
+        for o in soft or []:
+            if (
+                (self.anchor is not None or s.anchor_tag_id is not None)
+                and o.tag_id != s.anchor_tag_id
+                and o.tag_id in self.known
+                and o.tag_id not in self.tags
+            ):
+                size, pose = self.known[o.tag_id]
+                self._add_tag(graph, values, o.tag_id, size, pose, self._known_noise(o.tag_id))
+                changed = True
         if self.anchor is None and not s.localisation_only:
             chosen = [o for o in observations if s.anchor_tag_id is None or o.tag_id == s.anchor_tag_id]
             # The anchor's view sets the first camera pose: wait a little for an unambiguous one.
@@ -498,10 +537,14 @@ class MarkerSlam:
 
     def _known_noise(self, tag_id: int) -> gtsam.noiseModel.Base:
         """A tag-map pose's prior: the sigmas the map states for it, else known_tag_sigma (rad and m)."""
+        rot, pos = self._stated_sigmas(tag_id)
+        return gtsam.noiseModel.Diagonal.Sigmas(np.array([rot] * 3 + [pos] * 3))
+
+    def _stated_sigmas(self, tag_id: int) -> tuple[float, float]:
+        """A known tag's (rotation rad, position m) sigmas: the map's, else known_tag_sigma."""
         rot, pos = self.known_sigmas.get(tag_id, (None, None))
         default = self.settings.known_tag_sigma
-        rot, pos = default if rot is None else rot, default if pos is None else pos
-        return gtsam.noiseModel.Diagonal.Sigmas(np.array([rot] * 3 + [pos] * 3))
+        return default if rot is None else rot, default if pos is None else pos
 
     def tag_sigmas(self) -> dict[int, tuple[float, float]]:
         """How well the graph knows each mapped tag's pose (not the anchor, which defines the world):
@@ -571,12 +614,12 @@ class MarkerSlam:
         track = self._track(robot)
         s = self.settings
         self.state.frames += 1
-        if not s.use_soft_reads:
-            kept = [o for o in observations if o.proposer != "lines_soft"]
-            self.state.soft_reads_skipped += len(observations) - len(kept)
-            observations = kept
+        soft: list[Observation] = []
+        if s.soft_reads != "map":
+            soft = [o for o in observations if o.proposer == "lines_soft"]
+            observations = [o for o in observations if o.proposer != "lines_soft"]
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        map_changed = self._seed_map(observations, graph, values)
+        map_changed = self._seed_map(observations, graph, values, soft=soft if s.soft_reads == "localise" else None)
         predicted = self.predict(frame, robot=robot)
         still_from: int | None = None
         joined = False
@@ -604,9 +647,27 @@ class MarkerSlam:
             for o, wt in mapped
             if roots[o.tag_id] == lead
         ]
+        # Soft reads of mapped tags (soft_reads = "localise"): camera priors, in the fragment the camera
+        # is placed in; an ambiguous one only with a reference to pick its branch.
+        target = lead if lead is not None else self._fragments.find(track.fragment)
+        soft_priors: list[tuple[Array, Array]] = []  # (world_from_camera, its covariance, GTSAM's order)
+        for o in soft if s.soft_reads == "localise" else []:
+            wt = self._world_from_tag(o.tag_id) if o.tag_id in self.known else None
+            if wt is None or self._fragments.find(self._tag_fragment[o.tag_id]) != target:
+                continue
+            if self.is_ambiguous(o) and reference is None:
+                continue
+            use_alt = self._use_alt(o, wt, reference)
+            measured = o.alt_camera_from_tag if use_alt else o.camera_from_tag
+            view = s.soft_sigma_scale**2 * self.covariance(o, alt=use_alt)
+            soft_priors.append(camera_prior(wt, measured, view, self._tag_covariance(o.tag_id)))
+        self.state.soft_reads_skipped += len(soft) - len(soft_priors)
         if guesses:
             centre = np.median(np.array([g[:3, 3] for g in guesses]), axis=0)
             init = min(guesses, key=lambda g: float(np.linalg.norm(g[:3, 3] - centre)))
+        elif soft_priors:
+            centre = np.median(np.array([g[:3, 3] for g, _ in soft_priors]), axis=0)
+            init = min((g for g, _ in soft_priors), key=lambda g: float(np.linalg.norm(g[:3, 3] - centre)))
         elif predicted is not None and not s.localisation_only:
             init = predicted  # only new tags in view, shortly after the last pose: bridge with the motion
         elif (last := self._still_origin(track, observations)) is not None:
@@ -615,7 +676,7 @@ class MarkerSlam:
             init = self._pose(track, last)
             still_from = last
         else:
-            self.state.lost += 1
+            self._lost_frame(graph, values)
             return FrameResult(None, "lost", 0, 0, map_changed)
         used, rejected = 0, 0
         seen_fragments: set[int] = set()
@@ -654,9 +715,18 @@ class MarkerSlam:
             )
             self.state.observations[o.tag_id] = self.state.observations.get(o.tag_id, 0) + 1
             used += 1
+        for prior, cov in soft_priors:
+            if _rot_deg(prior, init) > s.disagreement_deg:
+                self.state.soft_reads_skipped += 1  # disagrees with the other views in this frame
+                continue
+            gauss = gtsam.noiseModel.Gaussian.Covariance(cov)
+            robust = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(s.huber_k), gauss)
+            graph.add(gtsam.PriorFactorPose3(track.key(frame), _pose3(prior), robust))
+            self.state.soft_reads_localised += 1
+            used += 1
         self.state.rejected_ambiguous += rejected
         if used == 0:
-            self.state.lost += 1
+            self._lost_frame(graph, values)
             return FrameResult(None, "lost", 0, rejected, map_changed)
         values.insert(track.key(frame), _pose3(init))
         remove: list[int] = []
@@ -712,6 +782,26 @@ class MarkerSlam:
             self._marginalise_old_frames()
         status: Literal["tracking", "bridged"] = "tracking" if self._tied(fragment) else "bridged"
         return FrameResult(pose, status, used, rejected, map_changed, covariance)
+
+    def _tag_covariance(self, tag_id: int) -> Array:
+        """How well a mapped tag is known (6x6, its tangent, rotation first): the graph's marginal, or
+        for a known tag seeded in this very frame, what its map states."""
+        key = L(tag_id)
+        if self.isam.valueExists(key):
+            with contextlib.suppress(RuntimeError):  # a marginal GTSAM cannot give: what the map states
+                return np.asarray(self.isam.marginalCovariance(key))
+        if tag_id == self.anchor:
+            return np.eye(6) * self.settings.anchor_sigma**2
+        rot, pos = self._stated_sigmas(tag_id)
+        return np.diag([rot**2] * 3 + [pos**2] * 3)
+
+    def _lost_frame(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
+        """A frame without a pose: the known tags it seeded still enter the graph (they are in the map
+        from now on; left out, a later view of one would name a key iSAM2 never got)."""
+        self.state.lost += 1
+        if graph.size():
+            self.isam.update(graph, values)
+            self._estimate = self.isam.calculateEstimate()
 
     def _covariance_world(self, track: _Track, frame: int, world_from_camera: Array) -> Array | None:
         """The camera pose's marginal covariance (everything fused so far, this frame included), in the
@@ -900,6 +990,16 @@ def _constant_velocity_error(
         return np.asarray(log2 - ratio * log1, np.float64)
 
     return error
+
+
+def camera_prior(world_from_tag: Array, camera_from_tag: Array, view_cov: Array, tag_cov: Array) -> tuple[Array, Array]:
+    """A view of a tag as a prior on the camera alone: (world_from_camera, its 6x6 covariance in GTSAM's
+    tangent, rotation first). BetweenFactor(camera, tag, m) perturbs m on the right, m exp(xi); the
+    camera, t m^-1, then moves by exp(-Ad_m xi). The tag's own uncertainty, t exp(eta), moves it by
+    exp(Ad_m eta). So the covariance is Ad_m (S_view + S_tag) Ad_m^T; for a tag held fixed the prior's
+    Mahalanobis distance equals the view's at every camera pose (tested)."""
+    ad = np.asarray(_pose3(camera_from_tag).AdjointMap())
+    return world_from_tag @ np.linalg.inv(camera_from_tag), _spd(ad @ (view_cov + tag_cov) @ ad.T)
 
 
 def pnp_covariance(camera_from_tag: Array, size_m: float, focal_px: float, pixel_sigma: float) -> Array:

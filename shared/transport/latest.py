@@ -35,7 +35,8 @@ def fresh_wait_secs(*, age_secs: float, interval_secs: float | None, fraction: f
     Waiting w for a message that is then fresh trades w of the consumer's time for the age it would
     have carried (interval - w): worth it when w is the smaller part. With the wait allowed for the
     last `fraction` f of each interval, a consumer that takes messages at random phases waits f^2/2 of
-    an interval on average and the median age drops from 1/2 to (1 - 2f)/(2 - 2f) of one (f = 1/3: 1/4)."""
+    an interval on average, and the median age drops from 1/2 of one to 1/2 - f (f <= 1/2; f = 1/3:
+    1/6; f = 1/2: none)."""
     if fraction <= 0 or interval_secs is None or interval_secs <= 0:
         return 0.0
     due = interval_secs - age_secs

@@ -78,7 +78,8 @@ class LineQuadSettings(BaseModel):
     refine_corners: bool = True
     # step 8: quads whose hard decode failed but whose rings stand out are read by a blind soft decode.
     # Its tags (proposer "lines_soft") are right (no wrong id or ghost measured), but under 10-17 px of
-    # blur their keypoints are 2-4 px off: slam leaves them out unless asked (SlamSettings.use_soft_reads).
+    # blur their keypoints are off by several times a detected tag's: slam localises with them against
+    # tags of a known map, and maps nothing from them (SlamSettings.soft_reads).
     soft_decode: bool = True
     soft_min_ring_fraction: float = Field(default=0.6, gt=0.5, le=1.0)
     soft_max_per_frame: int = Field(default=8, ge=0)  # bounds the cost (1.5-3 ms a quad) on cluttered frames
