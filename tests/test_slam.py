@@ -124,6 +124,7 @@ def _noisy_run(seed: int, sigma_px: float) -> tuple[float, int, float]:
             0.6,
             marks=pytest.mark.xfail(
                 strict=True,
+                raises=AssertionError,
                 reason="GTSAM 4.3.0: at 0.6 px SLAM's median (30.5 cm) is no better than PnP's (29.4); "
                 "on 4.3a2 it was 11.3 (README *Marker SLAM*, GTSAM version)",
             ),
@@ -445,6 +446,7 @@ def test_a_restarted_slam_resumes_its_map_and_trajectory(tmp_path: Path) -> None
     before = load_tag_map(tmp_path / "map.json")
     second = SlamNode(settings)  # the restarted process
     assert second.resumed is not None and set(second.slam.known) == {t.id for t in before.tags}
+    assert second.slam.surveyed == set()  # soft reads never place the camera by this SLAM's own estimates
     for i in range(15, 30):
         res = second.on_poses(_tag_poses(i, 1_000 + i, poses[i]))[0]
         assert res.status == "tracking"
@@ -673,67 +675,82 @@ def _soft_run(settings: SlamSettings, *, known: bool, frames: int = 10) -> tuple
 
 def test_blind_soft_reads_map_nothing_and_localise_only_against_a_known_map() -> None:
     """Tags the line quads read blind (proposer "lines_soft") carry biased keypoints. By default
-    ("localise") slam maps nothing from them: without a known map they are left out (counted); with
-    one, each places the camera against its known tag. "ignore" leaves them out, "map" fuses them like
-    any other view."""
+    ("localise") slam measures no tag from them: without a known map they are left out (counted), and
+    with one they too are left out where detected tags place the frame. "ignore" leaves them out,
+    "map" fuses them like any other view."""
     n = [len(_visible(p)) for p in _constant_velocity(70)[:10]]
-    slam, soft, used = _soft_run(SlamSettings(), known=False)
-    assert soft not in slam.tags and used == [k - 1 for k in n]
-    assert slam.state.soft_reads_skipped == 10 and slam.state.soft_reads_localised == 0
-    slam, soft, used = _soft_run(SlamSettings(), known=True)
-    assert soft in slam.tags and used == n  # its pose is the map's
-    assert slam.state.soft_reads_localised == 10 and slam.state.soft_reads_skipped == 0
+    for known in (False, True):
+        slam, soft, used = _soft_run(SlamSettings(), known=known)
+        assert used == [k - 1 for k in n] and (soft in slam.tags) == known  # known: the map's pose, seeded
+        assert slam.state.soft_reads_skipped == 10 and slam.state.soft_reads_localised == 0
     slam, soft, used = _soft_run(SlamSettings(soft_reads="ignore"), known=True)
-    assert used == [k - 1 for k in n]
-    assert slam.state.soft_reads_localised == 0 and slam.state.soft_reads_skipped == 10
+    assert used == [k - 1 for k in n] and soft not in slam.tags and slam.state.soft_reads_skipped == 10
     slam, soft, used = _soft_run(SlamSettings(soft_reads="map"), known=False)
     assert soft in slam.tags and used == n and slam.state.soft_reads_skipped == 0
 
 
-def test_a_soft_read_of_a_known_tag_alone_poses_the_frame_and_moves_no_tag() -> None:
-    """Frames whose only tag is a blind soft read of a known tag: posed from it (exactly, for an exact
-    read), status tracking. A soft read 5 cm off does not move a tag the map states loosely (10 cm), where
-    the same read fused as a view ("map") pulls the tag towards it."""
+def test_a_soft_read_of_a_surveyed_tag_alone_poses_the_frame() -> None:
+    """Frames whose only tag is a blind soft read of a surveyed tag: posed from it (exactly, for an exact
+    read), status tracking, counted. A tag the map states loosely (10 cm) places nothing: those frames
+    are lost."""
     poses = _constant_velocity(40)
     tag_map = {t.id: (t.size_m, t.pose()) for t in SCENE.tags}
-    vis0 = _visible(poses[0])
-    loose = min(
-        set.intersection(*({t for t, _, _ in _visible(p)} for p in poses[:30])) - {vis0[0][0]}
-    )  # in view throughout, not the anchor
-    sigmas: dict[int, tuple[float | None, float | None]] = {loose: (float(np.radians(5.0)), 0.10)}
-    shifted = make_pose(np.eye(3), [0.05, 0.0, 0.0])
+    first = _visible(poses[0])[0][0]
+    soft = min(set.intersection(*({t for t, _, _ in _visible(p)} for p in poses[:30])) - {first})
 
-    def run(mode: str, bias: bool) -> tuple[MarkerSlam, list[FrameResult]]:
-        slam = MarkerSlam(SlamSettings(soft_reads=mode), known_tags=tag_map, known_sigmas=sigmas)
+    def run(sigmas: dict[int, tuple[float | None, float | None]]) -> tuple[MarkerSlam, list[FrameResult]]:
+        slam = MarkerSlam(SlamSettings(), known_tags=tag_map, known_sigmas=sigmas)
         out = []
         for i in range(30):
             obs = []
             for t, size, cft in _visible(poses[i]):
-                if t == loose:
-                    m = cft @ shifted if bias else cft
-                    obs.append(Observation(t, size, m, 0.0, m, 5.0, proposer="lines_soft"))
-                elif i < 10 or bias:  # frames 10-29: only the soft read (without bias)
+                if t == soft:
+                    obs.append(Observation(t, size, cft, 0.0, cft, 5.0, proposer="lines_soft"))
+                elif i < 10:  # frames 10-29: only the soft read
                     obs.append(_exact_obs(t, size, cft))
             out.append(slam.update(i, i, obs))
         return slam, out
 
-    slam, results = run("localise", bias=False)
+    slam, results = run({})
     for i in range(10, 30):
         r = results[i]
         assert r.status == "tracking" and r.tags_used == 1 and r.world_from_camera is not None
         np.testing.assert_allclose(r.world_from_camera, poses[i], atol=1e-6)
+    assert slam.state.soft_reads_localised == 20
+    slam, results = run({soft: (float(np.radians(5.0)), 0.10)})
+    assert all(r.status == "lost" for r in results[10:]) and slam.state.soft_reads_localised == 0
+
+
+def test_a_biased_soft_read_moves_no_tag() -> None:
+    """A soft read 5 cm off, always in view with a new tag that detected views map: the new tag ends
+    exactly where it is ("localise": the read places no frame a detection places, and no tag is mapped
+    in a frame it places), where fused as a view ("map") the read drags it over 1 cm."""
+    poses = _constant_velocity(40)
+    vis = [t for t, _, _ in _visible(poses[0])]
+    anchor, soft, new = vis[0], vis[1], vis[2]
+    assert all(new in {t for t, _, _ in _visible(p)} and soft in {t for t, _, _ in _visible(p)} for p in poses[:10])
+    tag_map = {t.id: (t.size_m, t.pose()) for t in SCENE.tags if t.id in (anchor, soft)}
+    shifted = make_pose(np.eye(3), [0.05, 0.0, 0.0])
     moved = {}
     for mode in ("localise", "map"):
-        slam, _ = run(mode, bias=True)
-        est = slam.tag_map()[loose][1]
-        moved[mode] = float(np.linalg.norm(est[:3, 3] - tag_map[loose][1][:3, 3]))
+        slam = MarkerSlam(SlamSettings(soft_reads=mode, anchor_tag_id=anchor), known_tags=tag_map)
+        for i in range(10):
+            obs = []
+            for t, size, cft in _visible(poses[i]):
+                if t == soft:
+                    m = cft @ shifted
+                    obs.append(Observation(t, size, m, 0.0, m, 5.0, proposer="lines_soft"))
+                elif t == new or (t == anchor and i < 2):
+                    obs.append(_exact_obs(t, size, cft))
+            slam.update(i, i, obs)
+        moved[mode] = float(np.linalg.norm(slam.tag_map()[new][1][:3, 3] - SCENE_TAGS[new][:3, 3]))
     assert moved["localise"] < 1e-3 < 0.01 < moved["map"], moved
 
 
 def test_a_soft_read_places_the_camera_as_the_same_view_of_a_held_tag_would() -> None:
-    """Localisation-only on a map held to 1 um, where a tag cannot move: a soft read as a camera prior
-    ("localise": Ad_m (S + S_tag) Ad_m^T) and the same read as a view of the tag ("map") give the same
-    poses and covariances. A wrong transform of S (none, or Ad of m^-1) is off by 70-100 %."""
+    """Localisation-only on a map held to 1 um, where a tag cannot move, frames 4-13 seen by one soft read
+    alone: the read as a camera prior ("localise": Ad_m (S + S_tag) Ad_m^T) and as a view of the tag
+    ("map") give the same poses and covariances. A wrong transform of S (none, or Ad of m^-1) fails."""
     poses = _constant_velocity(70)[:14]
     soft = max(set.intersection(*({t for t, _, _ in _visible(p)} for p in poses)))
     tag_map = {t.id: (t.size_m, t.pose()) for t in SCENE.tags}
@@ -745,11 +762,11 @@ def test_a_soft_read_places_the_camera_as_the_same_view_of_a_held_tag_would() ->
         res = []
         for i, pose in enumerate(poses):
             obs = []
-            for t, size, cft in sorted(_visible(pose), key=lambda v: v[0] == soft):  # the soft read last
+            for t, size, cft in _visible(pose):
                 o = _noisy_obs(t, size, cft, rng, 0.3)
-                if t == soft:
+                if t == soft and i >= 4:
                     obs.append(dataclasses.replace(o, proposer="lines_soft"))
-                elif i < 4 or i % 3 == 0:  # the other tags only now and then: frames the soft read alone places
+                elif t != soft and i < 4:
                     obs.append(o)
             res.append(slam.update(i, i, obs))
         out[mode] = res
@@ -802,9 +819,32 @@ def test_a_known_tag_a_lost_frame_seeded_is_in_the_graph_next_time() -> None:
     np.testing.assert_allclose(res.world_from_camera, poses[2], atol=1e-6)
 
 
+def test_a_frame_placed_by_soft_reads_alone_maps_no_new_tag() -> None:
+    """A frame whose camera only a soft read of a known tag places, with a tag the map lacks also in
+    view: the frame is posed, the new tag is not mapped from it (it would inherit the soft read's bias);
+    seen with a detected known tag, it is."""
+    poses = _constant_velocity(70)
+    vis = [t for t, _, _ in _visible(poses[10])]
+    soft, new = vis[0], vis[-1]
+    assert soft != new
+    tag_map = {t.id: (t.size_m, t.pose()) for t in SCENE.tags if t.id != new}
+    slam = MarkerSlam(SlamSettings(), known_tags=tag_map)
+    for i in range(10):
+        slam.update(i, i, [_exact_obs(*v) for v in _visible(poses[i]) if v[0] not in (soft, new)])
+    views = {t: (t, size, cft) for t, size, cft in _visible(poses[10])}
+    t, size, cft = views[soft]
+    res = slam.update(
+        10, 10, [Observation(t, size, cft, 0.0, cft, 5.0, proposer="lines_soft"), _exact_obs(*views[new])]
+    )
+    assert res.status == "tracking" and res.tags_used == 1 and new not in slam.tags
+    res = slam.update(11, 11, [_exact_obs(*v) for v in _visible(poses[11])])
+    assert new in slam.tags
+
+
 def test_the_old_soft_reads_switch_still_reads() -> None:
     assert SlamSettings.model_validate({"use_soft_reads": True}).soft_reads == "map"
     assert SlamSettings.model_validate({"use_soft_reads": False}).soft_reads == "ignore"
+    assert SlamSettings.model_validate({"use_soft_reads": "false"}).soft_reads == "ignore"  # from an env var
 
 
 def test_rerun_draws_bridged_poses_apart_from_the_worlds(tmp_path: Path) -> None:

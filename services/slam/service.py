@@ -89,7 +89,11 @@ class SlamNode:
         # anchor fixing the world frame) and each trajectory so far (kept, continued, never shortened).
         checkpoint = settings.run_dir / "map.json"
         self.resumed = load_tag_map(checkpoint) if settings.resume and checkpoint.is_file() else None
-        for tm in (self.resumed, load_tag_map(settings.tag_map) if settings.tag_map is not None else None):
+        configured = load_tag_map(settings.tag_map) if settings.tag_map is not None else None
+        # soft reads place the camera only by the configured map's tags, never by the checkpoint's (this
+        # SLAM's own estimates: SlamSettings.soft_reads)
+        surveyed = {t.id for t in configured.tags if t.pose() is not None} if configured is not None else set()
+        for tm in (self.resumed, configured):
             if tm is None:
                 continue  # the configured map (second) wins over the checkpoint
             known |= {t.id: (t.size_m, pose) for t in tm.tags if (pose := t.pose()) is not None}
@@ -98,7 +102,7 @@ class SlamNode:
                 slam_settings = slam_settings.model_copy(
                     update={"anchor_tag_id": slam_settings.anchor_tag_id or tm.anchor_tag_id}
                 )
-        self.slam = MarkerSlam(slam_settings, known_tags=known, known_sigmas=known_sigmas)
+        self.slam = MarkerSlam(slam_settings, known_tags=known, known_sigmas=known_sigmas, surveyed=surveyed)
         self.runs: dict[str, RobotRun] = {}
         for robot in (
             settings.robots if isinstance(settings.robots, list) else [] if self.fleet else [settings.robot_id]

@@ -38,7 +38,7 @@ from typing import Final, Literal
 import gtsam
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
 from shared.vision.geometry import Array, lattice_in_tag
 from shared.vision.proposers import Proposer
@@ -90,12 +90,16 @@ class SlamSettings(BaseModel):
     # their ids are right but their keypoints are off by about five times a detected tag's (bench/slam's
     # fast room, seventh weights: corner error p50 / p90 0.51 / 0.72 px against 0.10 / 0.41), biased alike
     # from frame to frame, so mapped from they move the map (SLAM without a map on that room: 8.0 -> 39 cm).
-    # "localise" (default): a soft read of a tag already in the map places the camera against that tag's
-    # current estimate (a prior on the camera pose, its covariance scaled by soft_sigma_scale) and moves
-    # no tag: it never maps a tag, seeds the anchor or joins fragments. "ignore": left out. "map": fused
-    # like any other view.
+    # "localise" (default): in a frame no detected tag places, a soft read of a surveyed tag (one the
+    # tag map states to within soft_surveyed_sigma_m / _deg, or gives without sigmas) places the camera
+    # (a prior on the camera pose: camera_prior, its view covariance scaled by soft_sigma_scale). No
+    # tag is measured from it: it maps no tag (nor any tag new in that frame), seeds no anchor, joins no
+    # fragment; through the motion prior it still pulls the neighbouring frames a little. "ignore":
+    # left out. "map": fused like any other view.
     soft_reads: Literal["ignore", "localise", "map"] = "localise"
     soft_sigma_scale: float = Field(default=1.0, ge=1)
+    soft_surveyed_sigma_m: float = Field(default=0.01, gt=0)
+    soft_surveyed_sigma_deg: float = Field(default=1.0, gt=0)
     # After a gap longer than motion_max_gap_frames, a frame whose tags are all new would be lost for
     # good (nothing ties them to the map). With this on, it continues the trajectory instead: its pose
     # starts where the robot was last seen, tied to it by a weak link (these sigmas), and the tags it
@@ -113,7 +117,7 @@ class SlamSettings(BaseModel):
         """`use_soft_reads` (until session 18) still reads: true = "map", false = "ignore"."""
         if isinstance(data, dict) and "use_soft_reads" in data:
             data = dict(data)
-            old = bool(data.pop("use_soft_reads"))
+            old = TypeAdapter(bool).validate_python(data.pop("use_soft_reads"))  # "false" is False
             data.setdefault("soft_reads", "map" if old else "ignore")
             logging.getLogger(__name__).warning(
                 "slam: use_soft_reads is replaced by soft_reads (now %r)", data["soft_reads"]
@@ -350,11 +354,22 @@ class MarkerSlam:
         settings: SlamSettings,
         known_tags: dict[int, tuple[float, Array]] | None = None,
         known_sigmas: dict[int, tuple[float | None, float | None]] | None = None,
+        surveyed: set[int] | None = None,
     ) -> None:
         self.settings = settings
         self.known = known_tags or {}  # id -> (size, world_from_tag) from a tag map
         # id -> (rotation rad, position m): how well the tag map says it knows a pose (None: known_tag_sigma)
         self.known_sigmas = known_sigmas or {}
+        # Tags soft reads may place the camera by: of `surveyed` (default: every known tag; the slam
+        # service passes its configured map's, not a checkpoint's, which is this SLAM's own estimate),
+        # those the map states to within soft_surveyed_sigma_m / _deg.
+        self.surveyed = {
+            t
+            for t in (self.known if surveyed is None else surveyed)
+            if t in self.known
+            and self._stated_sigmas(t)[0] <= math.radians(settings.soft_surveyed_sigma_deg)
+            and self._stated_sigmas(t)[1] <= settings.soft_surveyed_sigma_m
+        }
         self.tags: dict[int, float] = {}  # ids in the graph -> size
         # One trajectory per robot ("" = a single-robot graph's); frames marginalised out of the graph
         # (memory stays bounded) keep their stamps and final poses in the track's compact log.
@@ -515,14 +530,18 @@ class MarkerSlam:
             if (
                 (self.anchor is not None or s.anchor_tag_id is not None)
                 and o.tag_id != s.anchor_tag_id
-                and o.tag_id in self.known
+                and o.tag_id in self.surveyed
                 and o.tag_id not in self.tags
             ):
                 size, pose = self.known[o.tag_id]
                 self._add_tag(graph, values, o.tag_id, size, pose, self._known_noise(o.tag_id))
                 changed = True
         if self.anchor is None and not s.localisation_only:
-            chosen = [o for o in observations if s.anchor_tag_id is None or o.tag_id == s.anchor_tag_id]
+            chosen = [
+                o
+                for o in observations
+                if (s.anchor_tag_id is None or o.tag_id == s.anchor_tag_id) and o.tag_id not in self.tags
+            ]  # (a named anchor already mapped as an ordinary tag stays one: no second insert of its key)
             # The anchor's view sets the first camera pose: wait a little for an unambiguous one.
             clear = [o for o in chosen if not self.is_ambiguous(o)]
             if clear or (chosen and self.state.frames > s.anchor_wait_frames):
@@ -651,8 +670,8 @@ class MarkerSlam:
         # is placed in; an ambiguous one only with a reference to pick its branch.
         target = lead if lead is not None else self._fragments.find(track.fragment)
         soft_priors: list[tuple[Array, Array]] = []  # (world_from_camera, its covariance, GTSAM's order)
-        for o in soft if s.soft_reads == "localise" else []:
-            wt = self._world_from_tag(o.tag_id) if o.tag_id in self.known else None
+        for o in soft if s.soft_reads == "localise" and not guesses else []:  # only where nothing else places
+            wt = self._world_from_tag(o.tag_id) if o.tag_id in self.surveyed else None
             if wt is None or self._fragments.find(self._tag_fragment[o.tag_id]) != target:
                 continue
             if self.is_ambiguous(o) and reference is None:
@@ -698,6 +717,9 @@ class MarkerSlam:
                     continue
                 seen_fragments.add(self._fragments.find(self._tag_fragment[o.tag_id]))
             elif s.localisation_only:
+                continue
+            elif soft_priors:
+                rejected += 1  # the camera is placed by soft reads alone: nothing is mapped from such a frame
                 continue
             else:
                 admitted = self._admit_new_tag(track, o, frame, init)
