@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from shared.tools.launch import Monitor
 from shared.wire.messages import CameraPose, TagPoses, encode
 from tests.examples import example_messages
@@ -65,6 +67,39 @@ def test_the_live_line_and_summary_say_how_sure_slam_is_and_how_far_off() -> Non
     assert abs(summary["slam_sigma_cm_median"] - 2.0) < 1e-9
     assert abs(summary["slam_online_error_cm_median"] - 3.0) < 1e-9
     assert summary["bad_messages"] == 1
+
+
+def test_the_monitor_says_where_frames_wait_outside_their_compute() -> None:
+    """From a TagPoses' stamps: captured at C, sent at C + 30 ms after 20 ms of robot compute (the frame
+    was 10 ms old when taken), received at C + 32, its pose at C + 60 after 25 ms of edge compute (3 ms
+    queued). A frame computed on board (no link) has no such split."""
+    poses = EXAMPLES[TagPoses.SCHEMA]
+    assert isinstance(poses, TagPoses) and poses.link is not None
+    c = 1_000_000_000_000
+    ms = 1_000_000
+    timed = poses.model_copy(
+        update={
+            "capture_nanos": c,
+            "link": poses.link.model_copy(update={"sent_nanos": c + 30 * ms, "received_nanos": c + 32 * ms}),
+            "timings": poses.timings.model_copy(
+                update={
+                    "robot_compute_secs": 0.020,
+                    "transport_secs": 0.002,
+                    "edge_compute_secs": 0.025,
+                    "capture_to_pose_secs": 0.060,
+                }
+            ),
+        }
+    )
+    monitor = Monitor(None)
+    monitor.on_poses(encode(timed))
+    monitor.on_poses(encode(timed.model_copy(update={"seq": 2, "link": None})))
+    first, on_board = monitor.records
+    assert abs(first["before_robot_ms"] - 10.0) < 1e-6 and abs(first["at_edge_ms"] - 3.0) < 1e-6
+    assert np.isnan(on_board["before_robot_ms"]) and np.isnan(on_board["at_edge_ms"])
+    assert "capture->pose   60.0 ms (frame age 10.0)" in monitor.line(), monitor.line()
+    summary = monitor.summary()
+    assert abs(summary["frame_age_ms_p50"] - 10.0) < 1e-6 and abs(summary["edge_queue_ms_p50"] - 3.0) < 1e-6
 
 
 def test_the_monitor_measures_in_the_world_of_the_map_slam_is_given(tmp_path: Path) -> None:

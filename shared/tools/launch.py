@@ -281,10 +281,12 @@ class Monitor:
         med = {k: float(np.median([r[k] for r in recent])) for k in ("robot_ms", "transport_ms", "edge_ms", "e2e_ms")}
         errs = [e for r in recent for e in r["errors_cm"]]
         err = f" e_t {np.median(errs):.2f} cm" if errs else ""
+        ages = [r["before_robot_ms"] for r in recent if not np.isnan(r["before_robot_ms"])]
+        age = f" (frame age {np.median(ages):.1f})" if ages else ""
         return (
             f"{len(recent):>3} fps  k={recent[-1]['k']}  payload {recent[-1]['payload_bytes'] / 1024:7.1f} kB  "
             f"robot {med['robot_ms']:6.1f} ms  link {med['transport_ms']:5.1f} ms  edge {med['edge_ms']:5.1f} ms  "
-            f"capture->pose {med['e2e_ms']:6.1f} ms  tags {recent[-1]['tags']}{err}{self._slam_part(now)}"
+            f"capture->pose {med['e2e_ms']:6.1f} ms{age}  tags {recent[-1]['tags']}{err}{self._slam_part(now)}"
             f"{self._controller_part()}"
         )
 
@@ -319,6 +321,10 @@ class Monitor:
         if recs:
             e2e = [r["e2e_ms"] for r in recs]
             out.update({"e2e_ms_p50": float(np.percentile(e2e, 50)), "e2e_ms_p99": float(np.percentile(e2e, 99))})
+            split = [r for r in recs if not np.isnan(r["before_robot_ms"])]  # not computed on board
+            if split:  # where frames waited outside robot + link + edge compute (medians)
+                out["frame_age_ms_p50"] = float(np.median([r["before_robot_ms"] for r in split]))
+                out["edge_queue_ms_p50"] = float(np.median([r["at_edge_ms"] for r in split]))
         with self._lock:
             if self.slam_status:
                 out["slam_frames"] = dict(self.slam_status)
