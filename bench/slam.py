@@ -45,6 +45,7 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -398,12 +399,15 @@ def splittag_slam(
     localisation_only: bool,
     tracking: bool = False,
     known_sigmas: dict[int, tuple[float, float]] | None = None,
+    soft_reads: str = "localise",
 ) -> tuple[dict[int, FloatArray], dict[int, FloatArray], dict[str, Any]]:
     """The slam core fed frame by frame: (final trajectory, online poses, counters). `known_sigmas`: how
     well the known map states each tag (rotation rad, position m; none: as surveyed)."""
     from shared.slam.marker_slam import MarkerSlam, SlamSettings
 
-    settings = SlamSettings(anchor_tag_id=anchor, localisation_only=localisation_only)
+    settings = SlamSettings.model_validate(
+        {"anchor_tag_id": anchor, "localisation_only": localisation_only, "soft_reads": soft_reads}
+    )
     slam = MarkerSlam(settings, known_tags=known, known_sigmas=dict(known_sigmas or {}))
     online: dict[int, FloatArray] = {}
     focal = (spec.fx + spec.fy) / 2
@@ -531,8 +535,11 @@ def trajectory_metrics(est: dict[int, FloatArray], gt: dict[int, FloatArray], *,
 # Running and printing
 
 
-def evaluate(records: list[FrameRecord], spec: SequenceSpec) -> dict[str, dict[str, Any]]:
-    """Every method's metrics on one sequence."""
+def evaluate(
+    records: list[FrameRecord], spec: SequenceSpec, *, soft_reads: str = "localise"
+) -> dict[str, dict[str, Any]]:
+    """Every method's metrics on one sequence (`soft_reads`: SlamSettings.soft_reads for every SLAM run)."""
+    slam_run = partial(splittag_slam, soft_reads=soft_reads)
     gt = {r.index: r.world_from_camera for r in records}
     tag_map, anchor = _tag_map(spec)
     rows: dict[str, dict[str, Any]] = {}
@@ -543,23 +550,19 @@ def evaluate(records: list[FrameRecord], spec: SequenceSpec) -> dict[str, dict[s
         apriltag_known_map(records, rough, spec.camera_matrix()), gt, fps=spec.fps
     )
     runs: dict[str, Callable[[], tuple[dict[int, FloatArray], dict[int, FloatArray], dict[str, Any]]]] = {
-        "splittag SLAM": lambda: splittag_slam(records, spec, known=None, anchor=None, localisation_only=False),
-        "splittag SLAM + map": lambda: splittag_slam(
-            records, spec, known=tag_map, anchor=anchor, localisation_only=False
-        ),
-        "splittag localisation": lambda: splittag_slam(
-            records, spec, known=tag_map, anchor=anchor, localisation_only=True
-        ),
-        "splittag SLAM + rough map": lambda: splittag_slam(
+        "splittag SLAM": lambda: slam_run(records, spec, known=None, anchor=None, localisation_only=False),
+        "splittag SLAM + map": lambda: slam_run(records, spec, known=tag_map, anchor=anchor, localisation_only=False),
+        "splittag localisation": lambda: slam_run(records, spec, known=tag_map, anchor=anchor, localisation_only=True),
+        "splittag SLAM + rough map": lambda: slam_run(
             records, spec, known=rough, anchor=anchor, localisation_only=False, known_sigmas=rough_sigmas
         ),
-        "splittag SLAM + rough map as surveyed": lambda: splittag_slam(
+        "splittag SLAM + rough map as surveyed": lambda: slam_run(
             records, spec, known=rough, anchor=anchor, localisation_only=False
         ),
-        "splittag SLAM, tracking": lambda: splittag_slam(
+        "splittag SLAM, tracking": lambda: slam_run(
             records, spec, known=None, anchor=None, localisation_only=False, tracking=True
         ),
-        "splittag SLAM + map, tracking": lambda: splittag_slam(
+        "splittag SLAM + map, tracking": lambda: slam_run(
             records, spec, known=tag_map, anchor=anchor, localisation_only=False, tracking=True
         ),
     }
@@ -744,6 +747,13 @@ def main() -> None:
         default=1,
         help="test-time views per ROI, as robot_infer's and edge_infer's `views` (shared/model/views.py)",
     )
+    ap.add_argument(
+        "--soft-reads",
+        choices=["localise", "ignore", "map"],
+        default="localise",
+        help="slam's SlamSettings.soft_reads for every SLAM row (localise, the default: blind soft reads of a "
+        "surveyed map's tags place frames nothing else places)",
+    )
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     from shared.model.precision import resolve_for_folder
@@ -752,7 +762,11 @@ def main() -> None:
     specs = {n: replace(SEQUENCES[n], seed=SEQUENCES[n].seed + args.room_seed_offset) for n in args.sequences}
     command = "python -m bench.slam " + shlex.join(sys.argv[1:])
     print(f"CPU: {cpu_label()}")
-    print(f"command: {command}; network precision {precision}, {args.views} view(s) per ROI", flush=True)
+    print(
+        f"command: {command}; network precision {precision}, {args.views} view(s) per ROI, "
+        f"soft reads {args.soft_reads}",
+        flush=True,
+    )
     results: dict[str, dict[str, Any]] = {}
     t_all = time.perf_counter()
     t0 = time.perf_counter()
@@ -773,7 +787,7 @@ def main() -> None:
         facts["render_and_perceive_s_all_sequences"] = perceive_s
         facts["noise_model"] = noise_check(records, spec)
         facts["grid_along_blur"] = along = grid_along_blur(records, spec)
-        results[name] = {"facts": facts, "methods": evaluate(records, spec)}
+        results[name] = {"facts": facts, "methods": evaluate(records, spec, soft_reads=args.soft_reads)}
         f = facts
         print(
             f"{name} (room seed {spec.seed}): {spec.speed_mps} m/s, {spec.turn_dps} deg/s mean yaw rate, "
