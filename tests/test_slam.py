@@ -119,7 +119,7 @@ def _noisy_run(seed: int, sigma_px: float) -> tuple[float, int, float]:
     "sigma_px",
     [
         0.1,
-        0.3,
+        0.2,
         pytest.param(
             0.6,
             marks=pytest.mark.xfail(
