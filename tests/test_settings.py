@@ -33,3 +33,23 @@ def test_services_default_run_dir_is_the_folder_the_launcher_points_at(tmp_path:
     assert CameraSettings.load().run_dir == CURRENT_RUN
     run = new_run_dir(tmp_path / CURRENT_RUN.parent)
     assert (tmp_path / CURRENT_RUN).resolve() == run.resolve()
+
+
+def test_the_fresh_frame_and_soft_read_settings_refuse_nonsense() -> None:
+    """robot_infer's fresh_frame_fraction is a fraction of an interval below one; slam's soft-read mode is
+    one of three and its surveyed thresholds are positive: anything else fails at start-up, by name."""
+    from pydantic import ValidationError
+
+    from services.robot_infer.settings import RobotInferSettings
+    from shared.slam.marker_slam import SlamSettings
+
+    for bad in (-0.1, 1.0, 2.0):
+        with pytest.raises(ValidationError, match="fresh_frame_fraction"):
+            RobotInferSettings.model_validate({"fresh_frame_fraction": bad})
+    with pytest.raises(ValidationError, match="soft_reads"):
+        SlamSettings.model_validate({"soft_reads": "sometimes"})
+    for field in ("soft_surveyed_sigma_m", "soft_surveyed_sigma_deg"):
+        with pytest.raises(ValidationError, match=field):
+            SlamSettings.model_validate({field: 0.0})
+    with pytest.raises(ValidationError, match="soft_sigma_scale"):
+        SlamSettings.model_validate({"soft_sigma_scale": 0.5})

@@ -182,6 +182,12 @@ class SlamState:
     soft_reads_localised: int = 0  # soft reads that placed the camera against a mapped tag ("localise")
 
 
+def _central(poses: list[Array]) -> Array:
+    """Of candidate poses, the one nearest their median position (robust to a few outliers)."""
+    centre = np.median(np.array([g[:3, 3] for g in poses]), axis=0)
+    return min(poses, key=lambda g: float(np.linalg.norm(g[:3, 3] - centre)))
+
+
 def _pose3(m: Array) -> gtsam.Pose3:
     return gtsam.Pose3(np.asarray(m, np.float64))
 
@@ -364,11 +370,7 @@ class MarkerSlam:
         # service passes its configured map's, not a checkpoint's, which is this SLAM's own estimate),
         # those the map states to within soft_surveyed_sigma_m / _deg.
         self.surveyed = {
-            t
-            for t in (self.known if surveyed is None else surveyed)
-            if t in self.known
-            and self._stated_sigmas(t)[0] <= math.radians(settings.soft_surveyed_sigma_deg)
-            and self._stated_sigmas(t)[1] <= settings.soft_surveyed_sigma_m
+            t for t in (self.known if surveyed is None else surveyed) if t in self.known and self._stated_precisely(t)
         }
         self.tags: dict[int, float] = {}  # ids in the graph -> size
         # One trajectory per robot ("" = a single-robot graph's); frames marginalised out of the graph
@@ -429,7 +431,11 @@ class MarkerSlam:
 
     def noise(self, obs: Observation, *, alt: bool = False) -> gtsam.noiseModel.Base:
         """Robust (Huber) Gaussian noise of one observation: `covariance` in GTSAM's model."""
-        gauss = gtsam.noiseModel.Gaussian.Covariance(self.covariance(obs, alt=alt))
+        return self._robust(self.covariance(obs, alt=alt))
+
+    def _robust(self, cov: Array) -> gtsam.noiseModel.Base:
+        """A view's noise model: Huber (huber_k) over the Gaussian of `cov`."""
+        gauss = gtsam.noiseModel.Gaussian.Covariance(cov)
         return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.settings.huber_k), gauss)
 
     def covariance(self, obs: Observation, *, alt: bool = False) -> Array:
@@ -559,6 +565,12 @@ class MarkerSlam:
         rot, pos = self._stated_sigmas(tag_id)
         return gtsam.noiseModel.Diagonal.Sigmas(np.array([rot] * 3 + [pos] * 3))
 
+    def _stated_precisely(self, tag_id: int) -> bool:
+        """The map states this tag to within soft_surveyed_sigma_deg / _m (or without sigmas: surveyed)."""
+        rot, pos = self._stated_sigmas(tag_id)
+        s = self.settings
+        return rot <= math.radians(s.soft_surveyed_sigma_deg) and pos <= s.soft_surveyed_sigma_m
+
     def _stated_sigmas(self, tag_id: int) -> tuple[float, float]:
         """A known tag's (rotation rad, position m) sigmas: the map's, else known_tag_sigma."""
         rot, pos = self.known_sigmas.get(tag_id, (None, None))
@@ -649,8 +661,7 @@ class MarkerSlam:
         if reference is None:
             clear = [wt @ np.linalg.inv(o.camera_from_tag) for o, wt in mapped if not self.is_ambiguous(o)]
             if clear:
-                centre = np.median(np.array([g[:3, 3] for g in clear]), axis=0)
-                reference = min(clear, key=lambda g: float(np.linalg.norm(g[:3, 3] - centre)))
+                reference = _central(clear)
         alt = {o.tag_id: self._use_alt(o, wt, reference) for o, wt in mapped}
         # Tags of several fragments in view (a join): the camera is placed by the world's tags (else the
         # robot's own fragment's); the others are fused without the disagreement test, as their fragment
@@ -682,11 +693,9 @@ class MarkerSlam:
             soft_priors.append(camera_prior(wt, measured, view, self._tag_covariance(o.tag_id)))
         self.state.soft_reads_skipped += len(soft) - len(soft_priors)
         if guesses:
-            centre = np.median(np.array([g[:3, 3] for g in guesses]), axis=0)
-            init = min(guesses, key=lambda g: float(np.linalg.norm(g[:3, 3] - centre)))
+            init = _central(guesses)
         elif soft_priors:
-            centre = np.median(np.array([g[:3, 3] for g, _ in soft_priors]), axis=0)
-            init = min((g for g, _ in soft_priors), key=lambda g: float(np.linalg.norm(g[:3, 3] - centre)))
+            init = _central([g for g, _ in soft_priors])
         elif predicted is not None and not s.localisation_only:
             init = predicted  # only new tags in view, shortly after the last pose: bridge with the motion
         elif (last := self._still_origin(track, observations)) is not None:
@@ -741,9 +750,7 @@ class MarkerSlam:
             if _rot_deg(prior, init) > s.disagreement_deg:
                 self.state.soft_reads_skipped += 1  # disagrees with the other views in this frame
                 continue
-            gauss = gtsam.noiseModel.Gaussian.Covariance(cov)
-            robust = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(s.huber_k), gauss)
-            graph.add(gtsam.PriorFactorPose3(track.key(frame), _pose3(prior), robust))
+            graph.add(gtsam.PriorFactorPose3(track.key(frame), _pose3(prior), self._robust(cov)))
             self.state.soft_reads_localised += 1
             used += 1
         self.state.rejected_ambiguous += rejected
