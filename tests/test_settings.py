@@ -48,8 +48,11 @@ def test_the_fresh_frame_and_soft_read_settings_refuse_nonsense() -> None:
             RobotInferSettings.model_validate({"fresh_frame_fraction": bad})
     with pytest.raises(ValidationError, match="soft_reads"):
         SlamSettings.model_validate({"soft_reads": "sometimes"})
-    for field in ("soft_surveyed_sigma_m", "soft_surveyed_sigma_deg"):
+    for field in ("soft_surveyed_sigma_m", "soft_surveyed_sigma_deg", "max_speed_m_s", "max_turn_deg_s"):
         with pytest.raises(ValidationError, match=field):
             SlamSettings.model_validate({field: 0.0})
+    for field in ("envelope_margin_m", "envelope_margin_deg"):
+        with pytest.raises(ValidationError, match=field):
+            SlamSettings.model_validate({field: -1.0})
     with pytest.raises(ValidationError, match="soft_sigma_scale"):
         SlamSettings.model_validate({"soft_sigma_scale": 0.5})

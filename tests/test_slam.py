@@ -37,6 +37,9 @@ from shared.wire.messages import HopTimings, TagPose, TagPoses
 CAM = default_camera()
 SCENE = demo_scene()
 TRAJ = demo_trajectory(60)
+# The demo's path in 60 frames moves up to 0.2 m and 5 deg a frame: a robot's pace (2 m/s, SLAM's motion
+# envelope) at 10 fps, so its frames are stamped 100 ms apart.
+TRAJ_FRAME_NS = 100_000_000
 SCENE_TAGS = {t.id: t.pose() for t in SCENE.tags}
 
 
@@ -105,12 +108,12 @@ def _noisy_run(seed: int, sigma_px: float) -> tuple[float, int, float]:
     pnp_est, gt = {}, {}
     for i, wfc in enumerate(TRAJ):
         obs = [_noisy_obs(tag_id, size, cft, rng, sigma_px) for tag_id, size, cft in _visible(wfc)]
-        slam.update(i, i, obs)
+        slam.update(i, i * TRAJ_FRAME_NS, obs)
         gt[i] = wfc
         if obs:
             best = min(obs, key=lambda o: np.linalg.norm(o.camera_from_tag[:3, 3]))
             pnp_est[i] = truth[best.tag_id] @ np.linalg.inv(best.camera_from_tag)
-    slam_ate, n = absolute_trajectory_error(dict(slam.trajectory()), gt)
+    slam_ate, n = absolute_trajectory_error({t // TRAJ_FRAME_NS: p for t, p in slam.trajectory()}, gt)
     pnp_ate, _ = absolute_trajectory_error(pnp_est, gt)
     return slam_ate, n, pnp_ate
 
@@ -1035,3 +1038,32 @@ def test_a_robot_that_never_saw_a_mapped_tag_is_lost_not_placed_in_a_second_worl
     unseen = [v for v in _visible(traj[59]) if v[0] not in slam.tags]
     assert unseen
     assert slam.update(0, 100, [_exact_obs(*unseen[0])], robot="b").status == "lost"
+
+
+def test_a_velocity_no_robot_has_is_not_extrapolated() -> None:
+    """The motion prior extrapolates the last two poses' velocity; when they are a frame apart yet a metre
+    apart (a tracked quad gone astray, a wrong branch: 30 m/s), neither the prediction nor the
+    constant-velocity factor uses it, where a robot's own pace (0.9 m/s here) is extrapolated exactly."""
+    frame_ns = 33_333_333
+    poses = _constant_velocity(130)  # 3 cm a frame: 0.9 m/s at 30 fps
+
+    def run(jump_m: float) -> MarkerSlam:
+        slam = MarkerSlam(SlamSettings())
+        for i in range(6):
+            seen = poses[i].copy()
+            if i == 5:
+                seen[:3, 3] += np.array([jump_m, 0.0, 0.0])
+            # the views the camera at `seen` would have of the tags the true camera sees
+            obs = [_exact_obs(t, size, np.linalg.inv(seen) @ SCENE_TAGS[t]) for t, size, _ in _visible(poses[i])]
+            assert slam.update(i, i * frame_ns, obs).status == "tracking"
+        return slam
+
+    steady = run(0.0)
+    predicted = steady.predict(6)
+    assert predicted is not None
+    np.testing.assert_allclose(SCENE_TAGS[steady.anchor] @ predicted, poses[6], atol=1e-6)
+    jumped = run(1.0)
+    last = SCENE_TAGS[jumped.anchor] @ dict(jumped.trajectory())[5 * frame_ns]
+    assert np.linalg.norm(last[:3, 3] - poses[5][:3, 3]) > 0.3  # the frame did jump
+    assert jumped.predict(6) is None
+    assert jumped._motion_factor(jumped._track(""), 6) is None
