@@ -1060,9 +1060,10 @@ def test_a_velocity_no_robot_has_is_not_extrapolated() -> None:
 
     steady = run(0.0)
     predicted = steady.predict(6)
-    assert predicted is not None
+    assert predicted is not None and steady.anchor is not None
     np.testing.assert_allclose(SCENE_TAGS[steady.anchor] @ predicted, poses[6], atol=1e-6)
     jumped = run(1.0)
+    assert jumped.anchor is not None
     last = SCENE_TAGS[jumped.anchor] @ dict(jumped.trajectory())[5 * frame_ns]
     assert np.linalg.norm(last[:3, 3] - poses[5][:3, 3]) > 0.3  # the frame did jump
     assert jumped.predict(6) is None
