@@ -136,3 +136,33 @@ def test_grid_along_blur_is_zero_on_the_truth_and_reads_a_shrunk_grid() -> None:
     assert far["blur_3-8_px_tags"] and abs(far["blur_3-8_px_median_pct"] + 100 * (1 - 1 / 1.02)) < 0.05  # type: ignore[operator]
     sharp = grid_along_blur(records(1.0, 2.0), spec)
     assert sharp["blur_3-8_px_tags"] == sharp["blur_>=8_px_tags"] == 0
+
+
+def test_perturbed_records_move_only_the_positions_and_only_by_a_nanometre() -> None:
+    """bench.slam --perturb's copies: every observation's position (detected and tracked) moved by about
+    1 nm, everything else as it was, the originals untouched, the same seed the same copy."""
+    from bench.slam import FrameRecord, TagObservation, perturbed
+
+    pose = np.eye(4)
+    pose[:3, 3] = [0.1, -0.2, 3.0]
+
+    def obs(tag_id: int) -> TagObservation:
+        return TagObservation(tag_id, 0.15, pose.copy(), 0.1, pose.copy(), 0.3, "lines")
+
+    records = [FrameRecord(i, i / 30, np.eye(4), [1, 2], {}, splittag=[obs(1)], tracked=[obs(2)]) for i in range(20)]
+    copies = perturbed(records, seed=3)
+    moved = [
+        np.linalg.norm(c.camera_from_tag[:3, 3] - pose[:3, 3]) for r in copies for c in (*r.splittag, *r.tracked)
+    ]
+    assert len(moved) == 40 and 0 < min(moved) and max(moved) < 1e-8
+    for r, c in zip(records, copies, strict=True):
+        for o, p in zip((*r.splittag, *r.tracked), (*c.splittag, *c.tracked), strict=True):
+            np.testing.assert_array_equal(o.camera_from_tag, pose)  # the original untouched
+            np.testing.assert_array_equal(p.camera_from_tag[:3, :3], pose[:3, :3])
+            np.testing.assert_array_equal(p.alt_camera_from_tag, pose)
+            assert (p.tag_id, p.proposer, p.reprojection_error_px) == (o.tag_id, o.proposer, o.reprojection_error_px)
+    again = perturbed(records, seed=3)
+    assert all(
+        np.array_equal(a.splittag[0].camera_from_tag, b.splittag[0].camera_from_tag)
+        for a, b in zip(copies, again, strict=True)
+    )
