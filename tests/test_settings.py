@@ -46,8 +46,9 @@ def test_the_fresh_frame_and_soft_read_settings_refuse_nonsense() -> None:
     for bad in (-0.1, 1.0, 2.0):
         with pytest.raises(ValidationError, match="fresh_frame_fraction"):
             RobotInferSettings.model_validate({"fresh_frame_fraction": bad})
-    with pytest.raises(ValidationError, match="soft_reads"):
-        SlamSettings.model_validate({"soft_reads": "sometimes"})
+    for field in ("soft_reads", "tracked_reads"):
+        with pytest.raises(ValidationError, match=field):
+            SlamSettings.model_validate({field: "sometimes"})
     for field in ("soft_surveyed_sigma_m", "soft_surveyed_sigma_deg", "max_speed_m_s", "max_turn_deg_s"):
         with pytest.raises(ValidationError, match=field):
             SlamSettings.model_validate({field: 0.0})

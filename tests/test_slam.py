@@ -844,6 +844,45 @@ def test_a_frame_placed_by_soft_reads_alone_maps_no_new_tag() -> None:
     assert new in slam.tags
 
 
+def test_tracked_views_localise_against_a_surveyed_map_and_fuse_only_when_told() -> None:
+    """Frames whose only tag is one the tracker carried: by default ("localise") a tracked view places the
+    frame against a surveyed map (exactly, for an exact view; counted) and nothing otherwise (SLAM's own
+    map: lost, counted skipped); "map" fuses it like a detection, "ignore" leaves it out."""
+    poses = _constant_velocity(40)
+    tag_map = {t.id: (t.size_m, t.pose()) for t in SCENE.tags}
+    first = _visible(poses[0])[0][0]
+    carried = min(set.intersection(*({t for t, _, _ in _visible(p)} for p in poses[:30])) - {first})
+
+    def run(settings: SlamSettings, known: bool) -> tuple[MarkerSlam, list[FrameResult]]:
+        slam = MarkerSlam(settings, known_tags=tag_map if known else None)
+        out = []
+        for i in range(30):
+            obs = []
+            for t, size, cft in _visible(poses[i]):
+                if t == carried and i >= 10:  # frames 10-29: only the tracked view
+                    obs.append(Observation(t, size, cft, 0.0, cft, 5.0, tracked=True, proposer="tracker"))
+                elif i < 10:
+                    obs.append(_exact_obs(t, size, cft))
+            out.append(slam.update(i, i, obs))
+        return slam, out
+
+    slam, results = run(SlamSettings(), known=True)
+    for i in range(10, 30):
+        r = results[i]
+        assert r.status == "tracking" and r.tags_used == 1 and r.world_from_camera is not None
+        np.testing.assert_allclose(r.world_from_camera, poses[i], atol=1e-6)
+    assert (slam.state.tracked_localised, slam.state.tracked_skipped) == (20, 0)
+    slam, results = run(SlamSettings(), known=False)
+    assert all(r.status == "lost" for r in results[10:])
+    assert (slam.state.tracked_localised, slam.state.tracked_skipped) == (0, 20)
+    slam, results = run(SlamSettings(tracked_reads="map"), known=False)
+    assert all(r.status == "tracking" and r.tags_used == 1 for r in results[10:])
+    assert (slam.state.tracked_localised, slam.state.tracked_skipped) == (0, 0)
+    slam, results = run(SlamSettings(tracked_reads="ignore"), known=True)
+    assert all(r.status == "lost" for r in results[10:]) and slam.state.tracked_skipped == 20
+    assert slam.state.soft_reads_skipped == slam.state.soft_reads_localised == 0  # counted apart
+
+
 def test_the_old_soft_reads_switch_still_reads() -> None:
     assert SlamSettings.model_validate({"use_soft_reads": True}).soft_reads == "map"
     assert SlamSettings.model_validate({"use_soft_reads": False}).soft_reads == "ignore"

@@ -252,6 +252,7 @@ class SlamNode:
             frames, lost, rejected = state.frames, state.lost, state.rejected_ambiguous
             fragments = state.fragments
             soft_skipped, soft_localised = state.soft_reads_skipped, state.soft_reads_localised
+            tracked_skipped, tracked_localised = state.tracked_skipped, state.tracked_localised
             robots = sorted(self.runs)
         per_robot = {robot: self._write_robot(run_dir, robot) for robot in robots}
         sizes_only: dict[int, float] = {}
@@ -291,6 +292,8 @@ class SlamNode:
             "fragments": fragments,  # map fragments begun after long gaps without tags
             "soft_reads_skipped": soft_skipped,  # blind soft reads left out (SlamSettings.soft_reads)
             "soft_reads_localised": soft_localised,  # soft reads that placed the camera against a known tag
+            "tracked_skipped": tracked_skipped,  # tracked views left out (SlamSettings.tracked_reads)
+            "tracked_localised": tracked_localised,  # tracked views that placed the camera against a known tag
         }
         if self.fleet:
             out["robots"] = per_robot
@@ -450,6 +453,8 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
                 "fragments": state.fragments,
                 "soft_reads_skipped": state.soft_reads_skipped,
                 "soft_reads_localised": state.soft_reads_localised,
+                "tracked_skipped": state.tracked_skipped,
+                "tracked_localised": state.tracked_localised,
             }
 
     stats = serve_stats(session, key(lambda r: keys.stats(r, "slam")), guard, robots_served)

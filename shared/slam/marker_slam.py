@@ -86,6 +86,13 @@ class SlamSettings(BaseModel):
     # Tags the tracker carried through blur: their quads drift in scale by a few % (bench/slam), so
     # every sigma of theirs is this much larger.
     tracked_sigma_scale: float = Field(default=4.0, ge=1)
+    # What tracked views do, as soft_reads (below) for soft reads. "localise" (default, since session 19):
+    # like a soft read, a tracked view of a surveyed tag places a frame no detected tag places, and
+    # nothing is mapped from it. "map" (until session 19): fused like a detected view; on bench.slam's
+    # eight fast rooms (8 runs each, 1 nm apart, medians) that drifted the map: SLAM without a map 15.2
+    # cm mean ATE over 59 % of the frames against 11.0 over 48 % with the tracked views localising only,
+    # with the map 5.23 against 4.81 cm over the same 96 %. "ignore": left out.
+    tracked_reads: Literal["ignore", "localise", "map"] = "localise"
     # Tags stage 1 read blind (the line quads' soft decode, proposer "lines_soft") are the most blurred:
     # their ids are right but their keypoints are off by about five times a detected tag's (bench/slam's
     # fast room, seventh weights: corner error p50 / p90 0.51 / 0.72 px against 0.10 / 0.41), biased alike
@@ -190,6 +197,8 @@ class SlamState:
     fragments: int = 0  # fragments started after long gaps (see SlamSettings.bridge_long_gaps)
     soft_reads_skipped: int = 0  # observations of blind soft reads left out (SlamSettings.soft_reads)
     soft_reads_localised: int = 0  # soft reads that placed the camera against a mapped tag ("localise")
+    tracked_skipped: int = 0  # tracked views left out (SlamSettings.tracked_reads)
+    tracked_localised: int = 0  # tracked views that placed the camera against a mapped tag ("localise")
 
 
 def _central(poses: list[Array]) -> Array:
@@ -662,12 +671,21 @@ class MarkerSlam:
         track = self._track(robot)
         s = self.settings
         self.state.frames += 1
-        soft: list[Observation] = []
-        if s.soft_reads != "map":
-            soft = [o for o in observations if o.proposer == "lines_soft"]
-            observations = [o for o in observations if o.proposer != "lines_soft"]
+        # Blind reads: soft reads and tracked views, each kind fused, localising only or left out by its
+        # setting (soft_reads, tracked_reads).
+        fused: list[Observation] = []
+        soft: list[Observation] = []  # the ones that localise only
+        for o in observations:
+            mode = s.tracked_reads if o.tracked else s.soft_reads if o.proposer == "lines_soft" else "map"
+            if mode == "map":
+                fused.append(o)
+            elif mode == "localise":
+                soft.append(o)
+            else:
+                self._count_blind(o, localised=False)
+        observations = fused
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        map_changed = self._seed_map(observations, graph, values, soft=soft if s.soft_reads == "localise" else None)
+        map_changed = self._seed_map(observations, graph, values, soft=soft)
         predicted = self.predict(frame, robot=robot)
         still_from: int | None = None
         joined = False
@@ -697,22 +715,26 @@ class MarkerSlam:
         # Soft reads of mapped tags (soft_reads = "localise"): camera priors, in the fragment the camera
         # is placed in; an ambiguous one only with a reference to pick its branch.
         target = lead if lead is not None else self._fragments.find(track.fragment)
-        soft_priors: list[tuple[Array, Array]] = []  # (world_from_camera, its covariance, GTSAM's order)
-        for o in soft if s.soft_reads == "localise" and not guesses else []:  # only where nothing else places
+        # (read, world_from_camera, its covariance in GTSAM's order)
+        soft_priors: list[tuple[Observation, Array, Array]] = []
+        for o in soft:
             wt = self._world_from_tag(o.tag_id) if o.tag_id in self.surveyed else None
-            if wt is None or self._fragments.find(self._tag_fragment[o.tag_id]) != target:
-                continue
-            if self.is_ambiguous(o) and reference is None:
+            if (
+                guesses  # only where nothing else places
+                or wt is None
+                or self._fragments.find(self._tag_fragment[o.tag_id]) != target
+                or (self.is_ambiguous(o) and reference is None)
+            ):
+                self._count_blind(o, localised=False)
                 continue
             use_alt = self._use_alt(o, wt, reference)
             measured = o.alt_camera_from_tag if use_alt else o.camera_from_tag
             view = s.soft_sigma_scale**2 * self.covariance(o, alt=use_alt)
-            soft_priors.append(camera_prior(wt, measured, view, self._tag_covariance(o.tag_id)))
-        self.state.soft_reads_skipped += len(soft) - len(soft_priors)
+            soft_priors.append((o, *camera_prior(wt, measured, view, self._tag_covariance(o.tag_id))))
         if guesses:
             init = _central(guesses)
         elif soft_priors:
-            init = _central([g for g, _ in soft_priors])
+            init = _central([g for _, g, _ in soft_priors])
         elif predicted is not None and not s.localisation_only:
             init = predicted  # only new tags in view, shortly after the last pose: bridge with the motion
         elif (last := self._still_origin(track, observations)) is not None:
@@ -763,12 +785,12 @@ class MarkerSlam:
             )
             self.state.observations[o.tag_id] = self.state.observations.get(o.tag_id, 0) + 1
             used += 1
-        for prior, cov in soft_priors:
+        for o, prior, cov in soft_priors:
             if _rot_deg(prior, init) > s.disagreement_deg:
-                self.state.soft_reads_skipped += 1  # disagrees with the other views in this frame
+                self._count_blind(o, localised=False)  # disagrees with the other views in this frame
                 continue
             graph.add(gtsam.PriorFactorPose3(track.key(frame), _pose3(prior), self._robust(cov)))
-            self.state.soft_reads_localised += 1
+            self._count_blind(o, localised=True)
             used += 1
         self.state.rejected_ambiguous += rejected
         if used == 0:
@@ -828,6 +850,16 @@ class MarkerSlam:
             self._marginalise_old_frames()
         status: Literal["tracking", "bridged"] = "tracking" if self._tied(fragment) else "bridged"
         return FrameResult(pose, status, used, rejected, map_changed, covariance)
+
+    def _count_blind(self, o: Observation, *, localised: bool) -> None:
+        """Count a blind read (a soft read or a tracked view that is not fused) as localised or skipped."""
+        st = self.state
+        if o.tracked:
+            st.tracked_localised += localised
+            st.tracked_skipped += not localised
+        else:
+            st.soft_reads_localised += localised
+            st.soft_reads_skipped += not localised
 
     def _tag_covariance(self, tag_id: int) -> Array:
         """How well a mapped tag is known (6x6, its tangent, rotation first): the graph's marginal, or
