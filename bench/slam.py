@@ -597,6 +597,8 @@ def main() -> None:
     )
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
+    if args.perturb < 0:
+        ap.error("--perturb takes a number of runs, 0 or more")
     from shared.model.precision import resolve_for_folder
 
     precision = resolve_for_folder(args.precision, args.weights)

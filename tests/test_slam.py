@@ -1107,3 +1107,47 @@ def test_a_velocity_no_robot_has_is_not_extrapolated() -> None:
     assert np.linalg.norm(last[:3, 3] - poses[5][:3, 3]) > 0.3  # the frame did jump
     assert jumped.predict(6) is None
     assert jumped._motion_factor(jumped._track(""), 6) is None
+    # The envelope grows with the stamps' gap: 0.25 m a frame is a robot's pace 100 ms apart (within
+    # 0.15 + 2 m/s x 0.1 s) and no robot's 1 ns apart (only the 0.15 m margin).
+    fast = _constant_velocity(16)
+    for frame_gap_ns, extrapolated in ((100_000_000, True), (1, False)):
+        slam = MarkerSlam(SlamSettings())
+        for i in range(6):
+            assert slam.update(i, i * frame_gap_ns, [_exact_obs(*v) for v in _visible(fast[i])]).status == "tracking"
+        assert (slam.predict(6) is not None) == extrapolated
+
+
+def test_a_world_view_right_after_a_fragment_joins_it_only_through_a_motion_factor() -> None:
+    """A frame that sees only the world's tags right after a bridged fragment's frames joins the fragment
+    (and drops its weak link) only when a factor ties the two frames. Where the motion prior does not
+    (a velocity beyond the envelope: the fragment's last frame placed 1 m off; or the fragment's single
+    frame, no velocity yet), the fragment stays bridged on its weak link instead of floating free
+    (GTSAM: an indeterminate system, or poses with variances of square metres)."""
+    frame_ns = 33_333_333
+    poses = _constant_velocity(70)  # 1.7 m/s at 30 fps
+
+    def run(fragment_frames: range, jump_last: bool) -> tuple[MarkerSlam, FrameResult]:
+        slam = MarkerSlam(SlamSettings())
+        for i in range(10):
+            slam.update(i, i * frame_ns, [_exact_obs(*v) for v in _visible(poses[i]) if v[0] in (4, 5)])
+        for i in fragment_frames:
+            seen = poses[i].copy()
+            if jump_last and i == fragment_frames[-1]:
+                seen[:3, 3] += np.array([1.0, 0.0, 0.0])
+            obs = [
+                _exact_obs(7, size, np.linalg.inv(seen) @ SCENE_TAGS[7]) for t, size, _ in _visible(poses[i]) if t == 7
+            ]
+            assert slam.update(i, i * frame_ns, obs).status == "bridged"
+        after = fragment_frames[-1] + 1
+        res = slam.update(after, after * frame_ns, [_exact_obs(*v) for v in _visible(poses[after]) if v[0] == 5])
+        return slam, res
+
+    for frames, jump in ((range(45, 52), True), (range(45, 46), False)):
+        slam, res = run(frames, jump)
+        assert res.status == "tracking" and res.world_from_camera is not None
+        assert slam.bridged(frames[0] * frame_ns) and slam.tag_bridged(7)  # not joined: no shared view
+        assert slam._fragment_links  # the fragment's weak link stays
+        # tied to the world through the link (its rotation sigma: 2 deg a frame of the gap), not floating
+        link_rad = np.radians(2.0 * (frames[0] - 9))
+        variances = np.diag(slam.isam.marginalCovariance(slam._track("").key(frames[-1])))
+        assert variances[:3].max() < 1.1 * link_rad**2

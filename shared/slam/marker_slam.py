@@ -123,6 +123,7 @@ class SlamSettings(BaseModel):
     # tracked quad gone astray or a far tag's wrong branch can be a metre apart a frame apart; twelve
     # frames of that velocity put the next new tag metres off, and every tag mapped after it stays wrong
     # (bench.slam's fast room offset 20 with tracking: ATE 399 cm; without extrapolating it, 32 cm).
+    # The stamps are capture times: a recording replayed faster than it was made looks faster too.
     max_speed_m_s: float = Field(default=2.0, gt=0)
     max_turn_deg_s: float = Field(default=180.0, gt=0)
     envelope_margin_m: float = Field(default=0.15, ge=0)
@@ -814,7 +815,9 @@ class MarkerSlam:
                     gtsam.noiseModel.Diagonal.Sigmas(np.array(sigmas)),
                 )
             )
-        motion = self._motion_factor(track, frame)  # never None when this frame is bridged (as predict)
+        # Not None when this frame is bridged by the prediction (the same last two poses); None when the
+        # velocity is beyond the motion envelope or the last two poses are too far apart.
+        motion = self._motion_factor(track, frame)
         if motion is not None:
             graph.add(motion)
         if long_gap:
@@ -822,9 +825,12 @@ class MarkerSlam:
             self.state.fragments += 1
         else:
             last = max(track.stamps, default=None)
-            if not seen_fragments or (last is not None and frame - last <= TIED_FRAMES):
-                # this frame is tied to the robot's last ones (its only tags are new, or it comes right
-                # after them: the motion factor holds it): their fragment is in view too
+            linked = motion is not None or still_from is not None  # a factor ties this frame to earlier ones
+            if not seen_fragments or (linked and last is not None and frame - last <= TIED_FRAMES):
+                # this frame is tied to the robot's last ones (its only tags are new: held still or bridged,
+                # or it comes right after them and a motion factor holds it): their fragment is in view too.
+                # Without such a factor a view of the world's tags right after a fragment's frames joins
+                # nothing: the fragment keeps its weak link (else nothing would tie it to the world)
                 seen_fragments.add(self._fragments.find(track.fragment))
             joined = len(seen_fragments) > 1
             fragment = self._fragments.union(seen_fragments)  # a view shared by fragments joins them
@@ -906,8 +912,8 @@ class MarkerSlam:
 
     def _still_origin(self, track: _Track, observations: list[Observation]) -> int | None:
         """The robot's last frame with a pose, when this frame (only new tags in view, no motion to
-        extrapolate: past the bridging gap, or a single recent pose) should be held still from it
-        (see bridge_long_gaps)."""
+        extrapolate: past the bridging gap, a single recent pose, or a velocity beyond the motion
+        envelope) should be held still from it (see bridge_long_gaps)."""
         s = self.settings
         if not s.bridge_long_gaps or s.localisation_only or not observations or not track.stamps:
             return None
