@@ -572,20 +572,21 @@ def main() -> None:
         default=1,
         help="test-time views per ROI, as robot_infer's and edge_infer's `views` (shared/model/views.py)",
     )
-    ap.add_argument(
-        "--soft-reads",
-        choices=["localise", "ignore", "map"],
-        default="localise",
-        help="slam's SlamSettings.soft_reads for every SLAM row (localise, the default: blind soft reads of a "
-        "surveyed map's tags place frames nothing else places)",
-    )
-    ap.add_argument(
-        "--tracked-reads",
-        choices=["localise", "ignore", "map"],
-        default="localise",
-        help="slam's SlamSettings.tracked_reads for every SLAM row (localise, the default: the tracker's views "
-        "of a surveyed map's tags place frames nothing else places; map: fused like detections)",
-    )
+    from typing import get_args
+
+    from shared.slam.marker_slam import SlamSettings
+
+    for field, what in (
+        ("soft_reads", "blind soft reads of a surveyed map's tags place frames nothing else places"),
+        ("tracked_reads", "the tracker's views of a surveyed map's tags place frames nothing else places"),
+    ):
+        ap.add_argument(
+            "--" + field.replace("_", "-"),
+            choices=get_args(SlamSettings.model_fields[field].annotation),
+            default=SlamSettings.model_fields[field].default,
+            help=f"slam's SlamSettings.{field} for every SLAM row (localise, the default: {what}; map: fused "
+            "like detections; ignore: left out)",
+        )
     ap.add_argument(
         "--perturb",
         type=int,

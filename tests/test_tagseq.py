@@ -164,3 +164,13 @@ def test_perturbed_records_move_only_the_positions_and_only_by_a_nanometre() -> 
         np.array_equal(a.splittag[0].camera_from_tag, b.splittag[0].camera_from_tag)
         for a, b in zip(copies, again, strict=True)
     )
+
+
+def test_bench_slam_refuses_a_negative_perturb_count_by_name() -> None:
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [sys.executable, "-m", "bench.slam", "--perturb", "-1"], capture_output=True, text=True, timeout=120
+    )
+    assert out.returncode == 2 and "--perturb" in out.stderr

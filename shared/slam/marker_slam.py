@@ -91,7 +91,8 @@ class SlamSettings(BaseModel):
     # nothing is mapped from it. "map" (until session 19): fused like a detected view; on bench.slam's
     # eight fast rooms (8 runs each, 1 nm apart, medians) that drifted the map: SLAM without a map 15.2
     # cm mean ATE over 59 % of the frames against 11.0 over 48 % with the tracked views localising only,
-    # with the map 5.23 against 4.81 cm over the same 96 %. "ignore": left out.
+    # with the map 5.23 against 4.81 cm over the same 96 %. "ignore": left out. A localising tracked
+    # view's prior has the view's covariance (tracked_sigma_scale included) times soft_sigma_scale^2.
     tracked_reads: Literal["ignore", "localise", "map"] = "localise"
     # Tags stage 1 read blind (the line quads' soft decode, proposer "lines_soft") are the most blurred:
     # their ids are right but their keypoints are off by about five times a detected tag's (bench/slam's
@@ -529,10 +530,11 @@ class MarkerSlam:
         graph: gtsam.NonlinearFactorGraph,
         values: gtsam.Values,
         *,
-        soft: list[Observation] | None = None,
+        blind: list[Observation] | None = None,
     ) -> bool:
         """Known tags in view enter as priors; the first anchor fixes the world frame. A known tag only a
-        soft read sees enters too (its pose is the map's, not the read's), but never as the anchor: not
+        blind read (a soft read or tracked view that only localises) sees enters too (its pose is the
+        map's, not the read's), but never as the anchor: not
         the anchor tag itself, and not before there is an anchor unless the settings name which tag it
         is to be. Returns whether the map changed."""
         s = self.settings
@@ -552,7 +554,7 @@ class MarkerSlam:
                 if anchor:
                     self.anchor = o.tag_id
                 changed = True
-        for o in soft or []:
+        for o in blind or []:
             if (
                 (self.anchor is not None or s.anchor_tag_id is not None)
                 and o.tag_id != s.anchor_tag_id
@@ -675,18 +677,18 @@ class MarkerSlam:
         # Blind reads: soft reads and tracked views, each kind fused, localising only or left out by its
         # setting (soft_reads, tracked_reads).
         fused: list[Observation] = []
-        soft: list[Observation] = []  # the ones that localise only
+        blind: list[Observation] = []  # the ones that localise only
         for o in observations:
             mode = s.tracked_reads if o.tracked else s.soft_reads if o.proposer == "lines_soft" else "map"
             if mode == "map":
                 fused.append(o)
             elif mode == "localise":
-                soft.append(o)
+                blind.append(o)
             else:
                 self._count_blind(o, localised=False)
         observations = fused
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-        map_changed = self._seed_map(observations, graph, values, soft=soft)
+        map_changed = self._seed_map(observations, graph, values, blind=blind)
         predicted = self.predict(frame, robot=robot)
         still_from: int | None = None
         joined = False
@@ -713,12 +715,12 @@ class MarkerSlam:
             for o, wt in mapped
             if roots[o.tag_id] == lead
         ]
-        # Soft reads of mapped tags (soft_reads = "localise"): camera priors, in the fragment the camera
-        # is placed in; an ambiguous one only with a reference to pick its branch.
+        # Blind reads of surveyed tags (soft_reads / tracked_reads = "localise"): camera priors, in the
+        # fragment the camera is placed in; an ambiguous one only with a reference to pick its branch.
         target = lead if lead is not None else self._fragments.find(track.fragment)
         # (read, world_from_camera, its covariance in GTSAM's order)
-        soft_priors: list[tuple[Observation, Array, Array]] = []
-        for o in soft:
+        blind_priors: list[tuple[Observation, Array, Array]] = []
+        for o in blind:
             wt = self._world_from_tag(o.tag_id) if o.tag_id in self.surveyed else None
             if (
                 guesses  # only where nothing else places
@@ -731,11 +733,11 @@ class MarkerSlam:
             use_alt = self._use_alt(o, wt, reference)
             measured = o.alt_camera_from_tag if use_alt else o.camera_from_tag
             view = s.soft_sigma_scale**2 * self.covariance(o, alt=use_alt)
-            soft_priors.append((o, *camera_prior(wt, measured, view, self._tag_covariance(o.tag_id))))
+            blind_priors.append((o, *camera_prior(wt, measured, view, self._tag_covariance(o.tag_id))))
         if guesses:
             init = _central(guesses)
-        elif soft_priors:
-            init = _central([g for _, g, _ in soft_priors])
+        elif blind_priors:
+            init = _central([g for _, g, _ in blind_priors])
         elif predicted is not None and not s.localisation_only:
             init = predicted  # only new tags in view, shortly after the last pose: bridge with the motion
         elif (last := self._still_origin(track, observations)) is not None:
@@ -767,8 +769,8 @@ class MarkerSlam:
                 seen_fragments.add(self._fragments.find(self._tag_fragment[o.tag_id]))
             elif s.localisation_only:
                 continue
-            elif soft_priors:
-                rejected += 1  # the camera is placed by soft reads alone: nothing is mapped from such a frame
+            elif blind_priors:
+                rejected += 1  # the camera is placed by blind reads alone: nothing is mapped from such a frame
                 continue
             else:
                 admitted = self._admit_new_tag(track, o, frame, init)
@@ -786,7 +788,7 @@ class MarkerSlam:
             )
             self.state.observations[o.tag_id] = self.state.observations.get(o.tag_id, 0) + 1
             used += 1
-        for o, prior, cov in soft_priors:
+        for o, prior, cov in blind_priors:
             if _rot_deg(prior, init) > s.disagreement_deg:
                 self._count_blind(o, localised=False)  # disagrees with the other views in this frame
                 continue
