@@ -2,11 +2,13 @@
 
 Both servers run in their own process on 127.0.0.1, both replies are tiny (the payload loads only
 the "uplink"), shared memory is off. codec + Zenoh: encoding the Features message, the query, the
-echo's full decode + validation, a ProbeAck back, decoding it. Zenoh alone: the same querier options
-and payload size, the echo reading the payload into bytes and replying 8 bytes (what an application
-without our codec does at the least).
+echo's full decode + validation, a ProbeAck back (in the probe's framing), decoding it; in framing 3
+(what the services write: positional header checked by msgspec) and, in the same run, framing 2 (the
+previous one: named header, pydantic validation). Zenoh alone: the same querier options and payload
+size, the echo reading the payload into bytes and replying 8 bytes (what an application without our
+codec does at the least). The three Zenoh variants take turns, round trip by round trip.
 
-    .venv/bin/python -m bench.transport [--repetitions 200]
+    .venv/bin/python -m bench.transport [--repetitions 200] [--framings 3 2]
 """
 
 from __future__ import annotations
@@ -83,10 +85,10 @@ def bench_tcp(port: int, size: int, reps: int) -> list[float]:
     return out[5:]
 
 
-Row = tuple[int, int, float, float, float]
+Row = tuple[int, int, dict[int, float], float, float]
 
 
-def measure(repetitions: int, *, shared_memory: bool) -> list[Row]:
+def measure(repetitions: int, *, shared_memory: bool, framings: tuple[int, ...] = (3, 2)) -> list[Row]:
     """One table: every size through codec + Zenoh, Zenoh alone and raw TCP."""
     robot = "bench"
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
@@ -110,15 +112,15 @@ def measure(repetitions: int, *, shared_memory: bool) -> list[Row]:
         )
         for size in SIZES:
             msg = probe_features(size, robot_id=robot)
-            zen = []
-            for i in range(repetitions + 5):
-                t0 = time.perf_counter()
-                prober.round_trip(encode(msg))
-                if i >= 5:
-                    zen.append((time.perf_counter() - t0) * 1e3)
-            raw_payload = bytes(len(encode(msg)))
+            zen: dict[int, list[float]] = {f: [] for f in framings}
+            raw_payload = bytes(len(encode(msg, framing=framings[0])))
             raw = []
             for i in range(repetitions + 5):
+                for framing in framings:
+                    t0 = time.perf_counter()
+                    prober.round_trip(encode(msg, framing=framing))
+                    if i >= 5:
+                        zen[framing].append((time.perf_counter() - t0) * 1e3)
                 t0 = time.perf_counter()
                 for reply in raw_querier.get(payload=raw_payload):
                     assert reply.ok is not None
@@ -135,10 +137,11 @@ def measure(repetitions: int, *, shared_memory: bool) -> list[Row]:
                 ]
             )
             try:
-                tcp = bench_tcp(port, len(encode(msg)), repetitions)
+                tcp = bench_tcp(port, len(raw_payload), repetitions)
             finally:
                 server.wait(timeout=10)
-            rows.append((size, len(encode(msg)), float(np.median(zen)), float(np.median(raw)), float(np.median(tcp))))
+            medians = {f: float(np.median(v)) for f, v in zen.items()}
+            rows.append((size, len(raw_payload), medians, float(np.median(raw)), float(np.median(tcp))))
         prober.close()
         session.close()
     finally:
@@ -148,21 +151,30 @@ def measure(repetitions: int, *, shared_memory: bool) -> list[Row]:
 
 
 def print_table(rows: list[Row], *, repetitions: int, shared_memory: bool) -> None:
-    """The table of one run."""
+    """The table of one run: per framing, codec + Zenoh and its ratio to Zenoh alone."""
+    framings = list(rows[0][2])
     print(f"median of {repetitions} round trips, 127.0.0.1, zenoh shared memory {'on' if shared_memory else 'off'}")
-    print(
-        f"{'tensor B':>9} {'message B':>10} {'codec+zenoh ms':>15} {'zenoh only ms':>14} {'raw TCP ms':>11} "
-        f"{'codec+zenoh/zenoh':>18} {'zenoh/TCP':>10}"
-    )
+    head = "".join(f" {f'framing {f} ms':>13} {f'f{f}/zenoh':>9}" for f in framings)
+    print(f"{'tensor B':>9} {'message B':>10}{head} {'zenoh only ms':>14} {'raw TCP ms':>11} {'zenoh/TCP':>10}")
     for size, wire, z, r, t in rows:
-        print(f"{size:>9} {wire:>10} {z:>15.3f} {r:>14.3f} {t:>11.3f} {z / r:>18.2f} {r / t:>10.2f}")
-    print(f"worst codec+zenoh / zenoh alone: {max(z / r for _, _, z, r, _ in rows):.2f}x")
+        cells = "".join(f" {z[f]:>13.3f} {z[f] / r:>9.2f}" for f in framings)
+        print(f"{size:>9} {wire:>10}{cells} {r:>14.3f} {t:>11.3f} {r / t:>10.2f}")
+    for f in framings:
+        print(f"worst codec+zenoh / zenoh alone, framing {f}: {max(z[f] / r for _, _, z, r, _ in rows):.2f}x")
 
 
 def main() -> None:
     """Run the benchmarks and print the tables."""
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repetitions", type=int, default=200)
+    ap.add_argument(
+        "--framings",
+        type=int,
+        nargs="+",
+        choices=(3, 2, 1),
+        default=[3, 2],
+        help="codec framings to time (the first sets the message size of the Zenoh-alone column)",
+    )
     ap.add_argument(
         "--shared-memory",
         choices=("off", "on", "both"),
@@ -172,7 +184,8 @@ def main() -> None:
     args = ap.parse_args()
     print(f"CPU: {cpu_label()}", flush=True)
     modes = {"off": [False], "on": [True], "both": [False, True]}[args.shared_memory]
-    tables = [(shm, measure(args.repetitions, shared_memory=shm)) for shm in modes]
+    framings = tuple(dict.fromkeys(args.framings))
+    tables = [(shm, measure(args.repetitions, shared_memory=shm, framings=framings)) for shm in modes]
     for shm, rows in tables:
         print_table(rows, repetitions=args.repetitions, shared_memory=shm)
 

@@ -225,11 +225,12 @@ def _covariance6() -> np.ndarray:
     return a @ a.T * 1e-4 + np.diag([4e-4, 4e-4, 9e-4, 1e-5, 1e-5, 4e-5])
 
 
-def golden_name(schema: str, framing: int = 2) -> str:
-    """Path of a schema's golden bytes under tests/golden/: framing2/ (what encode writes, regenerated on
-    purpose) or framing1/ (plain msgpack, frozen: older peers' bytes must keep decoding)."""
+def golden_name(schema: str, framing: int = 3) -> str:
+    """Path of a schema's golden bytes under tests/golden/: framing3/ (what encode writes, regenerated on
+    purpose), framing2/ (named header, tensors out of band) or framing1/ (plain msgpack); the last two
+    are frozen: older peers' bytes must keep decoding."""
     name = schema.replace("splittag/", "").replace("/", "_")
-    return f"framing1/{name}.msgpack" if framing == 1 else f"framing2/{name}.splittag"
+    return f"framing1/{name}.msgpack" if framing == 1 else f"framing{framing}/{name}.splittag"
 
 
 def assert_messages_equal(a: Message, b: Message) -> None:

@@ -238,7 +238,7 @@ def test_disallowed_dtypes_are_refused_at_encode(dtype: type) -> None:
 
 
 def _body(schema: str) -> dict:
-    return unpack(encode(EXAMPLES[schema]))["body"]
+    return unpack(encode(EXAMPLES[schema], framing=2))["body"]
 
 
 def _patched(schema: str, **changes: object) -> bytes:
@@ -342,7 +342,7 @@ def test_intrinsics_mismatch_at_construction() -> None:
         )
 
 
-_VALID = [encode(m) for m in EXAMPLES.values()]
+_VALID = [encode(m, framing=f) for m in EXAMPLES.values() for f in (2, 3)]
 
 
 def _decode_only_typed_errors(payload: bytes) -> None:
@@ -500,3 +500,211 @@ def test_a_homography_with_a_huge_entry_is_a_schema_error_not_an_overflow(big: f
     payload = encode(features.model_copy(update={"tags": [tag]}))
     with pytest.raises(SchemaError, match="invertible"):
         decode(payload)
+
+
+# ---- framing 3: a positional header whose wire types are compiled from the models ------------------
+
+
+@pytest.mark.parametrize("schema", sorted(EXAMPLES))
+def test_framing2_bytes_of_older_peers_still_decode_and_can_still_be_written(schema: str) -> None:
+    """Framing 2 (named msgpack header, tensors out of band): frozen bytes decode to the same message,
+    and `encode(framing=2)` still writes them byte for byte (for a peer that has not upgraded)."""
+    golden = (GOLDEN / golden_name(schema, framing=2)).read_bytes()
+    assert_messages_equal(decode(golden), EXAMPLES[schema])
+    assert encode(EXAMPLES[schema], framing=2) == golden
+
+
+@pytest.mark.parametrize("schema", sorted(EXAMPLES))
+def test_framing3_is_smaller_and_its_arrays_are_read_only(schema: str) -> None:
+    """No field names travel: every message is smaller than in framing 2; decoded arrays (inline ones
+    copied out of the header, the others viewing the payload) are read-only either way."""
+    msg = EXAMPLES[schema]
+    assert len(encode(msg)) < len(encode(msg, framing=2))
+    out = decode(encode(msg))
+    arrays = [v for v in _leaves(out.model_dump()) if isinstance(v, np.ndarray)]
+    assert all(not a.flags.writeable for a in arrays)
+
+
+def _leaves(x: object) -> list[object]:
+    if isinstance(x, dict):
+        return [leaf for v in x.values() for leaf in _leaves(v)]
+    if isinstance(x, list):
+        return [leaf for v in x for leaf in _leaves(v)]
+    return [x]
+
+
+def _paths(model: object, prefix: tuple[str | int, ...] = ()) -> list[tuple[str | int, ...]]:
+    """Every field of a message, its nested models' and its first list entry's."""
+    out: list[tuple[str | int, ...]] = []
+    for name in type(model).model_fields:  # type: ignore[attr-defined]
+        value = getattr(model, name)
+        out.append((*prefix, name))
+        if hasattr(type(value), "model_fields"):
+            out += _paths(value, (*prefix, name))
+        elif isinstance(value, list) and value and hasattr(type(value[0]), "model_fields"):
+            out += _paths(value[0], (*prefix, name, 0))
+    return out
+
+
+def _replace(model: object, path: tuple[str | int, ...], value: object) -> object:
+    """A copy of `model` with the field at `path` set to `value`, unvalidated (as a bad peer sends it)."""
+    head, *rest = path
+    if not rest:
+        return model.model_copy(update={head: value})  # type: ignore[attr-defined]
+    child = getattr(model, str(head))
+    if isinstance(rest[0], int):
+        items = list(child)
+        items[rest[0]] = _replace(items[rest[0]], tuple(rest[1:]), value) if rest[1:] else value
+        return model.model_copy(update={head: items})  # type: ignore[attr-defined]
+    return model.model_copy(update={head: _replace(child, tuple(rest), value)})  # type: ignore[attr-defined]
+
+
+_PATHS = [(schema, path) for schema, msg in EXAMPLES.items() for path in _paths(msg)]
+_TRICKY = [
+    -1, 0, 1, 7, 8, 2**40, 2**63 - 1, -(2**63), 1.5, -0.0, 3.5e38, 1e300, float("nan"), float("inf"),
+    float("-inf"), True, None, "", "robot_1", "abc\n", "a" * 65, "fp16", "sift", "tracker", "lines",
+    [], [1.0] * 8, [0.0, -1.0], np.zeros((4, 2), np.float32), np.full((4, 2), np.nan, np.float32),
+    np.zeros((4, 2), np.float64), np.eye(3), np.zeros((3, 3)), np.full((3, 3), 1e200), np.eye(4),
+    np.zeros((16, 2), np.float32), np.zeros((6, 9), np.uint8), np.zeros((2, 2, 2, 2), np.float16),
+    np.zeros(5, np.int8), np.eye(6) * -1.0,
+]  # fmt: skip
+
+
+def _verdict(payload: bytes) -> tuple[str, object]:
+    try:
+        return "ok", decode(payload).model_dump()
+    except WireError as exc:
+        return "refused", type(exc).__name__
+
+
+@settings(max_examples=1500, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.sampled_from(_PATHS), st.sampled_from(_TRICKY))
+def test_framing3_refuses_and_accepts_exactly_what_framing2_does(where: tuple[str, tuple], value: object) -> None:
+    """The compiled header checks against pydantic's: one field of a valid message set to a tricky value
+    (out of range, NaN, wrong type, wrong shape or dtype, a pattern's trailing newline, an unknown
+    literal, a singular homography...) is refused by both framings or decodes to the same message."""
+    schema, path = where
+    bad = _replace(EXAMPLES[schema], path, value)
+    payloads = []
+    for framing in (2, 3):
+        try:
+            payloads.append(encode(bad, framing=framing))  # type: ignore[arg-type]
+        except (WireError, TypeError, ValueError, OverflowError):
+            return  # a value the encoders cannot write at all is not a wire case
+    two, three = (_verdict(p) for p in payloads)
+    assert two[0] == three[0], (path, value, two, three)
+    if two[0] == "ok":
+        assert_messages_equal(decode(payloads[0]), decode(payloads[1]))
+
+
+def test_framing3_names_the_field_it_refuses() -> None:
+    """The header carries no names; the error still says which field and why."""
+    msg = EXAMPLES[Features.SCHEMA]
+    assert isinstance(msg, Features)
+    bad = _replace(msg, ("tags", 0, "hamming"), -2)
+    with pytest.raises(SchemaError, match=r"tags\[0\]\.hamming: Expected `int` >= 0"):
+        decode(encode(bad))  # type: ignore[arg-type]
+    with pytest.raises(SchemaError, match="robot_id"):
+        decode(encode(msg.model_copy(update={"robot_id": "abc\n"})))
+    with pytest.raises(SchemaError, match="unknown schema id"):
+        decode(encode(msg).replace(b"splittag/Features/v4", b"splittag/Featurez/v4"))
+    with pytest.raises(SchemaError, match="unsupported version"):
+        decode(encode(msg).replace(b"splittag/Features/v4", b"splittag/Features/v9"))
+
+
+def test_framing3_compiles_only_what_it_can_check() -> None:
+    """A model field the compiler has no checked wire type for fails when the codec is built, not later."""
+    from pydantic import ConfigDict, Field
+
+    from shared.wire.messages import Message
+    from shared.wire.positional import CompileError, PositionalCodec
+
+    class Odd(Message):
+        SCHEMA = "splittag/Odd/v1"
+        ratio: float = Field(multiple_of=0.5)
+
+    with pytest.raises(CompileError, match=r"Odd\.ratio"):
+        PositionalCodec([Odd])
+
+    class Mapping(Message):
+        SCHEMA = "splittag/Mapping/v1"
+        table: dict[str, int]
+
+    with pytest.raises(CompileError, match=r"Mapping\.table"):
+        PositionalCodec([Mapping])
+
+    class Lax(Message):
+        SCHEMA = "splittag/Lax/v1"
+        model_config = ConfigDict(strict=False)
+        count: int
+
+    with pytest.raises(CompileError, match="strict"):
+        PositionalCodec([Lax])
+
+    class Stripped(Message):
+        SCHEMA = "splittag/Stripped/v1"
+        model_config = ConfigDict(str_strip_whitespace=True)
+        name: str
+
+    with pytest.raises(CompileError, match="str_strip_whitespace"):
+        PositionalCodec([Stripped])
+
+
+def _features3_header() -> tuple[list[object], bytes]:
+    """Framing 3's header of the Features example as a Python list, and its data section."""
+    import msgspec
+
+    payload = encode(EXAMPLES[Features.SCHEMA])
+    (size,) = struct.unpack_from("<I", payload, 4)
+    start = (8 + size + 7) & ~7
+    return msgspec.msgpack.decode(payload[8 : 8 + size]), payload[start:]
+
+
+def _frame3(header: list[object], data: bytes) -> bytes:
+    import msgspec
+
+    raw = msgspec.msgpack.encode(header)
+    pad = bytes(-(8 + len(raw)) % 8) if data else b""
+    return struct.pack("<BBxxI", 0xC1, 3, len(raw)) + raw + pad + data
+
+
+def test_framing3_bad_input_is_a_wire_error_of_bounded_length() -> None:
+    """Found in review: a zero-size tensor whose other sizes numpy cannot hold escaped as ValueError; a
+    literal's error quoted a megabyte of input (a probe of X bytes got an X-byte error back)."""
+    header, data = _features3_header()
+    tag = header[9][0]  # type: ignore[index]
+    tag[5] = [2, [0] + [2**31 - 1] * 7, 0]  # the tensor: float16, no bytes, impossible shape
+    with pytest.raises(ArrayError, match="array shape"):
+        decode(_frame3(header, b""))
+    header, data = _features3_header()
+    header[6] = "x" * 1_000_000  # codec
+    with pytest.raises(SchemaError, match="codec") as info:
+        decode(_frame3(header, data))
+    assert len(str(info.value)) < 500
+    with pytest.raises(MalformedFrame):  # the header parses as msgpack but is not a list
+        decode(_frame3({"a": 1}, b""))  # type: ignore[arg-type]
+
+
+def test_a_homography_scaled_below_the_smallest_normal_float_is_still_singular() -> None:
+    """Found in review: 1 / a subnormal scale is inf, and an inf determinant passed the check."""
+    msg = EXAMPLES[Features.SCHEMA]
+    assert isinstance(msg, Features)
+    singular = np.zeros((3, 3))
+    singular[2, 2] = 5e-324
+    bad = _replace(msg, ("tags", 0, "roi_to_image"), singular)
+    for framing in (2, 3):
+        with pytest.raises(SchemaError, match="invertible"):
+            decode(encode(bad, framing=framing))  # type: ignore[arg-type]
+
+
+def test_framing3_reads_any_view_and_writes_either_byte_order() -> None:
+    """A memoryview of other items is read as its bytes; a big-endian array is written as its values."""
+    msg = EXAMPLES[Features.SCHEMA]
+    assert isinstance(msg, Features)
+    payload = encode(msg)
+    padded = payload + bytes(-len(payload) % 8)
+    with pytest.raises(MalformedFrame, match="trailing"):  # the same bytes, seen as uint64 items
+        decode(memoryview(bytearray(padded)).cast("Q"))
+    assert_messages_equal(decode(memoryview(payload)), msg)
+    swapped = _replace(msg, ("tags", 0, "roi_to_image"), msg.tags[0].roi_to_image.astype(">f8"))
+    assert_messages_equal(decode(encode(swapped)), msg)  # type: ignore[arg-type]

@@ -17,7 +17,7 @@ import zenoh
 
 from shared.transport.session import encoding_for
 from shared.wire.codec import WireError
-from shared.wire.messages import Features, LinkStamps, ProbeAck, decode, encode
+from shared.wire.messages import Features, LinkStamps, ProbeAck, decode, encode, framing_of
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +43,7 @@ def serve_echo(
             error = str(exc)
             log.warning("echo: rejected probe of %d bytes: %s", len(payload), exc)
         ack = ProbeAck(received_bytes=len(payload), decoded_ok=not error, error=error, link=link)
-        query.reply(query.key_expr, encode(ack), encoding=enc)
+        query.reply(query.key_expr, encode(ack, framing=framing_of(payload)), encoding=enc)  # the asker's framing
 
     return session.declare_queryable(key, on_query)
 

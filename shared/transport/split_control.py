@@ -24,7 +24,7 @@ import zenoh
 from shared.transport.session import encoding_for
 from shared.wire.codec import WireError
 from shared.wire.cuts import N_CUTS
-from shared.wire.messages import SplitConfig, decode, encode
+from shared.wire.messages import SplitConfig, decode, encode, framing_of
 
 log = logging.getLogger(__name__)
 
@@ -130,6 +130,6 @@ def serve_split(session: zenoh.Session, key: str, state: SplitState) -> zenoh.Qu
             log.warning("split request refused: %s", exc)
             query.reply_err(str(exc).encode())
             return
-        query.reply(query.key_expr, encode(applied), encoding=enc)
+        query.reply(query.key_expr, encode(applied, framing=framing_of(payload)), encoding=enc)  # the asker's framing
 
     return session.declare_queryable(key, on_query)

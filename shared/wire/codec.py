@@ -368,7 +368,10 @@ def _unpack_framed(mv: memoryview) -> Any:
         raise MalformedFrame(f"truncated payload: {size} bytes, a 0xc1 frame head needs {_FRAME_HEAD.size}")
     _, version, header_len = _FRAME_HEAD.unpack_from(mv)
     if version != FRAMING:
-        raise MalformedFrame(f"framing version {version} is not supported (this peer reads 1 and {FRAMING})")
+        raise MalformedFrame(
+            f"framing version {version} is not supported here (this untyped reader reads 1 and {FRAMING}; "
+            "framing 3 is read with the message types, by shared.wire.messages.decode)"
+        )
     head_end = _FRAME_HEAD.size + header_len
     if head_end > size:
         raise MalformedFrame(

@@ -11,10 +11,11 @@ message says what was received; nothing is defaulted silently.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Annotated, Any, ClassVar, Final, Literal, Self, TypeVar
+from typing import Annotated, Any, ClassVar, Final, Literal, Self, TypeVar, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,6 +33,7 @@ from shared.vision.camera import CameraIntrinsics
 from shared.vision.proposers import Proposer
 from shared.wire.codec import (
     DEFAULT_MAX_BYTES,
+    FRAME_MAGIC,
     FRAMING,
     WIRE_DTYPES,
     ArrayError,
@@ -43,6 +45,7 @@ from shared.wire.codec import (
     wire_dtype_name,
 )
 from shared.wire.cuts import N_CUTS, CodecName
+from shared.wire.positional import FRAMING3, PositionalCodec, UnknownSchema
 
 # ----------------------------------------------------------------------------------------------
 # Array fields
@@ -175,12 +178,13 @@ class TagFeatureV1(WireModel):
 
     @model_validator(mode="after")
     def _homography_invertible(self) -> Self:
-        m = self.roi_to_image.tolist()  # 3x3 floats: Python beats numpy here
-        scale = max(abs(v) for row in m for v in row)
+        m = self.roi_to_image.ravel().tolist()  # 3x3 floats: Python beats numpy here
+        scale = max(map(abs, m))
         if scale == 0:
             raise ValueError("roi_to_image is not an invertible homography")
-        # scale first: cubing a huge entry (a finite 1e200) would overflow
-        (a, b, c), (d, e, f), (g, h, i) = ([v / scale for v in row] for row in m)
+        # scale first: cubing a huge entry (a finite 1e200) would overflow; divide (1 / a subnormal
+        # scale would be inf, and an inf determinant passes any threshold)
+        a, b, c, d, e, f, g, h, i = (v / scale for v in m)
         det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
         if abs(det) < 1e-12:
             raise ValueError("roi_to_image is not an invertible homography")
@@ -665,14 +669,37 @@ M = TypeVar("M", bound=Message)
 # ----------------------------------------------------------------------------------------------
 
 
-def encode(message: Message, *, framing: int = FRAMING) -> bytes:
-    """Serialise a message to its wire bytes: the envelope {schema, body} in framing 2 (tensors out of
-    band), or framing 1 (plain msgpack) for a peer older than framing 2."""
+# What `encode` writes: framing 3 (positional header, shared.wire.positional). Framings 1 and 2 are
+# still read, and written on request for older peers.
+WRITE_FRAMING: Final[int] = FRAMING3
+
+
+@functools.cache
+def positional_codec() -> PositionalCodec:
+    """Framing 3's codec, compiled from every message model (once, on first use)."""
+    return PositionalCodec(MESSAGE_TYPES, legacy=LEGACY_SCHEMAS.values())
+
+
+def framing_of(payload: bytes | bytearray | memoryview | None) -> int:
+    """The framing a request came in (1, 2 or 3), so a reply can be one the asker reads: an older
+    peer's probe or split request gets its answer in its own framing. Unknown or no payload: ours."""
+    if not payload:
+        return WRITE_FRAMING
+    if payload[0] != FRAME_MAGIC:
+        return 1
+    return payload[1] if len(payload) > 1 and payload[1] in (FRAMING, FRAMING3) else WRITE_FRAMING
+
+
+def encode(message: Message, *, framing: int = WRITE_FRAMING) -> bytes:
+    """Serialise a message to its wire bytes: framing 3 (positional header, tensors out of band), or
+    framing 2 (the envelope {schema, body} as a named msgpack header) / 1 (plain msgpack) for older peers."""
+    if framing == FRAMING3:
+        return positional_codec().pack(message)
     if framing == FRAMING:
         return pack({"schema": message.SCHEMA, "body": message})
     if framing == 1:
         return pack_framing1({"schema": message.SCHEMA, "body": message})
-    raise ValueError(f"framing must be 1 or {FRAMING}, got {framing!r}")
+    raise ValueError(f"framing must be 1, {FRAMING} or {FRAMING3}, got {framing!r}")
 
 
 def _schema_error(schema: Any) -> SchemaError:
@@ -683,6 +710,34 @@ def _schema_error(schema: Any) -> SchemaError:
     if known_versions:
         return SchemaError(f"unsupported version {version!r} of {name} (supported: {', '.join(known_versions)})")
     return SchemaError(f"unknown schema id {schema!r} (known: {', '.join(SCHEMAS)})")
+
+
+def _check_expected(schema: str, current: type[Message], expected: type[M] | Sequence[type[Message]] | None) -> None:
+    if expected is not None:
+        allowed = (expected,) if isinstance(expected, type) else tuple(expected)
+        if current not in allowed:
+            names = ", ".join(m.SCHEMA for m in allowed)
+            raise SchemaError(f"received {schema} where {names} was expected")
+
+
+def _decode_positional(
+    payload: bytes | bytearray | memoryview, expected: type[M] | Sequence[type[Message]] | None
+) -> Any:
+    """Framing 3: the header parsed and checked natively, the model assembled (shared.wire.positional)."""
+    mv = memoryview(payload)
+    try:
+        schema, model = positional_codec().unpack(mv)
+    except UnknownSchema as exc:
+        raise _schema_error(exc.schema) from None
+    legacy = LEGACY_SCHEMAS.get(schema)
+    current = _CURRENT_BY_NAME[schema.rpartition("/")[0]] if legacy is not None else cast(type[Message], type(model))
+    _check_expected(schema, current, expected)
+    if legacy is None:
+        return model
+    try:
+        return model.upgrade()  # type: ignore[attr-defined]
+    except ValidationError as exc:
+        raise SchemaError(f"invalid {schema}: cannot upgrade: {exc.errors(include_url=False)[0]['msg']}") from None
 
 
 def _require_all_fields(model: type[WireModel], body: Any, where: str) -> None:
@@ -704,6 +759,10 @@ def decode(
 
     `expected` restricts which message types are acceptable; arrays in the result view `payload`.
     """
+    if isinstance(payload, memoryview) and (payload.format != "B" or payload.ndim != 1):
+        payload = payload.cast("B")  # sizes and the frame head in bytes, whatever the view's items
+    if len(payload) >= 2 and payload[0] == FRAME_MAGIC and payload[1] == FRAMING3 and len(payload) <= max_bytes:
+        return _decode_positional(payload, expected)
     doc = unpack(payload, max_bytes=max_bytes)
     if not isinstance(doc, dict) or doc.keys() != ENVELOPE_KEYS:
         got = sorted(doc) if isinstance(doc, dict) else type(doc).__name__
@@ -714,11 +773,7 @@ def decode(
     if model is None:
         raise _schema_error(schema)
     current = _CURRENT_BY_NAME[schema.rpartition("/")[0]] if legacy is not None else model
-    if expected is not None:
-        allowed = (expected,) if isinstance(expected, type) else tuple(expected)
-        if current not in allowed:
-            names = ", ".join(m.SCHEMA for m in allowed)
-            raise SchemaError(f"received {schema} where {names} was expected")
+    _check_expected(schema, current, expected)
     _require_all_fields(model, doc["body"], schema)
     try:
         if legacy is not None:

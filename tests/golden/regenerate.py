@@ -1,5 +1,5 @@
-"""Regenerate the golden wire bytes of framing 2: `python -m tests.golden.regenerate` (review the diff!).
-framing1/ is frozen: those are the bytes older peers send, never regenerated."""
+"""Regenerate the golden wire bytes of framing 3: `python -m tests.golden.regenerate` (review the diff!).
+framing1/ and framing2/ are frozen: those are the bytes older peers send, never regenerated."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ HERE = Path(__file__).parent
 
 
 def main() -> None:
-    """Write one framing2/*.splittag file per schema."""
-    (HERE / "framing2").mkdir(exist_ok=True)
+    """Write one framing3/*.splittag file per schema."""
+    (HERE / "framing3").mkdir(exist_ok=True)
     for schema, msg in example_messages().items():
         path = HERE / golden_name(schema)
         path.write_bytes(encode(msg))

@@ -1,0 +1,548 @@
+"""Framing 3: a positional msgpack header whose wire types are compiled from the message models, so
+one C call (msgspec) parses the header and checks every field of it.
+
+    0xC1 | version 3 | 2 zero bytes | u32 LE header length H | H bytes msgpack header | 0-7 zero bytes |
+    array data, each array starting 8-byte aligned (relative to the data section), in header order
+
+The header is `[schema id, field 1, field 2, ...]` in the model's field order, nested models are
+arrays of their fields the same way: no field names travel (a one-tag Features header is 62 % of its
+framing-2 size). Arrays travel two ways:
+
+- small fixed-shape float arrays whose values must be finite (corners, homographies, poses,
+  covariances, TagPoses' 16 keypoints): inline, as flat msgpack number arrays of exactly the right
+  length, their bounds (the dtype's largest finite value) checked by the parser, so NaN and inf are
+  refused there;
+- every other array (images, split tensors): a reference `[dtype code, [sizes], offset]` into the data
+  section, which is viewed without a copy and then checked by the field's own `ArraySpec` (dtype,
+  shape, finiteness), in header order, 8-byte aligned, without overlap, inside the payload, the
+  payload ending with the last one.
+
+Models compile only if they are strict, forbid extra fields and use no config or constraint the
+parser does not know (a lax field, `str_strip_whitespace`, `model_post_init`, a field validator, a
+before-validator...): the parser must refuse exactly what pydantic refuses.
+
+Why: inside a Zenoh callback each Python call runs cold, and framing 2's per-array hooks and pydantic's
+validation of a small Features message cost ~0.1 ms per round trip, more than Zenoh itself. Here the
+parser does the scalar checks natively and the models are assembled without a second validation; the
+models' own `model_validator(mode="after")` checks then run on the result, so nothing pydantic would
+refuse gets through (tests/test_wire.py decodes every example and thousands of mutated payloads both
+ways and requires the same verdicts and values).
+
+The wire types are derived from the pydantic models when a codec is built (`PositionalCodec`); a field
+whose type or constraint the compiler does not know is an error at that moment, never a silently
+unchecked field.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import struct
+import types
+import typing
+from collections.abc import Callable, Iterable, Sequence
+from typing import Annotated, Any, Final, Literal, Union
+
+import annotated_types as at
+import msgspec
+import numpy as np
+from pydantic import BaseModel
+from pydantic.fields import FieldInfo
+from pydantic.types import AllowInfNan, Strict
+
+from shared.wire.codec import (
+    ALIGN,
+    FRAME_MAGIC,
+    MAX_DIM,
+    MAX_NDIM,
+    WIRE_DTYPES,
+    ArrayError,
+    MalformedFrame,
+    SchemaError,
+    wire_dtype_name,
+)
+
+FRAMING3: Final[int] = 3
+_FRAME_HEAD = struct.Struct("<BBxxI")
+_ZEROS: Final[bytes] = bytes(ALIGN)
+_DTYPE_CODES: Final[dict[str, int]] = {name: i for i, name in enumerate(WIRE_DTYPES)}
+_CODE_DTYPES: Final[tuple[np.dtype[Any], ...]] = tuple(WIRE_DTYPES.values())
+MAX_INLINE: Final[int] = 64  # elements: larger arrays travel in the data section
+MAX_ERROR_CHARS: Final[int] = 300  # an error quotes the received value: never a megabyte of it
+_FINITE_MAX: Final[dict[str, float]] = {
+    "float64": float(np.finfo(np.float64).max),
+    "float32": float(np.finfo(np.float32).max),
+    "float16": float(np.finfo(np.float16).max),
+}
+_Dims = Annotated[list[Annotated[int, msgspec.Meta(ge=0, le=MAX_DIM)]], msgspec.Meta(max_length=MAX_NDIM)]
+_Offset = Annotated[int, msgspec.Meta(ge=0, multiple_of=ALIGN)]
+
+
+def _aligned(n: int) -> int:
+    return (n + ALIGN - 1) & ~(ALIGN - 1)
+
+
+class CompileError(TypeError):
+    """A model field whose type or constraint has no positional wire type (a programming error)."""
+
+
+class _Ctx:
+    """Decoding state of one payload: the data section and where the last array ended."""
+
+    __slots__ = ("count", "data", "end")
+
+    def __init__(self, data: memoryview) -> None:
+        self.data = data
+        self.end = 0
+        self.count = 0
+
+
+class _Out:
+    """Encoding state of one payload: the arrays for the data section and where each starts."""
+
+    __slots__ = ("arrays", "end", "starts")
+
+    def __init__(self) -> None:
+        self.arrays: list[np.ndarray] = []
+        self.starts: list[int] = []
+        self.end = 0
+
+
+# A field's (wire type, encoder of a model value -> wire value, decoder of a wire value -> model value).
+# None for either: the value is the same on both sides (scalars, strings, literals, lists of those).
+Enc = Callable[[Any, _Out], Any] | None
+Dec = Callable[[Any, _Ctx], Any] | None
+
+
+def _rust_anchor(pattern: str) -> str:
+    """pydantic matches patterns with Rust's regex, where `$` is the end of the text; Python's `$` also
+    matches before a final newline ("abc\\n"). The same pattern with Python's `\\Z` instead."""
+    if pattern.endswith("$") and not pattern.endswith("\\$"):
+        return pattern[:-1] + r"\Z"
+    return pattern
+
+
+def _meta_of(metadata: Iterable[Any], where: str) -> tuple[dict[str, Any], Any, bool | None]:
+    """msgspec.Meta keywords, an ArraySpec (or None) and allow_inf_nan from pydantic field metadata."""
+    from shared.wire.messages import ArraySpec  # the array checks live with the messages
+
+    kw: dict[str, Any] = {}
+    spec = None
+    allow_inf_nan: bool | None = None
+    for m in metadata:
+        if isinstance(m, ArraySpec):
+            spec = m
+        elif isinstance(m, at.Ge):
+            kw["ge"] = m.ge
+        elif isinstance(m, at.Gt):
+            kw["gt"] = m.gt
+        elif isinstance(m, at.Le):
+            kw["le"] = m.le
+        elif isinstance(m, at.Lt):
+            kw["lt"] = m.lt
+        elif isinstance(m, at.MinLen):
+            kw["min_length"] = m.min_length
+        elif isinstance(m, at.MaxLen):
+            kw["max_length"] = m.max_length
+        elif isinstance(m, FieldInfo):
+            inner, inner_spec, inner_nan = _meta_of(m.metadata, where)
+            kw.update(inner)
+            spec = inner_spec or spec
+            allow_inf_nan = inner_nan if inner_nan is not None else allow_inf_nan
+        elif isinstance(m, AllowInfNan):
+            allow_inf_nan = m.allow_inf_nan
+        elif isinstance(m, Strict):
+            if not m.strict:
+                raise CompileError(f"{where}: a lax (strict=False) field has no positional wire type")
+        elif type(m).__name__ == "_PydanticGeneralMetadata":
+            extra = dict(vars(m))
+            if "pattern" in extra:
+                kw["pattern"] = _rust_anchor(extra.pop("pattern"))
+            if "allow_inf_nan" in extra:
+                allow_inf_nan = bool(extra.pop("allow_inf_nan"))
+            if extra.pop("strict", True) is not True:
+                raise CompileError(f"{where}: a lax (strict=False) field has no positional wire type")
+            if extra:
+                raise CompileError(f"{where}: constraints {sorted(extra)} have no positional wire type")
+        else:
+            raise CompileError(f"{where}: metadata {m!r} has no positional wire type")
+    return kw, spec, allow_inf_nan
+
+
+def _meta(tp: Any, kw: dict[str, Any]) -> Any:
+    return Annotated[tp, msgspec.Meta(**kw)] if kw else tp
+
+
+class PositionalCodec:
+    """Encoder and decoder of framing 3 for a set of message models (current and older schemas)."""
+
+    def __init__(self, models: Sequence[type[BaseModel]], *, legacy: Iterable[type[BaseModel]] = ()) -> None:
+        self._structs: dict[type[BaseModel], type[msgspec.Struct]] = {}
+        self._encoders: dict[type[BaseModel], Callable[[Any, _Out], list[Any]]] = {}
+        self._builders: dict[type[msgspec.Struct], Callable[[Any, _Ctx], Any]] = {}
+        self._ref_types: dict[tuple[int, ...], type[msgspec.Struct]] = {}
+        self.models = {m.SCHEMA: m for m in (*models, *legacy)}  # type: ignore[attr-defined]
+        tops = []
+        for schema, model in self.models.items():
+            tops.append(self._struct_for(model, tag=schema))
+        self._decoder = msgspec.msgpack.Decoder(Union[tuple(tops)])  # noqa: UP007
+        self._encoder = msgspec.msgpack.Encoder()
+
+    # -- compilation ------------------------------------------------------------------------------
+
+    def _ref_type(self, codes: tuple[int, ...]) -> type[msgspec.Struct]:
+        ref = self._ref_types.get(codes)
+        if ref is None:
+            ref = msgspec.defstruct(
+                f"ArrayRef{'_'.join(map(str, codes))}",
+                [("dtype", Literal[codes]), ("shape", _Dims), ("offset", _Offset)],
+                array_like=True,
+                forbid_unknown_fields=True,
+            )
+            self._ref_types[codes] = ref
+        return ref
+
+    def _array(self, spec: Any, where: str) -> tuple[Any, Enc, Dec]:
+        shape = spec.shape
+        fixed = shape is not None and all(d is not None for d in shape)
+        count = math.prod(shape) if fixed else 0
+        if fixed and spec.finite and len(spec.dtypes) == 1 and spec.dtypes[0] in _FINITE_MAX and count <= MAX_INLINE:
+            name = spec.dtypes[0]
+            dtype = WIRE_DTYPES[name]
+            bound = _FINITE_MAX[name]
+            item = Annotated[float, msgspec.Meta(ge=-bound, le=bound)]
+            wire = Annotated[tuple[item, ...], msgspec.Meta(min_length=count, max_length=count)]
+
+            def enc_inline(value: np.ndarray, out: _Out) -> list[float]:
+                if isinstance(value, np.ndarray) and value.dtype != dtype and value.dtype.newbyteorder("<") == dtype:
+                    value = value.astype(dtype)  # the same values in the other byte order (as framing 2 writes it)
+                if not isinstance(value, np.ndarray) or value.dtype != dtype or value.shape != shape:
+                    got = f"{value.dtype} {value.shape}" if isinstance(value, np.ndarray) else type(value).__name__
+                    raise ArrayError(f"{where}: expected a {name} array of shape {shape}, got {got}")
+                return value.ravel().tolist()
+
+            def dec_inline(value: tuple[float, ...], ctx: _Ctx) -> np.ndarray:
+                out = np.array(value, dtype).reshape(shape)
+                out.flags.writeable = False  # as framing 2's views of the payload
+                return out
+
+            return wire, enc_inline, dec_inline
+        codes = tuple(sorted(_DTYPE_CODES[d] for d in spec.dtypes))
+        validate = spec.validate
+        wire_codes = {WIRE_DTYPES[d]: _DTYPE_CODES[d] for d in spec.dtypes}  # the field's little-endian dtypes
+
+        def enc_ref(value: np.ndarray, out: _Out) -> list[Any]:
+            if not isinstance(value, np.ndarray):
+                raise ArrayError(f"{where}: expected an ndarray, got {type(value).__name__}")
+            code = wire_codes.get(value.dtype)
+            if code is not None and value.flags.c_contiguous:  # what a validated message holds
+                arr = value
+            else:
+                name = wire_dtype_name(value.dtype)
+                arr = np.ascontiguousarray(value, dtype=WIRE_DTYPES[name])
+                code = _DTYPE_CODES[name]
+            start = _aligned(out.end)
+            out.arrays.append(arr)
+            out.starts.append(start)
+            out.end = start + arr.nbytes
+            return [code, list(arr.shape), start]
+
+        def dec_ref(ref: Any, ctx: _Ctx) -> np.ndarray:
+            dtype = _CODE_DTYPES[ref.dtype]
+            n = 1
+            for d in ref.shape:
+                n *= d
+            nbytes = n * dtype.itemsize
+            start = ref.offset
+            if start < ctx.end:
+                raise ArrayError(
+                    f"array of shape {tuple(ref.shape)} at offset {start}: arrays must follow each other "
+                    f"{ALIGN}-byte aligned (the previous one ends at {ctx.end})"
+                )
+            if start + nbytes > len(ctx.data):
+                raise MalformedFrame(
+                    f"truncated payload: array of dtype {dtype} and shape {tuple(ref.shape)} needs bytes "
+                    f"{start}..{start + nbytes} of the data section, which has {len(ctx.data)}"
+                )
+            ctx.end = start + nbytes
+            ctx.count += 1
+            try:
+                arr = np.frombuffer(ctx.data, dtype=dtype, count=n, offset=start).reshape(ref.shape)
+            except ValueError as exc:  # e.g. a zero-size shape whose other sizes numpy cannot hold
+                raise ArrayError(f"array shape {_short(ref.shape)}: {exc}") from None
+            try:
+                return validate(arr)
+            except ValueError as exc:
+                raise _FieldError(f"{where}: {exc}") from None
+
+        return self._ref_type(codes), enc_ref, dec_ref
+
+    def _field(self, tp: Any, metadata: Sequence[Any], where: str) -> tuple[Any, Enc, Dec]:
+        """(wire type, encoder, decoder) of one field type with its pydantic metadata."""
+        if typing.get_origin(tp) is Annotated:
+            base, *more = typing.get_args(tp)
+            return self._field(base, [*more, *metadata], where)
+        kw, spec, allow_inf_nan = _meta_of(metadata, where)
+        if spec is not None:
+            return self._array(spec, where)
+        origin = typing.get_origin(tp)
+        if origin in (Union, types.UnionType):
+            args = typing.get_args(tp)
+            others = [a for a in args if a is not type(None)]
+            if len(others) != 1 or len(args) != 2:
+                raise CompileError(f"{where}: only `X | None` unions have a positional wire type, not {tp}")
+            wire, enc, dec = self._field(others[0], metadata, where)  # the constraints are the value's
+            enc_opt = None if enc is None else (lambda v, out, _e=enc: None if v is None else _e(v, out))
+            dec_opt = None if dec is None else (lambda v, ctx, _d=dec: None if v is None else _d(v, ctx))
+            return wire | None, enc_opt, dec_opt
+        if origin is list:
+            (item,) = typing.get_args(tp)
+            wire, enc, dec = self._field(item, [], where + "[]")
+            enc_list = None if enc is None else (lambda v, out, _e=enc: [_e(x, out) for x in _as_list(v, where)])
+            dec_list = None if dec is None else (lambda v, ctx, _d=dec: [_d(x, ctx) for x in v])
+            return _meta(list[wire], kw), enc_list, dec_list  # type: ignore[valid-type]
+        if origin is Literal:
+            if kw:
+                raise CompileError(f"{where}: constraints on a Literal")
+            return tp, None, None
+        if isinstance(tp, type) and issubclass(tp, BaseModel):
+            if kw:
+                raise CompileError(f"{where}: constraints on a nested model")
+            struct_type = self._struct_for(tp)
+            return struct_type, self._encoders[tp], self._builders[struct_type]
+        if tp is bool or tp is str:
+            return _meta(tp, kw), None, None
+        if tp is int:
+            return _meta(int, kw), None, None
+        if tp is float:
+            if allow_inf_nan is False:  # NaN fails any bound; a finite bound refuses +-inf
+                big = _FINITE_MAX["float64"]
+                kw.setdefault("ge", -big) if "gt" not in kw else None
+                kw.setdefault("le", big) if "lt" not in kw else None
+            return _meta(float, kw), None, None  # an int on the wire becomes a float, as in pydantic
+        raise CompileError(f"{where}: type {tp!r} has no positional wire type")
+
+    def _struct_for(self, model: type[BaseModel], *, tag: str | None = None) -> type[msgspec.Struct]:
+        """The positional wire type of one model (compiled once; `tag`: a top-level message's schema id)."""
+        existing = self._structs.get(model)
+        if existing is not None and tag is None:
+            return existing
+        _check_config(model)
+        fields: list[tuple[str, Any]] = []
+        encoders: list[tuple[str, Enc]] = []
+        decoders: list[tuple[str, Dec]] = []
+        for name, info in model.model_fields.items():
+            where = f"{model.__name__}.{name}"
+            wire, enc, dec = self._field(info.annotation, info.metadata, where)
+            fields.append((name, wire))
+            encoders.append((name, enc))
+            decoders.append((name, dec))
+        options: dict[str, Any] = {"array_like": True, "forbid_unknown_fields": True}
+        if tag is not None:
+            options["tag"] = tag
+        struct_type = msgspec.defstruct(f"Wire{model.__name__}", fields, **options)
+        self._structs.setdefault(model, struct_type)
+        self._builders[struct_type] = _builder(model, decoders)
+        if model not in self._encoders:
+            self._encoders[model] = _encoder(encoders)
+        return struct_type
+
+    # -- encoding and decoding --------------------------------------------------------------------
+
+    def pack(self, message: BaseModel) -> bytes:
+        """Framing 3 bytes of a message (its model must be one this codec was built for)."""
+        schema = message.SCHEMA  # type: ignore[attr-defined]
+        out = _Out()
+        header = self._encoder.encode([schema, *self._encoders[type(message)](message, out)])
+        arrays, starts = out.arrays, out.starts
+        parts: list[Any] = [_FRAME_HEAD.pack(FRAME_MAGIC, FRAMING3, len(header)), header]
+        if arrays:
+            head_len = _FRAME_HEAD.size + len(header)
+            parts.append(_ZEROS[: _aligned(head_len) - head_len])
+            pos = 0
+            for start, arr in zip(starts, arrays, strict=True):
+                parts.append(_ZEROS[: start - pos])
+                if arr.nbytes:
+                    parts.append(memoryview(arr).cast("B"))  # type: ignore[arg-type]
+                pos = start + arr.nbytes
+        return b"".join(parts)
+
+    def unpack(self, mv: memoryview) -> tuple[str, BaseModel]:
+        """(schema id, model of that schema) from a framing-3 payload; arrays view `mv`."""
+        size = len(mv)
+        if size < _FRAME_HEAD.size:
+            raise MalformedFrame(f"truncated payload: {size} bytes, a 0xc1 frame head needs {_FRAME_HEAD.size}")
+        _, _, header_len = _FRAME_HEAD.unpack_from(mv)
+        head_end = _FRAME_HEAD.size + header_len
+        if head_end > size:
+            raise MalformedFrame(
+                f"truncated payload: the header needs {header_len} bytes, {size - 8} follow the frame head"
+            )
+        header = mv[_FRAME_HEAD.size : head_end]
+        try:
+            wire = self._decoder.decode(header)
+        except msgspec.ValidationError as exc:
+            raise self._header_error(header, exc) from None
+        except (msgspec.DecodeError, ValueError) as exc:  # ValueError: a string that is not UTF-8
+            raise MalformedFrame(f"malformed msgpack header: {_short(str(exc))}") from None
+        data_start = min(_aligned(head_end), size)
+        ctx = _Ctx(mv[data_start:])
+        schema = wire.__struct_config__.tag
+        try:
+            model = self._builders[type(wire)](wire, ctx)
+        except _FieldError as exc:
+            raise SchemaError(f"invalid {schema}: {_short(str(exc))}") from None
+        end = data_start + ctx.end if ctx.count else head_end
+        if end != size:
+            raise MalformedFrame(
+                f"{size - end} trailing bytes after the document (document ends at byte {end} of {size})"
+            )
+        return schema, model
+
+    def _header_error(self, header: memoryview, exc: msgspec.ValidationError) -> Exception:
+        """The clearest error for a header the parser refused: an unknown schema id is said as such."""
+        try:
+            doc = msgspec.msgpack.decode(header)
+        except (msgspec.DecodeError, ValueError, RecursionError):
+            return MalformedFrame(f"malformed msgpack header: {_short(str(exc))}")
+        if not isinstance(doc, list):
+            return MalformedFrame(f"the header is a {type(doc).__name__}, not [schema id, fields...]")
+        schema = doc[0] if doc else None
+        if not isinstance(schema, str) or schema not in self.models:
+            return UnknownSchema(schema)
+        return SchemaError(f"invalid {schema}: {_short(_named(str(exc), self._structs[self.models[schema]]))}")
+
+
+_AT = re.compile(r"^(?P<what>.*) - at `\$(?P<path>(?:\[\d+\])*)`$", re.DOTALL)
+
+
+def _named(message: str, top: type[msgspec.Struct]) -> str:
+    """msgspec's "... - at `$[9][0][9]`" with field names: "tags[0].proposer: ..." (the positional
+    header has no names; the wire types do)."""
+    m = _AT.match(message)
+    if m is None:
+        return message
+    indices = [int(i) for i in re.findall(r"\d+", m["path"])]
+    names: list[str] = []
+    tp: Any = top
+    first = True
+    for i in indices:
+        while typing.get_origin(tp) is Annotated or typing.get_origin(tp) in (Union, types.UnionType):
+            args = [a for a in typing.get_args(tp) if a is not type(None)]
+            tp = args[0]
+        if isinstance(tp, type) and issubclass(tp, msgspec.Struct):
+            fields = msgspec.structs.fields(tp)
+            j = i - 1 if first else i  # a top-level header starts with the schema id
+            if not 0 <= j < len(fields):
+                names.append(f"[{i}]")
+                break
+            names.append(("." if names else "") + fields[j].name)
+            tp = fields[j].type
+        elif typing.get_origin(tp) in (list, tuple):
+            names.append(f"[{i}]")
+            tp = typing.get_args(tp)[0]
+        else:
+            names.append(f"[{i}]")
+        first = False
+    where = "".join(names) or "<body>"
+    return f"{where}: {m['what']}"
+
+
+class _FieldError(ValueError):
+    """A field the header parser cannot judge was refused by the model's own check (array, validator)."""
+
+
+class UnknownSchema(SchemaError):
+    """The header's first element is not a schema id this peer knows (messages.py words the error)."""
+
+    def __init__(self, schema: Any) -> None:
+        super().__init__(f"unknown schema id {schema!r}")
+        self.schema = schema
+
+
+# Config keys that change what pydantic accepts or returns; the parser knows none of them.
+_LAX_CONFIG: Final[frozenset[str]] = frozenset(
+    {
+        "str_strip_whitespace",
+        "str_to_lower",
+        "str_to_upper",
+        "str_min_length",
+        "str_max_length",
+        "coerce_numbers_to_str",
+        "use_enum_values",
+        "validate_default",
+        "regex_engine",
+        "ser_json_inf_nan",
+        "allow_inf_nan",
+    }
+)
+
+
+def _check_config(model: type[BaseModel]) -> None:
+    """The parser checks what a strict, extra-forbidding, plain model checks: nothing else compiles."""
+    config = model.model_config
+    if config.get("strict") is not True or config.get("extra") != "forbid":
+        raise CompileError(f"{model.__name__}: only strict models that forbid extra fields compile")
+    lax = sorted(k for k in _LAX_CONFIG if k in config)
+    if lax:
+        raise CompileError(f"{model.__name__}: config {lax} has no positional wire type")
+    if model.__pydantic_post_init__ is not None:
+        raise CompileError(f"{model.__name__}: model_post_init has no positional wire type")
+
+
+def _short(value: object) -> str:
+    text = value if isinstance(value, str) else repr(value)
+    return text if len(text) <= MAX_ERROR_CHARS else text[:MAX_ERROR_CHARS] + f"... ({len(text)} chars)"
+
+
+def _as_list(value: Any, where: str) -> list[Any]:
+    if not isinstance(value, list):
+        raise MalformedFrame(f"{where}: cannot encode {type(value).__name__} where a list belongs")
+    return value
+
+
+_new = object.__new__
+_set = object.__setattr__
+
+
+def _builder(model: type[BaseModel], decoders: list[tuple[str, Dec]]) -> Callable[[Any, _Ctx], Any]:
+    """Wire struct -> model, without a second validation: the parser checked every scalar; arrays are
+    checked by their decoders; then the model's own after-validators run, as model_validate would."""
+    special = [(name, dec) for name, dec in decoders if dec is not None]
+    after = [d.func for d in model.__pydantic_decorators__.model_validators.values() if d.info.mode == "after"]
+    if any(d.info.mode != "after" for d in model.__pydantic_decorators__.model_validators.values()):
+        raise CompileError(f"{model.__name__}: only after-validators are supported")
+    if model.__pydantic_decorators__.field_validators:
+        raise CompileError(f"{model.__name__}: field validators have no positional wire check")
+    asdict = msgspec.structs.asdict
+    names = frozenset(model.model_fields)
+
+    def build(wire: Any, ctx: _Ctx) -> Any:
+        values = asdict(wire)
+        for name, dec in special:
+            values[name] = dec(values[name], ctx)
+        out = _new(model)
+        _set(out, "__dict__", values)
+        _set(out, "__pydantic_fields_set__", set(names))
+        _set(out, "__pydantic_extra__", None)
+        _set(out, "__pydantic_private__", None)
+        for check in after:
+            try:
+                check(out)
+            except ValueError as exc:
+                raise _FieldError(f"{model.__name__}: {exc}") from None
+        return out
+
+    return build
+
+
+def _encoder(encoders: list[tuple[str, Enc]]) -> Callable[[Any, _Out], list[Any]]:
+    plan = list(encoders)
+
+    def encode(message: Any, out: _Out) -> list[Any]:
+        if not isinstance(message, BaseModel):
+            raise MalformedFrame(f"cannot encode {type(message).__name__} where a message part belongs")
+        d = message.__dict__
+        return [d[name] if enc is None else enc(d[name], out) for name, enc in plan]
+
+    return encode
