@@ -706,5 +706,8 @@ def test_framing3_reads_any_view_and_writes_either_byte_order() -> None:
     with pytest.raises(MalformedFrame, match="trailing"):  # the same bytes, seen as uint64 items
         decode(memoryview(bytearray(padded)).cast("Q"))
     assert_messages_equal(decode(memoryview(payload)), msg)
+    for framing in (1, 2, 3):  # arrays viewing a mutable buffer are read-only too
+        out = decode(bytearray(encode(msg, framing=framing)))
+        assert not out.tags[0].tensor.flags.writeable
     swapped = _replace(msg, ("tags", 0, "roi_to_image"), msg.tags[0].roi_to_image.astype(">f8"))
     assert_messages_equal(decode(encode(swapped)), msg)  # type: ignore[arg-type]

@@ -401,7 +401,7 @@ def unpack(payload: bytes | bytearray | memoryview, *, max_bytes: int = DEFAULT_
         raise PayloadTooLarge(f"payload of {size} bytes exceeds the limit of {max_bytes} bytes")
     if size == 0:
         raise MalformedFrame("empty payload")
-    mv = memoryview(payload)
+    mv = memoryview(payload).toreadonly()  # arrays view it read-only, a bytearray payload included
     if mv.format != "B" or mv.ndim != 1:
         mv = mv.cast("B")
     if mv[0] == FRAME_MAGIC:

@@ -724,7 +724,7 @@ def _decode_positional(
     payload: bytes | bytearray | memoryview, expected: type[M] | Sequence[type[Message]] | None
 ) -> Any:
     """Framing 3: the header parsed and checked natively, the model assembled (shared.wire.positional)."""
-    mv = memoryview(payload)
+    mv = memoryview(payload).toreadonly()  # arrays view it read-only, a bytearray payload included
     try:
         schema, model = positional_codec().unpack(mv)
     except UnknownSchema as exc:
