@@ -66,6 +66,24 @@ class SlamSettings(BaseModel):
     )  # the fused keypoints' median error (bench/accuracy: p50 0.05 px)
     disagreement_deg: float = Field(default=10.0, gt=0)
     huber_k: float = 1.5
+    # The robust kernel of a frame's views when every tag the frame fuses is surveyed (the tag map states
+    # it to within soft_surveyed_sigma_m / _deg, or gives it without sigmas), and of the blind priors
+    # placed against such tags. There a view that disagrees with the map and with the motion is more
+    # likely a bad read (a blurred far tag whose tilt is off) than news. "cauchy" (default) lets such a
+    # view fade: at 3 x map_view_kernel_k sigmas it weighs 10 %, where Huber keeps pulling. "huber":
+    # Huber at map_view_kernel_k. Every other frame keeps Huber (huber_k) for every view: where the map's
+    # views compete with slam's own (a tag slam maps, or one the map states only roughly), fading them
+    # let the map drift or follow a wrong map. Measured: Cauchy on every view of every frame took medium
+    # rooms without a map from 1.11 to 2.52 cm mean ATE; Cauchy on views of any tag-map tag took the
+    # 0.2 px noisy run, with only the anchor in the map, from 4.9 to 34 cm, and bench.slam's SLAM + rough
+    # map (2 cm / 1 deg per axis, so stated) from 3.60 / 2.71 / 7.01 to 5.74 / 3.26 / 9.81 cm on slow /
+    # medium / fast. With this rule (README *Marker SLAM*): the sixteen tuning rooms with the map, fast
+    # 4.90 -> 3.98 cm mean ATE (the default room 4.48 -> 2.81, its spread over 1-nm perturbations
+    # 2.86-5.26 -> 2.70-2.84), medium 0.48 -> 0.44; sixteen new rooms, fast 3.75 -> 3.00 (every room
+    # better), medium 0.40 -> 0.39. Without a map, or with a map that states its sigmas roughly, nothing
+    # changes. A rough map given without sigmas is taken as surveyed and then trusted over the views.
+    map_view_kernel: Literal["cauchy", "huber"] = "cauchy"
+    map_view_kernel_k: float = Field(default=0.5, gt=0)
     relinearize_threshold: float = 0.01
     # Smooth-motion prior between consecutive frames (no odometry): sigma per frame of gap.
     # Constant-velocity prior between a frame and the last one with a pose: sigma per frame of gap
@@ -385,6 +403,7 @@ class MarkerSlam:
     ) -> None:
         self.settings = settings
         self.known = known_tags or {}  # id -> (size, world_from_tag) from a tag map
+        self._map_frame = False  # the frame being fused sees surveyed tags only
         # id -> (rotation rad, position m): how well the tag map says it knows a pose (None: known_tag_sigma)
         self.known_sigmas = known_sigmas or {}
         # Tags soft reads may place the camera by: of `surveyed` (default: every known tag; the slam
@@ -451,13 +470,23 @@ class MarkerSlam:
         return obs.alt_reprojection_error_px < self.settings.ambiguity_ratio * floor
 
     def noise(self, obs: Observation, *, alt: bool = False) -> gtsam.noiseModel.Base:
-        """Robust (Huber) Gaussian noise of one observation: `covariance` in GTSAM's model."""
-        return self._robust(self.covariance(obs, alt=alt))
+        """Robust Gaussian noise of one observation: `covariance` in GTSAM's model, under Huber, or under
+        map_view_kernel for a tag whose pose the tag map gives."""
+        return self._robust(self.covariance(obs, alt=alt), map_view=self._map_frame and obs.tag_id in self.surveyed)
 
-    def _robust(self, cov: Array) -> gtsam.noiseModel.Base:
-        """A view's noise model: Huber (huber_k) over the Gaussian of `cov`."""
+    def _robust(self, cov: Array, *, map_view: bool = False) -> gtsam.noiseModel.Base:
+        """A view's noise model: Huber (huber_k) over the Gaussian of `cov`, or for a view of a tag-map
+        tag (`map_view`) the map_view_kernel."""
+        s = self.settings
         gauss = gtsam.noiseModel.Gaussian.Covariance(cov)
-        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.settings.huber_k), gauss)
+        kernel: gtsam.noiseModel.mEstimator.Base
+        if map_view and s.map_view_kernel == "cauchy":
+            kernel = gtsam.noiseModel.mEstimator.Cauchy.Create(s.map_view_kernel_k)
+        elif map_view:
+            kernel = gtsam.noiseModel.mEstimator.Huber.Create(s.map_view_kernel_k)
+        else:
+            kernel = gtsam.noiseModel.mEstimator.Huber.Create(s.huber_k)
+        return gtsam.noiseModel.Robust.Create(kernel, gauss)
 
     def covariance(self, obs: Observation, *, alt: bool = False) -> Array:
         """Covariance (6x6) of one observation, in the tag frame (rotation first, as GTSAM).
@@ -687,6 +716,8 @@ class MarkerSlam:
             else:
                 self._count_blind(o, localised=False)
         observations = fused
+        # map_view_kernel only where the surveyed map is the whole story of the frame (see the setting)
+        self._map_frame = all(o.tag_id in self.surveyed for o in observations)
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         map_changed = self._seed_map(observations, graph, values, blind=blind)
         predicted = self.predict(frame, robot=robot)
@@ -792,7 +823,7 @@ class MarkerSlam:
             if _rot_deg(prior, init) > s.disagreement_deg:
                 self._count_blind(o, localised=False)  # disagrees with the other views in this frame
                 continue
-            graph.add(gtsam.PriorFactorPose3(track.key(frame), _pose3(prior), self._robust(cov)))
+            graph.add(gtsam.PriorFactorPose3(track.key(frame), _pose3(prior), self._robust(cov, map_view=True)))
             self._count_blind(o, localised=True)
             used += 1
         self.state.rejected_ambiguous += rejected
