@@ -1164,8 +1164,7 @@ def test_a_view_that_disagrees_with_the_tag_map_fades_where_the_map_is_the_whole
 
     def camera_error_cm(kernel: str, *, unsurveyed_in_view: bool) -> float:
         known = {tid: (size, SCENE_TAGS[tid]) for tid, size, _ in vis[: 2 if unsurveyed_in_view else None]}
-        k = 0.5 if kernel == "cauchy" else 1.5
-        settings = SlamSettings(anchor_tag_id=vis[0][0], map_view_kernel=kernel, map_view_kernel_k=k)
+        settings = SlamSettings(anchor_tag_id=vis[0][0], map_view_kernel=kernel)
         slam = MarkerSlam(settings, known_tags=known)
         obs = [_exact_obs(*v) for v in vis]
         bad = obs[1].camera_from_tag.copy()

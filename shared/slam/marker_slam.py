@@ -66,22 +66,25 @@ class SlamSettings(BaseModel):
     )  # the fused keypoints' median error (bench/accuracy: p50 0.05 px)
     disagreement_deg: float = Field(default=10.0, gt=0)
     huber_k: float = 1.5
-    # The robust kernel of a frame's views when every tag the frame fuses is surveyed (the tag map states
-    # it to within soft_surveyed_sigma_m / _deg, or gives it without sigmas), and of the blind priors
-    # placed against such tags. There a view that disagrees with the map and with the motion is more
-    # likely a bad read (a blurred far tag whose tilt is off) than news. "cauchy" (default) lets such a
-    # view fade: at 3 x map_view_kernel_k sigmas it weighs 10 %, where Huber keeps pulling. "huber":
-    # Huber at map_view_kernel_k. Every other frame keeps Huber (huber_k) for every view: where the map's
-    # views compete with slam's own (a tag slam maps, or one the map states only roughly), fading them
-    # let the map drift or follow a wrong map. Measured: Cauchy on every view of every frame took medium
-    # rooms without a map from 1.11 to 2.52 cm mean ATE; Cauchy on views of any tag-map tag took the
-    # 0.2 px noisy run, with only the anchor in the map, from 4.9 to 34 cm, and bench.slam's SLAM + rough
-    # map (2 cm / 1 deg per axis, so stated) from 3.60 / 2.71 / 7.01 to 5.74 / 3.26 / 9.81 cm on slow /
-    # medium / fast. With this rule (README *Marker SLAM*): the sixteen tuning rooms with the map, fast
-    # 4.90 -> 3.98 cm mean ATE (the default room 4.48 -> 2.81, its spread over 1-nm perturbations
-    # 2.86-5.26 -> 2.70-2.84), medium 0.48 -> 0.44; sixteen new rooms, fast 3.75 -> 3.00 (every room
-    # better), medium 0.40 -> 0.39. Without a map, or with a map that states its sigmas roughly, nothing
-    # changes. A rough map given without sigmas is taken as surveyed and then trusted over the views.
+    # The robust kernel of a frame's views when every tag the frame fuses is surveyed (the tag map states it to
+    # within soft_surveyed_sigma_m / _deg, or gives it without sigmas), and of the blind priors placed against such
+    # tags (always: they exist only for surveyed tags). There a view that disagrees with the map and with the motion
+    # is more likely a bad read (a blurred far tag whose tilt is off) than news. "cauchy" (default) lets such a view
+    # fade: at 3 x map_view_kernel_k sigmas (of the whole 6-D whitened error) it weighs 10 %, where Huber keeps
+    # pulling; it also leans the frame more on the motion prior, and the pose covariance there grows with the views'
+    # disagreement (bench.slam's fast room: median position sigma 5.1 -> 7.0 cm, 96 % of the errors inside the 95 %
+    # ellipsoid). "huber": Huber at huber_k, as before this setting. Every other frame keeps Huber (huber_k) for
+    # every view: where the map's views compete with slam's own (a tag slam maps, or one the map states only
+    # roughly), fading them let the map drift or follow a wrong map. Measured: Cauchy on every view of every frame
+    # took medium rooms without a map from 1.11 to 2.52 cm mean ATE; Cauchy on views of any tag-map tag took the 0.2
+    # px noisy run, with only the anchor in the map, from 4.9 to 34 cm, and bench.slam's SLAM + rough map (2 cm / 1
+    # deg per axis, so stated) from 3.60 / 2.71 / 7.01 to 5.74 / 3.26 / 9.81 cm on slow / medium / fast. With this
+    # rule (README *Marker SLAM*): the sixteen tuning rooms with the map, fast 4.90 -> 3.98 cm mean ATE (the default
+    # room 4.48 -> 2.81, its spread over 1-nm perturbations 2.86-5.26 -> 2.70-2.84), medium 0.48 -> 0.44; sixteen
+    # new rooms, fast 3.75 -> 3.00 (every room better), medium 0.40 -> 0.39. Without a map nothing changes, nor with
+    # a map that states its sigmas roughly, except in frames of its tags given without sigmas (bench.slam's rough
+    # map gives its anchor so: fast 7.01 -> 6.97). A rough map given without sigmas is taken as surveyed and then
+    # trusted over the views.
     map_view_kernel: Literal["cauchy", "huber"] = "cauchy"
     map_view_kernel_k: float = Field(default=0.5, gt=0)
     relinearize_threshold: float = 0.01
@@ -475,15 +478,13 @@ class MarkerSlam:
         return self._robust(self.covariance(obs, alt=alt), map_view=self._map_frame and obs.tag_id in self.surveyed)
 
     def _robust(self, cov: Array, *, map_view: bool = False) -> gtsam.noiseModel.Base:
-        """A view's noise model: Huber (huber_k) over the Gaussian of `cov`, or for a view of a tag-map
-        tag (`map_view`) the map_view_kernel."""
+        """A view's noise model: Huber (huber_k) over the Gaussian of `cov`, or map_view_kernel for a view
+        in a frame of surveyed tags only and for a blind prior (`map_view`)."""
         s = self.settings
         gauss = gtsam.noiseModel.Gaussian.Covariance(cov)
         kernel: gtsam.noiseModel.mEstimator.Base
         if map_view and s.map_view_kernel == "cauchy":
             kernel = gtsam.noiseModel.mEstimator.Cauchy.Create(s.map_view_kernel_k)
-        elif map_view:
-            kernel = gtsam.noiseModel.mEstimator.Huber.Create(s.map_view_kernel_k)
         else:
             kernel = gtsam.noiseModel.mEstimator.Huber.Create(s.huber_k)
         return gtsam.noiseModel.Robust.Create(kernel, gauss)
@@ -716,8 +717,11 @@ class MarkerSlam:
             else:
                 self._count_blind(o, localised=False)
         observations = fused
-        # map_view_kernel only where the surveyed map is the whole story of the frame (see the setting)
-        self._map_frame = all(o.tag_id in self.surveyed for o in observations)
+        # map_view_kernel only where the surveyed map is the whole story of the frame (see the setting);
+        # in localisation-only mode a tag the map lacks adds nothing, so it does not count
+        self._map_frame = all(
+            o.tag_id in self.surveyed for o in observations if not (s.localisation_only and o.tag_id not in self.known)
+        )
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         map_changed = self._seed_map(observations, graph, values, blind=blind)
         predicted = self.predict(frame, robot=robot)
