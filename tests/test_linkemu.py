@@ -102,3 +102,18 @@ def test_demo_and_up_take_extra_link_profiles() -> None:
     finally:
         PROFILES.clear()
         PROFILES.update(saved)
+
+
+def test_the_link_that_holds_an_address_is_found() -> None:
+    """up() refuses a management address another link holds (a killed emulation's leftovers routed the
+    next one's traffic into a dead namespace: a zenoh timeout instead of a reason)."""
+    from shared.tools.linkemu import address_owner
+
+    out = (
+        "1: lo    inet 127.0.0.1/8 scope host lo\\       valid_lft forever preferred_lft forever\n"
+        "7: stp-mr@if6    inet 10.78.0.1/30 scope global stp-mr\\       valid_lft forever preferred_lft forever\n"
+    )
+    assert address_owner(out, "10.78.0.1") == "stp-mr"
+    assert address_owner(out, "10.78.0.2") is None
+    assert address_owner(out, "10.78.0.10") is None
+    assert address_owner("", "10.78.0.1") is None

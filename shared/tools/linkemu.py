@@ -112,7 +112,9 @@ def profile(name: str) -> LinkProfile:
 
 
 class LinkEmulatorSettings(BaseModel):
-    """Names and addresses of the emulated link (a prefix keeps parallel emulations apart)."""
+    """Names and addresses of the emulated link. A prefix keeps the namespaces and links of parallel
+    emulations apart; the management address lives in the root namespace, so parallel emulations also
+    need their own `mgmt_root_addr` / `mgmt_edge_addr` (up() refuses an address another link holds)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
@@ -156,6 +158,16 @@ def _run(argv: list[str], *, check: bool = True) -> subprocess.CompletedProcess[
     return result
 
 
+def address_owner(ip_addr_output: str, addr: str) -> str | None:
+    """The link that holds IPv4 `addr`, from `ip -o -4 addr show` output (None: no link holds it)."""
+    for line in ip_addr_output.splitlines():
+        fields = line.split()
+        # "7: stp-mr    inet 10.78.0.1/30 scope global stp-mr\       valid_lft forever ..."
+        if len(fields) >= 4 and fields[2] == "inet" and fields[3].split("/")[0] == addr:
+            return fields[1].split("@")[0]
+    return None
+
+
 def in_netns(ns: str, argv: list[str]) -> list[str]:
     """argv run inside network namespace `ns`."""
     return ["ip", "netns", "exec", ns, *argv]
@@ -194,6 +206,15 @@ class LinkEmulator:
             raise LinkEmulationUnavailable(reason)
         s = self.settings
         self.down()  # leftovers of a crashed run with the same prefix
+        owner = address_owner(_run(["ip", "-o", "-4", "addr", "show"], check=False).stdout, s.mgmt_root_addr)
+        if owner is not None:
+            # Another emulation (or a killed one's leftovers) would take this one's management traffic:
+            # its processes would time out connecting instead of saying why.
+            raise LinkEmulationUnavailable(
+                f"{s.mgmt_root_addr} is already on link {owner}: another link emulation is up, or a killed one "
+                f"left it (remove it: ip link del {owner}, and its namespaces), or give this one other "
+                "mgmt_root_addr / mgmt_edge_addr"
+            )
         r, e = s.robot_ns, s.edge_ns
         mr, me, ve = f"{s.prefix}-mr", f"{s.prefix}-me", f"{s.prefix}-ve"
         try:
