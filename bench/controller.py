@@ -144,13 +144,17 @@ def stream(
     emu.set_profile(PROFILES[SCHEDULE[0]])
     started = [start_service("edge_infer", cfg, tmp, wrapper=edge)]
     run = Run(Monitor(None))
-    session = open_session(
-        ZenohSettings(
-            mode="client",
-            connect=[Topology.emulated_link(edge_addr=s.edge_addr, mgmt_edge_addr=s.mgmt_edge_addr).edge_router],
-            connect_timeout_secs=90,
+    try:
+        session = open_session(
+            ZenohSettings(
+                mode="client",
+                connect=[Topology.emulated_link(edge_addr=s.edge_addr, mgmt_edge_addr=s.mgmt_edge_addr).edge_router],
+                connect_timeout_secs=90,
+            )
         )
-    )
+    except BaseException:
+        stop_services(started)  # the edge is up already: a failed connect must not leave it running
+        raise
     lock = threading.Lock()
 
     def on_state(sample: zenoh.Sample) -> None:
