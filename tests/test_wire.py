@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from pydantic import Field
 
 from shared.wire.codec import (
     WIRE_DTYPES,
@@ -612,42 +613,36 @@ def test_framing3_names_the_field_it_refuses() -> None:
         decode(encode(msg).replace(b"splittag/Features/v4", b"splittag/Features/v9"))
 
 
-def test_framing3_compiles_only_what_it_can_check() -> None:
-    """A model field the compiler has no checked wire type for fails when the codec is built, not later."""
-    from pydantic import ConfigDict, Field
+def _odd_message(name: str, annotation: object, default: object = None, **config: object) -> type:
+    """A Message subclass with one field (and model config) the positional compiler must refuse."""
+    from pydantic import ConfigDict
 
     from shared.wire.messages import Message
+
+    namespace: dict[str, object] = {"SCHEMA": f"splittag/{name}/v1", "__annotations__": {"x": annotation}}
+    if default is not None:
+        namespace["x"] = default
+    if config:
+        namespace["model_config"] = ConfigDict(**config)  # type: ignore[typeddict-item]
+    return type(name, (Message,), namespace)
+
+
+@pytest.mark.parametrize(
+    ("make", "reason"),
+    [
+        (lambda: _odd_message("Odd", float, Field(multiple_of=0.5)), r"Odd\.x"),
+        (lambda: _odd_message("Mapping", dict[str, int]), r"Mapping\.x"),
+        (lambda: _odd_message("Lax", int, strict=False), "strict"),
+        (lambda: _odd_message("Stripped", str, str_strip_whitespace=True), "str_strip_whitespace"),
+    ],
+)
+def test_framing3_compiles_only_what_it_can_check(make: Callable[[], type], reason: str) -> None:
+    """A model field or config the compiler has no checked wire type for fails when the codec is built,
+    not later."""
     from shared.wire.positional import CompileError, PositionalCodec
 
-    class Odd(Message):
-        SCHEMA = "splittag/Odd/v1"
-        ratio: float = Field(multiple_of=0.5)
-
-    with pytest.raises(CompileError, match=r"Odd\.ratio"):
-        PositionalCodec([Odd])
-
-    class Mapping(Message):
-        SCHEMA = "splittag/Mapping/v1"
-        table: dict[str, int]
-
-    with pytest.raises(CompileError, match=r"Mapping\.table"):
-        PositionalCodec([Mapping])
-
-    class Lax(Message):
-        SCHEMA = "splittag/Lax/v1"
-        model_config = ConfigDict(strict=False)
-        count: int
-
-    with pytest.raises(CompileError, match="strict"):
-        PositionalCodec([Lax])
-
-    class Stripped(Message):
-        SCHEMA = "splittag/Stripped/v1"
-        model_config = ConfigDict(str_strip_whitespace=True)
-        name: str
-
-    with pytest.raises(CompileError, match="str_strip_whitespace"):
-        PositionalCodec([Stripped])
+    with pytest.raises(CompileError, match=reason):
+        PositionalCodec([make()])
 
 
 def _features3_header() -> tuple[list[object], bytes]:

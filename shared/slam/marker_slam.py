@@ -406,7 +406,6 @@ class MarkerSlam:
     ) -> None:
         self.settings = settings
         self.known = known_tags or {}  # id -> (size, world_from_tag) from a tag map
-        self._map_frame = False  # the frame being fused sees surveyed tags only
         # id -> (rotation rad, position m): how well the tag map says it knows a pose (None: known_tag_sigma)
         self.known_sigmas = known_sigmas or {}
         # Tags soft reads may place the camera by: of `surveyed` (default: every known tag; the slam
@@ -472,10 +471,10 @@ class MarkerSlam:
         floor = max(self.settings.keypoint_sigma_px, obs.reprojection_error_px)
         return obs.alt_reprojection_error_px < self.settings.ambiguity_ratio * floor
 
-    def noise(self, obs: Observation, *, alt: bool = False) -> gtsam.noiseModel.Base:
+    def noise(self, obs: Observation, *, alt: bool = False, map_frame: bool = False) -> gtsam.noiseModel.Base:
         """Robust Gaussian noise of one observation: `covariance` in GTSAM's model, under Huber, or under
-        map_view_kernel for a tag whose pose the tag map gives."""
-        return self._robust(self.covariance(obs, alt=alt), map_view=self._map_frame and obs.tag_id in self.surveyed)
+        map_view_kernel for a surveyed tag in a frame whose fused tags are all surveyed (`map_frame`)."""
+        return self._robust(self.covariance(obs, alt=alt), map_view=map_frame and obs.tag_id in self.surveyed)
 
     def _robust(self, cov: Array, *, map_view: bool = False) -> gtsam.noiseModel.Base:
         """A view's noise model: Huber (huber_k) over the Gaussian of `cov`, or map_view_kernel for a view
@@ -719,7 +718,7 @@ class MarkerSlam:
         observations = fused
         # map_view_kernel only where the surveyed map is the whole story of the frame (see the setting);
         # in localisation-only mode a tag the map lacks adds nothing, so it does not count
-        self._map_frame = all(
+        map_frame = all(
             o.tag_id in self.surveyed for o in observations if not (s.localisation_only and o.tag_id not in self.known)
         )
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -819,7 +818,9 @@ class MarkerSlam:
                 new_tags.append(o.tag_id)
                 map_changed = True
             graph.add(
-                gtsam.BetweenFactorPose3(track.key(frame), L(o.tag_id), _pose3(measured), self.noise(o, alt=use_alt))
+                gtsam.BetweenFactorPose3(
+                    track.key(frame), L(o.tag_id), _pose3(measured), self.noise(o, alt=use_alt, map_frame=map_frame)
+                )
             )
             self.state.observations[o.tag_id] = self.state.observations.get(o.tag_id, 0) + 1
             used += 1

@@ -113,9 +113,8 @@ EXT_ARRAY: Final[int] = 1
 ALIGN: Final[int] = 8
 _FRAME_HEAD = struct.Struct("<BBxxI")
 _ARRAY_HEAD = struct.Struct("<BB6xQ")
-_DTYPE_CODES: Final[dict[str, int]] = {name: i for i, name in enumerate(WIRE_DTYPES)}
-_CODE_DTYPES: Final[dict[int, np.dtype[Any]]] = {i: WIRE_DTYPES[name] for name, i in _DTYPE_CODES.items()}
-_CODE_NAMES: Final[dict[int, str]] = {i: name for name, i in _DTYPE_CODES.items()}
+DTYPE_CODES: Final[dict[str, int]] = {name: i for i, name in enumerate(WIRE_DTYPES)}
+CODE_DTYPES: Final[dict[int, np.dtype[Any]]] = {i: WIRE_DTYPES[name] for name, i in DTYPE_CODES.items()}
 _SHAPES: Final[list[struct.Struct]] = [struct.Struct(f"<{n}Q") for n in range(MAX_NDIM + 1)]
 _ZEROS: Final[bytes] = bytes(ALIGN)
 
@@ -124,39 +123,57 @@ def _aligned(n: int) -> int:
     return (n + ALIGN - 1) & ~(ALIGN - 1)
 
 
+class DataWriter:
+    """The data section of a framed payload being written (framings 2 and 3): each array placed 8-byte
+    aligned after the previous one, then the frame assembled with one copy of each array."""
+
+    __slots__ = ("arrays", "end", "starts")
+
+    def __init__(self) -> None:
+        self.arrays: list[np.ndarray] = []
+        self.starts: list[int] = []
+        self.end = 0
+
+    def place(self, arr: np.ndarray) -> int:
+        """Append a C-contiguous array; its offset in the data section."""
+        start = _aligned(self.end)
+        self.arrays.append(arr)
+        self.starts.append(start)
+        self.end = start + arr.nbytes
+        return start
+
+    def frame(self, version: int, header: bytes) -> bytes:
+        """Frame head, header, padding to 8, the arrays (no data section without arrays)."""
+        parts: list[Any] = [_FRAME_HEAD.pack(FRAME_MAGIC, version, len(header)), header]
+        if self.arrays:
+            head_len = _FRAME_HEAD.size + len(header)
+            parts.append(_ZEROS[: _aligned(head_len) - head_len])
+            pos = 0
+            for start, arr in zip(self.starts, self.arrays, strict=True):
+                parts.append(_ZEROS[: start - pos])
+                if arr.nbytes:
+                    parts.append(memoryview(arr).cast("B"))  # type: ignore[arg-type]
+                pos = start + arr.nbytes
+        return b"".join(parts)
+
+
 def pack(document: Mapping[str, Any]) -> bytes:
     """Serialise a document (dicts, lists, scalars, numpy arrays) in framing 2: one copy of each array."""
-    arrays: list[np.ndarray] = []
-    starts: list[int] = []
-    end = 0
+    data = DataWriter()
 
     def default(obj: Any) -> Any:
-        nonlocal end
         if isinstance(obj, np.ndarray):
             name = wire_dtype_name(obj.dtype)
             arr = np.ascontiguousarray(obj, dtype=WIRE_DTYPES[name])
             if arr.ndim > MAX_NDIM:
                 raise ArrayError(f"array of {arr.ndim} dimensions; at most {MAX_NDIM} travel")
-            start = _aligned(end)
-            arrays.append(arr)
-            starts.append(start)
-            end = start + arr.nbytes
-            head = _ARRAY_HEAD.pack(_DTYPE_CODES[name], arr.ndim, start) + _SHAPES[arr.ndim].pack(*arr.shape)
+            start = data.place(arr)
+            head = _ARRAY_HEAD.pack(DTYPE_CODES[name], arr.ndim, start) + _SHAPES[arr.ndim].pack(*arr.shape)
             return msgpack.ExtType(EXT_ARRAY, head)
         return _pack_default(obj)
 
     header = msgpack.packb(document, default=default, use_bin_type=True, strict_types=False)
-    parts: list[Any] = [_FRAME_HEAD.pack(FRAME_MAGIC, FRAMING, len(header)), header]
-    if arrays:
-        head_len = _FRAME_HEAD.size + len(header)
-        parts.append(_ZEROS[: _aligned(head_len) - head_len])
-        pos = 0
-        for start, arr in zip(starts, arrays, strict=True):
-            parts.append(_ZEROS[: start - pos])
-            if arr.nbytes:
-                parts.append(memoryview(arr).cast("B"))  # type: ignore[arg-type]
-            pos = start + arr.nbytes
-    return b"".join(parts)
+    return data.frame(FRAMING, header)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -318,15 +335,75 @@ def array_from_wire(doc: Mapping[str, Any]) -> np.ndarray:
     return np.frombuffer(data, dtype=dtype, count=count).reshape(shape)
 
 
-class _ArrayViews:
-    """ext_hook of one framed payload: each array ext becomes a view of the data section, in order."""
+class DataSection:
+    """The data section of one framed payload being read (framings 2 and 3): each array a view of it,
+    in header order, 8-byte aligned, without overlap, inside the payload, which must end with the last
+    one (`finish`)."""
 
-    __slots__ = ("count", "data", "end")
+    __slots__ = ("count", "data", "data_start", "end", "head_end", "size")
 
-    def __init__(self, data: memoryview) -> None:
-        self.data = data
+    def __init__(self, mv: memoryview, head_end: int) -> None:
+        self.size = len(mv)
+        self.head_end = head_end
+        self.data_start = min(_aligned(head_end), self.size)
+        self.data = mv[self.data_start :]
         self.end = 0
         self.count = 0
+
+    def view(self, dtype: np.dtype[Any], shape: tuple[int, ...] | list[int], start: int) -> np.ndarray:
+        """The next array: `shape` of `dtype` at `start`, a view of the payload."""
+        count = 1
+        for d in shape:
+            count *= d
+        nbytes = count * dtype.itemsize
+        if start < self.end or start % ALIGN:
+            raise ArrayError(
+                f"array of dtype {dtype.name} and shape {tuple(shape)} at offset {start}: arrays must follow each "
+                f"other {ALIGN}-byte aligned (the previous one ends at {self.end})"
+            )
+        if start + nbytes > len(self.data):
+            raise MalformedFrame(
+                f"truncated payload: array of dtype {dtype.name} and shape {tuple(shape)} needs bytes "
+                f"{start}..{start + nbytes} of the data section, which has {len(self.data)}"
+            )
+        try:
+            arr = np.frombuffer(self.data, dtype=dtype, count=count, offset=start).reshape(shape)
+        except ValueError as exc:  # a zero-size shape whose other sizes numpy cannot hold
+            raise ArrayError(f"array shape {repr(list(shape))[:120]}: {exc}") from None
+        self.end = start + nbytes
+        self.count += 1
+        return arr
+
+    def finish(self) -> None:
+        """The payload ends with the last array (or, without arrays, with the header: no padding)."""
+        end = self.data_start + self.end if self.count else self.head_end
+        if end != self.size:
+            raise MalformedFrame(
+                f"{self.size - end} trailing bytes after the document (document ends at byte {end} of {self.size})"
+            )
+
+
+def open_frame(mv: memoryview) -> tuple[int, memoryview, DataSection]:
+    """(framing version, header bytes, data section) of a 0xC1 frame whose head and header bounds hold."""
+    size = len(mv)
+    if size < _FRAME_HEAD.size:
+        raise MalformedFrame(f"truncated payload: {size} bytes, a 0xc1 frame head needs {_FRAME_HEAD.size}")
+    _, version, header_len = _FRAME_HEAD.unpack_from(mv)
+    head_end = _FRAME_HEAD.size + header_len
+    if head_end > size:
+        raise MalformedFrame(
+            f"truncated payload: the header needs {header_len} bytes, {size - 8} follow the frame head"
+        )
+    return version, mv[_FRAME_HEAD.size : head_end], DataSection(mv, head_end)
+
+
+class _ArrayViews:
+    """ext_hook of one framing-2 payload: each array ext becomes a view of the data section, in order."""
+
+    __slots__ = ("section",)
+
+    def __init__(self, section: DataSection) -> None:
+        self.section = section
 
     def __call__(self, code: int, ext: bytes) -> np.ndarray:
         if code != EXT_ARRAY:
@@ -334,62 +411,34 @@ class _ArrayViews:
         if len(ext) < _ARRAY_HEAD.size:
             raise ArrayError(f"array header of {len(ext)} bytes, needs at least {_ARRAY_HEAD.size}")
         dcode, ndim, start = _ARRAY_HEAD.unpack_from(ext)
-        dtype = _CODE_DTYPES.get(dcode)
+        dtype = CODE_DTYPES.get(dcode)
         if dtype is None:
-            raise ArrayError(f"array dtype code {dcode} is not one of {_DTYPE_CODES}")
+            raise ArrayError(f"array dtype code {dcode} is not one of {DTYPE_CODES}")
         if ndim > MAX_NDIM or len(ext) != _ARRAY_HEAD.size + 8 * ndim:
             raise ArrayError(f"array header of {len(ext)} bytes for {ndim} dimensions (at most {MAX_NDIM})")
         shape = _SHAPES[ndim].unpack_from(ext, _ARRAY_HEAD.size)
-        count = 1
-        for d in shape:
-            if d > MAX_DIM:
-                text = repr(list(shape))[:120]
-                raise ArrayError(f"array shape {text} is not a list of at most {MAX_NDIM} sizes in 0..{MAX_DIM}")
-            count *= d
-        nbytes = count * dtype.itemsize
-        if start < self.end or start % ALIGN:
-            raise ArrayError(
-                f"array of dtype {_CODE_NAMES[dcode]} and shape {shape} at offset {start}: arrays must follow each "
-                f"other {ALIGN}-byte aligned (the previous one ends at {self.end})"
-            )
-        if start + nbytes > len(self.data):
-            raise MalformedFrame(
-                f"truncated payload: array of dtype {_CODE_NAMES[dcode]} and shape {shape} needs bytes "
-                f"{start}..{start + nbytes} of the data section, which has {len(self.data)}"
-            )
-        self.end = start + nbytes
-        self.count += 1
-        return np.frombuffer(self.data, dtype=dtype, count=count, offset=start).reshape(shape)
+        if any(d > MAX_DIM for d in shape):
+            text = repr(list(shape))[:120]
+            raise ArrayError(f"array shape {text} is not a list of at most {MAX_NDIM} sizes in 0..{MAX_DIM}")
+        return self.section.view(dtype, shape, start)
 
 
 def _unpack_framed(mv: memoryview) -> Any:
-    size = len(mv)
-    if size < _FRAME_HEAD.size:
-        raise MalformedFrame(f"truncated payload: {size} bytes, a 0xc1 frame head needs {_FRAME_HEAD.size}")
-    _, version, header_len = _FRAME_HEAD.unpack_from(mv)
+    version, header, section = open_frame(mv)
     if version != FRAMING:
         raise MalformedFrame(
             f"framing version {version} is not supported here (this untyped reader reads 1 and {FRAMING}; "
             "framing 3 is read with the message types, by shared.wire.messages.decode)"
         )
-    head_end = _FRAME_HEAD.size + header_len
-    if head_end > size:
-        raise MalformedFrame(
-            f"truncated payload: the header needs {header_len} bytes, {size - 8} follow the frame head"
-        )
-    data_start = min(_aligned(head_end), size)
-    views = _ArrayViews(mv[data_start:])
     try:
-        doc = msgpack.unpackb(mv[_FRAME_HEAD.size : head_end], ext_hook=views, raw=False, strict_map_key=True)
+        doc = msgpack.unpackb(header, ext_hook=_ArrayViews(section), raw=False, strict_map_key=True)
     except WireError:
         raise
     except msgpack.ExtraData as exc:
-        raise MalformedFrame(f"the msgpack header ends before its declared {header_len} bytes") from exc
+        raise MalformedFrame(f"the msgpack header ends before its declared {len(header)} bytes") from exc
     except (ValueError, TypeError, msgpack.StackError, msgpack.FormatError) as exc:
         raise MalformedFrame(f"malformed msgpack header: {exc}") from exc
-    end = data_start + views.end if views.count else head_end  # no arrays: no data section, no padding
-    if end != size:
-        raise MalformedFrame(f"{size - end} trailing bytes after the document (document ends at byte {end} of {size})")
+    section.finish()
     return doc
 
 

@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import math
 import re
-import struct
 import types
 import typing
 from collections.abc import Callable, Iterable, Sequence
@@ -52,21 +51,21 @@ from pydantic.types import AllowInfNan, Strict
 
 from shared.wire.codec import (
     ALIGN,
-    FRAME_MAGIC,
+    CODE_DTYPES,
+    DTYPE_CODES,
     MAX_DIM,
     MAX_NDIM,
     WIRE_DTYPES,
     ArrayError,
+    DataSection,
+    DataWriter,
     MalformedFrame,
     SchemaError,
+    open_frame,
     wire_dtype_name,
 )
 
 FRAMING3: Final[int] = 3
-_FRAME_HEAD = struct.Struct("<BBxxI")
-_ZEROS: Final[bytes] = bytes(ALIGN)
-_DTYPE_CODES: Final[dict[str, int]] = {name: i for i, name in enumerate(WIRE_DTYPES)}
-_CODE_DTYPES: Final[tuple[np.dtype[Any], ...]] = tuple(WIRE_DTYPES.values())
 MAX_INLINE: Final[int] = 64  # elements: larger arrays travel in the data section
 MAX_ERROR_CHARS: Final[int] = 300  # an error quotes the received value: never a megabyte of it
 _FINITE_MAX: Final[dict[str, float]] = {
@@ -78,40 +77,14 @@ _Dims = Annotated[list[Annotated[int, msgspec.Meta(ge=0, le=MAX_DIM)]], msgspec.
 _Offset = Annotated[int, msgspec.Meta(ge=0, multiple_of=ALIGN)]
 
 
-def _aligned(n: int) -> int:
-    return (n + ALIGN - 1) & ~(ALIGN - 1)
-
-
 class CompileError(TypeError):
     """A model field whose type or constraint has no positional wire type (a programming error)."""
 
 
-class _Ctx:
-    """Decoding state of one payload: the data section and where the last array ended."""
-
-    __slots__ = ("count", "data", "end")
-
-    def __init__(self, data: memoryview) -> None:
-        self.data = data
-        self.end = 0
-        self.count = 0
-
-
-class _Out:
-    """Encoding state of one payload: the arrays for the data section and where each starts."""
-
-    __slots__ = ("arrays", "end", "starts")
-
-    def __init__(self) -> None:
-        self.arrays: list[np.ndarray] = []
-        self.starts: list[int] = []
-        self.end = 0
-
-
 # A field's (wire type, encoder of a model value -> wire value, decoder of a wire value -> model value).
 # None for either: the value is the same on both sides (scalars, strings, literals, lists of those).
-Enc = Callable[[Any, _Out], Any] | None
-Dec = Callable[[Any, _Ctx], Any] | None
+Enc = Callable[[Any, DataWriter], Any] | None
+Dec = Callable[[Any, DataSection], Any] | None
 
 
 def _rust_anchor(pattern: str) -> str:
@@ -120,6 +93,16 @@ def _rust_anchor(pattern: str) -> str:
     if pattern.endswith("$") and not pattern.endswith("\\$"):
         return pattern[:-1] + r"\Z"
     return pattern
+
+
+_BOUNDS: Final[dict[type, str]] = {
+    at.Ge: "ge",
+    at.Gt: "gt",
+    at.Le: "le",
+    at.Lt: "lt",
+    at.MinLen: "min_length",
+    at.MaxLen: "max_length",
+}
 
 
 def _meta_of(metadata: Iterable[Any], where: str) -> tuple[dict[str, Any], Any, bool | None]:
@@ -132,18 +115,9 @@ def _meta_of(metadata: Iterable[Any], where: str) -> tuple[dict[str, Any], Any, 
     for m in metadata:
         if isinstance(m, ArraySpec):
             spec = m
-        elif isinstance(m, at.Ge):
-            kw["ge"] = m.ge
-        elif isinstance(m, at.Gt):
-            kw["gt"] = m.gt
-        elif isinstance(m, at.Le):
-            kw["le"] = m.le
-        elif isinstance(m, at.Lt):
-            kw["lt"] = m.lt
-        elif isinstance(m, at.MinLen):
-            kw["min_length"] = m.min_length
-        elif isinstance(m, at.MaxLen):
-            kw["max_length"] = m.max_length
+        elif type(m) in _BOUNDS:  # annotated_types' names are msgspec.Meta's
+            name = _BOUNDS[type(m)]
+            kw[name] = getattr(m, name)
         elif isinstance(m, FieldInfo):
             inner, inner_spec, inner_nan = _meta_of(m.metadata, where)
             kw.update(inner)
@@ -178,8 +152,8 @@ class PositionalCodec:
 
     def __init__(self, models: Sequence[type[BaseModel]], *, legacy: Iterable[type[BaseModel]] = ()) -> None:
         self._structs: dict[type[BaseModel], type[msgspec.Struct]] = {}
-        self._encoders: dict[type[BaseModel], Callable[[Any, _Out], list[Any]]] = {}
-        self._builders: dict[type[msgspec.Struct], Callable[[Any, _Ctx], Any]] = {}
+        self._encoders: dict[type[BaseModel], Callable[[Any, DataWriter], list[Any]]] = {}
+        self._builders: dict[type[msgspec.Struct], Callable[[Any, DataSection], Any]] = {}
         self._ref_types: dict[tuple[int, ...], type[msgspec.Struct]] = {}
         self.models = {m.SCHEMA: m for m in (*models, *legacy)}  # type: ignore[attr-defined]
         tops = []
@@ -213,7 +187,7 @@ class PositionalCodec:
             item = Annotated[float, msgspec.Meta(ge=-bound, le=bound)]
             wire = Annotated[tuple[item, ...], msgspec.Meta(min_length=count, max_length=count)]
 
-            def enc_inline(value: np.ndarray, out: _Out) -> list[float]:
+            def enc_inline(value: np.ndarray, out: DataWriter) -> list[float]:
                 if isinstance(value, np.ndarray) and value.dtype != dtype and value.dtype.newbyteorder("<") == dtype:
                     value = value.astype(dtype)  # the same values in the other byte order (as framing 2 writes it)
                 if not isinstance(value, np.ndarray) or value.dtype != dtype or value.shape != shape:
@@ -221,17 +195,17 @@ class PositionalCodec:
                     raise ArrayError(f"{where}: expected a {name} array of shape {shape}, got {got}")
                 return value.ravel().tolist()
 
-            def dec_inline(value: tuple[float, ...], ctx: _Ctx) -> np.ndarray:
+            def dec_inline(value: tuple[float, ...], ctx: DataSection) -> np.ndarray:
                 out = np.array(value, dtype).reshape(shape)
                 out.flags.writeable = False  # as framing 2's views of the payload
                 return out
 
             return wire, enc_inline, dec_inline
-        codes = tuple(sorted(_DTYPE_CODES[d] for d in spec.dtypes))
+        codes = tuple(sorted(DTYPE_CODES[d] for d in spec.dtypes))
         validate = spec.validate
-        wire_codes = {WIRE_DTYPES[d]: _DTYPE_CODES[d] for d in spec.dtypes}  # the field's little-endian dtypes
+        wire_codes = {WIRE_DTYPES[d]: DTYPE_CODES[d] for d in spec.dtypes}  # the field's little-endian dtypes
 
-        def enc_ref(value: np.ndarray, out: _Out) -> list[Any]:
+        def enc_ref(value: np.ndarray, out: DataWriter) -> list[Any]:
             if not isinstance(value, np.ndarray):
                 raise ArrayError(f"{where}: expected an ndarray, got {type(value).__name__}")
             code = wire_codes.get(value.dtype)
@@ -240,36 +214,11 @@ class PositionalCodec:
             else:
                 name = wire_dtype_name(value.dtype)
                 arr = np.ascontiguousarray(value, dtype=WIRE_DTYPES[name])
-                code = _DTYPE_CODES[name]
-            start = _aligned(out.end)
-            out.arrays.append(arr)
-            out.starts.append(start)
-            out.end = start + arr.nbytes
-            return [code, list(arr.shape), start]
+                code = DTYPE_CODES[name]
+            return [code, list(arr.shape), out.place(arr)]
 
-        def dec_ref(ref: Any, ctx: _Ctx) -> np.ndarray:
-            dtype = _CODE_DTYPES[ref.dtype]
-            n = 1
-            for d in ref.shape:
-                n *= d
-            nbytes = n * dtype.itemsize
-            start = ref.offset
-            if start < ctx.end:
-                raise ArrayError(
-                    f"array of shape {tuple(ref.shape)} at offset {start}: arrays must follow each other "
-                    f"{ALIGN}-byte aligned (the previous one ends at {ctx.end})"
-                )
-            if start + nbytes > len(ctx.data):
-                raise MalformedFrame(
-                    f"truncated payload: array of dtype {dtype} and shape {tuple(ref.shape)} needs bytes "
-                    f"{start}..{start + nbytes} of the data section, which has {len(ctx.data)}"
-                )
-            ctx.end = start + nbytes
-            ctx.count += 1
-            try:
-                arr = np.frombuffer(ctx.data, dtype=dtype, count=n, offset=start).reshape(ref.shape)
-            except ValueError as exc:  # e.g. a zero-size shape whose other sizes numpy cannot hold
-                raise ArrayError(f"array shape {_short(ref.shape)}: {exc}") from None
+        def dec_ref(ref: Any, ctx: DataSection) -> np.ndarray:
+            arr = ctx.view(CODE_DTYPES[ref.dtype], ref.shape, ref.offset)
             try:
                 return validate(arr)
             except ValueError as exc:
@@ -352,51 +301,25 @@ class PositionalCodec:
     def pack(self, message: BaseModel) -> bytes:
         """Framing 3 bytes of a message (its model must be one this codec was built for)."""
         schema = message.SCHEMA  # type: ignore[attr-defined]
-        out = _Out()
+        out = DataWriter()
         header = self._encoder.encode([schema, *self._encoders[type(message)](message, out)])
-        arrays, starts = out.arrays, out.starts
-        parts: list[Any] = [_FRAME_HEAD.pack(FRAME_MAGIC, FRAMING3, len(header)), header]
-        if arrays:
-            head_len = _FRAME_HEAD.size + len(header)
-            parts.append(_ZEROS[: _aligned(head_len) - head_len])
-            pos = 0
-            for start, arr in zip(starts, arrays, strict=True):
-                parts.append(_ZEROS[: start - pos])
-                if arr.nbytes:
-                    parts.append(memoryview(arr).cast("B"))  # type: ignore[arg-type]
-                pos = start + arr.nbytes
-        return b"".join(parts)
+        return out.frame(FRAMING3, header)
 
     def unpack(self, mv: memoryview) -> tuple[str, BaseModel]:
         """(schema id, model of that schema) from a framing-3 payload; arrays view `mv`."""
-        size = len(mv)
-        if size < _FRAME_HEAD.size:
-            raise MalformedFrame(f"truncated payload: {size} bytes, a 0xc1 frame head needs {_FRAME_HEAD.size}")
-        _, _, header_len = _FRAME_HEAD.unpack_from(mv)
-        head_end = _FRAME_HEAD.size + header_len
-        if head_end > size:
-            raise MalformedFrame(
-                f"truncated payload: the header needs {header_len} bytes, {size - 8} follow the frame head"
-            )
-        header = mv[_FRAME_HEAD.size : head_end]
+        _, header, section = open_frame(mv)  # the version was read by the caller's dispatch
         try:
             wire = self._decoder.decode(header)
         except msgspec.ValidationError as exc:
             raise self._header_error(header, exc) from None
         except (msgspec.DecodeError, ValueError) as exc:  # ValueError: a string that is not UTF-8
             raise MalformedFrame(f"malformed msgpack header: {_short(str(exc))}") from None
-        data_start = min(_aligned(head_end), size)
-        ctx = _Ctx(mv[data_start:])
         schema = wire.__struct_config__.tag
         try:
-            model = self._builders[type(wire)](wire, ctx)
+            model = self._builders[type(wire)](wire, section)
         except _FieldError as exc:
             raise SchemaError(f"invalid {schema}: {_short(str(exc))}") from None
-        end = data_start + ctx.end if ctx.count else head_end
-        if end != size:
-            raise MalformedFrame(
-                f"{size - end} trailing bytes after the document (document ends at byte {end} of {size})"
-            )
+        section.finish()
         return schema, model
 
     def _header_error(self, header: memoryview, exc: msgspec.ValidationError) -> Exception:
@@ -505,7 +428,7 @@ _new = object.__new__
 _set = object.__setattr__
 
 
-def _builder(model: type[BaseModel], decoders: list[tuple[str, Dec]]) -> Callable[[Any, _Ctx], Any]:
+def _builder(model: type[BaseModel], decoders: list[tuple[str, Dec]]) -> Callable[[Any, DataSection], Any]:
     """Wire struct -> model, without a second validation: the parser checked every scalar; arrays are
     checked by their decoders; then the model's own after-validators run, as model_validate would."""
     special = [(name, dec) for name, dec in decoders if dec is not None]
@@ -517,7 +440,7 @@ def _builder(model: type[BaseModel], decoders: list[tuple[str, Dec]]) -> Callabl
     asdict = msgspec.structs.asdict
     names = frozenset(model.model_fields)
 
-    def build(wire: Any, ctx: _Ctx) -> Any:
+    def build(wire: Any, ctx: DataSection) -> Any:
         values = asdict(wire)
         for name, dec in special:
             values[name] = dec(values[name], ctx)
@@ -536,10 +459,10 @@ def _builder(model: type[BaseModel], decoders: list[tuple[str, Dec]]) -> Callabl
     return build
 
 
-def _encoder(encoders: list[tuple[str, Enc]]) -> Callable[[Any, _Out], list[Any]]:
+def _encoder(encoders: list[tuple[str, Enc]]) -> Callable[[Any, DataWriter], list[Any]]:
     plan = list(encoders)
 
-    def encode(message: Any, out: _Out) -> list[Any]:
+    def encode(message: Any, out: DataWriter) -> list[Any]:
         if not isinstance(message, BaseModel):
             raise MalformedFrame(f"cannot encode {type(message).__name__} where a message part belongs")
         d = message.__dict__
