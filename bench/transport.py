@@ -25,6 +25,7 @@ import numpy as np
 import zenoh
 
 from bench.machine import cpu_label
+from shared.runtime.cpus import allowed_cpus, pin_cpus
 from shared.transport.probe import Prober
 from shared.transport.session import ZenohSettings, free_tcp_port, open_session, wait_for_liveliness
 from shared.wire import keys
@@ -88,16 +89,25 @@ def bench_tcp(port: int, size: int, reps: int) -> list[float]:
 Row = tuple[int, int, dict[int, float], float, float]
 
 
-def measure(repetitions: int, *, shared_memory: bool, framings: tuple[int, ...] = (3, 2)) -> list[Row]:
-    """One table: every size through codec + Zenoh, Zenoh alone and raw TCP."""
+def measure(
+    repetitions: int,
+    *,
+    shared_memory: bool,
+    framings: tuple[int, ...] = (3, 2),
+    split_cpus: tuple[int, int] | None = None,
+) -> list[Row]:
+    """One table: every size through codec + Zenoh, Zenoh alone and raw TCP. `split_cpus`: (this
+    process's CPU, the servers' CPU); None: wherever the OS puts them."""
     robot = "bench"
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     shm = ["--shared-memory"] if shared_memory else []
+    echo_cmd = [sys.executable, "-m", "shared.tools.cli", "echo", "--listen", endpoint, "--robot-id", robot, *shm]
     echo = subprocess.Popen(
-        [sys.executable, "-m", "shared.tools.cli", "echo", "--listen", endpoint, "--robot-id", robot, *shm],
+        [*echo_cmd, "--cpus", str(split_cpus[1])] if split_cpus else echo_cmd,
         start_new_session=True,
         stderr=subprocess.DEVNULL,
     )
+    before = pin_cpus([split_cpus[0]]) if split_cpus else None
     rows: list[Row] = []
     try:
         session = open_session(ZenohSettings(mode="client", connect=[endpoint], shared_memory=shared_memory))
@@ -129,11 +139,12 @@ def measure(repetitions: int, *, shared_memory: bool, framings: tuple[int, ...] 
                 if i >= 5:
                     raw.append((time.perf_counter() - t0) * 1e3)
             port = free_tcp_port()
+            pin = f"from shared.runtime.cpus import pin_cpus; pin_cpus([{split_cpus[1]}]); " if split_cpus else ""
             server = subprocess.Popen(
                 [
                     sys.executable,
                     "-c",
-                    f"from bench.transport import tcp_echo_server as f; f({port})",
+                    f"{pin}from bench.transport import tcp_echo_server as f; f({port})",
                 ]
             )
             try:
@@ -147,13 +158,19 @@ def measure(repetitions: int, *, shared_memory: bool, framings: tuple[int, ...] 
     finally:
         echo.send_signal(signal.SIGINT)
         echo.wait(timeout=10)
+        if before is not None:
+            pin_cpus(before)
     return rows
 
 
-def print_table(rows: list[Row], *, repetitions: int, shared_memory: bool) -> None:
+def print_table(rows: list[Row], *, repetitions: int, shared_memory: bool, split_cpus: tuple[int, int] | None) -> None:
     """The table of one run: per framing, codec + Zenoh and its ratio to Zenoh alone."""
     framings = list(rows[0][2])
-    print(f"median of {repetitions} round trips, 127.0.0.1, zenoh shared memory {'on' if shared_memory else 'off'}")
+    where = f"client on CPU {split_cpus[0]}, servers on CPU {split_cpus[1]}" if split_cpus else "CPUs shared"
+    print(
+        f"median of {repetitions} round trips, 127.0.0.1, zenoh shared memory {'on' if shared_memory else 'off'}, "
+        f"{where}"
+    )
     head = "".join(f" {f'framing {f} ms':>13} {f'f{f}/zenoh':>9}" for f in framings)
     print(f"{'tensor B':>9} {'message B':>10}{head} {'zenoh only ms':>14} {'raw TCP ms':>11} {'zenoh/TCP':>10}")
     for size, wire, z, r, t in rows:
@@ -181,13 +198,33 @@ def main() -> None:
         default="off",
         help="zenoh shared memory on both ends (same host only: it bypasses any link shaping)",
     )
+    ap.add_argument(
+        "--placement",
+        choices=("shared", "split"),
+        nargs="+",
+        default=["shared", "split"],
+        help="shared: where the OS puts the processes; split: the client on one CPU, the servers on another",
+    )
     args = ap.parse_args()
     print(f"CPU: {cpu_label()}", flush=True)
     modes = {"off": [False], "on": [True], "both": [False, True]}[args.shared_memory]
     framings = tuple(dict.fromkeys(args.framings))
-    tables = [(shm, measure(args.repetitions, shared_memory=shm, framings=framings)) for shm in modes]
-    for shm, rows in tables:
-        print_table(rows, repetitions=args.repetitions, shared_memory=shm)
+    cpus = sorted(allowed_cpus())
+    placements: list[tuple[int, int] | None] = []
+    for placement in dict.fromkeys(args.placement):
+        if placement == "shared":
+            placements.append(None)
+        elif len(cpus) >= 2:
+            placements.append((cpus[0], cpus[1]))
+        else:
+            print(f"placement split needs two CPUs; this process may use {cpus}: skipped")
+    tables = [
+        (shm, split, measure(args.repetitions, shared_memory=shm, framings=framings, split_cpus=split))
+        for split in placements
+        for shm in modes
+    ]
+    for shm, split, rows in tables:
+        print_table(rows, repetitions=args.repetitions, shared_memory=shm, split_cpus=split)
 
 
 if __name__ == "__main__":

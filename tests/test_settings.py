@@ -57,3 +57,56 @@ def test_the_fresh_frame_and_soft_read_settings_refuse_nonsense() -> None:
             SlamSettings.model_validate({field: -1.0})
     with pytest.raises(ValidationError, match="soft_sigma_scale"):
         SlamSettings.model_validate({"soft_sigma_scale": 0.5})
+
+
+_PIN_CHECK = """
+import json, os, threading
+from pathlib import Path
+from shared.runtime.cpus import CpuPlacementError, allowed_cpus, pin_cpus
+
+def threads():
+    return [int(p.name) for p in Path("/proc/self/task").iterdir()]
+
+gate = threading.Event()
+early = threading.Thread(target=gate.wait)  # a thread that exists before the pin (Zenoh's, torch's)
+early.start()
+first = min(allowed_cpus())
+before = pin_cpus([first])
+moved = {t: sorted(os.sched_getaffinity(t)) for t in threads()}
+seen = []
+later = threading.Thread(target=lambda: seen.append(sorted(os.sched_getaffinity(0))))  # started after
+later.start(); later.join()
+try:
+    pin_cpus([os.cpu_count() + 7])
+    refused = ""
+except CpuPlacementError as exc:
+    refused = str(exc)
+pin_cpus(before)
+restored = sorted(allowed_cpus())
+gate.set(); early.join()
+print(json.dumps({"first": first, "before": sorted(before), "moved": list(moved.values()), "later": seen[0],
+                  "refused": refused, "restored": restored}))
+"""
+
+
+def test_a_pinned_service_moves_every_thread_and_the_ones_it_starts_later() -> None:
+    """`cpus` (shared.runtime.cpus) places the whole process: threads running before the pin, threads
+    started after it; a CPU the host lacks is refused with the ones it has; the old set comes back."""
+    import json
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", _PIN_CHECK], capture_output=True, text=True, check=True, timeout=60)
+    got = json.loads(out.stdout)
+    assert len(got["moved"]) >= 2 and all(cpus == [got["first"]] for cpus in got["moved"])
+    assert got["later"] == [got["first"]]
+    assert "not on this host" in got["refused"]
+    assert got["restored"] == got["before"]
+
+
+def test_cpus_setting_is_a_non_empty_list_of_cpu_numbers() -> None:
+    assert CameraSettings(cpus=[0, 1]).cpus == [0, 1]
+    assert CameraSettings().cpus is None
+    for bad in ([], [-1]):
+        with pytest.raises(ValueError, match="cpus"):
+            CameraSettings(cpus=bad)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import struct
 from collections.abc import Callable
 from pathlib import Path
@@ -32,6 +31,7 @@ from shared.wire.messages import (
     Frame,
     MapTagV1,
     MapTagV2,
+    Message,
     SplitConfig,
     TagFeature,
     TagFeatureV1,
@@ -41,7 +41,9 @@ from shared.wire.messages import (
     TagPoses,
     TagPoseV2,
     TagPoseV3,
+    View,
     decode,
+    decode_view,
     encode,
 )
 from tests.examples import INTRINSICS, assert_messages_equal, example_messages, golden_name
@@ -347,8 +349,15 @@ _VALID = [encode(m, framing=f) for m in EXAMPLES.values() for f in (2, 3)]
 
 
 def _decode_only_typed_errors(payload: bytes) -> None:
-    with contextlib.suppress(WireError):
-        decode(payload)
+    """Bad bytes are a WireError, never another exception; decode_view refuses them the same way."""
+    verdicts = []
+    for read in (decode, decode_view):
+        try:
+            read(payload)
+            verdicts.append("ok")
+        except WireError as exc:
+            verdicts.append(type(exc).__name__)
+    assert verdicts[0] == verdicts[1], verdicts
 
 
 @settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -578,6 +587,14 @@ def _verdict(payload: bytes) -> tuple[str, object]:
         return "refused", type(exc).__name__
 
 
+def _view_verdict(payload: bytes) -> tuple[str, object]:
+    try:
+        view: View[Message] = decode_view(payload)
+    except WireError as exc:
+        return "refused", type(exc).__name__
+    return "ok", view.model().model_dump()
+
+
 @settings(max_examples=1500, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.sampled_from(_PATHS), st.sampled_from(_TRICKY))
 def test_framing3_refuses_and_accepts_exactly_what_framing2_does(where: tuple[str, tuple], value: object) -> None:
@@ -594,8 +611,11 @@ def test_framing3_refuses_and_accepts_exactly_what_framing2_does(where: tuple[st
             return  # a value the encoders cannot write at all is not a wire case
     two, three = (_verdict(p) for p in payloads)
     assert two[0] == three[0], (path, value, two, three)
+    view = _view_verdict(payloads[1])  # the view's checks (on the wire struct) against the model's
+    assert view[0] == three[0] and (view[0] == "ok" or view[1] == three[1]), (path, value, view, three)
     if two[0] == "ok":
         assert_messages_equal(decode(payloads[0]), decode(payloads[1]))
+        assert_messages_equal(decode_view(payloads[1]).model(), decode(payloads[1]))
 
 
 def test_framing3_names_the_field_it_refuses() -> None:
@@ -643,6 +663,79 @@ def test_framing3_compiles_only_what_it_can_check(make: Callable[[], type], reas
 
     with pytest.raises(CompileError, match=reason):
         PositionalCodec([make()])
+
+
+def _unmarked_validator() -> type:
+    from pydantic import model_validator
+
+    from shared.wire.messages import Message
+
+    def positive(self: object) -> object:
+        return self
+
+    namespace: dict[str, object] = {
+        "SCHEMA": "splittag/Unmarked/v1",
+        "__annotations__": {"x": int},
+        "_positive": model_validator(mode="after")(positive),
+    }
+    return type("Unmarked", (Message,), namespace)
+
+
+def test_an_after_validator_must_say_it_also_judges_the_wire_struct() -> None:
+    """decode_view runs the models' after-validators on wire structs (flat tuples, array references):
+    a validator not marked @wire_safe may not be written for that, so the model does not compile."""
+    from shared.wire.positional import CompileError, PositionalCodec
+
+    with pytest.raises(CompileError, match="wire_safe"):
+        PositionalCodec([_unmarked_validator()])
+
+
+@pytest.mark.parametrize("schema", sorted(SCHEMAS))
+def test_a_view_has_the_messages_fields_and_builds_it_once(schema: str) -> None:
+    msg = EXAMPLES[schema]
+    view = decode_view(encode(msg), type(msg))
+    assert view.schema == schema
+    for name, value in msg.__dict__.items():
+        got = getattr(view.fields, name)
+        if isinstance(value, np.ndarray) and value.size <= 64 and value.dtype.kind == "f" and value.ndim == 2:
+            assert list(got) == value.ravel().tolist()  # a small float array: a flat tuple
+        elif isinstance(value, (int, float, str, bool)) and not isinstance(value, np.ndarray):
+            assert got == value
+    model = view.model()
+    assert view.model() is model
+    assert_messages_equal(model, msg)
+    with pytest.raises(SchemaError, match="where"):
+        decode_view(encode(msg), SplitConfig if schema != SplitConfig.SCHEMA else Features)
+
+
+def test_a_view_of_an_older_framing_or_schema_is_the_model() -> None:
+    msg = EXAMPLES[Features.SCHEMA]
+    for framing in (1, 2):
+        view = decode_view(encode(msg, framing=framing), Features)
+        assert isinstance(view.fields, Features) and view.model() is view.fields
+    from shared.wire.messages import FeaturesV3, positional_codec
+
+    assert isinstance(msg, Features)
+    tags = [TagFeatureV3(**{k: getattr(t, k) for k in TagFeatureV3.model_fields}) for t in msg.tags]
+    older = FeaturesV3(**{k: getattr(msg, k) for k in FeaturesV3.model_fields if k != "tags"}, tags=tags)
+    view = decode_view(positional_codec().pack(older), Features)  # framing 3 bytes of an older schema
+    assert isinstance(view.fields, Features) and view.schema == Features.SCHEMA
+    assert view.fields.tags[0].proposer is None
+
+
+def test_a_view_refuses_what_decode_refuses_with_the_same_error() -> None:
+    msg = EXAMPLES[Features.SCHEMA]
+    assert isinstance(msg, Features)
+    singular = _replace(msg, ("tags", 0, "roi_to_image"), np.zeros((3, 3)))
+    contradicting = _replace(msg, ("tags", 0, "proposer"), "tracker")
+    header, _ = _features3_header()
+    header[9][0][5] = [2, [0] + [2**31 - 1] * 7, 0]  # type: ignore[index]
+    for payload in (encode(singular), encode(contradicting), _frame3(header, b""), encode(msg)[:-1]):  # type: ignore[arg-type]
+        with pytest.raises(WireError) as want:
+            decode(payload)
+        with pytest.raises(type(want.value)) as got:
+            decode_view(payload)
+        assert str(got.value) == str(want.value)
 
 
 def _features3_header() -> tuple[list[object], bytes]:
@@ -706,3 +799,23 @@ def test_framing3_reads_any_view_and_writes_either_byte_order() -> None:
         assert not out.tags[0].tensor.flags.writeable
     swapped = _replace(msg, ("tags", 0, "roi_to_image"), msg.tags[0].roi_to_image.astype(">f8"))
     assert_messages_equal(decode(encode(swapped)), msg)  # type: ignore[arg-type]
+
+
+def test_encode_values_writes_what_encode_writes_checked_as_the_receiver_parses() -> None:
+    """The echo's ack is sent without building a ProbeAck model: the values are checked by the wire
+    type the asker parses with, and the bytes are the model's."""
+    from shared.wire.messages import LinkStamps, ProbeAck, encode_values
+
+    link = LinkStamps(sent_nanos=5, received_nanos=9, previous_received_nanos=0)
+    for stamps, values in ((link, [5, 9, 0]), (None, None)):
+        want = encode(ProbeAck(received_bytes=376, decoded_ok=True, error="", link=stamps))
+        assert encode_values(ProbeAck, 376, True, "", values) == want
+    with pytest.raises(SchemaError, match=r"received_bytes: Expected `int` >= 0"):
+        encode_values(ProbeAck, -1, True, "", None)
+    with pytest.raises(SchemaError, match=r"link\.received_nanos"):
+        encode_values(ProbeAck, 1, True, "", [5, -9, 0])
+    with pytest.raises(SchemaError, match="decoded_ok"):
+        encode_values(ProbeAck, 1, 1, "", None)  # strict: no int for a bool
+    for model in (Features, TagPoses, Frame):  # out-of-band arrays or validators need the model
+        with pytest.raises(TypeError, match="without arrays or validators"):
+            encode_values(model, 1)

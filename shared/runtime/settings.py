@@ -47,6 +47,10 @@ class ServiceSettings(BaseSettings):
     max_payload_bytes: int = Field(default=DEFAULT_MAX_BYTES, gt=0)
     liveliness_timeout_secs: float = Field(default=60.0, gt=0)
     rerun: RerunSettings = Field(default_factory=RerunSettings)
+    # The CPUs this service runs on (all its threads; shared.runtime.cpus), None: wherever the OS puts
+    # it. Where robot and edge services share a host, each side on its own cores keeps its caches warm
+    # (README *Wire format*, CPU placement).
+    cpus: Annotated[list[Annotated[int, Field(ge=0)]], Field(min_length=1)] | None = None
 
     @classmethod
     def settings_customise_sources(

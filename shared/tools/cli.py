@@ -112,6 +112,10 @@ def _cmd_echo(args: argparse.Namespace) -> int:
     from shared.transport.session import ZenohSettings
 
     settings = ZenohSettings(mode="router", listen=args.listen, connect=args.connect, shared_memory=args.shared_memory)
+    if args.cpus:
+        from shared.runtime.cpus import pin_cpus
+
+        pin_cpus(args.cpus)
     echo.run(settings, robot_id=args.robot_id)
     return 0
 
@@ -508,6 +512,7 @@ def _add_control_commands(sub: Any) -> None:
     p.add_argument("--listen", action="append", default=[], help="zenoh endpoint, repeatable")
     p.add_argument("--connect", action="append", default=[], help="zenoh endpoint, repeatable")
     p.add_argument("--shared-memory", action="store_true", help="zenoh shared memory on (same host, no shaping)")
+    p.add_argument("--cpus", type=int, nargs="+", help="run on these CPUs only (an edge sharing the robot's host)")
     p.set_defaults(func=_cmd_echo)
 
 

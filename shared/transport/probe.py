@@ -17,7 +17,17 @@ import zenoh
 
 from shared.transport.session import encoding_for
 from shared.wire.codec import WireError
-from shared.wire.messages import Features, LinkStamps, ProbeAck, decode, encode, framing_of
+from shared.wire.messages import (
+    WRITE_FRAMING,
+    Features,
+    LinkStamps,
+    ProbeAck,
+    View,
+    decode_view,
+    encode,
+    encode_values,
+    framing_of,
+)
 
 log = logging.getLogger(__name__)
 
@@ -37,13 +47,19 @@ def serve_echo(
         error = ""
         link = None
         try:
-            probe = decode(payload, Features, max_bytes=max_bytes)
-            link = LinkStamps(sent_nanos=probe.publish_nanos, received_nanos=received, previous_received_nanos=previous)
+            # Every check the edge makes of Features, without assembling the model: the echo reads one field.
+            link = (decode_view(payload, Features, max_bytes=max_bytes).fields.publish_nanos, received, previous)
         except WireError as exc:
             error = str(exc)
             log.warning("echo: rejected probe of %d bytes: %s", len(payload), exc)
-        ack = ProbeAck(received_bytes=len(payload), decoded_ok=not error, error=error, link=link)
-        query.reply(query.key_expr, encode(ack, framing=framing_of(payload)), encoding=enc)  # the asker's framing
+        framing = framing_of(payload)  # the asker's
+        if framing == WRITE_FRAMING:  # checked as the asker will parse it, no model built for it
+            out = encode_values(ProbeAck, len(payload), not error, error, link)
+        else:
+            stamps = None if link is None else LinkStamps(**dict(zip(LinkStamps.model_fields, link, strict=True)))
+            ack = ProbeAck(received_bytes=len(payload), decoded_ok=not error, error=error, link=stamps)
+            out = encode(ack, framing=framing)
+        query.reply(query.key_expr, out, encoding=enc)
 
     return session.declare_queryable(key, on_query)
 
@@ -76,7 +92,12 @@ class ProbeResult:
 
     payload_bytes: int
     rtt_secs: float
-    link: LinkStamps | None  # the probe's one-way stamps (None from an echo that predates them)
+    ack: View[ProbeAck]
+
+    @property
+    def link(self) -> LinkStamps | None:
+        """The probe's one-way stamps (None from an echo that predates them)."""
+        return self.ack.model().link
 
 
 class Prober:
@@ -95,19 +116,20 @@ class Prober:
         """Send `payload` (wire bytes of a Features message) and wait for the echo's ack."""
         start = time.perf_counter()
         replies = self._querier.get(payload=payload, encoding=self._enc)
-        ack: ProbeAck | None = None
+        view: View[ProbeAck] | None = None
         for reply in replies:
             if reply.ok is None:
                 err = reply.err.payload.to_string() if reply.err is not None else "?"
                 raise ProbeError(f"echo replied an error: {err}")
-            ack = decode(reply.ok.payload.to_bytes(), ProbeAck)
+            view = decode_view(reply.ok.payload.to_bytes(), ProbeAck)
             break
         rtt = time.perf_counter() - start
-        if ack is None:
+        if view is None:
             raise ProbeError("no reply from the echo queryable (is the edge running?)")
+        ack = view.fields
         if not ack.decoded_ok or ack.received_bytes != len(payload):
             raise ProbeError(f"echo rejected the probe: {ack.error or ack.received_bytes}")
-        return ProbeResult(payload_bytes=len(payload), rtt_secs=rtt, link=ack.link)
+        return ProbeResult(payload_bytes=len(payload), rtt_secs=rtt, ack=view)
 
     def close(self) -> None:
         """Undeclare the querier."""

@@ -28,7 +28,7 @@ class CameraIntrinsics(BaseModel):
     distortion_model: Literal["plumb_bob", "none"]
     distortion: list[Annotated[float, Field(ge=-1e3, le=1e3, allow_inf_nan=False)]]
 
-    @model_validator(mode="after")
+    @model_validator(mode="after")  # also run on wire structs (shared.wire.messages marks it so)
     def _distortion_opencv_can_use(self) -> CameraIntrinsics:
         if len(self.distortion) not in DISTORTION_LENGTHS:
             raise ValueError(f"{len(self.distortion)} distortion coefficients; OpenCV takes {DISTORTION_LENGTHS}")

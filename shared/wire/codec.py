@@ -144,6 +144,8 @@ class DataWriter:
 
     def frame(self, version: int, header: bytes) -> bytes:
         """Frame head, header, padding to 8, the arrays (no data section without arrays)."""
+        if not self.arrays:
+            return _FRAME_HEAD.pack(FRAME_MAGIC, version, len(header)) + header
         parts: list[Any] = [_FRAME_HEAD.pack(FRAME_MAGIC, version, len(header)), header]
         if self.arrays:
             head_len = _FRAME_HEAD.size + len(header)
@@ -340,18 +342,32 @@ class DataSection:
     in header order, 8-byte aligned, without overlap, inside the payload, which must end with the last
     one (`finish`)."""
 
-    __slots__ = ("count", "data", "data_start", "end", "head_end", "size")
+    __slots__ = ("count", "data_size", "data_start", "end", "head_end", "mv", "size")
 
     def __init__(self, mv: memoryview, head_end: int) -> None:
-        self.size = len(mv)
+        self.mv = mv
+        self.size = size = len(mv)
         self.head_end = head_end
-        self.data_start = min(_aligned(head_end), self.size)
-        self.data = mv[self.data_start :]
+        self.data_start = min(_aligned(head_end), size)
+        self.data_size = size - self.data_start
         self.end = 0
         self.count = 0
 
     def view(self, dtype: np.dtype[Any], shape: tuple[int, ...] | list[int], start: int) -> np.ndarray:
         """The next array: `shape` of `dtype` at `start`, a view of the payload."""
+        count = self._claim(dtype, shape, start)
+        try:
+            arr = np.frombuffer(self.mv, dtype=dtype, count=count, offset=self.data_start + start).reshape(shape)
+        except ValueError as exc:  # a zero-size shape whose other sizes numpy cannot hold
+            raise ArrayError(f"array shape {repr(list(shape))[:120]}: {exc}") from None
+        return arr
+
+    def claim(self, dtype: np.dtype[Any], shape: tuple[int, ...] | list[int], start: int) -> None:
+        """The checks of `view` without making the array (the same verdicts: an empty array is made)."""
+        if not self._claim(dtype, shape, start):
+            _reshape_empty(dtype, shape)
+
+    def _claim(self, dtype: np.dtype[Any], shape: tuple[int, ...] | list[int], start: int) -> int:
         count = 1
         for d in shape:
             count *= d
@@ -361,18 +377,14 @@ class DataSection:
                 f"array of dtype {dtype.name} and shape {tuple(shape)} at offset {start}: arrays must follow each "
                 f"other {ALIGN}-byte aligned (the previous one ends at {self.end})"
             )
-        if start + nbytes > len(self.data):
+        if start + nbytes > self.data_size:
             raise MalformedFrame(
                 f"truncated payload: array of dtype {dtype.name} and shape {tuple(shape)} needs bytes "
-                f"{start}..{start + nbytes} of the data section, which has {len(self.data)}"
+                f"{start}..{start + nbytes} of the data section, which has {self.data_size}"
             )
-        try:
-            arr = np.frombuffer(self.data, dtype=dtype, count=count, offset=start).reshape(shape)
-        except ValueError as exc:  # a zero-size shape whose other sizes numpy cannot hold
-            raise ArrayError(f"array shape {repr(list(shape))[:120]}: {exc}") from None
         self.end = start + nbytes
         self.count += 1
-        return arr
+        return count
 
     def finish(self) -> None:
         """The payload ends with the last array (or, without arrays, with the header: no padding)."""
@@ -381,6 +393,14 @@ class DataSection:
             raise MalformedFrame(
                 f"{self.size - end} trailing bytes after the document (document ends at byte {end} of {self.size})"
             )
+
+
+def _reshape_empty(dtype: np.dtype[Any], shape: tuple[int, ...] | list[int]) -> None:
+    """What numpy says of an empty array of this shape (sizes it cannot hold next to a zero are refused)."""
+    try:
+        np.empty(0, dtype).reshape(shape)
+    except ValueError as exc:
+        raise ArrayError(f"array shape {repr(list(shape))[:120]}: {exc}") from None
 
 
 def open_frame(mv: memoryview) -> tuple[int, memoryview, DataSection]:

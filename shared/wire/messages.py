@@ -1,12 +1,14 @@
 """Versioned message schemas that travel over Zenoh, and their encode/decode functions.
 
-Every message is a frozen pydantic model with a schema id `splittag/<Name>/v<N>`. On the wire a
-message is the envelope `{"schema": id, "body": {...}}` in the codec's framing 2 (a msgpack header,
-arrays out of band; framing 1, plain msgpack, is still read: see `shared.wire.codec`). Decoding
-checks, in order: size limit, framing, envelope, schema id and version, array framing, then the
-model's own field checks (dtypes, shapes, ranges, finiteness of every array but the split tensor,
-whose values the edge checks through its keypoints). Any failure is a `WireError` subclass whose
-message says what was received; nothing is defaulted silently.
+Every message is a frozen pydantic model with a schema id `splittag/<Name>/v<N>`. `encode` writes framing
+3 (a positional msgpack header checked natively, arrays out of band: `shared.wire.positional`); framing 2
+(the envelope `{"schema": id, "body": {...}}` as a named header) and framing 1 (plain msgpack) are still
+read and written on request (`shared.wire.codec`). Decoding checks, in order: size limit, framing,
+header, schema id and version, array framing, then the model's own field checks (dtypes, shapes,
+ranges, finiteness of every array but the split tensor, whose values the edge checks through its
+keypoints). Any failure is a `WireError` subclass whose message says what was received; nothing is
+defaulted silently. `decode` returns the model; `decode_view` makes the same checks and returns a
+`View` of the fields without building the model, for hot-path readers of a few fields.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Annotated, Any, ClassVar, Final, Literal, Self, TypeVar, cast
+from typing import Annotated, Any, ClassVar, Final, Generic, Literal, Self, TypeVar, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -45,7 +47,7 @@ from shared.wire.codec import (
     wire_dtype_name,
 )
 from shared.wire.cuts import N_CUTS, CodecName
-from shared.wire.positional import FRAMING3, PositionalCodec, UnknownSchema
+from shared.wire.positional import FRAMING3, PositionalCodec, UnknownSchema, flat, wire_safe
 
 # ----------------------------------------------------------------------------------------------
 # Array fields
@@ -88,18 +90,23 @@ class ArraySpec:
                 raise ValueError(str(exc)) from exc
             if name not in self.dtypes:
                 raise ValueError(f"dtype {name} not allowed here (allowed: {', '.join(self.dtypes)})")
-        if self.shape is not None and (
-            value.ndim != len(self.shape)
-            or any(w is not None and w != got for w, got in zip(self.shape, value.shape, strict=True))
-        ):
-            want = tuple("*" if w is None else w for w in self.shape)
-            raise ValueError(f"shape {value.shape} does not match {want}")
-        if self.ndims is not None and value.ndim not in self.ndims:
-            raise ValueError(f"ndim {value.ndim} not in {self.ndims} (shape {value.shape})")
+        self.check_shape(value.shape)
         if self.finite and value.dtype.kind == "f" and not _all_finite(value):
             bad = int(np.size(value) - np.count_nonzero(np.isfinite(value)))
             raise ValueError(f"{bad} non-finite values (NaN or inf) in a {wire_dtype_name(value.dtype)} array")
         return value
+
+    def check_shape(self, shape: tuple[int, ...]) -> None:
+        """ValueError unless an array of this shape may travel in the field (an ndarray's shape, or a wire
+        reference's before any array is made)."""
+        if self.shape is not None and (
+            len(shape) != len(self.shape)
+            or any(w is not None and w != got for w, got in zip(self.shape, shape, strict=True))
+        ):
+            want = tuple("*" if w is None else w for w in self.shape)
+            raise ValueError(f"shape {shape} does not match {want}")
+        if self.ndims is not None and len(shape) not in self.ndims:
+            raise ValueError(f"ndim {len(shape)} not in {self.ndims} (shape {shape})")
 
     def __get_pydantic_core_schema__(self, source: Any, handler: GetCoreSchemaHandler) -> core_schema.CoreSchema:
         return core_schema.no_info_plain_validator_function(
@@ -107,6 +114,10 @@ class ArraySpec:
             serialization=core_schema.plain_serializer_function_ser_schema(lambda v: v),
         )
 
+
+# CameraIntrinsics (shared.vision, a layer below this one) is also a wire type; its one after-validator
+# reads len(distortion), the same on a wire struct: decode_view may run it there.
+wire_safe(CameraIntrinsics.__pydantic_decorators__.model_validators["_distortion_opencv_can_use"].func)
 
 F32 = ("float32",)
 F64 = ("float64",)
@@ -159,6 +170,7 @@ class Frame(FrameMessage):
     image: Image8
 
     @model_validator(mode="after")
+    @wire_safe
     def _image_matches_intrinsics(self) -> Frame:
         h, w = self.image.shape
         if (w, h) != (self.intrinsics.width, self.intrinsics.height):
@@ -177,9 +189,16 @@ class TagFeatureV1(WireModel):
     tensor: SplitTensor
 
     @model_validator(mode="after")
+    @wire_safe
     def _homography_invertible(self) -> Self:
-        m = self.roi_to_image.ravel().tolist()  # 3x3 floats: Python beats numpy here
-        scale = max(map(abs, m))
+        m = flat(self.roi_to_image)  # 3x3 floats: Python beats numpy here
+        a, b, c, d, e, f, g, h, i = m
+        scale = max(abs(a), abs(b), abs(c), abs(d), abs(e), abs(f), abs(g), abs(h), abs(i))
+        if 1e-90 < scale < 1e90:  # the determinant relative to scale**3, which cannot overflow here
+            det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+            if abs(det) < 1e-12 * (scale * scale * scale):
+                raise ValueError("roi_to_image is not an invertible homography")
+            return self
         if scale == 0:
             raise ValueError("roi_to_image is not an invertible homography")
         # scale first: cubing a huge entry (a finite 1e200) would overflow; divide (1 / a subnormal
@@ -217,6 +236,7 @@ class TagFeature(TagFeatureV3):
     proposer: Proposer | None = None
 
     @model_validator(mode="after")
+    @wire_safe
     def _proposer_agrees(self) -> Self:
         _check_proposer(self.tracked, self.proposer)
         return self
@@ -320,6 +340,7 @@ class TagPose(TagPoseV3):
     proposer: Proposer | None = None
 
     @model_validator(mode="after")
+    @wire_safe
     def _proposer_agrees(self) -> Self:
         _check_proposer(self.tracked, self.proposer)
         return self
@@ -415,9 +436,11 @@ class CameraPose(FrameMessage):
     covariance_world: Covariance6 | None = None
 
     @model_validator(mode="after")
+    @wire_safe
     def _covariance_is_one(self) -> Self:
         c = self.covariance_world
         if c is not None:
+            c = np.asarray(c, np.float64).reshape(6, 6)  # the wire struct's is a flat tuple
             if not np.allclose(c, c.T, rtol=0, atol=1e-9 * max(1e-300, float(np.abs(c).max()))):
                 raise ValueError("covariance_world is not symmetric")
             if float(np.diag(c).min()) < 0:
@@ -702,6 +725,14 @@ def encode(message: Message, *, framing: int = WRITE_FRAMING) -> bytes:
     raise ValueError(f"framing must be 1, {FRAMING} or {FRAMING3}, got {framing!r}")
 
 
+def encode_values(model: type[Message], *values: Any) -> bytes:
+    """Framing 3 bytes of a `model` message given as its field values in declaration order (nested
+    messages as sequences of theirs), checked natively by the wire type the receiver parses with (a
+    SchemaError names the field), without building the model: for a tiny message made only to be sent
+    (the probe echo's ack). Messages with out-of-band arrays or validators: TypeError (use `encode`)."""
+    return positional_codec().pack_values(model, values)
+
+
 def _schema_error(schema: Any) -> SchemaError:
     if not isinstance(schema, str):
         return SchemaError(f"schema id must be a string, got {type(schema).__name__}")
@@ -738,6 +769,60 @@ def _decode_positional(
         return model.upgrade()  # type: ignore[attr-defined]
     except ValidationError as exc:
         raise SchemaError(f"invalid {schema}: cannot upgrade: {exc.errors(include_url=False)[0]['msg']}") from None
+
+
+class View(Generic[M]):
+    """A received message that passed every check `decode` makes, not yet built into its model: for a
+    reader that needs a few fields of it, fast (no pydantic model, no ndarray is made).
+
+    `fields` has the message's fields by name: scalars and strings as in the model; nested messages as
+    the same kind of object; small float arrays (corners, homographies, poses) as flat tuples in C
+    order; other arrays as references (`.shape`; the data stays in the payload). `model()` builds the
+    message itself, once, arrays viewing the payload as `decode`'s do. Messages in framings 1 and 2
+    and older schemas are built at once (their `fields` is the model)."""
+
+    __slots__ = ("_model", "_mv", "fields", "schema")
+
+    def __init__(self, schema: str, fields: Any, *, model: M | None = None, mv: memoryview | None = None) -> None:
+        self.schema = schema
+        self.fields = fields
+        self._model = model
+        self._mv = mv
+
+    def model(self) -> M:
+        """The message (built on the first call)."""
+        if self._model is None:
+            assert self._mv is not None
+            self._model = cast(M, positional_codec().build(self.schema, self.fields, self._mv))
+        return self._model
+
+
+def decode_view(
+    payload: bytes | bytearray | memoryview,
+    expected: type[M] | Sequence[type[Message]] | None = None,
+    *,
+    max_bytes: int = DEFAULT_MAX_BYTES,
+) -> View[M]:
+    """Like `decode` (the same checks, the same errors), but the message comes as a `View`: what a reader
+    of a few fields on a hot path (the link probe's echo, its ack) takes, skipping the model's assembly."""
+    if isinstance(payload, memoryview) and (payload.format != "B" or payload.ndim != 1):
+        payload = payload.cast("B")
+    if not (len(payload) >= 2 and payload[0] == FRAME_MAGIC and payload[1] == FRAMING3 and len(payload) <= max_bytes):
+        model = decode(payload, expected, max_bytes=max_bytes)
+        return View(model.SCHEMA, model, model=model)
+    mv = memoryview(payload).toreadonly()
+    codec = positional_codec()
+    try:
+        schema, wire = codec.unpack_wire(mv)
+    except UnknownSchema as exc:
+        raise _schema_error(exc.schema) from None
+    if schema in LEGACY_SCHEMAS:
+        model = _decode_positional(mv, expected)
+        return View(model.SCHEMA, model, model=model)
+    current = codec.models[schema]
+    if current is not expected:
+        _check_expected(schema, current, expected)  # type: ignore[arg-type]
+    return View(schema, wire, mv=mv)
 
 
 def _require_all_fields(model: type[WireModel], body: Any, where: str) -> None:

@@ -31,6 +31,13 @@ ways and requires the same verdicts and values).
 The wire types are derived from the pydantic models when a codec is built (`PositionalCodec`); a field
 whose type or constraint the compiler does not know is an error at that moment, never a silently
 unchecked field.
+
+Readers of a few fields (the link probe's echo and its ack, robot_infer's TagPoses bookkeeping on
+Zenoh's thread) can skip the model: `unpack_wire` makes every check `unpack` makes on the parsed wire
+struct itself (references' bounds and shapes without making an ndarray, the models' after-validators
+run on the struct: each is marked `@wire_safe`, written for either form) and `build` assembles the
+model later if it is wanted (`shared.wire.messages.decode_view`). Encoders are generated per model (one
+function, no loop over a field plan).
 """
 
 from __future__ import annotations
@@ -81,10 +88,13 @@ class CompileError(TypeError):
     """A model field whose type or constraint has no positional wire type (a programming error)."""
 
 
-# A field's (wire type, encoder of a model value -> wire value, decoder of a wire value -> model value).
-# None for either: the value is the same on both sides (scalars, strings, literals, lists of those).
+# A field's (wire type, encoder of a model value -> wire value, decoder of a wire value -> model value,
+# checker of a wire value that the parser could not judge). None for any of them: nothing to do (the
+# value is the same on both sides: scalars, strings, literals, lists of those, inline arrays' checks).
 Enc = Callable[[Any, DataWriter], Any] | None
 Dec = Callable[[Any, DataSection], Any] | None
+Chk = Callable[[Any, DataSection], None] | None
+Compiled = tuple[Any, Enc, Dec, Chk]
 
 
 def _rust_anchor(pattern: str) -> str:
@@ -153,7 +163,9 @@ class PositionalCodec:
     def __init__(self, models: Sequence[type[BaseModel]], *, legacy: Iterable[type[BaseModel]] = ()) -> None:
         self._structs: dict[type[BaseModel], type[msgspec.Struct]] = {}
         self._encoders: dict[type[BaseModel], Callable[[Any, DataWriter], list[Any]]] = {}
+        self._tops: dict[type[BaseModel], Callable[[Any, DataWriter], list[Any]]] = {}  # with the schema id
         self._builders: dict[type[msgspec.Struct], Callable[[Any, DataSection], Any]] = {}
+        self._checkers: dict[type[msgspec.Struct], Chk] = {}
         self._ref_types: dict[tuple[int, ...], type[msgspec.Struct]] = {}
         self.models = {m.SCHEMA: m for m in (*models, *legacy)}  # type: ignore[attr-defined]
         tops = []
@@ -176,7 +188,7 @@ class PositionalCodec:
             self._ref_types[codes] = ref
         return ref
 
-    def _array(self, spec: Any, where: str) -> tuple[Any, Enc, Dec]:
+    def _array(self, spec: Any, where: str) -> Compiled:
         shape = spec.shape
         fixed = shape is not None and all(d is not None for d in shape)
         count = math.prod(shape) if fixed else 0
@@ -188,6 +200,8 @@ class PositionalCodec:
             wire = Annotated[tuple[item, ...], msgspec.Meta(min_length=count, max_length=count)]
 
             def enc_inline(value: np.ndarray, out: DataWriter) -> list[float]:
+                if type(value) is np.ndarray and value.dtype is dtype and value.shape == shape:
+                    return value.ravel().tolist()  # what a validated message holds (builtin dtypes are singletons)
                 if isinstance(value, np.ndarray) and value.dtype != dtype and value.dtype.newbyteorder("<") == dtype:
                     value = value.astype(dtype)  # the same values in the other byte order (as framing 2 writes it)
                 if not isinstance(value, np.ndarray) or value.dtype != dtype or value.shape != shape:
@@ -200,7 +214,7 @@ class PositionalCodec:
                 out.flags.writeable = False  # as framing 2's views of the payload
                 return out
 
-            return wire, enc_inline, dec_inline
+            return wire, enc_inline, dec_inline, None  # the parser checked length and bounds
         codes = tuple(sorted(DTYPE_CODES[d] for d in spec.dtypes))
         validate = spec.validate
         wire_codes = {WIRE_DTYPES[d]: DTYPE_CODES[d] for d in spec.dtypes}  # the field's little-endian dtypes
@@ -224,10 +238,23 @@ class PositionalCodec:
             except ValueError as exc:
                 raise _FieldError(f"{where}: {exc}") from None
 
-        return self._ref_type(codes), enc_ref, dec_ref
+        check_shape = spec.check_shape
+        scan = spec.finite and any(WIRE_DTYPES[d].kind == "f" for d in spec.dtypes)
 
-    def _field(self, tp: Any, metadata: Sequence[Any], where: str) -> tuple[Any, Enc, Dec]:
-        """(wire type, encoder, decoder) of one field type with its pydantic metadata."""
+        def chk_ref(ref: Any, ctx: DataSection) -> None:
+            if scan:  # finiteness needs the values: the array is viewed and scanned
+                dec_ref(ref, ctx)
+                return
+            ctx.claim(CODE_DTYPES[ref.dtype], ref.shape, ref.offset)  # the bounds, without an ndarray
+            try:
+                check_shape(tuple(ref.shape))
+            except ValueError as exc:
+                raise _FieldError(f"{where}: {exc}") from None
+
+        return self._ref_type(codes), enc_ref, dec_ref, chk_ref
+
+    def _field(self, tp: Any, metadata: Sequence[Any], where: str) -> Compiled:
+        """(wire type, encoder, decoder, checker) of one field type with its pydantic metadata."""
         if typing.get_origin(tp) is Annotated:
             base, *more = typing.get_args(tp)
             return self._field(base, [*more, *metadata], where)
@@ -240,35 +267,37 @@ class PositionalCodec:
             others = [a for a in args if a is not type(None)]
             if len(others) != 1 or len(args) != 2:
                 raise CompileError(f"{where}: only `X | None` unions have a positional wire type, not {tp}")
-            wire, enc, dec = self._field(others[0], metadata, where)  # the constraints are the value's
+            wire, enc, dec, chk = self._field(others[0], metadata, where)  # the constraints are the value's
             enc_opt = None if enc is None else (lambda v, out, _e=enc: None if v is None else _e(v, out))
             dec_opt = None if dec is None else (lambda v, ctx, _d=dec: None if v is None else _d(v, ctx))
-            return wire | None, enc_opt, dec_opt
+            chk_opt = None if chk is None else (lambda v, ctx, _c=chk: None if v is None else _c(v, ctx))
+            return wire | None, enc_opt, dec_opt, chk_opt
         if origin is list:
             (item,) = typing.get_args(tp)
-            wire, enc, dec = self._field(item, [], where + "[]")
+            wire, enc, dec, chk = self._field(item, [], where + "[]")
             enc_list = None if enc is None else (lambda v, out, _e=enc: [_e(x, out) for x in _as_list(v, where)])
             dec_list = None if dec is None else (lambda v, ctx, _d=dec: [_d(x, ctx) for x in v])
-            return _meta(list[wire], kw), enc_list, dec_list  # type: ignore[valid-type]
+            chk_list = None if chk is None else _each(chk)
+            return _meta(list[wire], kw), enc_list, dec_list, chk_list  # type: ignore[valid-type]
         if origin is Literal:
             if kw:
                 raise CompileError(f"{where}: constraints on a Literal")
-            return tp, None, None
+            return tp, None, None, None
         if isinstance(tp, type) and issubclass(tp, BaseModel):
             if kw:
                 raise CompileError(f"{where}: constraints on a nested model")
             struct_type = self._struct_for(tp)
-            return struct_type, self._encoders[tp], self._builders[struct_type]
+            return struct_type, self._encoders[tp], self._builders[struct_type], self._checkers[struct_type]
         if tp is bool or tp is str:
-            return _meta(tp, kw), None, None
+            return _meta(tp, kw), None, None, None
         if tp is int:
-            return _meta(int, kw), None, None
+            return _meta(int, kw), None, None, None
         if tp is float:
             if allow_inf_nan is False:  # NaN fails any bound; a finite bound refuses +-inf
                 big = _FINITE_MAX["float64"]
                 kw.setdefault("ge", -big) if "gt" not in kw else None
                 kw.setdefault("le", big) if "lt" not in kw else None
-            return _meta(float, kw), None, None  # an int on the wire becomes a float, as in pydantic
+            return _meta(float, kw), None, None, None  # an int on the wire becomes a float, as in pydantic
         raise CompileError(f"{where}: type {tp!r} has no positional wire type")
 
     def _struct_for(self, model: type[BaseModel], *, tag: str | None = None) -> type[msgspec.Struct]:
@@ -280,33 +309,74 @@ class PositionalCodec:
         fields: list[tuple[str, Any]] = []
         encoders: list[tuple[str, Enc]] = []
         decoders: list[tuple[str, Dec]] = []
+        checkers: list[tuple[str, Chk]] = []
         for name, info in model.model_fields.items():
             where = f"{model.__name__}.{name}"
-            wire, enc, dec = self._field(info.annotation, info.metadata, where)
+            wire, enc, dec, chk = self._field(info.annotation, info.metadata, where)
             fields.append((name, wire))
             encoders.append((name, enc))
             decoders.append((name, dec))
+            checkers.append((name, chk))
         options: dict[str, Any] = {"array_like": True, "forbid_unknown_fields": True}
         if tag is not None:
             options["tag"] = tag
         struct_type = msgspec.defstruct(f"Wire{model.__name__}", fields, **options)
         self._structs.setdefault(model, struct_type)
         self._builders[struct_type] = _builder(model, decoders)
+        self._checkers[struct_type] = _checker(model, checkers)
         if model not in self._encoders:
-            self._encoders[model] = _encoder(encoders)
+            self._encoders[model] = _encoder(model, encoders, tag=None)
+        if tag is not None:
+            self._tops[model] = _encoder(model, encoders, tag=tag)
         return struct_type
 
     # -- encoding and decoding --------------------------------------------------------------------
 
     def pack(self, message: BaseModel) -> bytes:
         """Framing 3 bytes of a message (its model must be one this codec was built for)."""
-        schema = message.SCHEMA  # type: ignore[attr-defined]
         out = DataWriter()
-        header = self._encoder.encode([schema, *self._encoders[type(message)](message, out)])
-        return out.frame(FRAMING3, header)
+        return out.frame(FRAMING3, self._encoder.encode(self._tops[type(message)](message, out)))
+
+    def pack_values(self, model: type[BaseModel], values: Sequence[Any]) -> bytes:
+        """Framing 3 bytes of a message given as its field values in declaration order (nested messages
+        as sequences of theirs, small float arrays as flat sequences), checked by the same compiled wire
+        type the receiver parses with; for a message built only to be sent at once. A model with
+        out-of-band arrays or after-validators is refused (TypeError): their checks need the model (`pack`)."""
+        struct_type = self._structs.get(model)
+        if struct_type is None or self._checkers[struct_type] is not None:
+            raise TypeError(f"{model.__name__}: pack_values takes messages of this codec without arrays or validators")
+        try:
+            wire = msgspec.convert([model.SCHEMA, *values], struct_type)  # type: ignore[attr-defined]
+        except msgspec.ValidationError as exc:
+            raise SchemaError(f"invalid {model.SCHEMA}: {_short(_named(str(exc), struct_type))}") from None  # type: ignore[attr-defined]
+        return DataWriter().frame(FRAMING3, self._encoder.encode(wire))
 
     def unpack(self, mv: memoryview) -> tuple[str, BaseModel]:
         """(schema id, model of that schema) from a framing-3 payload; arrays view `mv`."""
+        schema, wire, section = self._parse(mv)
+        return schema, self._build(schema, wire, section)
+
+    def unpack_wire(self, mv: memoryview) -> tuple[str, Any]:
+        """(schema id, wire struct) from a framing-3 payload that passed every check `unpack` makes, without
+        building the model (`build` does, later): the header's values by field name, nested messages as
+        wire structs, inline arrays as flat tuples, the others as [dtype, shape, offset] references whose
+        bounds and shapes were checked. The models' after-validators ran on the wire struct."""
+        schema, wire, section = self._parse(mv)
+        check = self._checkers[type(wire)]
+        if check is not None:
+            try:
+                check(wire, section)
+            except _FieldError as exc:
+                raise SchemaError(f"invalid {schema}: {_short(str(exc))}") from None
+        section.finish()
+        return schema, wire
+
+    def build(self, schema: str, wire: Any, mv: memoryview) -> BaseModel:
+        """The model of a wire struct that `unpack_wire` returned for `mv` (arrays view `mv`)."""
+        _, _, section = open_frame(mv)
+        return self._build(schema, wire, section)
+
+    def _parse(self, mv: memoryview) -> tuple[str, Any, DataSection]:
         _, header, section = open_frame(mv)  # the version was read by the caller's dispatch
         try:
             wire = self._decoder.decode(header)
@@ -314,13 +384,15 @@ class PositionalCodec:
             raise self._header_error(header, exc) from None
         except (msgspec.DecodeError, ValueError) as exc:  # ValueError: a string that is not UTF-8
             raise MalformedFrame(f"malformed msgpack header: {_short(str(exc))}") from None
-        schema = wire.__struct_config__.tag
+        return wire.__struct_config__.tag, wire, section
+
+    def _build(self, schema: str, wire: Any, section: DataSection) -> BaseModel:
         try:
             model = self._builders[type(wire)](wire, section)
         except _FieldError as exc:
             raise SchemaError(f"invalid {schema}: {_short(str(exc))}") from None
         section.finish()
-        return schema, model
+        return model
 
     def _header_error(self, header: memoryview, exc: msgspec.ValidationError) -> Exception:
         """The clearest error for a header the parser refused: an unknown schema id is said as such."""
@@ -428,15 +500,67 @@ _new = object.__new__
 _set = object.__setattr__
 
 
+def wire_safe(check: Callable[[Any], Any]) -> Callable[[Any], Any]:
+    """Mark a model's after-validator as one that also judges the model's wire struct (`unpack_wire`
+    runs it there): it may read fields by name and must take a small float array either as the
+    model's ndarray or as the wire's flat tuple, and an out-of-band array's shape from `.shape` alone."""
+    check.__wire_safe__ = True  # type: ignore[attr-defined]
+    return check
+
+
+def flat(value: Any) -> list[float] | tuple[float, ...]:
+    """A small float array's values in C order: the model's ndarray or the wire struct's flat tuple."""
+    return value.ravel().tolist() if isinstance(value, np.ndarray) else value
+
+
+def _after_validators(model: type[BaseModel]) -> list[Callable[[Any], Any]]:
+    decorators = model.__pydantic_decorators__
+    if any(d.info.mode != "after" for d in decorators.model_validators.values()):
+        raise CompileError(f"{model.__name__}: only after-validators are supported")
+    if decorators.field_validators:
+        raise CompileError(f"{model.__name__}: field validators have no positional wire check")
+    after = [d.func for d in decorators.model_validators.values()]
+    unsafe = [f.__name__ for f in after if not getattr(f, "__wire_safe__", False)]
+    if unsafe:
+        raise CompileError(f"{model.__name__}: after-validators {unsafe} are not marked @wire_safe")
+    return after
+
+
+def _each(check: Callable[[Any, DataSection], None]) -> Callable[[Any, DataSection], None]:
+    def check_all(values: Any, ctx: DataSection) -> None:
+        for v in values:
+            check(v, ctx)
+
+    return check_all
+
+
+def _checker(model: type[BaseModel], checkers: list[tuple[str, Chk]]) -> Chk:
+    """The checks of a wire struct that the parser could not make (arrays' bounds and shapes, nested
+    models' checks, then the model's after-validators run on the wire struct), in the order the builder
+    makes them; None when the parser checked everything."""
+    special = [(name, chk) for name, chk in checkers if chk is not None]
+    after = _after_validators(model)
+    if not special and not after:
+        return None
+    get = getattr
+
+    def check(wire: Any, ctx: DataSection) -> None:
+        for name, chk in special:
+            chk(get(wire, name), ctx)
+        for validate in after:
+            try:
+                validate(wire)
+            except ValueError as exc:
+                raise _FieldError(f"{model.__name__}: {exc}") from None
+
+    return check
+
+
 def _builder(model: type[BaseModel], decoders: list[tuple[str, Dec]]) -> Callable[[Any, DataSection], Any]:
     """Wire struct -> model, without a second validation: the parser checked every scalar; arrays are
     checked by their decoders; then the model's own after-validators run, as model_validate would."""
     special = [(name, dec) for name, dec in decoders if dec is not None]
-    after = [d.func for d in model.__pydantic_decorators__.model_validators.values() if d.info.mode == "after"]
-    if any(d.info.mode != "after" for d in model.__pydantic_decorators__.model_validators.values()):
-        raise CompileError(f"{model.__name__}: only after-validators are supported")
-    if model.__pydantic_decorators__.field_validators:
-        raise CompileError(f"{model.__name__}: field validators have no positional wire check")
+    after = _after_validators(model)
     asdict = msgspec.structs.asdict
     names = frozenset(model.model_fields)
 
@@ -459,13 +583,21 @@ def _builder(model: type[BaseModel], decoders: list[tuple[str, Dec]]) -> Callabl
     return build
 
 
-def _encoder(encoders: list[tuple[str, Enc]]) -> Callable[[Any, DataWriter], list[Any]]:
-    plan = list(encoders)
-
-    def encode(message: Any, out: DataWriter) -> list[Any]:
-        if not isinstance(message, BaseModel):
-            raise MalformedFrame(f"cannot encode {type(message).__name__} where a message part belongs")
-        d = message.__dict__
-        return [d[name] if enc is None else enc(d[name], out) for name, enc in plan]
-
-    return encode
+def _encoder(model: type[BaseModel], encoders: list[tuple[str, Enc]], *, tag: str | None) -> Callable[..., list[Any]]:
+    """Model -> positional wire list (`[tag, fields...]` for a top-level message), as one generated
+    function per model: a field list walked by a loop costs twice as much on the hot path."""
+    names = {name: f"_e{i}" for i, (name, enc) in enumerate(encoders) if enc is not None}
+    items = [f"d[{name!r}]" if name not in names else f"{names[name]}(d[{name!r}], out)" for name, _ in encoders]
+    if tag is not None:
+        items.insert(0, "_tag")
+    source = (
+        "def encode(message, out):\n"
+        "    if message.__class__ is not _model and not isinstance(message, _BaseModel):\n"
+        "        raise _MalformedFrame(f'cannot encode {type(message).__name__} where a message part belongs')\n"
+        "    d = message.__dict__\n"
+        f"    return [{', '.join(items)}]\n"
+    )
+    scope: dict[str, Any] = {"_model": model, "_BaseModel": BaseModel, "_MalformedFrame": MalformedFrame, "_tag": tag}
+    scope.update({names[name]: enc for name, enc in encoders if enc is not None})
+    exec(compile(source, f"<positional encoder of {model.__name__}>", "exec"), scope)
+    return scope["encode"]
