@@ -107,9 +107,10 @@ def measure(
         start_new_session=True,
         stderr=subprocess.DEVNULL,
     )
-    before = pin_cpus([split_cpus[0]]) if split_cpus else None
+    before = None
     rows: list[Row] = []
     try:
+        before = pin_cpus([split_cpus[0]]) if split_cpus else None
         session = open_session(ZenohSettings(mode="client", connect=[endpoint], shared_memory=shared_memory))
         wait_for_liveliness(session, [keys.alive(robot, "echo")])
         prober = Prober(session, keys.echo(robot))

@@ -704,6 +704,8 @@ def test_a_view_has_the_messages_fields_and_builds_it_once(schema: str) -> None:
     model = view.model()
     assert view.model() is model
     assert_messages_equal(model, msg)
+    with pytest.raises(AttributeError):  # checked once, then trusted by model(): frozen
+        view.fields.robot_id = "bad id"
     with pytest.raises(SchemaError, match="where"):
         decode_view(encode(msg), SplitConfig if schema != SplitConfig.SCHEMA else Features)
 
@@ -794,6 +796,9 @@ def test_framing3_reads_any_view_and_writes_either_byte_order() -> None:
     with pytest.raises(MalformedFrame, match="trailing"):  # the same bytes, seen as uint64 items
         decode(memoryview(bytearray(padded)).cast("Q"))
     assert_messages_equal(decode(memoryview(payload)), msg)
+    strided = memoryview(bytes(b for pair in zip(payload, bytes(len(payload)), strict=True) for b in pair))[::2]
+    assert_messages_equal(decode(strided), msg)  # a non-contiguous view is read as its bytes
+    assert_messages_equal(decode_view(strided).model(), msg)
     for framing in (1, 2, 3):  # arrays viewing a mutable buffer are read-only too
         out = decode(bytearray(encode(msg, framing=framing)))
         assert not out.tags[0].tensor.flags.writeable
@@ -816,6 +821,8 @@ def test_encode_values_writes_what_encode_writes_checked_as_the_receiver_parses(
         encode_values(ProbeAck, 1, True, "", [5, -9, 0])
     with pytest.raises(SchemaError, match="decoded_ok"):
         encode_values(ProbeAck, 1, 1, "", None)  # strict: no int for a bool
+    with pytest.raises(SchemaError, match=r"3 values for its 4 fields \(received_bytes, decoded_ok, error, link\)"):
+        encode_values(ProbeAck, 1, True, "")
     for model in (Features, TagPoses, Frame):  # out-of-band arrays or validators need the model
         with pytest.raises(TypeError, match="without arrays or validators"):
             encode_values(model, 1)

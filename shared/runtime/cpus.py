@@ -8,6 +8,7 @@ has (Zenoh's runtimes, torch's pool) and, through inheritance, every thread it s
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 from collections.abc import Iterable
@@ -25,25 +26,59 @@ def allowed_cpus() -> frozenset[int]:
     return frozenset(os.sched_getaffinity(0))
 
 
+def online_cpus() -> frozenset[int]:
+    """The CPUs the kernel has online (/sys/devices/system/cpu/online; elsewhere 0..cpu_count-1)."""
+    path = Path("/sys/devices/system/cpu/online")
+    if not path.is_file():
+        return frozenset(range(os.cpu_count() or 1))
+    out: set[int] = set()
+    for part in path.read_text().strip().split(","):
+        lo, _, hi = part.partition("-")
+        out.update(range(int(lo), int(hi or lo) + 1))
+    return frozenset(out)
+
+
 def pin_cpus(cpus: Iterable[int]) -> frozenset[int]:
     """Run this process, all its threads and every thread they start on `cpus` only; returns the set
-    it ran on before (to restore with `pin_cpus` again). Raises CpuPlacementError for an empty set or a
-    CPU outside the allowed set (a container's cpuset, an earlier pin: restore before re-pinning)."""
+    it ran on before (`pin_cpus(before)` restores it). Raises CpuPlacementError, leaving the placement
+    as it was, for an empty set, a CPU the host does not have online, or a set the process may not
+    fully use (a container's cpuset would silently shrink it)."""
     wanted = frozenset(cpus)
     before = allowed_cpus()
-    online = frozenset(range(os.cpu_count() or 1))
+    online = online_cpus()
     if not wanted:
         raise CpuPlacementError("an empty CPU set: give at least one CPU (or none at all to leave placement alone)")
     outside = sorted(wanted - online)
     if outside:
         raise CpuPlacementError(f"CPUs {outside} are not on this host (CPUs here: {sorted(online)})")
-    for tid in _thread_ids():
-        try:
-            os.sched_setaffinity(tid, wanted)
-        except ProcessLookupError:  # a thread that ended meanwhile
-            continue
-        except OSError as exc:
-            raise CpuPlacementError(f"cannot place thread {tid} on CPUs {sorted(wanted)}: {exc}") from None
+    moved: dict[int, frozenset[int]] = {}
+    try:
+        # Until a pass finds no thread it has not moved: a thread not yet moved may start another,
+        # which inherits the old set.
+        while True:
+            new = [tid for tid in _thread_ids() if tid not in moved]
+            if not new:
+                break
+            for tid in new:
+                try:
+                    old = frozenset(os.sched_getaffinity(tid))
+                    os.sched_setaffinity(tid, wanted)
+                    got = frozenset(os.sched_getaffinity(tid))
+                except ProcessLookupError:  # a thread that ended meanwhile
+                    moved[tid] = frozenset()
+                    continue
+                except OSError as exc:
+                    raise CpuPlacementError(f"cannot place thread {tid} on CPUs {sorted(wanted)}: {exc}") from None
+                moved[tid] = old
+                if got != wanted:
+                    limited = f"thread {tid} may use only CPUs {sorted(got)} of {sorted(wanted)}"
+                    raise CpuPlacementError(f"{limited} (a cpuset limits this process)")
+    except CpuPlacementError:
+        for tid, old in moved.items():
+            if old:
+                with contextlib.suppress(OSError):
+                    os.sched_setaffinity(tid, old)
+        raise
     log.info("running on CPUs %s (before: %s)", sorted(wanted), sorted(before))
     return before
 

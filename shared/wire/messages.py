@@ -779,7 +779,10 @@ class View(Generic[M]):
     the same kind of object; small float arrays (corners, homographies, poses) as flat tuples in C
     order; other arrays as references (`.shape`; the data stays in the payload). `model()` builds the
     message itself, once, arrays viewing the payload as `decode`'s do. Messages in framings 1 and 2
-    and older schemas are built at once (their `fields` is the model)."""
+    and older schemas are built at once (their `fields` is the model: arrays as ndarrays), so a reader
+    of `fields` should keep to scalars, strings, nested messages' scalars and lengths, which read the
+    same either way (an inline float32 array's values are also the sender's, not yet rounded to
+    float32); for arrays, use `model()`. The fields are frozen: they were checked once."""
 
     __slots__ = ("_model", "_mv", "fields", "schema")
 
@@ -805,8 +808,7 @@ def decode_view(
 ) -> View[M]:
     """Like `decode` (the same checks, the same errors), but the message comes as a `View`: what a reader
     of a few fields on a hot path (the link probe's echo, its ack) takes, skipping the model's assembly."""
-    if isinstance(payload, memoryview) and (payload.format != "B" or payload.ndim != 1):
-        payload = payload.cast("B")
+    payload = _as_bytes_view(payload)
     if not (len(payload) >= 2 and payload[0] == FRAME_MAGIC and payload[1] == FRAMING3 and len(payload) <= max_bytes):
         model = decode(payload, expected, max_bytes=max_bytes)
         return View(model.SCHEMA, model, model=model)
@@ -834,6 +836,16 @@ def _require_all_fields(model: type[WireModel], body: Any, where: str) -> None:
         raise SchemaError(f"{where}: missing fields {missing}")
 
 
+def _as_bytes_view(payload: bytes | bytearray | memoryview) -> bytes | bytearray | memoryview:
+    """Sizes and the frame head in bytes, whatever a memoryview's items; a strided view is copied."""
+    if isinstance(payload, memoryview):
+        if not payload.c_contiguous:
+            return payload.tobytes()
+        if payload.format != "B" or payload.ndim != 1:
+            return payload.cast("B")
+    return payload
+
+
 def decode(
     payload: bytes | bytearray | memoryview,
     expected: type[M] | Sequence[type[Message]] | None = None,
@@ -844,8 +856,7 @@ def decode(
 
     `expected` restricts which message types are acceptable; arrays in the result view `payload`.
     """
-    if isinstance(payload, memoryview) and (payload.format != "B" or payload.ndim != 1):
-        payload = payload.cast("B")  # sizes and the frame head in bytes, whatever the view's items
+    payload = _as_bytes_view(payload)
     if len(payload) >= 2 and payload[0] == FRAME_MAGIC and payload[1] == FRAMING3 and len(payload) <= max_bytes:
         return _decode_positional(payload, expected)
     doc = unpack(payload, max_bytes=max_bytes)

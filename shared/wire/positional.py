@@ -184,6 +184,7 @@ class PositionalCodec:
                 [("dtype", Literal[codes]), ("shape", _Dims), ("offset", _Offset)],
                 array_like=True,
                 forbid_unknown_fields=True,
+                frozen=True,
             )
             self._ref_types[codes] = ref
         return ref
@@ -317,7 +318,8 @@ class PositionalCodec:
             encoders.append((name, enc))
             decoders.append((name, dec))
             checkers.append((name, chk))
-        options: dict[str, Any] = {"array_like": True, "forbid_unknown_fields": True}
+        # frozen: a view's fields were checked once; they cannot be changed before `build` trusts them
+        options: dict[str, Any] = {"array_like": True, "forbid_unknown_fields": True, "frozen": True}
         if tag is not None:
             options["tag"] = tag
         struct_type = msgspec.defstruct(f"Wire{model.__name__}", fields, **options)
@@ -345,6 +347,11 @@ class PositionalCodec:
         struct_type = self._structs.get(model)
         if struct_type is None or self._checkers[struct_type] is not None:
             raise TypeError(f"{model.__name__}: pack_values takes messages of this codec without arrays or validators")
+        if len(values) != len(model.model_fields):
+            raise SchemaError(
+                f"invalid {model.SCHEMA}: {len(values)} values for its {len(model.model_fields)} fields "  # type: ignore[attr-defined]
+                f"({', '.join(model.model_fields)})"
+            )
         try:
             wire = msgspec.convert([model.SCHEMA, *values], struct_type)  # type: ignore[attr-defined]
         except msgspec.ValidationError as exc:
