@@ -11,7 +11,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import zenoh
 
@@ -86,9 +86,9 @@ class ProbeError(RuntimeError):
     """A probe got no reply, an error reply, or an ack saying the payload was rejected."""
 
 
-@dataclass(frozen=True)
-class ProbeResult:
-    """One timed round trip."""
+class ProbeResult(NamedTuple):
+    """One timed round trip (a named tuple: made on every probe's critical path, at a fifth of a
+    frozen dataclass's cost)."""
 
     payload_bytes: int
     rtt_secs: float
