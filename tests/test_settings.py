@@ -110,3 +110,19 @@ def test_cpus_setting_is_a_non_empty_list_of_cpu_numbers() -> None:
     for bad in ([], [-1]):
         with pytest.raises(ValueError, match="cpus"):
             CameraSettings(cpus=bad)
+
+
+def test_a_cpu_the_host_lacks_stops_the_echo_with_a_clear_error() -> None:
+    import os
+    import subprocess
+    import sys
+
+    cpu = str((os.cpu_count() or 1) + 7)
+    out = subprocess.run(
+        [sys.executable, "-m", "shared.tools.cli", "echo", "--listen", "tcp/127.0.0.1:0", "--cpus", cpu],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert out.returncode == 2
+    assert "not on this host" in out.stderr and "Traceback" not in out.stderr

@@ -13,7 +13,7 @@ from typing import TypeVar
 
 import zenoh
 
-from shared.runtime.cpus import pin_cpus
+from shared.runtime.cpus import CpuPlacementError, pin_cpus
 from shared.runtime.logs import setup_logging
 from shared.runtime.settings import ServiceSettings
 from shared.transport.session import open_session
@@ -36,7 +36,11 @@ def service_main(name: str, settings_cls: type[S], run: Callable[[S, zenoh.Sessi
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     if settings.cpus is not None:
-        pin_cpus(settings.cpus)  # before Zenoh and torch start their threads (those running move too)
+        try:
+            pin_cpus(settings.cpus)  # before Zenoh and torch start their threads (those running move too)
+        except CpuPlacementError as exc:
+            log.error("%s: cpus %s: %s", name, settings.cpus, exc)
+            return 2
     session = open_session(settings.zenoh)
     try:
         run(settings, session, stop)

@@ -113,9 +113,13 @@ def _cmd_echo(args: argparse.Namespace) -> int:
 
     settings = ZenohSettings(mode="router", listen=args.listen, connect=args.connect, shared_memory=args.shared_memory)
     if args.cpus:
-        from shared.runtime.cpus import pin_cpus
+        from shared.runtime.cpus import CpuPlacementError, pin_cpus
 
-        pin_cpus(args.cpus)
+        try:
+            pin_cpus(args.cpus)
+        except CpuPlacementError as exc:
+            print(f"echo: --cpus {args.cpus}: {exc}", file=sys.stderr)
+            return 2
     echo.run(settings, robot_id=args.robot_id)
     return 0
 

@@ -56,7 +56,9 @@ def serve_echo(
         if framing == WRITE_FRAMING:  # checked as the asker will parse it, no model built for it
             out = encode_values(ProbeAck, len(payload), not error, error, link)
         else:
-            stamps = None if link is None else LinkStamps(**dict(zip(LinkStamps.model_fields, link, strict=True)))
+            stamps = None
+            if link is not None:
+                stamps = LinkStamps(sent_nanos=link[0], received_nanos=link[1], previous_received_nanos=link[2])
             ack = ProbeAck(received_bytes=len(payload), decoded_ok=not error, error=error, link=stamps)
             out = encode(ack, framing=framing)
         query.reply(query.key_expr, out, encoding=enc)

@@ -146,16 +146,18 @@ class DataWriter:
         """Frame head, header, padding to 8, the arrays (no data section without arrays)."""
         if not self.arrays:
             return _FRAME_HEAD.pack(FRAME_MAGIC, version, len(header)) + header
-        parts: list[Any] = [_FRAME_HEAD.pack(FRAME_MAGIC, version, len(header)), header]
-        if self.arrays:
-            head_len = _FRAME_HEAD.size + len(header)
-            parts.append(_ZEROS[: _aligned(head_len) - head_len])
-            pos = 0
-            for start, arr in zip(self.starts, self.arrays, strict=True):
-                parts.append(_ZEROS[: start - pos])
-                if arr.nbytes:
-                    parts.append(memoryview(arr).cast("B"))  # type: ignore[arg-type]
-                pos = start + arr.nbytes
+        head_len = _FRAME_HEAD.size + len(header)
+        parts: list[Any] = [
+            _FRAME_HEAD.pack(FRAME_MAGIC, version, len(header)),
+            header,
+            _ZEROS[: _aligned(head_len) - head_len],
+        ]
+        pos = 0
+        for start, arr in zip(self.starts, self.arrays, strict=True):
+            parts.append(_ZEROS[: start - pos])
+            if arr.nbytes:
+                parts.append(memoryview(arr).cast("B"))  # type: ignore[arg-type]
+            pos = start + arr.nbytes
         return b"".join(parts)
 
 

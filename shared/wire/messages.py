@@ -194,18 +194,15 @@ class TagFeatureV1(WireModel):
         m = flat(self.roi_to_image)  # 3x3 floats: Python beats numpy here
         a, b, c, d, e, f, g, h, i = m
         scale = max(abs(a), abs(b), abs(c), abs(d), abs(e), abs(f), abs(g), abs(h), abs(i))
-        if 1e-90 < scale < 1e90:  # the determinant relative to scale**3, which cannot overflow here
-            det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
-            if abs(det) < 1e-12 * (scale * scale * scale):
-                raise ValueError("roi_to_image is not an invertible homography")
-            return self
         if scale == 0:
             raise ValueError("roi_to_image is not an invertible homography")
-        # scale first: cubing a huge entry (a finite 1e200) would overflow; divide (1 / a subnormal
-        # scale would be inf, and an inf determinant passes any threshold)
-        a, b, c, d, e, f, g, h, i = (v / scale for v in m)
+        if not 1e-90 < scale < 1e90:
+            # scale first: cubing a huge entry (a finite 1e200) would overflow; divide (1 / a subnormal
+            # scale would be inf, and an inf determinant passes any threshold)
+            a, b, c, d, e, f, g, h, i = (v / scale for v in m)
+            scale = 1.0
         det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
-        if abs(det) < 1e-12:
+        if abs(det) < 1e-12 * (scale * scale * scale):  # relative to scale**3, which cannot overflow here
             raise ValueError("roi_to_image is not an invertible homography")
         return self
 

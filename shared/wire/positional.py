@@ -541,6 +541,15 @@ def _each(check: Callable[[Any, DataSection], None]) -> Callable[[Any, DataSecti
     return check_all
 
 
+def _run_after(model: type[BaseModel], after: list[Callable[[Any], Any]], target: Any) -> None:
+    """The model's after-validators on `target` (the model, or its wire struct: each is @wire_safe)."""
+    for validate in after:
+        try:
+            validate(target)
+        except ValueError as exc:
+            raise _FieldError(f"{model.__name__}: {exc}") from None
+
+
 def _checker(model: type[BaseModel], checkers: list[tuple[str, Chk]]) -> Chk:
     """The checks of a wire struct that the parser could not make (arrays' bounds and shapes, nested
     models' checks, then the model's after-validators run on the wire struct), in the order the builder
@@ -554,11 +563,7 @@ def _checker(model: type[BaseModel], checkers: list[tuple[str, Chk]]) -> Chk:
     def check(wire: Any, ctx: DataSection) -> None:
         for name, chk in special:
             chk(get(wire, name), ctx)
-        for validate in after:
-            try:
-                validate(wire)
-            except ValueError as exc:
-                raise _FieldError(f"{model.__name__}: {exc}") from None
+        _run_after(model, after, wire)
 
     return check
 
@@ -580,11 +585,7 @@ def _builder(model: type[BaseModel], decoders: list[tuple[str, Dec]]) -> Callabl
         _set(out, "__pydantic_fields_set__", set(names))
         _set(out, "__pydantic_extra__", None)
         _set(out, "__pydantic_private__", None)
-        for check in after:
-            try:
-                check(out)
-            except ValueError as exc:
-                raise _FieldError(f"{model.__name__}: {exc}") from None
+        _run_after(model, after, out)
         return out
 
     return build
