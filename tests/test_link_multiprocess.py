@@ -9,7 +9,8 @@ same on every CPU: with gamma 1.6 the optimum is k = 0 on 5g (the ROI is cheap t
 controller's consistency, not a particular k.
 
 Functional checks only: the speed goals (optimum within 1 s of a change, mean latency within 5 % of
-an oracle) are measured by `bench/controller.py` and reported in the README, not asserted here.
+an oracle) are measured by `bench/controller.py` and reported in docs/link_and_controller.md (headline in
+the README), not asserted here.
 """
 
 from __future__ import annotations

@@ -129,7 +129,7 @@ def _noisy_run(seed: int, sigma_px: float) -> tuple[float, int, float]:
                 strict=True,
                 raises=AssertionError,
                 reason="GTSAM 4.3.0: at 0.6 px SLAM's median (30.5 cm) is no better than PnP's (29.4); "
-                "on 4.3a2 it was 11.3 (README *Marker SLAM*, GTSAM version)",
+                "on 4.3a2 it was 11.3 (docs/slam.md, GTSAM version)",
             ),
         ),
     ],
@@ -137,8 +137,8 @@ def _noisy_run(seed: int, sigma_px: float) -> tuple[float, int, float]:
 def test_noisy_measurements_beat_frame_by_frame_pnp(sigma_px: float) -> None:
     """Over 8 noise draws, SLAM's median ATE is under 0.6x frame-by-frame PnP's, with every frame posed.
     Judged on the median: a single draw on 84 px tags at 2.5 m is chaotic (an IPPE branch flip moves a
-    run by centimetres, and which draw flips differs between CPUs and GTSAM versions; README *Marker
-    SLAM*, GTSAM 4.3.0)."""
+    run by centimetres, and which draw flips differs between CPUs and GTSAM versions; docs/slam.md,
+    *GTSAM version*)."""
     runs = [_noisy_run(seed, sigma_px) for seed in range(8)]
     slam_cm = [100 * s for s, _, _ in runs]
     pnp_cm = [100 * p for _, _, p in runs]

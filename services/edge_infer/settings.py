@@ -46,7 +46,7 @@ class EdgeInferSettings(ServiceSettings):
     precision: PrecisionChoice = "auto"
     threads: int = Field(default=1, ge=1)
     # Test-time views (shared/model/views.py): where this side runs the whole network (k = 0), each
-    # ROI also goes through 1, 3 or 7 of its flips and turns and the keypoints are averaged (README
+    # ROI also goes through 1, 3 or 7 of its flips and turns and the keypoints are averaged (docs/network.md,
     # *Test-time views*: synth7 int8 e_px 0.419 -> 0.383 / 0.372 / 0.360 with 2 / 4 / 8 views) for
     # 2x / 4x / 8x that network time.
     # Where the network is split (cuts 1..6) it runs once per ROI whatever this says.

@@ -33,7 +33,7 @@ class RobotInferSettings(ServiceSettings):
     # (stage1.aruco: OpenCV's ArUco on tag36h11, gated by a soft decode; stage1.lines: quads from
     # straight edges, for borders an occluder interrupts; .enabled = false drops either)
     stage1: Stage1Settings = Field(default_factory=Stage1Settings)
-    # Track-then-refine for tags stage 1 missed (shared/vision/tracking.py; off by default, see README)
+    # Track-then-refine for tags stage 1 missed (shared/vision/tracking.py; off by default, see docs/tracking.md)
     tracking: TrackingSettings = Field(default_factory=TrackingSettings)
     # auto (int8 if the folder has it, else bf16 where the CPU has it in hardware, else fp32) | fp32 | bf16
     # (PyTorch) | int8 (OpenVINO, the weights folder's int8 variant: splittag quantize)
@@ -41,7 +41,7 @@ class RobotInferSettings(ServiceSettings):
     threads: int = Field(default=1, ge=1)
     # Test-time views (shared/model/views.py): where this side runs the whole network (k = 7, and on
     # board without the edge), each ROI also goes through 1, 3 or 7 of its flips and turns and the
-    # keypoints are averaged (README *Test-time views*: synth7 int8 e_px 0.419 -> 0.383 / 0.372 /
+    # keypoints are averaged (docs/network.md, *Test-time views*: synth7 int8 e_px 0.419 -> 0.383 / 0.372 /
     # 0.360 with 2 / 4 / 8 views) for 2x / 4x / 8x that network time.
     # Where the network is split (cuts 1..6) it runs once per ROI whatever this says.
     views: Views = 1
@@ -56,7 +56,7 @@ class RobotInferSettings(ServiceSettings):
     # frame it then takes is fresh rather than most of an interval old. The robot's time per frame grows
     # by f^2/2 of an interval on average and the frames' median age at pickup falls from 1/2 of one to
     # 1/2 - f. The default 0.5 waits exactly when the next frame comes sooner than the one waiting is
-    # old (README *Fresh frames*). 0 = always take the newest frame at once.
+    # old (docs/pipeline.md, *Fresh frames*). 0 = always take the newest frame at once.
     fresh_frame_fraction: float = Field(default=0.5, ge=0.0, lt=1.0)
     max_in_flight: int = Field(default=2, ge=0)  # frames sent without TagPoses back yet; 0 = no limit
     # Start each frame when it would reach the edge as the edge becomes free (shared.transport.flow.EdgePacer)

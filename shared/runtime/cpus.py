@@ -2,7 +2,7 @@
 
 On one host the robot's and the edge's processes otherwise take turns on every core, and each wakes
 to caches the other filled: a small message's codec work (cold Python) then costs several times what
-it costs warm (README *Wire format*, CPU placement). `pin_cpus` moves every thread the process already
+it costs warm (docs/wire.md, *Views and CPU placement*). `pin_cpus` moves every thread the process already
 has (Zenoh's runtimes, torch's pool) and, through inheritance, every thread it starts later.
 """
 

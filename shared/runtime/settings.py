@@ -49,7 +49,7 @@ class ServiceSettings(BaseSettings):
     rerun: RerunSettings = Field(default_factory=RerunSettings)
     # The CPUs this service runs on (all its threads; shared.runtime.cpus), None: wherever the OS puts
     # it. Where robot and edge services share a host, each side on its own cores keeps its caches warm
-    # (README *Wire format*, CPU placement).
+    # (docs/wire.md, *Views and CPU placement*).
     cpus: Annotated[list[Annotated[int, Field(ge=0)]], Field(min_length=1)] | None = None
 
     @classmethod

@@ -79,7 +79,7 @@ class SlamSettings(BaseModel):
     # took medium rooms without a map from 1.11 to 2.52 cm mean ATE; Cauchy on views of any tag-map tag took the 0.2
     # px noisy run, with only the anchor in the map, from 4.9 to 34 cm, and bench.slam's SLAM + rough map (2 cm / 1
     # deg per axis, so stated) from 3.60 / 2.71 / 7.01 to 5.74 / 3.26 / 9.81 cm on slow / medium / fast. With this
-    # rule (README *Marker SLAM*): the sixteen tuning rooms with the map, fast 4.90 -> 3.98 cm mean ATE (the default
+    # rule (docs/slam.md): the sixteen tuning rooms with the map, fast 4.90 -> 3.98 cm mean ATE (the default
     # room 4.48 -> 2.81, its spread over 1-nm perturbations 2.86-5.26 -> 2.70-2.84), medium 0.48 -> 0.44; sixteen
     # new rooms, fast 3.75 -> 3.00 (every room better), medium 0.40 -> 0.39. Without a map nothing changes, nor with
     # a map that states its sigmas roughly, except in frames of its tags given without sigmas (bench.slam's rough

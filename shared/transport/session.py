@@ -74,7 +74,7 @@ class ZenohSettings(BaseModel):
     max_message_bytes: int = Field(default=MAX_MESSAGE_BYTES, gt=0)
     # Largest batch a link sends (the smaller of the two ends is used); a larger message goes in
     # fragments. zenoh's default and its maximum: on loopback 8 KiB batches take a 0.9 MB tensor 4.5x
-    # as long, on the emulated 5G uplink every size is link-bound (bench/zenoh_options.py, README).
+    # as long, on the emulated 5G uplink every size is link-bound (bench/zenoh_options.py, docs/wire.md).
     batch_size_bytes: int = Field(default=65535, ge=1024, le=65535)
     tls: TlsSettings | None = None  # needed by tls/ endpoints
     # Enforced by a router on the messages of the peers and clients it serves (shared.transport.access).

@@ -1,4 +1,4 @@
-"""Geometry conventions every accuracy figure stands on (documented in the README).
+"""Geometry conventions every accuracy figure stands on (documented in docs/geometry.md).
 
 - Pixels: OpenCV convention, pixel centres at integer coordinates; pixel (u, v) covers
   [u - 0.5, u + 0.5) x [v - 0.5, v + 0.5).

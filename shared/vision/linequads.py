@@ -27,7 +27,7 @@ proposer works from straight edges instead:
    dropped, a Huber line fit) and the corners are the refitted sides' intersections.
 
 Pure: image in, detections out; `shared.vision.proposals.Stage1Detector` merges them with AprilTag's
-and ArUco's. Measured on bench/accuracy's renders in the README ("Stage 1: three proposers").
+and ArUco's. Measured on bench/accuracy's renders in docs/stage1.md.
 """
 
 from __future__ import annotations

@@ -424,7 +424,7 @@ class CameraPose(FrameMessage):
     `covariance_world`: how sure slam is of the pose, 6x6, position (m) then rotation (rad) about the
     world's axes (ROS PoseWithCovariance's order), the factor graph's marginal with everything fused up
     to this frame; None for ground truth, "lost" and older peers. It follows the observation noise
-    model, which is deliberately pessimistic (README, *Pose covariance*)."""
+    model, which is deliberately pessimistic (docs/slam.md, *Pose covariance*)."""
 
     SCHEMA: ClassVar[str] = "splittag/CameraPose/v3"
     world_from_camera: Pose4x4
