@@ -126,6 +126,10 @@ def test_only_authorised_identities_steer_and_publish(tmp_path: Path, certs: Pat
                 query_split(camera, ROBOT, params="k=2", timeout_secs=2)
             assert query_split(operator, ROBOT, timeout_secs=10).k == 5
 
+            # Nor query (or save) the map, which the operator may (the rule once named an old map key).
+            assert not [r for r in camera.get(keys.tag_map(ROBOT) + "?save=1", timeout=3) if r.ok is not None]
+            assert [r for r in operator.get(keys.tag_map(ROBOT), timeout=10) if r.ok is not None]
+
             # Nor may it publish TagPoses; the same message from the robot's identity goes through.
             forged = _forged_poses(seq=2**40)
             camera.put(keys.tag_poses(ROBOT), forged)

@@ -87,6 +87,13 @@ def _map_queries_are_answered_by_the_main_loop(edge_router: str, run: Path) -> N
         tag_map = decode(replies[0].ok.payload.to_bytes(), TagMap)
         assert len(tag_map.tags) >= 2
         assert (run / "map.json").is_file()
+        # A save must name its map: through a wildcard (which access control's rule on the map key does
+        # not see) it is refused and writes nothing.
+        (run / "map.json").unlink()
+        refused = list(session.get("splittag/*/map/**?save=1", timeout=30))
+        assert len(refused) == 1 and refused[0].err is not None, refused
+        assert "wildcard" in refused[0].err.payload.to_string()
+        assert not (run / "map.json").exists()
         handlers = [session.get(keys.tag_map(ROBOT) + "?save=1", timeout=30) for _ in range(12)]
         outcomes = [
             "ok" if r.ok is not None else (r.err.payload.to_string() if r.err is not None else "?")

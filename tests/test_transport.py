@@ -109,9 +109,61 @@ def test_access_rules_per_role() -> None:
     assert "splittag/*/controller/**" not in rules["controllers-no-publish"]["key_exprs"]
     # Each role may serve only its own queryables: slam its map and stats, nobody the split.
     assert "splittag/*/slam/stats" not in rules["slam-no-serve"]["key_exprs"]
-    assert "splittag/*/map/v2" not in rules["slam-no-serve"]["key_exprs"]
     assert "splittag/*/split" in rules["slam-no-serve"]["key_exprs"]
     assert "splittag/*/slam/stats" in rules["cameras-no-serve"]["key_exprs"]
+
+
+def _data_keys(robot: str) -> dict[str, str]:
+    """Every data topic shared.wire.keys names for one robot (a function of the robot id, or of it and a
+    side, whose key ends in a schema version): found, not listed, so a new topic cannot miss the ACL."""
+    import inspect
+    import re
+
+    found = {}
+    for name, fn in inspect.getmembers(keys, inspect.isfunction):
+        params = list(inspect.signature(fn).parameters)
+        if fn.__module__ != keys.__name__ or name.startswith("_") or params[:1] != ["robot_id"]:
+            continue
+        if params == ["robot_id"]:
+            made = [fn(robot)]
+        else:
+            made = [fn(robot, side) for side in ("robot", "edge")] if name == "compute" else []
+        found.update({f"{name}:{k}": k for k in made if re.search(r"/v\d+$", k)})
+    return found
+
+
+def _covers(patterns: list[str], key: str) -> bool:
+    import zenoh
+
+    return any(zenoh.KeyExpr(p).includes(zenoh.KeyExpr(key)) for p in patterns)
+
+
+def test_access_rules_cover_the_keys_the_services_use() -> None:
+    """The ACL's rules against the keys of shared.wire.keys as they are now (the map key went v2 -> v3
+    while the rules still said v2, and every identity could query and save the map; FrameStamp was
+    added and no rule named it): every data topic is some role's to publish and denied to the others,
+    the map and split queries are denied to the roles that may not save or steer, and only their
+    owners may serve the queryables."""
+    acl = access_control_config(AccessControlSettings(enabled=True))
+    rules = {r["id"]: r["key_exprs"] for r in acl["rules"]}
+    data = _data_keys("r1")
+    assert {"tag_map:splittag/r1/map/v3", "frame_stamp:splittag/r1/frame_stamp/v1"} <= set(data)
+    named = {k.split(":")[0] for k in data}
+    assert named >= {"frames", "features", "tag_poses", "camera_pose", "compute", "controller"}
+    for what, key in data.items():
+        assert _covers(rules["operators-no-publish"], key), f"an operator may publish {what}"
+    publishers = {"cameras": {"frames", "ground_truth", "frame_stamp"}, "slam": {"camera_pose", "tag_map"}}
+    for role, own in publishers.items():
+        for what, key in data.items():
+            assert _covers(rules[f"{role}-no-publish"], key) is (what.split(":")[0] not in own), (role, what)
+    assert _covers(rules["no-map-query"], keys.tag_map("r1"))
+    assert _covers(rules["no-steer"], keys.split("r1"))
+    for role in ("cameras", "operators", "controllers"):
+        for key in (keys.tag_map("r1"), keys.split("r1"), keys.echo("r1"), keys.echo("r1") + "/raw"):
+            assert _covers(rules[f"{role}-no-serve"], key), (role, key)
+    assert not _covers(rules["slam-no-serve"], keys.tag_map("r1"))
+    assert not _covers(rules["slam-no-serve"], keys.stats("r1", "slam"))
+    assert _covers(rules["slam-no-serve"], keys.stats("r1", "robot_infer"))
 
 
 def test_waiting_for_liveliness_lets_the_waiter_work_meanwhile() -> None:

@@ -1,8 +1,8 @@
 """slam loop: TagPoses -> MarkerSlam -> CameraPose every frame, TagMap on change; files at exit/on request.
 
-Map queryable on `splittag/<robot_id>/map/v2`: a get replies the current TagMap; `?save=1` also
-writes trajectory.tum, map.json (a tag map), slam.json (run statistics) and, when ground truth was seen,
-groundtruth.tum / ate.json now.
+Map queryable on `splittag/<robot_id>/map/v3` (`keys.tag_map`): a get replies the current TagMap; `?save=1`
+(through the robot's own key, never a wildcard) also writes trajectory.tum, map.json (a tag map),
+slam.json (run statistics) and, when ground truth was seen, groundtruth.tum / ate.json now.
 """
 
 from __future__ import annotations
@@ -358,6 +358,10 @@ class SlamBusyError(RuntimeError):
     """More map queries pending than slam answers at once."""
 
 
+class SlamQueryError(ValueError):
+    """A map query slam refuses (a save through a wildcard key)."""
+
+
 def _refuse_busy(query: zenoh.Query) -> None:
     with query:
         query.reply_err(b"slam is busy: too many map queries pending")
@@ -420,6 +424,11 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
     def answer(query: zenoh.Query) -> None:
         with query:  # the query is finalised (its asker told "no more replies") on exit
             if query.parameters.get("save") in ("1", "true"):
+                if any(c in str(query.key_expr) for c in "*$"):
+                    # A wildcard reaches every queryable under it, past access control's deny rule on the
+                    # map key (which sees only the query's own key): a save names the map it saves.
+                    query.reply_err(b"save=1 needs the robot's own map key, not a wildcard")
+                    raise SlamQueryError(f"map save through a wildcard key refused: {query.key_expr}")
                 node.write_outputs(settings.run_dir)
             try:
                 asker = keys.robot_of(str(query.key_expr))

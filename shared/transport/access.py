@@ -11,7 +11,7 @@ everything on `splittag/**` except, explicitly denied (deny wins over allow in Z
 | operator (people, `splittag split`, the launcher's monitor) | publish any data |
 | controller | publish data other than its ControllerState; query the map (save) |
 | slam | publish data other than camera poses and its map; query the split (steer) or the map (save) |
-| camera | publish data other than frames and ground truth; query the split or the map |
+| camera | publish data other than frames, ground truth and data-set stamps; query the split or the map |
 
 and each role may declare only its own queryables (slam its map and stats, the controller its
 stats): nobody can impersonate robot_infer's split control, the edge's link probe or another
@@ -39,6 +39,7 @@ ALL_MESSAGES: Final[list[str]] = [
 DATA_KEYS: Final[dict[str, str]] = {
     "frame": "splittag/*/frame/**",
     "ground_truth": "splittag/*/ground_truth/**",
+    "frame_stamp": "splittag/*/frame_stamp/**",
     "features": "splittag/*/features/**",
     "tag_poses": "splittag/*/tag_poses/**",
     "frame_sent": "splittag/*/frame_sent/**",
@@ -48,11 +49,14 @@ DATA_KEYS: Final[dict[str, str]] = {
     "controller": "splittag/*/controller/**",
 }
 SPLIT_KEY: Final[str] = "splittag/*/split"
-MAP_KEY: Final[str] = "splittag/*/map/v2"
+# Every version of a key (`/**` also matches the key itself): the map went v2 -> v3 while this said v2,
+# and every identity could query (and save) the map unchecked; tests/test_access.py now checks these
+# against the keys the services use.
+MAP_KEY: Final[str] = "splittag/*/map/**"
 # The queryables the services declare; a role may declare only its own (MAY_SERVE).
 SERVICE_QUERYABLES: Final[dict[str, str]] = {
     "split": "splittag/*/split",
-    "echo": "splittag/*/echo",
+    "echo": "splittag/*/echo/**",  # and the raw echo beneath it
     "map": MAP_KEY,
     "robot_infer_stats": "splittag/*/robot_infer/stats",
     "edge_infer_stats": "splittag/*/edge_infer/stats",
@@ -70,7 +74,7 @@ MAY_PUBLISH: Final[dict[str, set[str]]] = {
     "operators": set(),
     "controllers": {"controller"},
     "slam": {"camera_pose", "map"},
-    "cameras": {"frame", "ground_truth"},
+    "cameras": {"frame", "ground_truth", "frame_stamp"},
 }
 MAY_STEER: Final[set[str]] = {"operators", "controllers"}
 MAY_SAVE_MAP: Final[set[str]] = {"operators"}
