@@ -237,3 +237,43 @@ def test_pacer_re_anchors_on_each_answer_and_forgets_on_edge_loss() -> None:
     assert pacer.start_delay_secs() == pytest.approx(0.205 - 0.045 - 0.060 - 0.015)
     pacer.forget()
     assert pacer.start_delay_secs() == 0.0
+
+
+def test_pacer_counts_the_wait_behind_other_robots_frames() -> None:
+    """A shared edge (fleet): this robot's frame waited 200 ms at the edge behind other robots' frames
+    before its 50 ms of compute. The pacer must expect that wait for the next frame too, so the robot
+    keeps one frame at the edge instead of queueing its whole window there."""
+    clock = FakeClock()
+    pacer = EdgePacer(smoothing=1.0, clock=clock)
+    clock.now += 0.010
+    pacer.sent(0, tags=2, robot_secs=0.010)
+    clock.now += 0.005 + 0.200 + 0.050
+    pacer.answered(
+        0, tags=2, link_secs=0.005, edge_secs=0.050, edge_received_nanos=5_000_000_000, edge_done_nanos=5_250_000_000
+    )
+    assert pacer.edge_wait_secs == pytest.approx(0.200)
+    clock.now += 0.010
+    pacer.sent(1, tags=2, robot_secs=0.010)  # reaches the edge at +5 ms, waits 200, done at +255 ms
+    assert pacer.start_delay_secs() == pytest.approx(0.255 - 0.010 - 0.005)
+
+
+def test_pacer_does_not_count_the_wait_behind_its_own_frame() -> None:
+    """Frame 1 reached the edge while frame 0 (this robot's) was still computing: that part of its wait
+    is modelled by the queue of its own frames already, so it is not taken for other robots' load."""
+    clock = FakeClock()
+    pacer = EdgePacer(smoothing=1.0, clock=clock)
+    pacer.answered(
+        0, tags=2, link_secs=0.005, edge_secs=0.100, edge_received_nanos=1_000_000_000, edge_done_nanos=1_100_000_000
+    )
+    # frame 1 arrived 40 ms before frame 0 was done, then computed 100 ms: waited 40 ms, all behind frame 0
+    pacer.answered(
+        1, tags=2, link_secs=0.005, edge_secs=0.100, edge_received_nanos=1_060_000_000, edge_done_nanos=1_200_000_000
+    )
+    assert pacer.edge_wait_secs == pytest.approx(0.0)
+    # frame 2 arrived when the edge was free of this robot's frames and still waited 30 ms: other robots'
+    pacer.answered(
+        2, tags=2, link_secs=0.005, edge_secs=0.100, edge_received_nanos=1_250_000_000, edge_done_nanos=1_380_000_000
+    )
+    assert pacer.edge_wait_secs == pytest.approx(0.030)
+    pacer.forget()  # another edge (worker, clock, load): measured afresh
+    assert pacer.edge_wait_secs == 0.0

@@ -157,15 +157,19 @@ class RobotInfer:
     def _on_poses(self, sample: zenoh.Sample) -> None:
         # A bad TagPoses is edge_infer's problem to report; that frame's credit expires on its own.
         with contextlib.suppress(WireError):
-            # Every check, but no model: this runs on Zenoh's thread and reads four fields.
+            # Every check, but no model: this runs on Zenoh's thread and reads a few fields.
             poses = decode_view(sample.payload.to_bytes(), TagPoses).fields
             self.window.done(poses.seq)
             if self.pacer is not None and poses.link is not None:  # link None: computed on board
+                timings = poses.timings
                 self.pacer.answered(
                     poses.seq,
                     tags=len(poses.tags),
-                    link_secs=poses.timings.transport_secs,
-                    edge_secs=poses.timings.edge_compute_secs,
+                    link_secs=timings.transport_secs,
+                    edge_secs=timings.edge_compute_secs,
+                    edge_received_nanos=poses.link.received_nanos,
+                    # capture_to_pose is the edge's done stamp minus the capture stamp: done on the edge's clock
+                    edge_done_nanos=poses.capture_nanos + round(timings.capture_to_pose_secs * 1e9),
                 )
 
     def _on_edge(self, sample: zenoh.Sample) -> None:

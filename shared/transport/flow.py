@@ -202,11 +202,15 @@ class EdgePacer:
     the freshest camera frame at the last useful moment instead of one that would then sit and age.
 
     Model per frame: the robot computes for R, the link carries it in L, the edge computes E (per tag,
-    times the frame's tags). Sending frame n at s_n, the edge finishes it at
-    c_n = max(s_n + L, c_(n-1)) + E_n; starting the next frame before c_n - R - L only makes it wait.
-    R, L and E are exponential averages of what each answered frame measured (TagPoses timings), and
-    each answer re-anchors the prediction of the frames still in flight to when it really arrived.
-    Thread-safe: answers arrive on Zenoh's threads. The in-flight window stays the hard cap."""
+    times the frame's tags) after waiting W behind other robots' frames (an edge tier shared by a
+    fleet). Sending frame n at s_n, the edge finishes it at c_n = max(s_n + L, c_(n-1)) + W + E_n;
+    starting the next frame before c_n - R - L only makes it wait. R, L, E and W are exponential
+    averages of what each answered frame measured (TagPoses timings; W from its stamps on the edge's
+    clock: received -> done minus its compute, minus the part spent behind this robot's own previous
+    frame, which the max() already models), and each answer re-anchors the prediction of the frames
+    still in flight to when it really arrived. Without W an overloaded shared edge looked free to every
+    robot's pacer, and each robot kept its whole window queued there: twice the latency for the same
+    throughput. Thread-safe: answers arrive on Zenoh's threads. The in-flight window stays the hard cap."""
 
     def __init__(self, *, smoothing: float = 0.3, clock: Callable[[], float] = time.monotonic) -> None:
         if not 0 < smoothing <= 1:
@@ -218,8 +222,10 @@ class EdgePacer:
         self.link_secs = 0.0
         self.edge_secs_per_tag = 0.0
         self.edge_secs_fixed = 0.0
+        self.edge_wait_secs = 0.0  # W: waiting at the edge behind other robots' frames
         self._done_at: dict[int, float] = {}  # seq -> predicted edge completion (robot clock)
         self._last_done_at = 0.0
+        self._edge_done_nanos = 0  # when the edge finished this robot's latest answered frame (edge clock)
 
     def _avg(self, old: float, new: float) -> float:
         return new if old == 0.0 else old + self._alpha * (new - old)
@@ -235,13 +241,23 @@ class EdgePacer:
         with self._lock:
             now = self._clock()
             self.robot_secs = self._avg(self.robot_secs, robot_secs)
-            edge = self.edge_secs_fixed + self.edge_secs_per_tag * tags
+            edge = self.edge_wait_secs + self.edge_secs_fixed + self.edge_secs_per_tag * tags
             done = max(now + self.link_secs, self._last_done_at) + edge
             self._done_at[seq] = done
             self._last_done_at = done
 
-    def answered(self, seq: int, *, tags: int, link_secs: float, edge_secs: float) -> None:
-        """The edge's answer for `seq` arrived now, saying what its link and edge compute took."""
+    def answered(
+        self,
+        seq: int,
+        *,
+        tags: int,
+        link_secs: float,
+        edge_secs: float,
+        edge_received_nanos: int | None = None,
+        edge_done_nanos: int | None = None,
+    ) -> None:
+        """The edge's answer for `seq` arrived now, saying what its link and edge compute took and, with
+        both stamps (edge clock), when the edge received the frame and finished it."""
         with self._lock:
             now = self._clock()
             self.link_secs = self._avg(self.link_secs, max(0.0, link_secs))
@@ -249,6 +265,12 @@ class EdgePacer:
                 self.edge_secs_per_tag = self._avg(self.edge_secs_per_tag, max(0.0, edge_secs) / tags)
             else:
                 self.edge_secs_fixed = self._avg(self.edge_secs_fixed, max(0.0, edge_secs))
+            if edge_received_nanos is not None and edge_done_nanos is not None:
+                waited = (edge_done_nanos - edge_received_nanos) / 1e9 - max(0.0, edge_secs)
+                behind_own = (self._edge_done_nanos - edge_received_nanos) / 1e9  # our previous frame, still there
+                foreign = max(0.0, waited - max(0.0, behind_own))
+                self.edge_wait_secs += self._alpha * (foreign - self.edge_wait_secs)  # 0 is a value here
+                self._edge_done_nanos = edge_done_nanos  # the latest answer's (a new worker: its clock)
             predicted = self._done_at.pop(seq, None)
             for stale in [s for s in self._done_at if s < seq]:  # older answers that never came
                 del self._done_at[stale]
@@ -258,7 +280,10 @@ class EdgePacer:
                 self._last_done_at = max(self._done_at.values(), default=now)
 
     def forget(self) -> None:
-        """The edge restarted or is gone: nothing is in flight any more."""
+        """The edge restarted or is gone: nothing is in flight any more (and the next edge, perhaps
+        another worker with another clock and load, is measured afresh)."""
         with self._lock:
             self._done_at.clear()
             self._last_done_at = 0.0
+            self.edge_wait_secs = 0.0
+            self._edge_done_nanos = 0
