@@ -90,6 +90,10 @@ def test_up_then_down_stops_every_service(tmp_path: Path) -> None:
         pids = d.pids()
         assert set(pids) == set(SERVICES)
         time.sleep(3.0)  # a few frames through the pipeline
+        # Each service answers on its own key: a wildcard get of the stats gets one reply per service
+        # (on the asker's key they were consolidated into one).
+        replied = {str(r.ok.key_expr) for r in d.session.get("splittag/deploy1/*/stats", timeout=10) if r.ok}
+        assert replied == {keys.stats("deploy1", s) for s in ("robot_infer", "edge_infer", "slam")}, replied
         down = d.down()
         assert down.returncode == 0, down.stdout + down.stderr
         assert all(f"stopping {name}" in down.stdout for name in SERVICES)
@@ -103,6 +107,10 @@ def test_up_then_down_stops_every_service(tmp_path: Path) -> None:
         assert (d.runs / "current" / "trajectory.tum").is_file()
         for name in SERVICES:
             assert (d.runs / "current" / f"{name}.log").is_file()
+        # The run is over: its pid files are gone, so a later down cannot signal whatever reuses the pids.
+        assert not (d.runs / "current" / "pids").exists() and not (d.runs / "current" / "launcher.pid").exists()
+        again = d.down()
+        assert again.returncode == 1 and "no running deployment" in again.stdout
 
 
 def test_down_without_a_deployment_says_so(tmp_path: Path) -> None:
@@ -111,6 +119,85 @@ def test_down_without_a_deployment_says_so(tmp_path: Path) -> None:
     )
     assert down.returncode == 1
     assert "no running deployment" in down.stdout
+
+
+def test_down_leaves_alone_a_process_that_reuses_a_stale_pid(tmp_path: Path) -> None:
+    """A run killed without cleaning up leaves its pid files; by the time someone runs down, those pids
+    may be other programs': down signals only processes that are still splittag's."""
+    stranger = subprocess.Popen(["sleep", "60"], start_new_session=True)
+    try:
+        run = tmp_path / "runs" / "20260101-000000-1"
+        run.mkdir(parents=True)
+        (tmp_path / "runs" / "current").symlink_to(run.name)
+        (run / "pids").write_text(f"camera {stranger.pid}\nslam {stranger.pid}\n")
+        (run / "launcher.pid").write_text(f"{stranger.pid}\n")
+        down = subprocess.run(
+            ["bash", "deploy/down.sh", "--runs", str(tmp_path / "runs")],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert down.returncode == 1 and "no running deployment" in down.stdout, down.stdout + down.stderr
+        assert stranger.poll() is None, "down signalled a process that was not the deployment's"
+    finally:
+        stranger.kill()
+        stranger.wait()
+
+
+def test_up_stops_at_once_on_settings_a_service_refuses(tmp_path: Path) -> None:
+    """A typo in a service's table: the service exits with the configuration error's code, and the
+    launcher, instead of restarting it every 30 s for ever, stops everything and says which setting in
+    one line, exit 2, no traceback; nothing is left running."""
+    topology = Topology.loopback()
+    cfg = write_config(
+        tmp_path / "deploy.toml",
+        base=REPO / "deploy" / "local.toml",
+        topology=topology,
+        extra={"common": {"robot_id": "typo1", "rerun": {"enabled": False}}, "robot_infer": {"split_kk": 7}},
+    )
+    start = time.monotonic()
+    out = subprocess.run(
+        ["bash", "deploy/up.sh", "--config", str(cfg), "--runs", str(tmp_path / "runs")],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    said = out.stdout + out.stderr
+    assert out.returncode == 2, said
+    assert "robot_infer: configuration error: split_kk: Extra inputs are not permitted" in said, said
+    assert "Traceback" not in said, said
+    print(f"refused in {time.monotonic() - start:.1f} s")
+    run = (tmp_path / "runs" / "current").resolve()
+    for name in SERVICES:
+        log = (run / f"{name}.log").read_text(errors="replace")
+        assert "Traceback" not in log, f"{name}: {log[-2000:]}"
+    assert not (run / "pids").exists()
+
+
+def test_a_service_refusing_its_settings_says_why_before_any_connection(tmp_path: Path) -> None:
+    """Bad settings from the environment, or a camera folder that is not there: one line and exit 2
+    at once (before: a traceback, and the camera first waited 30 s for a router that was not up)."""
+    import sys
+
+    env = {**os.environ, "SPLITTAG_CAMERA_SOURCE": "folder", "SPLITTAG_CAMERA_PATH": str(tmp_path / "nope")}
+    from shared.vision.geometry import camera_to_yaml, default_camera
+
+    info = tmp_path / "camera_info.yaml"
+    info.write_text(camera_to_yaml(default_camera()))
+    env["SPLITTAG_CAMERA_CAMERA_INFO"] = str(info)
+    env["SPLITTAG_CAMERA_ZENOH__CONNECT"] = '["tcp/127.0.0.1:9"]'  # nothing listens: must not be reached
+    bad = [
+        (["-m", "services.camera"], env, "camera: configuration error: source folder"),
+        (["-m", "services.slam"], {**os.environ, "SPLITTAG_SLAM_MAX_PENDING_MAP_QUERIES": "x"}, "max_pending_map_q"),
+    ]
+    for argv, environ, expected in bad:
+        start = time.monotonic()
+        out = subprocess.run([sys.executable, *argv], cwd=REPO, env=environ, capture_output=True, text=True, timeout=60)
+        assert out.returncode == 2, out.stderr
+        assert expected in out.stderr and "Traceback" not in out.stderr, out.stderr
+        assert time.monotonic() - start < 20
 
 
 def test_up_restarts_a_killed_service(tmp_path: Path) -> None:

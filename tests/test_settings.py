@@ -126,3 +126,31 @@ def test_a_cpu_the_host_lacks_stops_the_echo_with_a_clear_error() -> None:
     )
     assert out.returncode == 2
     assert "not on this host" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_the_cli_says_a_users_mistake_in_one_line(tmp_path: Path) -> None:
+    """What a person gets wrong at the prompt is one line on stderr and exit 2, not a traceback: a
+    missing or malformed config file, a set without a value, a camera file that is not there."""
+    import subprocess
+    import sys
+
+    bad_toml = tmp_path / "bad.toml"
+    bad_toml.write_text("[camera\nfps = 1\n")
+    cases = [
+        (["demo", "--config", str(tmp_path / "nope.toml")], "No such file"),
+        (["up", "--config", str(bad_toml), "--runs", str(tmp_path / "runs")], "not valid TOML"),
+        (["split", "set"], "give k"),
+        (["split", "get", "3"], "are for set"),
+        (
+            ["detect", str(tmp_path), "--camera", str(tmp_path / "nope.yaml"), "--tag-size", "0.1", "--json", "o.json"],
+            "nope.yaml",
+        ),
+    ]
+    for argv, expected in cases:
+        out = subprocess.run(
+            [sys.executable, "-m", "shared.tools.cli", *argv], capture_output=True, text=True, timeout=120
+        )
+        assert out.returncode == 2, (argv, out.stderr)
+        assert expected in out.stderr and "Traceback" not in out.stderr, (argv, out.stderr)
+        assert len(out.stderr.strip().splitlines()) == 1, (argv, out.stderr)
+    assert not (tmp_path / "runs").exists()  # refused before a run folder was made

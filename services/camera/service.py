@@ -5,10 +5,12 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from pathlib import Path
 
 import zenoh
 
 from services.camera.settings import CameraSettings
+from shared.runtime.settings import ConfigurationError
 from shared.runtime.sources import CaptureSource, DemoSource, FolderSource, FrameSource
 from shared.transport.session import declare_tensor_publisher, encoding_for, wait_for_liveliness
 from shared.viz.recording import make_viz
@@ -25,13 +27,26 @@ def make_source(settings: CameraSettings) -> FrameSource:
     if settings.camera_info is None:
         raise ValueError(f"source {settings.source!r} needs camera_info (a ROS camera_info YAML)")
     if settings.source == "folder":
-        from pathlib import Path
-
         return FolderSource(Path(settings.path), settings.camera_info, settings.groundtruth)
     if settings.source == "video":
         return CaptureSource(settings.path, settings.camera_info)
     target: str | int = int(settings.path) if settings.path.isdigit() else settings.path
     return CaptureSource(target, settings.camera_info)
+
+
+def check_source(settings: CameraSettings) -> None:
+    """The configured source can be read (service_main runs this before any Zenoh session): a missing
+    folder, video file or camera_info, or a malformed listing, is a configuration error said at once,
+    not a crash-and-restart loop behind a connection timeout. The demo scene and V4L2 devices are
+    opened when streaming starts."""
+    if settings.source == "demo":
+        return
+    try:
+        make_source(settings)
+    except (OSError, ValueError) as exc:  # FileNotFoundError is an OSError; GeometryError a ValueError
+        raise ConfigurationError(f"source {settings.source} {settings.path!r}: {exc}") from None
+    if settings.source == "video" and not Path(settings.path).is_file():
+        raise ConfigurationError(f"source video {settings.path!r}: no such file")
 
 
 def run(settings: CameraSettings, *, session: zenoh.Session, stop: threading.Event) -> int:

@@ -434,8 +434,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
                 asker = keys.robot_of(str(query.key_expr))
             except ValueError:
                 asker = rid  # a wildcard get: the map is one for every robot
-            reply_key = keys.tag_map(asker) if node.fleet else query.key_expr
-            query.reply(reply_key, encode(node.current_map(asker)), encoding=encoding_for(TagMap.SCHEMA))
+            query.reply(keys.tag_map(asker), encode(node.current_map(asker)), encoding=encoding_for(TagMap.SCHEMA))
 
     def on_stamp(sample: zenoh.Sample) -> None:
         def keep(payload: bytes) -> None:

@@ -95,9 +95,14 @@ def serve_stats(
 ) -> zenoh.Queryable[None]:
     """A queryable answering the guard's stats (and the service's own counters, `extra`) as JSON."""
 
+    # Replies carry the service's own key, not the asker's: a wildcard get (`splittag/r1/*/stats`) then
+    # gets one reply per service instead of one consolidated away (a fleet slam serving `*`: the asker's).
+    concrete = not any(c in key for c in "*$")
+
     def on_query(query: zenoh.Query) -> None:
         body = {**guard.stats(), **(extra() if extra is not None else {})}
-        query.reply(query.key_expr, json.dumps(body).encode(), encoding=zenoh.Encoding.APPLICATION_JSON)
+        reply_key = key if concrete else query.key_expr
+        query.reply(reply_key, json.dumps(body).encode(), encoding=zenoh.Encoding.APPLICATION_JSON)
 
     return session.declare_queryable(key, on_query)
 

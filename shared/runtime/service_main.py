@@ -7,22 +7,34 @@ import faulthandler
 import logging
 import signal
 import threading
+import tomllib
 from collections.abc import Callable
 from pathlib import Path
 from typing import TypeVar
 
 import zenoh
+from pydantic import ValidationError
+from pydantic_settings import SettingsError
 
 from shared.runtime.cpus import CpuPlacementError, pin_cpus
 from shared.runtime.logs import setup_logging
-from shared.runtime.settings import ServiceSettings
+from shared.runtime.settings import CONFIG_EXIT, ConfigurationError, ServiceSettings, describe_settings_error
 from shared.transport.session import open_session
 
 S = TypeVar("S", bound=ServiceSettings)
 
 
-def service_main(name: str, settings_cls: type[S], run: Callable[[S, zenoh.Session, threading.Event], object]) -> int:
-    """Run a service until SIGINT/SIGTERM (or until its loop returns)."""
+def service_main(
+    name: str,
+    settings_cls: type[S],
+    run: Callable[[S, zenoh.Session, threading.Event], object],
+    *,
+    check: Callable[[S], object] | None = None,
+) -> int:
+    """Run a service until SIGINT/SIGTERM (or until its loop returns). Settings it cannot work with
+    (refused by validation, a missing or malformed config file, or refused by `check`, which looks at
+    what they name before any Zenoh session opens: a folder, a device) end it at once with one line in
+    its log and exit code CONFIG_EXIT, as does a ConfigurationError raised by `run`."""
     parser = argparse.ArgumentParser(prog=f"python -m services.{name}")
     parser.add_argument("--config", type=Path, default=None, help="TOML settings file (see deploy/)")
     args = parser.parse_args()
@@ -30,7 +42,13 @@ def service_main(name: str, settings_cls: type[S], run: Callable[[S, zenoh.Sessi
     # `kill -USR1 <pid>` (and stop_services before it escalates to SIGKILL) writes every thread's
     # stack to this service's log: a hung service says where it hangs.
     faulthandler.register(signal.SIGUSR1, all_threads=True)
-    settings = settings_cls.load(args.config)
+    try:
+        settings = settings_cls.load(args.config)
+        if check is not None:
+            check(settings)
+    except (ValidationError, SettingsError, FileNotFoundError, tomllib.TOMLDecodeError, ConfigurationError) as exc:
+        log.error("%s: configuration error: %s", name, describe_settings_error(exc))
+        return CONFIG_EXIT
     settings.log_resolved()
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -39,11 +57,14 @@ def service_main(name: str, settings_cls: type[S], run: Callable[[S, zenoh.Sessi
         try:
             pin_cpus(settings.cpus)  # before Zenoh and torch start their threads (those running move too)
         except CpuPlacementError as exc:
-            log.error("%s: cpus %s: %s", name, settings.cpus, exc)
-            return 2
+            log.error("%s: configuration error: cpus %s: %s", name, settings.cpus, exc)
+            return CONFIG_EXIT
     session = open_session(settings.zenoh)
     try:
         run(settings, session, stop)
+    except ConfigurationError as exc:
+        log.error("%s: configuration error: %s", name, exc)
+        return CONFIG_EXIT
     except Exception:
         logging.getLogger(name).exception("%s failed", name)
         return 1

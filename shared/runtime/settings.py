@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import tomllib
 from contextvars import ContextVar
 from pathlib import Path
@@ -33,6 +34,34 @@ CURRENT_RUN: Final[Path] = Path("runs/current")  # the launcher points this at t
 _CONFIG_FILE: ContextVar[Path | None] = ContextVar("splittag_config_file", default=None)
 
 S = TypeVar("S", bound="ServiceSettings")
+CONFIG_EXIT: Final[int] = 2  # a service's exit code for settings it cannot work with: restarting cannot help
+
+
+class ConfigurationError(RuntimeError):
+    """Settings, or what they name (a file, a folder, a device), that the service cannot work with: it
+    stops with one clear line and exit code CONFIG_EXIT, and the launcher ends the run instead of
+    restarting it."""
+
+
+def describe_settings_error(exc: BaseException, *, max_chars: int = 600) -> str:
+    """One line for a user: every field a ValidationError refused (`split_kk: Extra inputs are not
+    permitted`), or the message of a missing or malformed config file."""
+    from pydantic import ValidationError
+
+    if isinstance(exc, ValidationError):
+        parts = []
+        for err in exc.errors(include_url=False):
+            where = ".".join(str(p) for p in err["loc"]) or "<settings>"
+            got = repr(err.get("input"))
+            got = got if len(got) <= 60 else got[:60] + "..."
+            parts.append(f"{where}: {err['msg']}" + ("" if err["type"] == "missing" else f" (got {got})"))
+        text = "; ".join(parts)
+    elif isinstance(exc, tomllib.TOMLDecodeError):
+        text = f"the config file is not valid TOML: {exc}"
+    else:
+        text = str(exc)
+    text = re.sub(r" at /\S+\.rs:\d+\.?", "", " ".join(text.split()))  # Zenoh's Rust source locations
+    return text if len(text) <= max_chars else text[:max_chars] + "..."
 
 
 class ServiceSettings(BaseSettings):

@@ -55,6 +55,7 @@ def _cmd_fleet(args: argparse.Namespace) -> int:
 
 
 def _cmd_down(args: argparse.Namespace) -> int:
+    import contextlib
     import os
     import signal
     import time
@@ -64,28 +65,41 @@ def _cmd_down(args: argparse.Namespace) -> int:
     if not pids.is_file():
         print(f"no running deployment ({pids} not found)")
         return 1
-    services = [line.split() for line in pids.read_text().split("\n") if line.strip()]
+    # Only processes that are still ours: a pid written by a run that ended without removing its files
+    # (killed) may belong to anything by now.
+    services = [(name, int(p)) for name, p in (line.split() for line in pids.read_text().splitlines() if line.strip())]
+    services = [(name, p) for name, p in services if _running(p) and "services." in _cmdline(p)]
     launcher = run / "launcher.pid"
     pid = int(launcher.read_text()) if launcher.is_file() else None
+    if pid is not None and not (_running(pid) and any(s in _cmdline(pid) for s in ("splittag", "shared.tools"))):
+        pid = None
+    if pid is None and not services:
+        print(f"no running deployment in {run.resolve()} (its processes have ended)")
+        return 1
     if pid is not None:
         # The launcher supervises (it would restart a service stopped behind its back): stop it, and
         # it stops the services in order.
-        try:
+        with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGINT)
-        except ProcessLookupError:
-            pid = None
-    if pid is None:
-        for name, service_pid in services:
-            try:
-                os.killpg(int(service_pid), signal.SIGINT)
-            except ProcessLookupError:
-                print(f"{name} ({service_pid}) already stopped")
+    else:
+        for _, service_pid in services:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(service_pid, signal.SIGINT)
     for name, service_pid in services:
         print(f"stopping {name} ({service_pid})")
+    waiting = [*([pid] if pid else []), *(p for _, p in services)]
     deadline = time.monotonic() + 90
-    while pid is not None and _running(pid) and time.monotonic() < deadline:
+    while any(_running(p) for p in waiting) and time.monotonic() < deadline:
         time.sleep(0.2)
     return 0
+
+
+def _cmdline(pid: int) -> str:
+    """A process's command line (empty when it is gone or unreadable)."""
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
 
 
 def _running(pid: int) -> bool:
@@ -102,8 +116,14 @@ def _cmd_split(args: argparse.Namespace) -> int:
     from shared.transport.split_client import split_query
 
     tls = TlsSettings.from_dir(args.certs, args.identity) if args.certs else None
-    k, release = getattr(args, "k", None), args.action == "release"
-    print(split_query(args.robot_id, args.connect, k=k, release=release, tls=tls))
+    k, codec, release = args.k, args.codec, args.action == "release"
+    if args.action == "set" and k is None and codec is None:
+        print("splittag split set: give k (0..7) and/or --codec", file=sys.stderr)
+        return 2
+    if args.action != "set" and (k is not None or codec is not None):
+        print(f"splittag split {args.action}: k and --codec are for set", file=sys.stderr)
+        return 2
+    print(split_query(args.robot_id, args.connect, k=k, codec=codec, release=release, tls=tls))
     return 0
 
 
@@ -505,6 +525,7 @@ def _add_control_commands(sub: Any) -> None:
     p = sub.add_parser("split", help="read or set the split index live (Zenoh query)")
     p.add_argument("action", choices=["get", "set", "release"])
     p.add_argument("k", type=int, nargs="?", help="split index 0..7 (for set)")
+    p.add_argument("--codec", choices=["fp16", "fp32"], help="set: how cuts 1..6 travel (with or without k)")
     p.add_argument("--robot-id", default="robot1")
     p.add_argument("--connect", default=Topology().edge_router, help="zenoh endpoint to connect to")
     p.add_argument("--certs", type=Path, help="TLS deployments: the certificates folder (deploy/make-certs.sh)")
@@ -688,16 +709,42 @@ def _load_link_profiles(args: argparse.Namespace) -> None:
         load_profiles(path)
 
 
+def _user_errors() -> tuple[tuple[type[BaseException], ...], tuple[type[BaseException], ...]]:
+    """(what a user got wrong: exit 2, what the running system said: exit 1), each said in one line
+    instead of a traceback (SPLITTAG_TRACEBACK=1 shows the traceback too). Anything else is a bug
+    and keeps its traceback."""
+    import tomllib
+
+    import zenoh
+    from pydantic import ValidationError
+
+    from shared.runtime.settings import ConfigurationError
+    from shared.tools.launch import LaunchError
+    from shared.transport.split_client import SplitQueryError
+    from shared.vision.geometry import GeometryError
+
+    usage = (ModelFileError, ConfigurationError, FileNotFoundError, tomllib.TOMLDecodeError, ValidationError)
+    return (*usage, GeometryError), (SplitQueryError, LaunchError, zenoh.ZError)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Parse arguments and run the chosen subcommand."""
+    import os
+
+    from shared.runtime.settings import describe_settings_error
+
     args = build_parser().parse_args(argv)
     setup_logging(f"splittag-{args.command}")
-    _load_link_profiles(args)
     try:
+        _load_link_profiles(args)
         code: int = args.func(args)
-    except ModelFileError as exc:
-        print(f"splittag {args.command}: {exc}", file=sys.stderr)
-        return 2
+    except Exception as exc:
+        usage, failed = _user_errors()  # imported only here: every command starts as fast as before
+        if not isinstance(exc, usage + failed) or os.environ.get("SPLITTAG_TRACEBACK"):
+            raise
+        what = "Zenoh: " if type(exc).__module__.startswith("zenoh") else ""
+        print(f"splittag {args.command}: {what}{describe_settings_error(exc)}", file=sys.stderr)
+        return 2 if isinstance(exc, usage) else int(getattr(exc, "exit_code", 1))
     return code
 
 

@@ -172,10 +172,16 @@ def run_fleet(
     import threading
     import time
 
+    import zenoh
+
+    from shared.runtime.settings import CONFIG_EXIT
     from shared.tools.launch import (
+        LaunchError,
         Monitor,
         Service,
+        StopRequested,
         attach_monitor,
+        configuration_error_line,
         demo_tag_map,
         new_run_dir,
         start_process,
@@ -214,6 +220,8 @@ def run_fleet(
             code = proc.popen.poll()
             if code is None:
                 continue
+            if code == CONFIG_EXIT:  # it refused its settings: a restart would only refuse them again
+                raise LaunchError(configuration_error_line(proc), exit_code=CONFIG_EXIT)
             if spec.name not in restart_at:
                 delay = supervisor.exited(spec.name, code, service=spec.service)
                 if delay is None:  # a camera whose source ended
@@ -226,6 +234,13 @@ def run_fleet(
                 write_pids()
 
     monitors = {r: Monitor(demo_tag_map(), max_records=200_000) for r in plan.robots if only in (None, "edge", r)}
+    session: zenoh.Session | None = None
+
+    def while_coming_up() -> None:
+        if stop.is_set():
+            raise StopRequested
+        restart_dead()
+
     try:
         (run_dir / "launcher.pid").write_text(f"{os.getpid()}\n")
         running = [(spec, start(spec)) for spec in specs]
@@ -234,23 +249,32 @@ def run_fleet(
         subs = [sub for robot, monitor in monitors.items() for sub in attach_monitor(session, robot, monitor)]
         wanted = [keys.edge_worker(plan.tier, w) for w in plan.edge_workers if only in (None, "edge")]
         wanted += [keys.alive(r, "robot_infer") for r in monitors if only != "edge"]
-        wait_for_liveliness(session, wanted, timeout_secs=180, every_second=restart_dead)
-        print(f"fleet run {run_dir}: {', '.join(s.name for s in specs)} up; Ctrl-C stops", flush=True)
-        t_end = None if duration_secs is None else time.monotonic() + duration_secs
-        while not stop.wait(1.0):
-            if not quiet:
-                for robot, monitor in monitors.items():
-                    print(f"{robot:>10} {monitor.line()}", flush=True)
-            if t_end is not None and time.monotonic() > t_end:
-                break
-            restart_dead()
+        try:
+            wait_for_liveliness(session, wanted, timeout_secs=180, every_second=while_coming_up)
+        except StopRequested:
+            print("stopped before every process was up", flush=True)
+        except TimeoutError as exc:
+            raise LaunchError(f"{exc} (each process's log is in {run_dir})") from None
+        else:
+            print(f"fleet run {run_dir}: {', '.join(s.name for s in specs)} up; Ctrl-C stops", flush=True)
+            t_end = None if duration_secs is None else time.monotonic() + duration_secs
+            while not stop.wait(1.0):
+                if not quiet:
+                    for robot, monitor in monitors.items():
+                        print(f"{robot:>10} {monitor.line()}", flush=True)
+                if t_end is not None and time.monotonic() > t_end:
+                    break
+                restart_dead()
         for sub in subs:
             sub.undeclare()
-        session.close()
     finally:
+        if session is not None:
+            session.close()  # also on an error: Zenoh's threads would keep the interpreter from exiting
         codes = stop_services([p for _, p in running])
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        for name in ("launcher.pid", "pids"):  # `splittag down` must not signal pids a finished run left
+            (run_dir / name).unlink(missing_ok=True)
     summary: dict[str, Any] = {
         "run_dir": str(run_dir),
         "robots": {r: m.summary() for r, m in monitors.items()},

@@ -10,6 +10,7 @@ import contextlib
 import json
 import logging
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -25,7 +26,7 @@ import numpy as np
 import yaml
 import zenoh
 
-from shared.runtime.settings import CURRENT_RUN
+from shared.runtime.settings import CONFIG_EXIT, CURRENT_RUN
 from shared.runtime.sources import demo_scene
 from shared.tools.supervise import Supervisor
 from shared.tools.topology import Topology, merge, write_config
@@ -412,6 +413,29 @@ def monitor_settings(config: Path) -> tuple[str, ZenohSettings]:
     return robot_id, ZenohSettings(mode="client", connect=[Topology.from_config(config).edge_router], tls=tls)
 
 
+class LaunchError(RuntimeError):
+    """The run cannot go on: a service refused its settings (restarting it cannot help: `exit_code`
+    CONFIG_EXIT), or the services did not come up in time (1). The launcher stops every service first."""
+
+    def __init__(self, message: str, *, exit_code: int = 1) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
+class StopRequested(Exception):
+    """SIGINT/SIGTERM while the services were still coming up."""
+
+
+def configuration_error_line(service: Service) -> str:
+    """What a service that exited with CONFIG_EXIT said about its settings (the last such line of its
+    log), for the one line the launcher prints."""
+    lines = [line for line in service.log_text().splitlines() if "configuration error" in line]
+    if not lines:
+        return f"{service.name} exited with code {CONFIG_EXIT} (configuration error; see {service.log_path})"
+    found = re.search(r"(\S+): (configuration error: .*)$", lines[-1])
+    return f"{service.name}: {found[2]}" if found else lines[-1]
+
+
 class _Services:
     """The services of one run: started, their pids written, restarted by the supervisor's policy."""
 
@@ -435,11 +459,15 @@ class _Services:
         self._write_pids()
 
     def supervise(self) -> bool:
-        """Restart dead services after their backoff; False when the camera's source has ended the run."""
+        """Restart dead services after their backoff; False when the camera's source has ended the run.
+        LaunchError when a service refused its settings (exit code CONFIG_EXIT): it would only refuse
+        them again."""
         for i, service in enumerate(self.started):
             code = service.popen.poll()
             if code is None:
                 continue
+            if code == CONFIG_EXIT:
+                raise LaunchError(configuration_error_line(service), exit_code=CONFIG_EXIT)
             if service.name not in self.restart_at:
                 delay = self.supervisor.exited(service.name, code)
                 if delay is None:
@@ -447,8 +475,8 @@ class _Services:
                     time.sleep(1.0)  # let the last frames arrive
                     return False
                 n = self.supervisor.restarts[service.name]
+                # Printed once (it was also logged, and a terminal showed every restart twice).
                 print(f"{service.name} exited ({code}); restart #{n} in {delay:.0f} s", flush=True)
-                log.warning("%s exited with %s; restart #%d in %.0f s", service.name, code, n, delay)
                 self.restart_at[service.name] = time.monotonic() + delay
             elif time.monotonic() >= self.restart_at[service.name]:
                 del self.restart_at[service.name]
@@ -519,28 +547,45 @@ def run_pipeline(
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     monitor = Monitor(run_tag_map(run_config), max_records=200_000)  # a deployment may run for days
     running = _Services(run_config, run_dir, wrappers)
+    session: zenoh.Session | None = None
+
+    def while_coming_up() -> None:
+        if stop.is_set():
+            raise StopRequested
+        running.supervise()
+
     try:
         (run_dir / "launcher.pid").write_text(f"{os.getpid()}\n")  # `splittag down` stops the run through it
         running.start_all(services)
         session = open_session(zs)
         subs = attach_monitor(session, robot_id, monitor)
-        # Supervised while it comes up: a service that dies now is restarted (its token then appears).
+        # Supervised while it comes up: a service that dies now is restarted (its token then appears);
+        # one that refuses its settings ends the run (LaunchError), as does Ctrl-C.
         alive = [keys.alive(robot_id, s) for s in services]
-        wait_for_liveliness(session, alive, timeout_secs=120, every_second=running.supervise)
-        print(f"run {run_dir}: {', '.join(services)} alive; Ctrl-C stops", flush=True)
-        t_end = None if duration_secs is None else time.monotonic() + duration_secs
-        while not stop.wait(1.0):
-            if not quiet:
-                print(monitor.line(), flush=True)
-            if (t_end is not None and time.monotonic() > t_end) or not running.supervise():
-                break
+        try:
+            wait_for_liveliness(session, alive, timeout_secs=120, every_second=while_coming_up)
+        except StopRequested:
+            print("stopped before every service was up", flush=True)
+        except TimeoutError as exc:
+            raise LaunchError(f"{exc} (each service's log is in {run_dir})") from None
+        else:
+            print(f"run {run_dir}: {', '.join(services)} alive; Ctrl-C stops", flush=True)
+            t_end = None if duration_secs is None else time.monotonic() + duration_secs
+            while not stop.wait(1.0):
+                if not quiet:
+                    print(monitor.line(), flush=True)
+                if (t_end is not None and time.monotonic() > t_end) or not running.supervise():
+                    break
         for sub in subs:
             sub.undeclare()
-        session.close()
     finally:
+        if session is not None:
+            session.close()  # also on an error: Zenoh's threads would keep the interpreter from exiting
         codes = stop_services(running.started)
         if emu is not None:
             emu.down()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        for name in ("launcher.pid", "pids"):  # `splittag down` must not signal pids a finished run left
+            (run_dir / name).unlink(missing_ok=True)
     return _summarise_run(run_dir, monitor, codes)

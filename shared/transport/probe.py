@@ -61,7 +61,7 @@ def serve_echo(
                 stamps = LinkStamps(sent_nanos=link[0], received_nanos=link[1], previous_received_nanos=link[2])
             ack = ProbeAck(received_bytes=len(payload), decoded_ok=not error, error=error, link=stamps)
             out = encode(ack, framing=framing)
-        query.reply(query.key_expr, out, encoding=enc)
+        query.reply(key, out, encoding=enc)  # this echo's own key
 
     return session.declare_queryable(key, on_query)
 

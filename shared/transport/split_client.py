@@ -24,12 +24,23 @@ def query_split(session: zenoh.Session, robot_id: str, *, params: str = "", time
     raise SplitQueryError(f"no reply on {selector} (is robot_infer running?)")
 
 
-def split_query(robot_id: str, connect: str, *, k: int | None, release: bool, tls: TlsSettings | None = None) -> str:
-    """CLI helper: get, set or release; returns a printable line. `tls`: the operator's certificate
-    in a TLS deployment (deploy/secure.toml)."""
-    session = open_session(ZenohSettings(mode="client", connect=[connect], tls=tls))
+def split_query(
+    robot_id: str,
+    connect: str,
+    *,
+    k: int | None,
+    release: bool,
+    codec: str | None = None,
+    tls: TlsSettings | None = None,
+) -> str:
+    """CLI helper: get, set (k and/or codec) or release; returns a printable line. `tls`: the
+    operator's certificate in a TLS deployment (deploy/secure.toml)."""
+    # A person waits at the prompt: 5 s to reach the router, not the services' patient default.
+    session = open_session(ZenohSettings(mode="client", connect=[connect], tls=tls, connect_timeout_secs=5.0))
     try:
-        params = "release=1" if release else (f"k={k}" if k is not None else "")
+        sets = [f"k={k}"] if k is not None else []
+        sets += [f"codec={codec}"] if codec is not None else []
+        params = "release=1" if release else ";".join(sets)  # Zenoh separates selector parameters by ';'
         cfg = query_split(session, robot_id, params=params)
         return f"k={cfg.k} codec={cfg.codec} pinned={cfg.pinned} source={cfg.source}"
     finally:

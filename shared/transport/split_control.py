@@ -130,6 +130,7 @@ def serve_split(session: zenoh.Session, key: str, state: SplitState) -> zenoh.Qu
             log.warning("split request refused: %s", exc)
             query.reply_err(str(exc).encode())
             return
-        query.reply(query.key_expr, encode(applied, framing=framing_of(payload)), encoding=enc)  # the asker's framing
+        # On this robot's own key (a wildcard get learns which robot answered), in the asker's framing.
+        query.reply(key, encode(applied, framing=framing_of(payload)), encoding=enc)
 
     return session.declare_queryable(key, on_query)
