@@ -145,16 +145,18 @@ def test_down_leaves_alone_a_process_that_reuses_a_stale_pid(tmp_path: Path) -> 
         stranger.wait()
 
 
-def test_up_stops_at_once_on_settings_a_service_refuses(tmp_path: Path) -> None:
+@pytest.mark.parametrize("service", ["robot_infer", "edge_infer"])
+def test_up_stops_at_once_on_settings_a_service_refuses(tmp_path: Path, service: str) -> None:
     """A typo in a service's table: the service exits with the configuration error's code, and the
     launcher, instead of restarting it every 30 s for ever, stops everything and says which setting in
-    one line, exit 2, no traceback; nothing is left running."""
+    one line, exit 2, no traceback; nothing is left running. edge_infer's own router is the one the
+    launcher connects to: it must not wait out a connection timeout first."""
     topology = Topology.loopback()
     cfg = write_config(
         tmp_path / "deploy.toml",
         base=REPO / "deploy" / "local.toml",
         topology=topology,
-        extra={"common": {"robot_id": "typo1", "rerun": {"enabled": False}}, "robot_infer": {"split_kk": 7}},
+        extra={"common": {"robot_id": "typo1", "rerun": {"enabled": False}}, service: {"split_kk": 7}},
     )
     start = time.monotonic()
     out = subprocess.run(
@@ -166,9 +168,9 @@ def test_up_stops_at_once_on_settings_a_service_refuses(tmp_path: Path) -> None:
     )
     said = out.stdout + out.stderr
     assert out.returncode == 2, said
-    assert "robot_infer: configuration error: split_kk: Extra inputs are not permitted" in said, said
+    assert f"{service}: configuration error: split_kk: Extra inputs are not permitted" in said, said
     assert "Traceback" not in said, said
-    print(f"refused in {time.monotonic() - start:.1f} s")
+    print(f"{service}: refused in {time.monotonic() - start:.1f} s")
     run = (tmp_path / "runs" / "current").resolve()
     for name in SERVICES:
         log = (run / f"{name}.log").read_text(errors="replace")
@@ -187,17 +189,19 @@ def test_a_service_refusing_its_settings_says_why_before_any_connection(tmp_path
     info = tmp_path / "camera_info.yaml"
     info.write_text(camera_to_yaml(default_camera()))
     env["SPLITTAG_CAMERA_CAMERA_INFO"] = str(info)
-    env["SPLITTAG_CAMERA_ZENOH__CONNECT"] = '["tcp/127.0.0.1:9"]'  # nothing listens: must not be reached
+    # Nothing listens there, and it would wait 10 minutes for it: the check must come first.
+    env["SPLITTAG_CAMERA_ZENOH__CONNECT"] = '["tcp/127.0.0.1:9"]'
+    env["SPLITTAG_CAMERA_ZENOH__CONNECT_TIMEOUT_SECS"] = "600"
     bad = [
         (["-m", "services.camera"], env, "camera: configuration error: source folder"),
         (["-m", "services.slam"], {**os.environ, "SPLITTAG_SLAM_MAX_PENDING_MAP_QUERIES": "x"}, "max_pending_map_q"),
     ]
     for argv, environ, expected in bad:
-        start = time.monotonic()
-        out = subprocess.run([sys.executable, *argv], cwd=REPO, env=environ, capture_output=True, text=True, timeout=60)
+        out = subprocess.run(
+            [sys.executable, *argv], cwd=REPO, env=environ, capture_output=True, text=True, timeout=300
+        )
         assert out.returncode == 2, out.stderr
         assert expected in out.stderr and "Traceback" not in out.stderr, out.stderr
-        assert time.monotonic() - start < 20
 
 
 def test_up_restarts_a_killed_service(tmp_path: Path) -> None:

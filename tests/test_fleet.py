@@ -69,8 +69,9 @@ def test_fleet_keys() -> None:
     assert keys.worker_of(keys.edge_worker("fleet", "edge2")) == "edge2"
     with pytest.raises(ValueError, match="not a"):
         keys.worker_of(keys.alive("r1", "edge_infer"))
-    with pytest.raises(ValueError, match="robot id"):
-        keys.robot_of("splittag/*/features/v4")
+    for wildcard in ("splittag/*/features/v4", "splittag/r1/**", "splittag/r1/tag_poses/*", "splittag/r1/$*/v4"):
+        with pytest.raises(ValueError, match="wildcard"):  # a put on r1/** is no one topic's message
+            keys.robot_of(wildcard)
     import zenoh
 
     # The fleet's keys can never be taken for a robot's: '@fleet' is a verbatim chunk.

@@ -126,9 +126,25 @@ def test_only_authorised_identities_steer_and_publish(tmp_path: Path, certs: Pat
                 query_split(camera, ROBOT, params="k=2", timeout_secs=2)
             assert query_split(operator, ROBOT, timeout_secs=10).k == 5
 
-            # Nor query (or save) the map, which the operator may (the rule once named an old map key).
+            # Nor query (or save) the map, which the operator may (the rule once named an old map key);
+            # the camera's queries do reach other queryables (a positive control from the same session).
+            assert "accepted" in service_stats(camera, ROBOT, "slam", timeout_secs=10)
             assert not [r for r in camera.get(keys.tag_map(ROBOT) + "?save=1", timeout=3) if r.ok is not None]
             assert [r for r in operator.get(keys.tag_map(ROBOT), timeout=10) if r.ok is not None]
+
+            # Nor get round the rules with a wildcard key: a put on splittag/<robot>/** reaches every
+            # subscriber of that robot, and a queryable on splittag/** would answer every get.
+            camera.put(f"splittag/{ROBOT}/**", _forged_poses(seq=2**39))
+            fake = camera.declare_queryable("splittag/**", lambda q: q.reply(q.key_expr, b"{}"))
+            time.sleep(1.0)
+            every = zenoh.ConsolidationMode.NONE  # each reply, not the latest per key
+            got = [
+                r.ok.payload.to_bytes()
+                for r in operator.get(keys.stats(ROBOT, "slam"), timeout=5, consolidation=every)
+                if r.ok
+            ]
+            assert got and b"{}" not in got, got  # slam answered; the camera's queryable was never declared
+            fake.undeclare()
 
             # Nor may it publish TagPoses; the same message from the robot's identity goes through.
             forged = _forged_poses(seq=2**40)
@@ -145,6 +161,7 @@ def test_only_authorised_identities_steer_and_publish(tmp_path: Path, certs: Pat
             with lock:
                 assert 2**41 in seqs, "the positive control (robot identity) did not arrive"
                 assert 2**40 not in seqs, "the camera identity published TagPoses"
+                assert 2**39 not in seqs, "the camera identity published TagPoses through a wildcard key"
         finally:
             camera.close()
         sub.undeclare()

@@ -95,22 +95,20 @@ def test_keys_are_versioned_and_under_root() -> None:
 
 
 def test_access_rules_per_role() -> None:
-    """The generated ACL: default deny; only trusted names unrestricted; each role's denials."""
+    """The generated ACL: default deny; only trusted names unrestricted; the others read everything and
+    write by allow-lists."""
     acl = access_control_config(AccessControlSettings(enabled=True))
     assert acl["default_permission"] == "deny"
     policies = {p["subjects"][0]: set(p["rules"]) for p in acl["policies"]}
-    rules = {r["id"]: r for r in acl["rules"]}
     assert policies["trusted"] == {"everything"}
     assert "no-steer" in policies["cameras"] and "no-steer" in policies["slam"]
     assert "no-steer" not in policies["operators"] and "no-steer" not in policies["controllers"]
     assert "no-map-query" not in policies["operators"] and "no-map-query" in policies["slam"]
-    assert "splittag/*/tag_poses/**" in rules["operators-no-publish"]["key_exprs"]
-    assert "splittag/*/frame/**" not in rules["cameras-no-publish"]["key_exprs"]
-    assert "splittag/*/controller/**" not in rules["controllers-no-publish"]["key_exprs"]
-    # Each role may serve only its own queryables: slam its map and stats, nobody the split.
-    assert "splittag/*/slam/stats" not in rules["slam-no-serve"]["key_exprs"]
-    assert "splittag/*/split" in rules["slam-no-serve"]["key_exprs"]
-    assert "splittag/*/slam/stats" in rules["cameras-no-serve"]["key_exprs"]
+    assert policies["operators"] == {"receive", "read"}
+    assert policies["cameras"] == {"receive", "read", "cameras-publish", "cameras-announce", "no-steer", "no-map-query"}
+    for rule in acl["rules"]:
+        if rule["permission"] == "allow" and rule["id"] not in ("everything", "receive", "read"):
+            assert rule["flows"] == ["ingress"] and rule["key_exprs"], rule  # writes come in, each to named keys
 
 
 def _data_keys(robot: str) -> dict[str, str]:
@@ -141,29 +139,39 @@ def _covers(patterns: list[str], key: str) -> bool:
 def test_access_rules_cover_the_keys_the_services_use() -> None:
     """The ACL's rules against the keys of shared.wire.keys as they are now (the map key went v2 -> v3
     while the rules still said v2, and every identity could query and save the map; FrameStamp was
-    added and no rule named it): every data topic is some role's to publish and denied to the others,
-    the map and split queries are denied to the roles that may not save or steer, and only their
-    owners may serve the queryables."""
+    added and no rule named it): every data topic may be published by its owner alone, the map and
+    split queries are denied to the roles that may not save or steer, and only their owners may serve
+    the queryables or announce a service. A key with a wildcard (`splittag/r1/**`, which subscribers on
+    every key of r1 receive) is no restricted role's to publish or serve."""
     acl = access_control_config(AccessControlSettings(enabled=True))
     rules = {r["id"]: r["key_exprs"] for r in acl["rules"]}
     data = _data_keys("r1")
     assert {"tag_map:splittag/r1/map/v3", "frame_stamp:splittag/r1/frame_stamp/v1"} <= set(data)
     named = {k.split(":")[0] for k in data}
     assert named >= {"frames", "features", "tag_poses", "camera_pose", "compute", "controller"}
-    for what, key in data.items():
-        assert _covers(rules["operators-no-publish"], key), f"an operator may publish {what}"
-    publishers = {"cameras": {"frames", "ground_truth", "frame_stamp"}, "slam": {"camera_pose", "tag_map"}}
+    publishers = {
+        "operators": set(),
+        "cameras": {"frames", "ground_truth", "frame_stamp"},
+        "slam": {"camera_pose", "tag_map"},
+        "controllers": {"controller"},
+    }
+    wildcards = ["splittag/r1/**", "splittag/**", "splittag/*/tag_poses/**", "splittag/r1/*/v4"]
     for role, own in publishers.items():
+        may_put = rules.get(f"{role}-publish", [])
         for what, key in data.items():
-            assert _covers(rules[f"{role}-no-publish"], key) is (what.split(":")[0] not in own), (role, what)
+            assert _covers(may_put, key) is (what.split(":")[0] in own), (role, what)
+        may_serve = rules.get(f"{role}-serve", [])
+        for key in wildcards:
+            assert not _covers(may_put, key) and not _covers(may_serve, key), (role, key)
+        for key in (keys.split("r1"), keys.echo("r1"), keys.echo("r1") + "/raw", keys.stats("r1", "robot_infer")):
+            assert not _covers(may_serve, key), (role, key)
+        announce = rules.get(f"{role}-announce", [])
+        assert not _covers(announce, keys.alive("r1", "edge_infer")) and not _covers(announce, "splittag/r1/**")
+    assert _covers(rules["slam-serve"], keys.tag_map("r1")) and _covers(rules["slam-serve"], keys.stats("r1", "slam"))
+    assert _covers(rules["slam-announce"], keys.fleet_service("slam"))
+    assert _covers(rules["cameras-announce"], keys.alive("r1", "camera"))
     assert _covers(rules["no-map-query"], keys.tag_map("r1"))
     assert _covers(rules["no-steer"], keys.split("r1"))
-    for role in ("cameras", "operators", "controllers"):
-        for key in (keys.tag_map("r1"), keys.split("r1"), keys.echo("r1"), keys.echo("r1") + "/raw"):
-            assert _covers(rules[f"{role}-no-serve"], key), (role, key)
-    assert not _covers(rules["slam-no-serve"], keys.tag_map("r1"))
-    assert not _covers(rules["slam-no-serve"], keys.stats("r1", "slam"))
-    assert _covers(rules["slam-no-serve"], keys.stats("r1", "robot_infer"))
 
 
 def test_waiting_for_liveliness_lets_the_waiter_work_meanwhile() -> None:

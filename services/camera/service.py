@@ -34,6 +34,10 @@ def make_source(settings: CameraSettings) -> FrameSource:
     return CaptureSource(target, settings.camera_info)
 
 
+class _Stopped(Exception):
+    """SIGINT/SIGTERM while waiting for the services the camera streams to."""
+
+
 def check_source(settings: CameraSettings) -> None:
     """The configured source can be read (service_main runs this before any Zenoh session): a missing
     folder, video file or camera_info, or a malformed listing, is a configuration error said at once,
@@ -45,7 +49,9 @@ def check_source(settings: CameraSettings) -> None:
         make_source(settings)
     except (OSError, ValueError) as exc:  # FileNotFoundError is an OSError; GeometryError a ValueError
         raise ConfigurationError(f"source {settings.source} {settings.path!r}: {exc}") from None
-    if settings.source == "video" and not Path(settings.path).is_file():
+    # A file must be there; a URL (rtsp://...) or a GStreamer pipeline (... ! ...) is OpenCV's to open.
+    local_file = settings.source == "video" and "://" not in settings.path and "!" not in settings.path
+    if local_file and not Path(settings.path).is_file():
         raise ConfigurationError(f"source video {settings.path!r}: no such file")
 
 
@@ -62,11 +68,21 @@ def run(settings: CameraSettings, *, session: zenoh.Session, stop: threading.Eve
     )
     token = session.liveliness().declare_token(keys.alive(settings.robot_id, "camera"))
     if settings.wait_for:
-        wait_for_liveliness(
-            session,
-            [keys.alive(settings.robot_id, s) for s in settings.wait_for],
-            timeout_secs=settings.liveliness_timeout_secs,
-        )
+
+        def stopped_meanwhile() -> None:  # a run stopped before robot_infer was up: go, don't wait it out
+            if stop.is_set():
+                raise _Stopped
+
+        try:
+            wait_for_liveliness(
+                session,
+                [keys.alive(settings.robot_id, s) for s in settings.wait_for],
+                timeout_secs=settings.liveliness_timeout_secs,
+                every_second=stopped_meanwhile,
+            )
+        except _Stopped:
+            token.undeclare()
+            return 0
     viz = make_viz(settings.rerun, service="camera", run_dir=settings.run_dir)
     gt_keypoints = source.gt_keypoints if isinstance(source, DemoSource) else None
     period = 1.0 / settings.fps

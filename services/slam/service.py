@@ -432,9 +432,11 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
                 node.write_outputs(settings.run_dir)
             try:
                 asker = keys.robot_of(str(query.key_expr))
+                reply_key: str | zenoh.KeyExpr = keys.tag_map(asker)  # the robot's own key
             except ValueError:
                 asker = rid  # a wildcard get: the map is one for every robot
-            query.reply(keys.tag_map(asker), encode(node.current_map(asker)), encoding=encoding_for(TagMap.SCHEMA))
+                reply_key = query.key_expr  # the only key sure to intersect what was asked
+            query.reply(reply_key, encode(node.current_map(asker)), encoding=encoding_for(TagMap.SCHEMA))
 
     def on_stamp(sample: zenoh.Sample) -> None:
         def keep(payload: bytes) -> None:

@@ -90,6 +90,17 @@ class InputGuard:
             }
 
 
+def _one_robots(declared: str, asked: str) -> str:
+    """The reply key of a queryable declared for every robot (`splittag/*/slam/stats`): the asked
+    robot's own key when the query names one robot (`splittag/*/*/stats` asks them all: its key)."""
+    parts, asked_parts = declared.split("/"), asked.split("/")
+    if len(asked_parts) == len(parts) and not any(c in asked_parts[1] for c in "*$"):
+        concrete = [a if d == "*" else d for d, a in zip(parts, asked_parts, strict=True)]
+        if not any(c in "/".join(concrete) for c in "*$"):
+            return "/".join(concrete)
+    return asked
+
+
 def serve_stats(
     session: zenoh.Session, key: str, guard: InputGuard, extra: Callable[[], dict[str, Any]] | None = None
 ) -> zenoh.Queryable[None]:
@@ -101,7 +112,7 @@ def serve_stats(
 
     def on_query(query: zenoh.Query) -> None:
         body = {**guard.stats(), **(extra() if extra is not None else {})}
-        reply_key = key if concrete else query.key_expr
+        reply_key = key if concrete else _one_robots(key, str(query.key_expr))
         query.reply(reply_key, json.dumps(body).encode(), encoding=zenoh.Encoding.APPLICATION_JSON)
 
     return session.declare_queryable(key, on_query)

@@ -16,6 +16,7 @@ import zenoh
 from pydantic import ValidationError
 from pydantic_settings import SettingsError
 
+from shared.model.precision import ModelFileError  # no torch: the weights folder's errors only
 from shared.runtime.cpus import CpuPlacementError, pin_cpus
 from shared.runtime.logs import setup_logging
 from shared.runtime.settings import CONFIG_EXIT, ConfigurationError, ServiceSettings, describe_settings_error
@@ -59,11 +60,21 @@ def service_main(
         except CpuPlacementError as exc:
             log.error("%s: configuration error: cpus %s: %s", name, settings.cpus, exc)
             return CONFIG_EXIT
-    session = open_session(settings.zenoh)
+    try:
+        # A certificate that is not there, tls/ endpoints without TLS settings: the settings' fault.
+        session = open_session(settings.zenoh)
+    except (FileNotFoundError, ValueError) as exc:
+        log.error("%s: configuration error: zenoh: %s", name, describe_settings_error(exc))
+        return CONFIG_EXIT
+    except zenoh.ZError as exc:  # the router it connects to is not (yet) up: one line; the launcher retries
+        log.error("%s: cannot open its Zenoh session: %s", name, describe_settings_error(exc))
+        return 1
     try:
         run(settings, session, stop)
-    except ConfigurationError as exc:
-        log.error("%s: configuration error: %s", name, exc)
+    except (ConfigurationError, ModelFileError, FileNotFoundError) as exc:
+        # What the settings name is missing or unusable (weights folder, tag map, camera file):
+        # restarting cannot help.
+        log.error("%s: configuration error: %s", name, describe_settings_error(exc))
         return CONFIG_EXIT
     except Exception:
         logging.getLogger(name).exception("%s failed", name)

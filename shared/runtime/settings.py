@@ -54,14 +54,15 @@ def describe_settings_error(exc: BaseException, *, max_chars: int = 600) -> str:
             where = ".".join(str(p) for p in err["loc"]) or "<settings>"
             got = repr(err.get("input"))
             got = got if len(got) <= 60 else got[:60] + "..."
-            parts.append(f"{where}: {err['msg']}" + ("" if err["type"] == "missing" else f" (got {got})"))
-        text = "; ".join(parts)
+            msg = err["msg"] if len(err["msg"]) <= 200 else err["msg"][:200] + "..."
+            parts.append(f"{where}: {msg}" + ("" if err["type"] == "missing" else f" (got {got})"))
+        text = "; ".join(parts)  # each message capped: every field's name is said
     elif isinstance(exc, tomllib.TOMLDecodeError):
         text = f"the config file is not valid TOML: {exc}"
     else:
         text = str(exc)
     text = re.sub(r" at /\S+\.rs:\d+\.?", "", " ".join(text.split()))  # Zenoh's Rust source locations
-    return text if len(text) <= max_chars else text[:max_chars] + "..."
+    return text if isinstance(exc, ValidationError) or len(text) <= max_chars else text[:max_chars] + "..."
 
 
 class ServiceSettings(BaseSettings):

@@ -716,15 +716,14 @@ def _user_errors() -> tuple[tuple[type[BaseException], ...], tuple[type[BaseExce
     import tomllib
 
     import zenoh
-    from pydantic import ValidationError
 
     from shared.runtime.settings import ConfigurationError
     from shared.tools.launch import LaunchError
     from shared.transport.split_client import SplitQueryError
-    from shared.vision.geometry import GeometryError
+    from shared.vision.geometry import CameraFileError
 
-    usage = (ModelFileError, ConfigurationError, FileNotFoundError, tomllib.TOMLDecodeError, ValidationError)
-    return (*usage, GeometryError), (SplitQueryError, LaunchError, zenoh.ZError)
+    usage = (ModelFileError, ConfigurationError, FileNotFoundError, tomllib.TOMLDecodeError, CameraFileError)
+    return usage, (SplitQueryError, LaunchError, zenoh.ZError)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -740,11 +739,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         code: int = args.func(args)
     except Exception as exc:
         usage, failed = _user_errors()  # imported only here: every command starts as fast as before
-        if not isinstance(exc, usage + failed) or os.environ.get("SPLITTAG_TRACEBACK"):
+        from pydantic import ValidationError
+
+        # Settings a user wrote (a *Settings model refused them), not a message a bug built wrongly.
+        settings = isinstance(exc, ValidationError) and exc.title.endswith("Settings")
+        if not (settings or isinstance(exc, usage + failed)) or os.environ.get("SPLITTAG_TRACEBACK"):
             raise
         what = "Zenoh: " if type(exc).__module__.startswith("zenoh") else ""
         print(f"splittag {args.command}: {what}{describe_settings_error(exc)}", file=sys.stderr)
-        return 2 if isinstance(exc, usage) else int(getattr(exc, "exit_code", 1))
+        return 2 if settings or isinstance(exc, usage) else int(getattr(exc, "exit_code", 1))
     return code
 
 

@@ -184,11 +184,12 @@ def run_fleet(
         configuration_error_line,
         demo_tag_map,
         new_run_dir,
+        open_monitor_session,
         start_process,
         stop_services,
     )
     from shared.tools.supervise import Supervisor
-    from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
+    from shared.transport.session import ZenohSettings, wait_for_liveliness
     from shared.viz.recording import merge_recordings
     from shared.wire import keys
 
@@ -243,13 +244,16 @@ def run_fleet(
 
     try:
         (run_dir / "launcher.pid").write_text(f"{os.getpid()}\n")
-        running = [(spec, start(spec)) for spec in specs]
+        for spec in specs:  # one at a time: a start that fails leaves the ones before it to be stopped
+            running.append((spec, start(spec)))
         write_pids()
-        session = open_session(ZenohSettings(mode="client", connect=[plan.edge_router]))
-        subs = [sub for robot, monitor in monitors.items() for sub in attach_monitor(session, robot, monitor)]
         wanted = [keys.edge_worker(plan.tier, w) for w in plan.edge_workers if only in (None, "edge")]
         wanted += [keys.alive(r, "robot_infer") for r in monitors if only != "edge"]
+        subs: list[Any] = []
         try:
+            edge = ZenohSettings(mode="client", connect=[plan.edge_router])
+            session = open_monitor_session(edge, while_coming_up, timeout_secs=180)  # slam's router
+            subs = [sub for robot, monitor in monitors.items() for sub in attach_monitor(session, robot, monitor)]
             wait_for_liveliness(session, wanted, timeout_secs=180, every_second=while_coming_up)
         except StopRequested:
             print("stopped before every process was up", flush=True)

@@ -18,6 +18,7 @@ import threading
 import time
 import tomllib
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar, cast
@@ -436,6 +437,23 @@ def configuration_error_line(service: Service) -> str:
     return f"{service.name}: {found[2]}" if found else lines[-1]
 
 
+def open_monitor_session(
+    settings: ZenohSettings, tick: Callable[[], object], *, timeout_secs: float = 120.0
+) -> zenoh.Session:
+    """The launcher's session to the edge router, which one of the run's services opens: tried in
+    2 s attempts with `tick` (supervision) between them, so a service that refused its settings or a
+    Ctrl-C ends the wait at once instead of after one long connection timeout."""
+    attempt = settings.model_copy(update={"connect_timeout_secs": min(2.0, settings.connect_timeout_secs)})
+    deadline = time.monotonic() + timeout_secs
+    while True:
+        try:
+            return open_session(attempt)
+        except zenoh.ZError:
+            if time.monotonic() > deadline:
+                raise
+            tick()
+
+
 class _Services:
     """The services of one run: started, their pids written, restarted by the supervisor's policy."""
 
@@ -557,12 +575,13 @@ def run_pipeline(
     try:
         (run_dir / "launcher.pid").write_text(f"{os.getpid()}\n")  # `splittag down` stops the run through it
         running.start_all(services)
-        session = open_session(zs)
-        subs = attach_monitor(session, robot_id, monitor)
         # Supervised while it comes up: a service that dies now is restarted (its token then appears);
         # one that refuses its settings ends the run (LaunchError), as does Ctrl-C.
         alive = [keys.alive(robot_id, s) for s in services]
+        subs: list[Any] = []
         try:
+            session = open_monitor_session(zs, while_coming_up)  # the edge router is a service's
+            subs = attach_monitor(session, robot_id, monitor)
             wait_for_liveliness(session, alive, timeout_secs=120, every_second=while_coming_up)
         except StopRequested:
             print("stopped before every service was up", flush=True)

@@ -3,20 +3,23 @@
 The routers (edge_infer's and robot_infer's sessions) enforce it on the messages of every peer and
 client they serve; a process is identified by the common name of the certificate it presented over
 mutual TLS. Default deny: a certificate of an unknown name may do nothing. The robot and the edge are
-trusted with everything (the routers forward each other's traffic). The other roles may do
-everything on `splittag/**` except, explicitly denied (deny wins over allow in Zenoh's ACL):
+trusted with everything (the routers forward each other's traffic). The other roles may read
+everything (subscribe, query, receive) but write only what is theirs, by allow-lists:
 
-| role | may not |
-| --- | --- |
-| operator (people, `splittag split`, the launcher's monitor) | publish any data |
-| controller | publish data other than its ControllerState; query the map (save) |
-| slam | publish data other than camera poses and its map; query the split (steer) or the map (save) |
-| camera | publish data other than frames, ground truth and data-set stamps; query the split or the map |
+| role | may publish | may serve (queryables) | liveliness token | may not query |
+| --- | --- | --- | --- | --- |
+| operator (people, `splittag split`, the launcher's monitor) | nothing | nothing | none | |
+| controller | its ControllerState | its stats | its own | the map (save) |
+| slam | camera poses, its map | its map, its stats | its own (and a fleet's) | the split (steer), the map |
+| camera | frames, ground truth, data-set stamps | nothing | its own | the split, the map |
 
-and each role may declare only its own queryables (slam its map and stats, the controller its
-stats): nobody can impersonate robot_infer's split control, the edge's link probe or another
-service's map or stats. Zenoh's ACL cannot tell a
-split get from a set (both are queries): steering is allowed to the operator and controller only.
+Allow-lists, not "everything but": Zenoh applies a rule to a message whose key the rule's key
+*includes*, so a deny rule on `splittag/*/tag_poses/**` never met a put on `splittag/r1/**` (which
+subscribers on every key of r1 receive) or a queryable declared on `splittag/**`, and an allow-all
+let both through. Now such a key is included in no allow rule of a restricted role and is refused
+(tests/test_security_multiprocess.py). Zenoh's ACL cannot tell a split get from a set (both are
+queries): steering is allowed to the operator and controller only; a set or a map save through a
+wildcard key is refused by robot_infer and slam themselves.
 """
 
 from __future__ import annotations
@@ -76,6 +79,23 @@ MAY_PUBLISH: Final[dict[str, set[str]]] = {
     "slam": {"camera_pose", "map"},
     "cameras": {"frame", "ground_truth", "frame_stamp"},
 }
+# The liveliness tokens each restricted role may declare (readiness: nobody may impersonate another
+# service's, e.g. the edge's, whose token tells the robot to stop computing on board).
+MAY_ANNOUNCE: Final[dict[str, set[str]]] = {
+    "operators": set(),
+    "controllers": {"splittag/*/alive/controller"},
+    "slam": {"splittag/*/alive/slam", "splittag/@fleet/slam"},
+    "cameras": {"splittag/*/alive/camera"},
+}
+# Where everyone may read ('**' does not match a verbatim chunk like @fleet: the fleet's keys apart).
+EVERY_KEY: Final[list[str]] = ["splittag/**", "splittag/@fleet/**"]
+READ_MESSAGES: Final[list[str]] = [
+    "declare_subscriber",
+    "query",
+    "reply",
+    "liveliness_query",
+    "declare_liveliness_subscriber",
+]
 MAY_STEER: Final[set[str]] = {"operators", "controllers"}
 MAY_SAVE_MAP: Final[set[str]] = {"operators"}
 
@@ -99,9 +119,14 @@ def _rule(rule_id: str, permission: str, messages: list[str], keys: list[str], f
 
 def access_control_config(settings: AccessControlSettings) -> dict[str, Any]:
     """The `access_control` section of a router's Zenoh config for these roles."""
-    rules = [_rule("everything", "allow", ALL_MESSAGES, ["splittag/**"], ["ingress", "egress"])]
-    rules.append(_rule("no-steer", "deny", ["query"], [SPLIT_KEY], ["ingress"]))
-    rules.append(_rule("no-map-query", "deny", ["query"], [MAP_KEY], ["ingress"]))
+    rules = [
+        _rule("everything", "allow", ALL_MESSAGES, EVERY_KEY, ["ingress", "egress"]),
+        # What the router sends a restricted role: only what it subscribed to, queried or serves.
+        _rule("receive", "allow", ALL_MESSAGES, EVERY_KEY, ["egress"]),
+        _rule("read", "allow", READ_MESSAGES, EVERY_KEY, ["ingress"]),
+        _rule("no-steer", "deny", ["query"], [SPLIT_KEY], ["ingress"]),
+        _rule("no-map-query", "deny", ["query"], [MAP_KEY], ["ingress"]),
+    ]
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
 
@@ -112,19 +137,19 @@ def access_control_config(settings: AccessControlSettings) -> dict[str, Any]:
         policies.append({"id": f"{role_id}-policy", "rules": rule_ids, "subjects": [role_id]})
 
     role("trusted", settings.trusted, ["everything"])
-    for name, may in MAY_PUBLISH.items():
-        denied = sorted(set(DATA_KEYS) - may)
-        rule_id = f"{name}-no-publish"
-        rules.append(_rule(rule_id, "deny", ["put", "delete"], [DATA_KEYS[k] for k in denied], ["ingress"]))
-        serve_id = f"{name}-no-serve"
-        not_theirs = [SERVICE_QUERYABLES[q] for q in sorted(set(SERVICE_QUERYABLES) - MAY_SERVE[name])]
-        rules.append(_rule(serve_id, "deny", ["declare_queryable"], not_theirs, ["ingress"]))
-        extra = [serve_id]
-        if name not in MAY_STEER:
-            extra.append("no-steer")
-        if name not in MAY_SAVE_MAP:
-            extra.append("no-map-query")
-        role(name, getattr(settings, name), ["everything", rule_id, *extra])
+    for name in MAY_PUBLISH:
+        own = [
+            (f"{name}-publish", ["put", "delete"], [DATA_KEYS[k] for k in sorted(MAY_PUBLISH[name])]),
+            (f"{name}-serve", ["declare_queryable"], [SERVICE_QUERYABLES[q] for q in sorted(MAY_SERVE[name])]),
+            (f"{name}-announce", ["liveliness_token"], sorted(MAY_ANNOUNCE[name])),
+        ]
+        granted = []
+        for rule_id, messages, keys in own:
+            if keys:  # Zenoh refuses a rule without keys; nothing of that kind is this role's
+                rules.append(_rule(rule_id, "allow", messages, keys, ["ingress"]))
+                granted.append(rule_id)
+        denied = [r for r, may in (("no-steer", name in MAY_STEER), ("no-map-query", name in MAY_SAVE_MAP)) if not may]
+        role(name, getattr(settings, name), ["receive", "read", *granted, *denied])
     return {
         "enabled": True,
         "default_permission": "deny",

@@ -41,6 +41,10 @@ class GeometryError(ValueError):
     """Bad geometric input: malformed camera file, degenerate quad, wrong image type."""
 
 
+class CameraFileError(GeometryError):
+    """A camera_info file that cannot be read or says no usable camera (a user's file, not maths)."""
+
+
 # ----------------------------------------------------------------------------------------------
 # Camera
 # ----------------------------------------------------------------------------------------------
@@ -68,15 +72,15 @@ def camera_from_yaml(path: Path) -> CameraIntrinsics:
     try:
         doc = yaml.safe_load(Path(path).read_text())
     except (OSError, yaml.YAMLError) as exc:
-        raise GeometryError(f"cannot read camera file {path}: {exc}") from exc
+        raise CameraFileError(f"cannot read camera file {path}: {exc}") from exc
     if not isinstance(doc, dict):
-        raise GeometryError(f"camera file {path}: expected a mapping, got {type(doc).__name__}")
+        raise CameraFileError(f"camera file {path}: expected a mapping, got {type(doc).__name__}")
     missing = [f for f in _CAMERA_FIELDS if f not in doc]
     if missing:
-        raise GeometryError(f"camera file {path}: missing fields {missing}")
+        raise CameraFileError(f"camera file {path}: missing fields {missing}")
     data = doc["camera_matrix"].get("data") if isinstance(doc["camera_matrix"], dict) else None
     if not isinstance(data, list) or len(data) != 9:
-        raise GeometryError(f"camera file {path}: camera_matrix.data must list 9 numbers, got {data!r}")
+        raise CameraFileError(f"camera file {path}: camera_matrix.data must list 9 numbers, got {data!r}")
     k = np.asarray(data, dtype=np.float64).reshape(3, 3)
     model = str(doc.get("distortion_model", "none") or "none")
     coeffs_doc = doc.get("distortion_coefficients", {"data": []}) or {"data": []}

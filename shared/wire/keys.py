@@ -87,10 +87,15 @@ def alive(robot_id: str, service: str) -> str:
 
 
 def robot_of(key: str) -> str:
-    """The robot id of a per-robot key (`splittag/<robot_id>/...`); ValueError for any other key."""
-    parts = str(key).split("/")
+    """The robot id of a per-robot key (`splittag/<robot_id>/...`); ValueError for any other key, and
+    for a key with a wildcard anywhere: a put on `splittag/r1/**` reaches every subscriber of r1, and
+    must not count as a message of whichever topic received it."""
+    text = str(key)
+    parts = text.split("/")
     if len(parts) < 3 or parts[0] != ROOT:
         raise ValueError(f"{key!r} is not a splittag/<robot_id>/... key")
+    if "*" in text or "$" in text:
+        raise ValueError(f"{key!r} is a wildcard, not one robot's key")
     return _check(parts[1], "robot id")
 
 
