@@ -4,7 +4,9 @@
 # routers' access control matches: edge, robot, camera, slam, controller, operator.
 #
 #   deploy/make-certs.sh [OUT_DIR] [EXTRA_SAN ...]
+#   SPLITTAG_CERT_NAMES="slam edge1 robot1 robot1-camera operator" deploy/make-certs.sh certs   # other names
 #
+# (`splittag fleet --config F --make-certs` issues a fleet's names, one per process: see docs/fleet.md.)
 # OUT_DIR defaults to certs/. Every certificate is valid for localhost and 127.0.0.1 plus each
 # EXTRA_SAN (an IP address or a DNS name: the edge's address when robot and edge are two hosts).
 # Keep ca.key offline after use: whoever holds it can mint identities.
@@ -12,7 +14,10 @@ set -euo pipefail
 
 out=${1:-certs}
 shift || true
-identities=(edge robot camera slam controller operator)
+read -r -a identities <<< "${SPLITTAG_CERT_NAMES:-edge robot camera slam controller operator}"
+for id in "${identities[@]}"; do
+  [[ $id =~ ^[A-Za-z0-9_.-]+$ ]] || { echo "make-certs: $id is not a certificate name (letters, digits, _ . -)" >&2; exit 2; }
+done
 days=${SPLITTAG_CERT_DAYS:-825}
 
 mkdir -p "$out"

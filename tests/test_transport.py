@@ -200,3 +200,27 @@ def test_waiting_for_liveliness_lets_the_waiter_work_meanwhile() -> None:
             t.undeclare()
     finally:
         session.close()
+
+
+def test_a_fleets_robot_identities_act_for_their_robot_alone() -> None:
+    """Scoped names (`robot_of_name`): a robot's router may do everything on its robot's keys and
+    nothing on another's; its camera publishes that robot's frames only; workers and slam stay
+    trusted with every robot; a scoped name must be in a role that acts for one robot."""
+    from shared.tools.fleet import FleetPlan
+
+    plan = FleetPlan(robots=["robot1", "robot2"], edge_workers=["edge1"], controller=True, certs=Path("c"))
+    acl = access_control_config(AccessControlSettings(**plan.access_control()))
+    rules = {r["id"]: r["key_exprs"] for r in acl["rules"]}
+    subjects = {s["id"]: s["cert_common_names"] for s in acl["subjects"]}
+    assert subjects["trusted"] == ["slam", "edge1"]
+    assert subjects["robot-robot1"] == ["robot1"] and subjects["cameras-robot2"] == ["robot2-camera"]
+    assert _covers(rules["robot-robot1-everything"], keys.features("robot1"))
+    assert not _covers(rules["robot-robot1-everything"], keys.tag_poses("robot2"))
+    assert not _covers(rules["robot-robot1-everything"], "splittag/**")
+    assert _covers(rules["cameras-publish-robot1"], keys.frames("robot1"))
+    assert not _covers(rules["cameras-publish-robot1"], keys.frames("robot2"))
+    assert not _covers(rules["cameras-robot1-read"], keys.frames("robot2"))  # nor see another's frames
+    assert _covers(rules["controllers-publish-robot2"], keys.controller("robot2"))
+    assert _covers(rules["cameras-robot1-read"], keys.edge_worker("fleet", "edge1"))  # the tier's tokens
+    with pytest.raises(ValueError, match="in no role"):
+        AccessControlSettings(robot_of_name={"stranger": "robot1"})

@@ -47,8 +47,16 @@ def _cmd_up(args: argparse.Namespace) -> int:
 def _cmd_fleet(args: argparse.Namespace) -> int:
     import json
 
-    from shared.tools.fleet import run_fleet
+    from shared.tools.fleet import FleetPlan, make_certs, run_fleet
 
+    if args.make_certs:
+        plan = FleetPlan.from_config(args.config)
+        if plan.certs is None:
+            print(f"splittag fleet: {args.config} sets no [fleet] certs folder", file=sys.stderr)
+            return 2
+        names = make_certs(plan)
+        print(f"certificates for {' '.join(names)} in {plan.certs}/ (CA {plan.certs}/ca.pem)")
+        return 0
     summary = run_fleet(args.config, duration_secs=args.duration, runs_root=args.runs, only=args.only)
     print(json.dumps({k: v for k, v in summary.items() if k != "exit_codes"}, indent=2))
     return 0
@@ -513,6 +521,11 @@ def _add_deploy_commands(sub: Any) -> None:
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     p.add_argument("--runs", type=Path, default=Path("runs"), help="run folders go under here (RUNS/current links)")
     p.add_argument("--only", default=None, help="'edge' (slam + workers) or one robot id: this host's part")
+    p.add_argument(
+        "--make-certs",
+        action="store_true",
+        help="issue a certificate per process into the [fleet] certs folder (a new CA if it has none), then exit",
+    )
     p.set_defaults(func=_cmd_fleet)
 
     p = sub.add_parser("down", help="stop the deployment in RUNS/current (SIGINT to every service)")

@@ -39,6 +39,10 @@ class FleetPlan(BaseModel):
     robot_ports: dict[RobotId, int] = Field(default_factory=dict)  # robot -> its router's port (default 7448 + i)
     controller: bool = False
     tier: RobotId = "fleet"  # the edge tier's name (its workers' tokens); one fleet, one tier
+    # Mutual TLS with an identity per process (`identities`; `splittag fleet --make-certs` issues
+    # them into this folder) and access control on the edge tier's and every robot's router: each
+    # robot's router, camera and controller act for that robot alone. None: plain TCP, no control.
+    certs: Path | None = None
 
     @model_validator(mode="after")
     def _distinct(self) -> FleetPlan:
@@ -75,13 +79,54 @@ class FleetPlan(BaseModel):
         return self.robot_ports.get(robot, self.edge_port + 1 + self.robots.index(robot))
 
     @property
+    def protocol(self) -> str:
+        """tls with certificates, else tcp."""
+        return "tcp" if self.certs is None else "tls"
+
+    @property
     def edge_router(self) -> str:
         """The edge tier's router endpoint (slam listens on it; workers, robots and tools connect)."""
-        return f"tcp/{self.edge_host}:{self.edge_port}"
+        return f"{self.protocol}/{self.edge_host}:{self.edge_port}"
 
     def robot_router(self, robot: str) -> str:
         """Robot's own router endpoint (its camera and controller connect to it)."""
-        return f"tcp/{self.robot_hosts.get(robot, '127.0.0.1')}:{self.robot_port(robot)}"
+        return f"{self.protocol}/{self.robot_hosts.get(robot, '127.0.0.1')}:{self.robot_port(robot)}"
+
+    def identities(self) -> dict[str, str | None]:
+        """Certificate name -> the robot it acts for (None: the whole edge tier, or a person): slam
+        (the edge tier's router), every worker, every robot's router (robot_infer: the robot's id), its
+        camera and controller (`<robot>-camera`, `<robot>-controller`), and `operator` (people, the
+        launcher's monitor, `splittag split`)."""
+        names: dict[str, str | None] = {"slam": None, **{w: None for w in self.edge_workers}}
+        for robot in self.robots:
+            names[robot] = robot
+            names[f"{robot}-camera"] = robot
+            if self.controller:
+                names[f"{robot}-controller"] = robot
+        names["operator"] = None
+        return names
+
+    def access_control(self) -> dict[str, Any]:
+        """The routers' access control settings (shared.transport.access) for these identities."""
+        return {
+            "enabled": True,
+            "trusted": ["slam", *self.edge_workers, *self.robots],
+            "operators": ["operator"],
+            "controllers": [f"{r}-controller" for r in self.robots] if self.controller else [],
+            "slam": [],  # slam is the edge tier's router itself, trusted by the robots' routers
+            "cameras": [f"{r}-camera" for r in self.robots],
+            "robot_of_name": {n: r for n, r in self.identities().items() if r is not None},
+        }
+
+    def tls(self, name: str) -> dict[str, str]:
+        """The zenoh.tls table of the process with this certificate name."""
+        assert self.certs is not None
+        d = Path(self.certs)
+        return {
+            "root_ca_certificate": str(d / "ca.pem"),
+            "certificate": str(d / f"{name}.pem"),
+            "private_key": str(d / f"{name}.key"),
+        }
 
 
 @dataclass(frozen=True)
@@ -130,9 +175,22 @@ def fleet_configs(
 
     edge = plan.edge_router
     robots = list(plan.robots)
-    add("slam", "slam", None, {"slam": {"robots": robots, "zenoh": {"mode": "router", "listen": [edge]}}})
+
+    def z(name: str, table: dict[str, Any], *, router: bool = False) -> dict[str, Any]:
+        """A process's zenoh table, with its identity (and, for a router, access control) under TLS."""
+        if plan.certs is None:
+            return table
+        secured = {**table, "tls": plan.tls(name)}
+        return {**secured, "access_control": plan.access_control()} if router else secured
+
+    add(
+        "slam",
+        "slam",
+        None,
+        {"slam": {"robots": robots, "zenoh": z("slam", {"mode": "router", "listen": [edge]}, router=True)}},
+    )
     for worker in plan.edge_workers:
-        zenoh = {"mode": "client", "connect": [edge]}
+        zenoh = z(worker, {"mode": "client", "connect": [edge]})
         add(
             worker,
             "edge_infer",
@@ -142,18 +200,36 @@ def fleet_configs(
     for robot in robots:
         own = plan.robot_router(robot)
         common = {"robot_id": robot}
-        router = {"mode": "router", "listen": [own], "connect": [edge]}
+        router = z(robot, {"mode": "router", "listen": [own], "connect": [edge]}, router=True)
         add(f"{robot}_robot_infer", "robot_infer", robot, {"common": common, "robot_infer": {"zenoh": router}})
         if plan.controller:
-            client = {"mode": "client", "connect": [own]}
+            client = z(f"{robot}-controller", {"mode": "client", "connect": [own]})
             add(f"{robot}_controller", "controller", robot, {"common": common, "controller": {"zenoh": client}})
-        add(
-            f"{robot}_camera",
-            "camera",
-            robot,
-            {"common": common, "camera": {"zenoh": {"mode": "client", "connect": [own]}}},
-        )
+        camera = z(f"{robot}-camera", {"mode": "client", "connect": [own]})
+        add(f"{robot}_camera", "camera", robot, {"common": common, "camera": {"zenoh": camera}})
     return out
+
+
+def operator_settings(plan: FleetPlan) -> Any:
+    """The ZenohSettings of a person's (or the launcher's monitor's) session to the edge tier."""
+    from shared.transport.session import TlsSettings, ZenohSettings
+
+    tls = TlsSettings.from_dir(plan.certs, "operator") if plan.certs is not None else None
+    return ZenohSettings(mode="client", connect=[plan.edge_router], tls=tls)
+
+
+def make_certs(plan: FleetPlan, *, extra_names: list[str] | None = None) -> list[str]:
+    """Issue every identity of the plan into plan.certs with deploy/make-certs.sh (the edge's and the
+    robots' hosts as extra names); returns the names."""
+    import subprocess
+
+    assert plan.certs is not None, "the plan has no certs folder"
+    names = list(plan.identities())
+    hosts = sorted({plan.edge_host, *plan.robot_hosts.values()} - {"127.0.0.1", "localhost"})
+    script = Path(__file__).resolve().parents[2] / "deploy" / "make-certs.sh"
+    env = {**os.environ, "SPLITTAG_CERT_NAMES": " ".join([*names, *(extra_names or [])])}
+    subprocess.run(["bash", str(script), str(plan.certs), *hosts], check=True, env=env, capture_output=True)
+    return names
 
 
 def run_fleet(
@@ -189,7 +265,7 @@ def run_fleet(
         stop_services,
     )
     from shared.tools.supervise import Supervisor
-    from shared.transport.session import ZenohSettings, wait_for_liveliness
+    from shared.transport.session import wait_for_liveliness
     from shared.viz.recording import merge_recordings
     from shared.wire import keys
 
@@ -251,8 +327,7 @@ def run_fleet(
         wanted += [keys.alive(r, "robot_infer") for r in monitors if only != "edge"]
         subs: list[Any] = []
         try:
-            edge = ZenohSettings(mode="client", connect=[plan.edge_router])
-            session = open_monitor_session(edge, while_coming_up, timeout_secs=180)  # slam's router
+            session = open_monitor_session(operator_settings(plan), while_coming_up, timeout_secs=180)  # slam's
             subs = [sub for robot, monitor in monitors.items() for sub in attach_monitor(session, robot, monitor)]
             wait_for_liveliness(session, wanted, timeout_secs=180, every_second=while_coming_up)
         except StopRequested:

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 from typing import Any, Final
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 ALL_MESSAGES: Final[list[str]] = [
     "put",
@@ -111,6 +111,21 @@ class AccessControlSettings(BaseModel):
     controllers: list[str] = Field(default_factory=lambda: ["controller"])
     slam: list[str] = Field(default_factory=lambda: ["slam"])
     cameras: list[str] = Field(default_factory=lambda: ["camera"])
+    # A fleet: certificate name -> the one robot it acts for. Such a name, listed in `trusted`,
+    # `controllers` or `cameras`, gets that role's rules on that robot's keys only (a robot's router
+    # may not publish, serve or read for another robot; a camera may not feed another robot).
+    robot_of_name: dict[str, str] = Field(default_factory=dict)
+
+    @model_validator(mode="after")
+    def _scoped_names_have_a_role(self) -> AccessControlSettings:
+        roles = set(self.trusted) | set(self.controllers) | set(self.cameras)
+        stray = sorted(set(self.robot_of_name) - roles)
+        if stray:
+            raise ValueError(f"robot_of_name names {stray}, in no role that acts for one robot")
+        for name, robot in self.robot_of_name.items():
+            if not robot or any(c in robot for c in "/*$?#@ "):
+                raise ValueError(f"robot_of_name[{name!r}]: {robot!r} is not a robot id")
+        return self
 
 
 def _rule(rule_id: str, permission: str, messages: list[str], keys: list[str], flows: list[str]) -> dict[str, Any]:
@@ -136,20 +151,48 @@ def access_control_config(settings: AccessControlSettings) -> dict[str, Any]:
         subjects.append({"id": role_id, "cert_common_names": names})
         policies.append({"id": f"{role_id}-policy", "rules": rule_ids, "subjects": [role_id]})
 
-    role("trusted", settings.trusted, ["everything"])
+    scoped = settings.robot_of_name
+    role("trusted", [n for n in settings.trusted if n not in scoped], ["everything"])
+    for robot in sorted(set(scoped.values())):
+        # A robot's own router: everything on its robot's keys, and reading the fleet's (the workers').
+        mine = [f"splittag/{robot}/**"]
+        rules.append(_rule(f"robot-{robot}-everything", "allow", ALL_MESSAGES, mine, ["ingress", "egress"]))
+        rules.append(_rule(f"robot-{robot}-fleet", "allow", READ_MESSAGES, ["splittag/@fleet/**"], ["ingress"]))
+        rules.append(_rule(f"robot-{robot}-fleet-receive", "allow", ALL_MESSAGES, ["splittag/@fleet/**"], ["egress"]))
+        names = [n for n in settings.trusted if scoped.get(n) == robot]
+        role(
+            f"robot-{robot}",
+            names,
+            [f"robot-{robot}-everything", f"robot-{robot}-fleet", f"robot-{robot}-fleet-receive"],
+        )
     for name in MAY_PUBLISH:
         own = [
             (f"{name}-publish", ["put", "delete"], [DATA_KEYS[k] for k in sorted(MAY_PUBLISH[name])]),
             (f"{name}-serve", ["declare_queryable"], [SERVICE_QUERYABLES[q] for q in sorted(MAY_SERVE[name])]),
             (f"{name}-announce", ["liveliness_token"], sorted(MAY_ANNOUNCE[name])),
         ]
-        granted = []
-        for rule_id, messages, keys in own:
-            if keys:  # Zenoh refuses a rule without keys; nothing of that kind is this role's
-                rules.append(_rule(rule_id, "allow", messages, keys, ["ingress"]))
-                granted.append(rule_id)
         denied = [r for r, may in (("no-steer", name in MAY_STEER), ("no-map-query", name in MAY_SAVE_MAP)) if not may]
-        role(name, getattr(settings, name), ["receive", "read", *granted, *denied])
+        role_names: list[str] = getattr(settings, name)
+        scopes: list[str | None] = [None, *sorted({scoped[n] for n in role_names if n in scoped})]
+        for scope in scopes:
+            # Unscoped names: any robot's keys; a robot's names: the same rules on its keys alone.
+            members = [n for n in role_names if scoped.get(n) == scope]
+            suffix = "" if scope is None else f"-{scope}"
+            granted = []
+            for rule_id, messages, keys in own:
+                if scope is not None:
+                    keys = [k.replace("splittag/*/", f"splittag/{scope}/", 1) for k in keys]
+                if keys:  # Zenoh refuses a rule without keys; nothing of that kind is this role's
+                    rules.append(_rule(rule_id + suffix, "allow", messages, keys, ["ingress"]))
+                    granted.append(rule_id + suffix)
+            if scope is None:
+                readers = ["receive", "read"]
+            else:  # reads its own robot's keys (and the fleet's), nobody else's
+                mine = [f"splittag/{scope}/**", "splittag/@fleet/**"]
+                rules.append(_rule(f"{name}{suffix}-read", "allow", READ_MESSAGES, mine, ["ingress"]))
+                rules.append(_rule(f"{name}{suffix}-receive", "allow", ALL_MESSAGES, mine, ["egress"]))
+                readers = [f"{name}{suffix}-read", f"{name}{suffix}-receive"]
+            role(f"{name}{suffix}", members, [*readers, *granted, *denied])
     return {
         "enabled": True,
         "default_permission": "deny",
