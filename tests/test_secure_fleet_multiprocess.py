@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import threading
 import time
+from functools import partial
 from pathlib import Path
 
 import pytest
@@ -42,20 +43,26 @@ def _poses(robot: str, seq: int) -> bytes:
 
 
 def test_a_secure_fleet_scopes_each_robots_identities_to_that_robot(tmp_path: Path) -> None:
-    plan = FleetPlan.loopback(2, 1).model_copy(update={"certs": tmp_path / "certs"})
+    plan = FleetPlan.loopback(2, 1, controller=True).model_copy(update={"certs": tmp_path / "certs"})
     names = make_certs(plan)
-    assert {"slam", "edge1", "robot1", "robot2", "robot1-camera", "robot2-camera", "operator"} <= set(names)
+    assert {"slam", "edge1", "robot1", "robot2", "robot1-camera", "robot2-controller", "operator"} <= set(names)
     assert plan.edge_router.startswith("tls/")
     run = tmp_path / "run"
-    extra = merge(demo_tables(run), {"common": {"rerun": {"enabled": False}}, "camera": {"fps": 3.0}})
+    patient = {"rerun": {"enabled": False}, "zenoh": {"connect_timeout_secs": 120.0}}  # a loaded machine
+    extra = merge(demo_tables(run), {"common": patient, "camera": {"fps": 3.0}})
     specs = fleet_configs(plan, run, REPO / "deploy" / "fleet.toml", extra=extra)
     seen: dict[str, set[int]] = {}
+    robot_side: dict[str, set[str]] = {}  # key kind -> robots whose robot-side messages reached the edge
     lock = threading.Lock()
 
     def on_poses(sample: zenoh.Sample) -> None:
         msg = decode(sample.payload.to_bytes(), TagPoses)
         with lock:
             seen.setdefault(msg.robot_id, set()).add(msg.seq)
+
+    def on_robot_side(kind: str, sample: zenoh.Sample) -> None:
+        with lock:
+            robot_side.setdefault(kind, set()).add(keys.robot_of(str(sample.key_expr)))
 
     with processes(tmp_path) as procs:
         for spec in specs:
@@ -65,14 +72,21 @@ def test_a_secure_fleet_scopes_each_robots_identities_to_that_robot(tmp_path: Pa
         settings = operator_settings(plan).model_copy(update={"connect_timeout_secs": 60.0})
         operator = open_session(settings)
         try:
-            sub = operator.declare_subscriber(keys.for_every_robot(keys.tag_poses("x")), on_poses)
+            subs = [operator.declare_subscriber(keys.for_every_robot(keys.tag_poses("x")), on_poses)]
+            # Through wildcard subscriptions at the edge, as a fleet slam subscribes: what the robots'
+            # cameras and controllers publish on their side must reach it through their routers.
+            for kind, key in (("ground_truth", keys.ground_truth("x")), ("controller", keys.controller("x"))):
+                subs.append(operator.declare_subscriber(keys.for_every_robot(key), partial(on_robot_side, kind)))
             wait_for_liveliness(
                 operator,
-                [keys.alive(r, s) for r in plan.robots for s in ("robot_infer", "edge_infer", "camera")],
+                [keys.alive(r, s) for r in plan.robots for s in ("robot_infer", "edge_infer", "camera", "controller")],
                 timeout_secs=150,
             )
             # The whole fleet works over TLS under the rules: both robots' frames get poses.
             wait_until(lambda: all(len(seen.get(r, ())) >= 3 for r in plan.robots), 120, "poses of both robots")
+            want = set(plan.robots)
+            wait_until(lambda: robot_side.get("ground_truth") == want, 60, "both cameras' ground truth at the edge")
+            wait_until(lambda: robot_side.get("controller") == want, 60, "both controllers' states at the edge")
             # The operator steers any robot.
             assert query_split(operator, "robot2", params="k=5", timeout_secs=10).k == 5
 
@@ -83,18 +97,29 @@ def test_a_secure_fleet_scopes_each_robots_identities_to_that_robot(tmp_path: Pa
             robot1 = as_identity("robot1")
             camera1 = as_identity("robot1-camera")
             try:
-                time.sleep(1.0)  # their routes
+                # Positive controls first (re-sent until routed): robot1 publishes its own TagPoses, and
+                # its camera reads its own robot's keys (slam's stats), not another robot's.
+                deadline = time.monotonic() + 30
+                while 2**41 not in seen.get("robot1", set()):
+                    assert time.monotonic() < deadline, "robot1's own TagPoses never arrived"
+                    robot1.put(keys.tag_poses("robot1"), _poses("robot1", 2**41))
+                    time.sleep(0.5)
+                assert [r for r in camera1.get(keys.stats("robot1", "slam"), timeout=10) if r.ok is not None]
+                assert not [r for r in camera1.get(keys.stats("robot2", "slam"), timeout=3) if r.ok is not None]
                 robot1.put(keys.tag_poses("robot2"), _poses("robot2", 2**40))  # another robot's: refused
+                robot1.put("splittag/**", _poses("robot2", 2**38))  # every key at once: refused
                 camera1.put(keys.tag_poses("robot1"), _poses("robot1", 2**39))  # a camera's poses: refused
-                robot1.put(keys.tag_poses("robot1"), _poses("robot1", 2**41))  # its own: the positive control
-                wait_until(lambda: 2**41 in seen.get("robot1", set()), 10, "robot1's own TagPoses")
-                time.sleep(1.0)
+                robot1.put(keys.tag_poses("robot1"), _poses("robot1", 2**42))  # sent after them: arrives
+                wait_until(lambda: 2**42 in seen.get("robot1", set()), 20, "robot1's TagPoses after the refused")
+                time.sleep(0.5)
                 with lock:
                     assert 2**40 not in seen.get("robot2", set()), "robot1's identity published for robot2"
+                    assert 2**38 not in seen.get("robot2", set()), "robot1's identity published through splittag/**"
                     assert 2**39 not in seen.get("robot1", set()), "a camera identity published TagPoses"
             finally:
                 robot1.close()
                 camera1.close()
-            sub.undeclare()
+            for sub in subs:
+                sub.undeclare()
         finally:
             operator.close()

@@ -432,10 +432,13 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
                 node.write_outputs(settings.run_dir)
             try:
                 asker = keys.robot_of(str(query.key_expr))
-                reply_key: str | zenoh.KeyExpr = keys.tag_map(asker)  # the robot's own key
             except ValueError:
                 asker = rid  # a wildcard get: the map is one for every robot
-                reply_key = query.key_expr  # the only key sure to intersect what was asked
+            # On a map key (the only keys access control lets slam reply on), one that intersects what
+            # was asked: the asker's, or the queryable's own for a fleet's wildcard get.
+            reply_key = keys.tag_map(asker)
+            if not zenoh.KeyExpr(reply_key).intersects(query.key_expr):
+                reply_key = key(keys.tag_map)
             query.reply(reply_key, encode(node.current_map(asker)), encoding=encoding_for(TagMap.SCHEMA))
 
     def on_stamp(sample: zenoh.Sample) -> None:

@@ -92,13 +92,14 @@ class InputGuard:
 
 def _one_robots(declared: str, asked: str) -> str:
     """The reply key of a queryable declared for every robot (`splittag/*/slam/stats`): the asked
-    robot's own key when the query names one robot (`splittag/*/*/stats` asks them all: its key)."""
+    robot's own key when the query names one robot, else the declared key (it intersects the query,
+    which reached it, and is the key access control lets this service reply on)."""
     parts, asked_parts = declared.split("/"), asked.split("/")
     if len(asked_parts) == len(parts) and not any(c in asked_parts[1] for c in "*$"):
         concrete = [a if d == "*" else d for d, a in zip(parts, asked_parts, strict=True)]
         if not any(c in "/".join(concrete) for c in "*$"):
             return "/".join(concrete)
-    return asked
+    return declared
 
 
 def serve_stats(

@@ -52,6 +52,16 @@ class FleetPlan(BaseModel):
         unknown = (set(self.robot_hosts) | set(self.robot_ports)) - set(self.robots)
         if unknown:
             raise ValueError(f"robot_hosts / robot_ports name robots not in the fleet: {sorted(unknown)}")
+        # Every process has its own certificate name: a robot called like a worker, slam, the operator
+        # or another robot's camera would share a certificate with it (and its rights).
+        taken = [*self.robots, *self.edge_workers]
+        reserved = [n for n in taken if n in ("slam", "operator") or n.endswith(("-camera", "-controller"))]
+        if reserved or len(set(taken)) != len(taken):
+            clash = reserved or sorted({n for n in taken if taken.count(n) > 1})
+            raise ValueError(
+                f"fleet names {clash} clash (robots and workers need names of their own, not slam, "
+                "operator or <x>-camera / <x>-controller)"
+            )
         return self
 
     @classmethod
@@ -218,6 +228,24 @@ def operator_settings(plan: FleetPlan) -> Any:
     return ZenohSettings(mode="client", connect=[plan.edge_router], tls=tls)
 
 
+def foreign_keys(plan: FleetPlan, only: str | None) -> list[str]:
+    """On a host that runs one part of a TLS fleet (`--only`), the private keys in the certs folder
+    that are not that part's: each is another process's identity (and ca.key mints any), so a robot
+    host holding them could act as the edge or as another robot. Copy only ca.pem and the part's own
+    <name>.pem / <name>.key to each host."""
+    if plan.certs is None or only is None:
+        return []
+    ours = {n for n, robot in plan.identities().items() if (robot is None if only == "edge" else robot == only)}
+    found = sorted(p.stem for p in Path(plan.certs).glob("*.key"))
+    foreign = [n for n in found if n not in ours]
+    if not foreign:
+        return []
+    return [
+        f"{plan.certs} holds private keys that are not {only}'s: {', '.join(foreign)} (copy only ca.pem "
+        f"and {', '.join(sorted(ours))}'s .pem/.key to this host; keep ca.key offline)"
+    ]
+
+
 def make_certs(plan: FleetPlan, *, extra_names: list[str] | None = None) -> list[str]:
     """Issue every identity of the plan into plan.certs with deploy/make-certs.sh (the edge's and the
     robots' hosts as extra names); returns the names."""
@@ -272,6 +300,8 @@ def run_fleet(
     plan = FleetPlan.from_config(config)
     if only is not None and only != "edge" and only not in plan.robots:
         raise ValueError(f"--only is 'edge' or one of the fleet's robots {plan.robots}, not {only!r}")
+    for line in foreign_keys(plan, only):
+        print(f"warning: {line}", flush=True)
     run_dir = new_run_dir(runs_root)
     base = tomllib.loads(Path(config).read_text())
     extra = demo_tables(run_dir) if base.get("camera", {}).get("source", "demo") == "demo" else {}

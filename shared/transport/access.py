@@ -6,7 +6,7 @@ mutual TLS. Default deny: a certificate of an unknown name may do nothing. The r
 trusted with everything (the routers forward each other's traffic). The other roles may read
 everything (subscribe, query, receive) but write only what is theirs, by allow-lists:
 
-| role | may publish | may serve (queryables) | liveliness token | may not query |
+| role | may publish | may serve (queryables, replies) | liveliness token | may not query |
 | --- | --- | --- | --- | --- |
 | operator (people, `splittag split`, the launcher's monitor) | nothing | nothing | none | |
 | controller | its ControllerState | its stats | its own | the map (save) |
@@ -89,13 +89,13 @@ MAY_ANNOUNCE: Final[dict[str, set[str]]] = {
 }
 # Where everyone may read ('**' does not match a verbatim chunk like @fleet: the fleet's keys apart).
 EVERY_KEY: Final[list[str]] = ["splittag/**", "splittag/@fleet/**"]
-READ_MESSAGES: Final[list[str]] = [
-    "declare_subscriber",
-    "query",
-    "reply",
-    "liveliness_query",
-    "declare_liveliness_subscriber",
-]
+# Replies are not reading: a queryable a wildcard get reaches could answer as another service's key,
+# so each role may reply only on the keys it serves (its `-serve` keys), like declaring them.
+READ_MESSAGES: Final[list[str]] = ["declare_subscriber", "query", "liveliness_query", "declare_liveliness_subscriber"]
+# What a robot's router must see of the others' interest, whatever keys it names: the edge's wildcard
+# subscriptions, queryables and queries (a fleet slam subscribes to `splittag/*/ground_truth/v3`, an
+# operator asks `splittag/*/split`); the data that then flows stays on the robot's own keys.
+INTEREST_MESSAGES: Final[list[str]] = [*READ_MESSAGES, "declare_queryable"]
 MAY_STEER: Final[set[str]] = {"operators", "controllers"}
 MAY_SAVE_MAP: Final[set[str]] = {"operators"}
 
@@ -159,16 +159,22 @@ def access_control_config(settings: AccessControlSettings) -> dict[str, Any]:
         rules.append(_rule(f"robot-{robot}-everything", "allow", ALL_MESSAGES, mine, ["ingress", "egress"]))
         rules.append(_rule(f"robot-{robot}-fleet", "allow", READ_MESSAGES, ["splittag/@fleet/**"], ["ingress"]))
         rules.append(_rule(f"robot-{robot}-fleet-receive", "allow", ALL_MESSAGES, ["splittag/@fleet/**"], ["egress"]))
+        rules.append(_rule(f"robot-{robot}-interest", "allow", INTEREST_MESSAGES, EVERY_KEY, ["egress"]))
         names = [n for n in settings.trusted if scoped.get(n) == robot]
         role(
             f"robot-{robot}",
             names,
-            [f"robot-{robot}-everything", f"robot-{robot}-fleet", f"robot-{robot}-fleet-receive"],
+            [
+                f"robot-{robot}-everything",
+                f"robot-{robot}-fleet",
+                f"robot-{robot}-fleet-receive",
+                f"robot-{robot}-interest",
+            ],
         )
     for name in MAY_PUBLISH:
         own = [
             (f"{name}-publish", ["put", "delete"], [DATA_KEYS[k] for k in sorted(MAY_PUBLISH[name])]),
-            (f"{name}-serve", ["declare_queryable"], [SERVICE_QUERYABLES[q] for q in sorted(MAY_SERVE[name])]),
+            (f"{name}-serve", ["declare_queryable", "reply"], [SERVICE_QUERYABLES[q] for q in sorted(MAY_SERVE[name])]),
             (f"{name}-announce", ["liveliness_token"], sorted(MAY_ANNOUNCE[name])),
         ]
         denied = [r for r, may in (("no-steer", name in MAY_STEER), ("no-map-query", name in MAY_SAVE_MAP)) if not may]
@@ -191,7 +197,8 @@ def access_control_config(settings: AccessControlSettings) -> dict[str, Any]:
                 mine = [f"splittag/{scope}/**", "splittag/@fleet/**"]
                 rules.append(_rule(f"{name}{suffix}-read", "allow", READ_MESSAGES, mine, ["ingress"]))
                 rules.append(_rule(f"{name}{suffix}-receive", "allow", ALL_MESSAGES, mine, ["egress"]))
-                readers = [f"{name}{suffix}-read", f"{name}{suffix}-receive"]
+                rules.append(_rule(f"{name}{suffix}-interest", "allow", INTEREST_MESSAGES, EVERY_KEY, ["egress"]))
+                readers = [f"{name}{suffix}-read", f"{name}{suffix}-receive", f"{name}{suffix}-interest"]
             role(f"{name}{suffix}", members, [*readers, *granted, *denied])
     return {
         "enabled": True,
