@@ -741,12 +741,17 @@ def _user_errors() -> tuple[tuple[type[BaseException], ...], tuple[type[BaseExce
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Parse arguments and run the chosen subcommand."""
+    import logging
     import os
 
     from shared.runtime.settings import describe_settings_error
 
     args = build_parser().parse_args(argv)
     setup_logging(f"splittag-{args.command}")
+    if "SPLITTAG_LOG_LEVEL" not in os.environ and args.command == "split":
+        # A one-shot command at the prompt: its answer, not the session's start-up news.
+        for name in ("zenoh", "shared.transport.session"):
+            logging.getLogger(name).setLevel(logging.WARNING)
     try:
         _load_link_profiles(args)
         code: int = args.func(args)
