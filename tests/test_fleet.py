@@ -193,3 +193,41 @@ def test_a_liveliness_key_that_does_not_parse_is_counted_not_followed() -> None:
     _on_token(_Token("splittag/@fleet/fleet/oops", zenoh.SampleKind.PUT), keys.worker_of, up, down, guard)  # type: ignore[arg-type]
     assert seen == ["edge2"]
     assert guard.stats()["rejected_by_reason"] == {"liveliness: ValueError": 1}
+
+
+def test_make_certs_writes_each_host_only_its_own_keys(tmp_path: Path) -> None:
+    """`splittag fleet --make-certs`: one certificate per process, and per host a bundle with the CA's
+    certificate and that host's identities alone (never ca.key, never another host's key); a host
+    that runs its part from the full folder is warned about every key that is not its own."""
+    from shared.tools.fleet import FleetPlan, foreign_keys, make_certs
+
+    plan = FleetPlan(robots=["robot1", "robot2"], edge_workers=["edge1"], controller=True, certs=tmp_path / "c")
+    names = make_certs(plan)
+    assert set(names) == {
+        "slam",
+        "edge1",
+        "robot1",
+        "robot1-camera",
+        "robot1-controller",
+        "robot2",
+        "robot2-camera",
+        "robot2-controller",
+        "operator",
+    }
+    hosts = tmp_path / "c" / "hosts"
+    assert sorted(p.name for p in (hosts / "robot1").iterdir()) == [
+        "ca.pem",
+        "robot1-camera.key",
+        "robot1-camera.pem",
+        "robot1-controller.key",
+        "robot1-controller.pem",
+        "robot1.key",
+        "robot1.pem",
+    ]
+    assert {p.name for p in (hosts / "edge").iterdir()} == {
+        "ca.pem",
+        *(f"{n}.{s}" for n in ("slam", "edge1", "operator") for s in ("pem", "key")),
+    }
+    warning = foreign_keys(plan, "robot1")
+    assert warning and "ca" in warning[0] and "robot2" in warning[0] and "slam" in warning[0]
+    assert foreign_keys(plan.model_copy(update={"certs": hosts / "robot1"}), "robot1") == []

@@ -231,8 +231,8 @@ def operator_settings(plan: FleetPlan) -> Any:
 def foreign_keys(plan: FleetPlan, only: str | None) -> list[str]:
     """On a host that runs one part of a TLS fleet (`--only`), the private keys in the certs folder
     that are not that part's: each is another process's identity (and ca.key mints any), so a robot
-    host holding them could act as the edge or as another robot. Copy only ca.pem and the part's own
-    <name>.pem / <name>.key to each host."""
+    host holding them could act as the edge or as another robot. `make_certs` writes each host's bundle
+    (hosts/<part>/: ca.pem and the part's own certificates and keys) to copy instead."""
     if plan.certs is None or only is None:
         return []
     ours = {n for n, robot in plan.identities().items() if (robot is None if only == "edge" else robot == only)}
@@ -241,14 +241,26 @@ def foreign_keys(plan: FleetPlan, only: str | None) -> list[str]:
     if not foreign:
         return []
     return [
-        f"{plan.certs} holds private keys that are not {only}'s: {', '.join(foreign)} (copy only ca.pem "
-        f"and {', '.join(sorted(ours))}'s .pem/.key to this host; keep ca.key offline)"
+        f"{plan.certs} holds private keys that are not {only}'s: {', '.join(foreign)} (copy hosts/{only}/ of "
+        "the folder `splittag fleet --make-certs` wrote to this host as its certs folder; keep ca.key offline)"
     ]
+
+
+def host_parts(plan: FleetPlan) -> dict[str, list[str]]:
+    """The certificate names each host of the fleet runs (`--only` parts): "edge" (slam, the workers,
+    and the operator's, which people use from there) and each robot (its router, camera, controller)."""
+    parts: dict[str, list[str]] = {"edge": []}
+    for name, robot in plan.identities().items():
+        parts.setdefault(robot or "edge", []).append(name)
+    return parts
 
 
 def make_certs(plan: FleetPlan, *, extra_names: list[str] | None = None) -> list[str]:
     """Issue every identity of the plan into plan.certs with deploy/make-certs.sh (the edge's and the
-    robots' hosts as extra names); returns the names."""
+    robots' hosts as extra names), and a bundle per host in plan.certs/hosts/<part>/: ca.pem and that
+    part's certificates and keys alone, what to copy to that host as its certs folder (ca.key stays
+    here, offline). Returns the names."""
+    import shutil
     import subprocess
 
     assert plan.certs is not None, "the plan has no certs folder"
@@ -257,6 +269,16 @@ def make_certs(plan: FleetPlan, *, extra_names: list[str] | None = None) -> list
     script = Path(__file__).resolve().parents[2] / "deploy" / "make-certs.sh"
     env = {**os.environ, "SPLITTAG_CERT_NAMES": " ".join([*names, *(extra_names or [])])}
     subprocess.run(["bash", str(script), str(plan.certs), *hosts], check=True, env=env, capture_output=True)
+    certs = Path(plan.certs)
+    for part, members in host_parts(plan).items():
+        bundle = certs / "hosts" / part
+        if bundle.exists():
+            shutil.rmtree(bundle)  # a bundle holds exactly this issue's files
+        bundle.mkdir(parents=True, mode=0o700)
+        shutil.copy2(certs / "ca.pem", bundle / "ca.pem")
+        for name in members:
+            for suffix in (".pem", ".key"):
+                shutil.copy2(certs / f"{name}{suffix}", bundle / f"{name}{suffix}")
     return names
 
 
