@@ -116,3 +116,17 @@ def test_the_monitor_measures_in_the_world_of_the_map_slam_is_given(tmp_path: Pa
     assert run_tag_map(config) == own
     config.write_text("[slam]\n")
     assert run_tag_map(config) == demo_tag_map()
+
+
+def test_the_live_line_says_how_long_the_poses_have_stopped() -> None:
+    """Before the first TagPoses it waits; once they stop (the edge is down: the robot computes on
+    board, out of this monitor's sight) it says for how long and since which frame."""
+    now = [100.0]
+    monitor = Monitor(None, clock=lambda: now[0])
+    assert monitor.line() == "waiting for TagPoses..."
+    poses = EXAMPLES[TagPoses.SCHEMA]
+    assert isinstance(poses, TagPoses)
+    monitor.on_poses(encode(poses.model_copy(update={"seq": 41})))
+    now[0] += 5.0
+    line = monitor.line()
+    assert line.startswith("no TagPoses for 5.0 s (the last: frame 41)") and "is the edge up?" in line, line

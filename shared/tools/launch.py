@@ -184,6 +184,7 @@ class Monitor:
     _slam_sigma_cm: deque[float] = field(default_factory=lambda: deque(maxlen=200_000))
     _slam_error_cm: deque[float] = field(default_factory=lambda: deque(maxlen=200_000))
     _lock: threading.Lock = field(default_factory=threading.Lock)
+    clock: Callable[[], float] = time.monotonic  # when each message arrived (a fake in tests)
 
     def _decode(self, payload: bytes, kind: type[M]) -> M | None:
         """One message of `kind`, or None (counted in `bad`, logged) when the payload is not one."""
@@ -211,7 +212,7 @@ class Monitor:
             "edge_ms": 1e3 * msg.timings.edge_compute_secs,
             "e2e_ms": 1e3 * msg.timings.capture_to_pose_secs,
             **_waits_ms(msg),
-            "t": time.monotonic(),
+            "t": self.clock(),
             "errors_cm": self._errors(msg),
         }
         with self._lock:
@@ -242,7 +243,7 @@ class Monitor:
             if truth is not None and msg.status == "tracking":
                 error = 100 * float(np.linalg.norm(msg.world_from_camera[:3, 3] - truth[:3, 3]))
             self.slam_status[msg.status] = self.slam_status.get(msg.status, 0) + 1
-            self._slam_recent.append({"t": time.monotonic(), "status": msg.status, "sigma": sigma, "error": error})
+            self._slam_recent.append({"t": self.clock(), "status": msg.status, "sigma": sigma, "error": error})
             if sigma is not None:
                 self._slam_sigma_cm.append(sigma)
             if error is not None:
@@ -275,11 +276,19 @@ class Monitor:
 
     def line(self) -> str:
         """One status line over the last second."""
-        now = time.monotonic()
+        now = self.clock()
         with self._lock:
             recent = [r for r in self._recent if now - r["t"] <= 1.0]
+            last = self._recent[-1] if self._recent else None
         if not recent:
-            return "waiting for TagPoses..."
+            if last is None:
+                return "waiting for TagPoses..."
+            # Say what a silence means: this monitor listens at the edge's router, so while the edge is
+            # down the poses the robot computes on board do not reach it.
+            return (
+                f"no TagPoses for {now - last['t']:.1f} s (the last: frame {last['seq']}); is the edge up? "
+                "The robot computes on board while it is not, and this monitor listens at the edge"
+            )
         med = {k: float(np.median([r[k] for r in recent])) for k in ("robot_ms", "transport_ms", "edge_ms", "e2e_ms")}
         errs = [e for r in recent for e in r["errors_cm"]]
         err = f" e_t {np.median(errs):.2f} cm" if errs else ""
