@@ -254,3 +254,25 @@ def _assert_equal(x: object, y: object, path: str) -> None:
             _assert_equal(xi, yi, f"{path}[{i}]")
     else:
         assert x == y and type(x) is type(y), (path, x, y)
+
+
+def injected_tag_poses(robot_id: str, seq: int) -> bytes:
+    """Wire bytes of a schema-valid TagPoses with no tags: what an intruder would send (access tests)."""
+    import time
+
+    from shared.vision.geometry import default_camera
+    from shared.wire.messages import encode
+
+    timings = HopTimings(robot_compute_secs=0, transport_secs=0, edge_compute_secs=0, capture_to_pose_secs=0)
+    message = TagPoses(
+        robot_id=robot_id,
+        seq=seq,
+        capture_nanos=time.time_ns(),
+        split_k=7,
+        payload_bytes=1,
+        intrinsics=default_camera(),
+        link=None,
+        timings=timings,
+        tags=[],
+    )
+    return encode(message)

@@ -231,3 +231,38 @@ def test_make_certs_writes_each_host_only_its_own_keys(tmp_path: Path) -> None:
     warning = foreign_keys(plan, "robot1")
     assert warning and "ca" in warning[0] and "robot2" in warning[0] and "slam" in warning[0]
     assert foreign_keys(plan.model_copy(update={"certs": hosts / "robot1"}), "robot1") == []
+
+
+def test_fleet_names_that_would_share_a_certificate_are_refused(tmp_path: Path) -> None:
+    """Each process has its own certificate name: a robot called like a worker, slam, the operator or
+    another robot's camera is refused, as is a bad name given to make-certs.sh or --make-certs without a
+    certs folder."""
+    import subprocess
+    import sys
+
+    from shared.tools.fleet import FleetPlan
+
+    for robots, workers in (
+        (["a", "edge1"], ["edge1"]),
+        (["slam"], ["e"]),
+        (["a", "a-camera"], ["e"]),
+        (["r"], ["operator"]),
+    ):
+        with pytest.raises(ValueError, match="clash"):
+            FleetPlan(robots=robots, edge_workers=workers)
+    bad = subprocess.run(
+        ["bash", str(Path(__file__).resolve().parents[1] / "deploy" / "make-certs.sh"), str(tmp_path / "c")],
+        env={"SPLITTAG_CERT_NAMES": "robot1 ../evil", "PATH": "/usr/bin:/bin"},
+        capture_output=True,
+        text=True,
+    )
+    assert bad.returncode == 2 and "../evil is not a certificate name" in bad.stderr, bad.stderr
+    config = tmp_path / "fleet.toml"
+    config.write_text('[fleet]\nrobots = ["robot1"]\nedge_workers = ["edge1"]\n')
+    out = subprocess.run(
+        [sys.executable, "-m", "shared.tools.cli", "fleet", "--config", str(config), "--make-certs"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 2 and "no [fleet] certs folder" in out.stderr, out.stderr

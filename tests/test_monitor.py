@@ -130,3 +130,21 @@ def test_the_live_line_says_how_long_the_poses_have_stopped() -> None:
     now[0] += 5.0
     line = monitor.line()
     assert line.startswith("no TagPoses for 5.0 s (the last: frame 41)") and "is the edge up?" in line, line
+
+
+def test_no_slam_error_when_slam_works_in_a_world_of_its_own() -> None:
+    """A slam without a tag map (a fleet's, by default) works in its anchor tag's frame: its poses are
+    not comparable with ground truth, so the monitor reports no error rather than a meaningless one."""
+    import numpy as np
+
+    from shared.tools.launch import demo_tag_map
+
+    gt = EXAMPLES[CameraPose.SCHEMA]
+    assert isinstance(gt, CameraPose)
+    monitor = Monitor(demo_tag_map(), slam_has_map=False)
+    truth = gt.model_copy(update={"seq": 3, "status": "ground_truth", "covariance_world": None})
+    monitor.on_gt(encode(truth))
+    cam = truth.model_copy(update={"status": "tracking", "covariance_world": np.eye(6) * 1e-4})
+    monitor.on_camera(encode(cam))
+    summary = monitor.summary()
+    assert summary["slam_frames"] == {"tracking": 1} and "slam_online_error_cm_median" not in summary, summary

@@ -17,29 +17,12 @@ from shared.tools.fleet import FleetPlan, demo_tables, fleet_configs, make_certs
 from shared.tools.topology import merge
 from shared.transport.session import TlsSettings, ZenohSettings, open_session, wait_for_liveliness
 from shared.transport.split_client import query_split
-from shared.vision.geometry import default_camera
 from shared.wire import keys
-from shared.wire.messages import HopTimings, TagPoses, decode, encode
+from shared.wire.messages import TagPoses, decode
+from tests.examples import injected_tag_poses
 from tests.procs import REPO, processes, start_process, wait_until
 
 pytestmark = pytest.mark.multiprocess
-
-
-def _poses(robot: str, seq: int) -> bytes:
-    """A schema-valid TagPoses with no tags (what an injector would send)."""
-    timings = HopTimings(robot_compute_secs=0, transport_secs=0, edge_compute_secs=0, capture_to_pose_secs=0)
-    msg = TagPoses(
-        robot_id=robot,
-        seq=seq,
-        capture_nanos=time.time_ns(),
-        split_k=7,
-        payload_bytes=1,
-        intrinsics=default_camera(),
-        link=None,
-        timings=timings,
-        tags=[],
-    )
-    return encode(msg)
 
 
 def test_a_secure_fleet_scopes_each_robots_identities_to_that_robot(tmp_path: Path) -> None:
@@ -102,14 +85,14 @@ def test_a_secure_fleet_scopes_each_robots_identities_to_that_robot(tmp_path: Pa
                 deadline = time.monotonic() + 30
                 while 2**41 not in seen.get("robot1", set()):
                     assert time.monotonic() < deadline, "robot1's own TagPoses never arrived"
-                    robot1.put(keys.tag_poses("robot1"), _poses("robot1", 2**41))
+                    robot1.put(keys.tag_poses("robot1"), injected_tag_poses("robot1", 2**41))
                     time.sleep(0.5)
                 assert [r for r in camera1.get(keys.stats("robot1", "slam"), timeout=10) if r.ok is not None]
                 assert not [r for r in camera1.get(keys.stats("robot2", "slam"), timeout=3) if r.ok is not None]
-                robot1.put(keys.tag_poses("robot2"), _poses("robot2", 2**40))  # another robot's: refused
-                robot1.put("splittag/**", _poses("robot2", 2**38))  # every key at once: refused
-                camera1.put(keys.tag_poses("robot1"), _poses("robot1", 2**39))  # a camera's poses: refused
-                robot1.put(keys.tag_poses("robot1"), _poses("robot1", 2**42))  # sent after them: arrives
+                robot1.put(keys.tag_poses("robot2"), injected_tag_poses("robot2", 2**40))  # another robot's: refused
+                robot1.put("splittag/**", injected_tag_poses("robot2", 2**38))  # every key at once: refused
+                camera1.put(keys.tag_poses("robot1"), injected_tag_poses("robot1", 2**39))  # a camera's poses: refused
+                robot1.put(keys.tag_poses("robot1"), injected_tag_poses("robot1", 2**42))  # sent after them: arrives
                 wait_until(lambda: 2**42 in seen.get("robot1", set()), 20, "robot1's TagPoses after the refused")
                 time.sleep(0.5)
                 with lock:

@@ -22,6 +22,7 @@ from shared.transport.session import TlsSettings, ZenohSettings, open_session, w
 from shared.transport.split_client import SplitQueryError, query_split
 from shared.wire import keys
 from shared.wire.messages import TagPoses, decode
+from tests.examples import injected_tag_poses
 from tests.procs import REPO
 
 pytestmark = pytest.mark.multiprocess
@@ -134,7 +135,7 @@ def test_only_authorised_identities_steer_and_publish(tmp_path: Path, certs: Pat
 
             # Nor get round the rules with a wildcard key: a put on splittag/<robot>/** reaches every
             # subscriber of that robot, and a queryable on splittag/** would answer every get.
-            camera.put(f"splittag/{ROBOT}/**", _forged_poses(seq=2**39))
+            camera.put(f"splittag/{ROBOT}/**", injected_tag_poses(ROBOT, seq=2**39))
             fake = camera.declare_queryable("splittag/**", lambda q: q.reply(q.key_expr, b"{}"))
             time.sleep(1.0)
             every = zenoh.ConsolidationMode.NONE  # each reply, not the latest per key
@@ -147,12 +148,12 @@ def test_only_authorised_identities_steer_and_publish(tmp_path: Path, certs: Pat
             fake.undeclare()
 
             # Nor may it publish TagPoses; the same message from the robot's identity goes through.
-            forged = _forged_poses(seq=2**40)
+            forged = injected_tag_poses(ROBOT, seq=2**40)
             camera.put(keys.tag_poses(ROBOT), forged)
             robot = _session(topology, certs, "robot")
             try:
                 time.sleep(0.5)  # the robot session's routes
-                robot.put(keys.tag_poses(ROBOT), _forged_poses(seq=2**41))
+                robot.put(keys.tag_poses(ROBOT), injected_tag_poses(ROBOT, seq=2**41))
                 deadline = time.monotonic() + 10
                 while time.monotonic() < deadline and 2**41 not in seqs:
                     time.sleep(0.1)
@@ -181,22 +182,3 @@ def test_only_authorised_identities_steer_and_publish(tmp_path: Path, certs: Pat
         ):
             with pytest.raises(zenoh.ZError):
                 open_session(settings).close()
-
-
-def _forged_poses(seq: int) -> bytes:
-    """A schema-valid TagPoses with no tags (what an injector would send)."""
-    from shared.vision.geometry import default_camera
-    from shared.wire.messages import HopTimings, encode
-
-    msg = TagPoses(
-        robot_id=ROBOT,
-        seq=seq,
-        capture_nanos=time.time_ns(),
-        split_k=7,
-        payload_bytes=1,
-        intrinsics=default_camera(),
-        link=None,
-        timings=HopTimings(robot_compute_secs=0, transport_secs=0, edge_compute_secs=0, capture_to_pose_secs=0),
-        tags=[],
-    )
-    return encode(msg)

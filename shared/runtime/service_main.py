@@ -19,7 +19,7 @@ from pydantic_settings import SettingsError
 from shared.model.precision import ModelFileError  # no torch: the weights folder's errors only
 from shared.runtime.cpus import CpuPlacementError, pin_cpus
 from shared.runtime.logs import setup_logging
-from shared.runtime.settings import CONFIG_EXIT, ConfigurationError, ServiceSettings, describe_settings_error
+from shared.runtime.settings import CONFIG_EXIT, ConfigurationError, ServiceSettings, one_line_error
 from shared.transport.session import open_session
 
 S = TypeVar("S", bound=ServiceSettings)
@@ -48,7 +48,7 @@ def service_main(
         if check is not None:
             check(settings)
     except (ValidationError, SettingsError, FileNotFoundError, tomllib.TOMLDecodeError, ConfigurationError) as exc:
-        log.error("%s: configuration error: %s", name, describe_settings_error(exc))
+        log.error("%s: configuration error: %s", name, one_line_error(exc))
         return CONFIG_EXIT
     settings.log_resolved()
     stop = threading.Event()
@@ -64,17 +64,17 @@ def service_main(
         # A certificate that is not there, tls/ endpoints without TLS settings: the settings' fault.
         session = open_session(settings.zenoh)
     except (FileNotFoundError, ValueError) as exc:
-        log.error("%s: configuration error: zenoh: %s", name, describe_settings_error(exc))
+        log.error("%s: configuration error: zenoh: %s", name, one_line_error(exc))
         return CONFIG_EXIT
     except zenoh.ZError as exc:  # the router it connects to is not (yet) up: one line; the launcher retries
-        log.error("%s: cannot open its Zenoh session: %s", name, describe_settings_error(exc))
+        log.error("%s: cannot open its Zenoh session: %s", name, one_line_error(exc))
         return 1
     try:
         run(settings, session, stop)
     except (ConfigurationError, ModelFileError, FileNotFoundError) as exc:
         # What the settings name is missing or unusable (weights folder, tag map, camera file):
         # restarting cannot help.
-        log.error("%s: configuration error: %s", name, describe_settings_error(exc))
+        log.error("%s: configuration error: %s", name, one_line_error(exc))
         return CONFIG_EXIT
     except Exception:
         logging.getLogger(name).exception("%s failed", name)

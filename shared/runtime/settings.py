@@ -43,9 +43,9 @@ class ConfigurationError(RuntimeError):
     restarting it."""
 
 
-def describe_settings_error(exc: BaseException, *, max_chars: int = 600) -> str:
+def one_line_error(exc: BaseException, *, max_chars: int = 600) -> str:
     """One line for a user: every field a ValidationError refused (`split_kk: Extra inputs are not
-    permitted`), or the message of a missing or malformed config file."""
+    permitted`), a malformed config file, or any other error's message (without Zenoh's Rust source locations)."""
     from pydantic import ValidationError
 
     if isinstance(exc, ValidationError):

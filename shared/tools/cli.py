@@ -744,7 +744,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     import logging
     import os
 
-    from shared.runtime.settings import describe_settings_error
+    from shared.runtime.settings import one_line_error
 
     args = build_parser().parse_args(argv)
     setup_logging(f"splittag-{args.command}")
@@ -764,7 +764,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not (settings or isinstance(exc, usage + failed)) or os.environ.get("SPLITTAG_TRACEBACK"):
             raise
         what = "Zenoh: " if type(exc).__module__.startswith("zenoh") else ""
-        print(f"splittag {args.command}: {what}{describe_settings_error(exc)}", file=sys.stderr)
+        print(f"splittag {args.command}: {what}{one_line_error(exc)}", file=sys.stderr)
         return 2 if settings or isinstance(exc, usage) else int(getattr(exc, "exit_code", 1))
     return code
 

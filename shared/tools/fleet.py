@@ -22,7 +22,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from shared.tools.topology import merge, write_config
-from shared.transport.session import free_tcp_port
+from shared.transport.session import TlsSettings, ZenohSettings, free_tcp_port
 from shared.wire.messages import RobotId
 
 
@@ -220,10 +220,8 @@ def fleet_configs(
     return out
 
 
-def operator_settings(plan: FleetPlan) -> Any:
+def operator_settings(plan: FleetPlan) -> ZenohSettings:
     """The ZenohSettings of a person's (or the launcher's monitor's) session to the edge tier."""
-    from shared.transport.session import TlsSettings, ZenohSettings
-
     tls = TlsSettings.from_dir(plan.certs, "operator") if plan.certs is not None else None
     return ZenohSettings(mode="client", connect=[plan.edge_router], tls=tls)
 
@@ -298,24 +296,22 @@ def run_fleet(
     import threading
     import time
 
-    import zenoh
-
     from shared.runtime.settings import CONFIG_EXIT
     from shared.tools.launch import (
         LaunchError,
         Monitor,
         Service,
-        StopRequested,
+        Started,
         attach_monitor,
         configuration_error_line,
         demo_tag_map,
+        forget_run_files,
         new_run_dir,
-        open_monitor_session,
         start_process,
         stop_services,
+        wait_for_run,
     )
     from shared.tools.supervise import Supervisor
-    from shared.transport.session import wait_for_liveliness
     from shared.viz.recording import merge_recordings
     from shared.wire import keys
 
@@ -362,14 +358,15 @@ def run_fleet(
                 running[i] = (spec, start(spec))
                 write_pids()
 
-    monitors = {r: Monitor(demo_tag_map(), max_records=200_000) for r in plan.robots if only in (None, "edge", r)}
-    session: zenoh.Session | None = None
-
-    def while_coming_up() -> None:
-        if stop.is_set():
-            raise StopRequested
-        restart_dead()
-
+    # Tag errors against the demo map always; slam's pose error only when slam works in that map's world
+    # (without a map its world is its anchor tag's, and the error read 369 cm for poses 0.1 cm right).
+    slam_has_map = "tag_map" in {**base.get("slam", {}), **extra.get("slam", {})}
+    monitors = {
+        r: Monitor(demo_tag_map(), max_records=200_000, slam_has_map=slam_has_map)
+        for r in plan.robots
+        if only in (None, "edge", r)
+    }
+    started = Started()
     try:
         (run_dir / "launcher.pid").write_text(f"{os.getpid()}\n")
         for spec in specs:  # one at a time: a start that fails leaves the ones before it to be stopped
@@ -377,16 +374,16 @@ def run_fleet(
         write_pids()
         wanted = [keys.edge_worker(plan.tier, w) for w in plan.edge_workers if only in (None, "edge")]
         wanted += [keys.alive(r, "robot_infer") for r in monitors if only != "edge"]
-        subs: list[Any] = []
-        try:
-            session = open_monitor_session(operator_settings(plan), while_coming_up, timeout_secs=180)  # slam's
-            subs = [sub for robot, monitor in monitors.items() for sub in attach_monitor(session, robot, monitor)]
-            wait_for_liveliness(session, wanted, timeout_secs=180, every_second=while_coming_up)
-        except StopRequested:
-            print("stopped before every process was up", flush=True)
-        except TimeoutError as exc:
-            raise LaunchError(f"{exc} (each process's log is in {run_dir})") from None
-        else:
+        started = wait_for_run(
+            operator_settings(plan),  # slam's router
+            wanted,
+            attach=lambda session: [sub for r, m in monitors.items() for sub in attach_monitor(session, r, m)],
+            supervise=restart_dead,
+            stop=stop,
+            timeout_secs=180,
+            run_dir=run_dir,
+        )
+        if started.up:
             print(f"fleet run {run_dir}: {', '.join(s.name for s in specs)} up; Ctrl-C stops", flush=True)
             t_end = None if duration_secs is None else time.monotonic() + duration_secs
             while not stop.wait(1.0):
@@ -396,16 +393,15 @@ def run_fleet(
                 if t_end is not None and time.monotonic() > t_end:
                     break
                 restart_dead()
-        for sub in subs:
+        for sub in started.subscriptions:
             sub.undeclare()
     finally:
-        if session is not None:
-            session.close()  # also on an error: Zenoh's threads would keep the interpreter from exiting
+        if started.session is not None:
+            started.session.close()
         codes = stop_services([p for _, p in running])
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-        for name in ("launcher.pid", "pids"):  # `splittag down` must not signal pids a finished run left
-            (run_dir / name).unlink(missing_ok=True)
+        forget_run_files(run_dir)
     summary: dict[str, Any] = {
         "run_dir": str(run_dir),
         "robots": {r: m.summary() for r, m in monitors.items()},

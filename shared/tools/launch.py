@@ -185,6 +185,8 @@ class Monitor:
     _slam_error_cm: deque[float] = field(default_factory=lambda: deque(maxlen=200_000))
     _lock: threading.Lock = field(default_factory=threading.Lock)
     clock: Callable[[], float] = time.monotonic  # when each message arrived (a fake in tests)
+    # slam was given `tag_map` (its world is the map's): only then is its pose comparable with ground truth
+    slam_has_map: bool = True
 
     def _decode(self, payload: bytes, kind: type[M]) -> M | None:
         """One message of `kind`, or None (counted in `bad`, logged) when the payload is not one."""
@@ -237,7 +239,11 @@ class Monitor:
         cov = msg.covariance_world
         sigma = None if cov is None else 100 * float(np.sqrt(np.trace(cov[:3, :3])))
         with self._lock:
-            mapped = self.tag_map is not None and any(t.world_from_tag is not None for t in self.tag_map.tags)
+            mapped = (
+                self.slam_has_map
+                and self.tag_map is not None
+                and any(t.world_from_tag is not None for t in self.tag_map.tags)
+            )
             truth = self.gt.get(msg.seq) if mapped else None  # slam's world is the map's only with poses
             error = None
             if truth is not None and msg.status == "tracking":
@@ -432,7 +438,7 @@ class LaunchError(RuntimeError):
         self.exit_code = exit_code
 
 
-class StopRequested(Exception):
+class _StopRequested(Exception):
     """SIGINT/SIGTERM while the services were still coming up."""
 
 
@@ -461,6 +467,59 @@ def open_monitor_session(
             if time.monotonic() > deadline:
                 raise
             tick()
+
+
+@dataclass
+class Started:
+    """The launcher's session to the run and its monitor's subscriptions; `up`: every process's token
+    came (False: a person stopped the run while it came up)."""
+
+    session: zenoh.Session | None = None
+    subscriptions: list[Any] = field(default_factory=list)
+    up: bool = False
+
+
+def wait_for_run(
+    settings: ZenohSettings,
+    wanted: list[str],
+    *,
+    attach: Callable[[zenoh.Session], list[Any]],
+    supervise: Callable[[], object],
+    stop: threading.Event,
+    timeout_secs: float,
+    run_dir: Path,
+) -> Started:
+    """Join the run's edge router (a service of the run opens it) and wait for every wanted liveliness
+    token, supervising meanwhile: a service that refuses its settings ends the wait (LaunchError, from
+    `supervise`), Ctrl-C (`stop`) ends it quietly, tokens that never come are a LaunchError naming them.
+    On an error the session is closed here; otherwise the caller closes it."""
+    started = Started()
+
+    def tick() -> None:
+        if stop.is_set():
+            raise _StopRequested
+        supervise()
+
+    try:
+        started.session = open_monitor_session(settings, tick, timeout_secs=timeout_secs)
+        started.subscriptions = attach(started.session)
+        wait_for_liveliness(started.session, wanted, timeout_secs=timeout_secs, every_second=tick)
+        started.up = True
+    except _StopRequested:
+        print("stopped before every process was up", flush=True)
+    except BaseException as exc:
+        if started.session is not None:
+            started.session.close()  # Zenoh's threads would keep the interpreter from exiting
+        if isinstance(exc, TimeoutError):
+            raise LaunchError(f"{exc} (each process's log is in {run_dir})") from None
+        raise
+    return started
+
+
+def forget_run_files(run_dir: Path) -> None:
+    """A run has ended: its pid files go, so `splittag down` cannot signal whatever reuses the pids."""
+    for name in ("launcher.pid", "pids"):
+        (run_dir / name).unlink(missing_ok=True)
 
 
 class _Services:
@@ -574,29 +633,22 @@ def run_pipeline(
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     monitor = Monitor(run_tag_map(run_config), max_records=200_000)  # a deployment may run for days
     running = _Services(run_config, run_dir, wrappers)
-    session: zenoh.Session | None = None
-
-    def while_coming_up() -> None:
-        if stop.is_set():
-            raise StopRequested
-        running.supervise()
-
+    started = Started()
     try:
         (run_dir / "launcher.pid").write_text(f"{os.getpid()}\n")  # `splittag down` stops the run through it
         running.start_all(services)
         # Supervised while it comes up: a service that dies now is restarted (its token then appears);
         # one that refuses its settings ends the run (LaunchError), as does Ctrl-C.
-        alive = [keys.alive(robot_id, s) for s in services]
-        subs: list[Any] = []
-        try:
-            session = open_monitor_session(zs, while_coming_up)  # the edge router is a service's
-            subs = attach_monitor(session, robot_id, monitor)
-            wait_for_liveliness(session, alive, timeout_secs=120, every_second=while_coming_up)
-        except StopRequested:
-            print("stopped before every service was up", flush=True)
-        except TimeoutError as exc:
-            raise LaunchError(f"{exc} (each service's log is in {run_dir})") from None
-        else:
+        started = wait_for_run(
+            zs,  # the edge router is a service's
+            [keys.alive(robot_id, s) for s in services],
+            attach=lambda session: attach_monitor(session, robot_id, monitor),
+            supervise=running.supervise,
+            stop=stop,
+            timeout_secs=120,
+            run_dir=run_dir,
+        )
+        if started.up:
             print(f"run {run_dir}: {', '.join(services)} alive; Ctrl-C stops", flush=True)
             t_end = None if duration_secs is None else time.monotonic() + duration_secs
             while not stop.wait(1.0):
@@ -604,16 +656,15 @@ def run_pipeline(
                     print(monitor.line(), flush=True)
                 if (t_end is not None and time.monotonic() > t_end) or not running.supervise():
                     break
-        for sub in subs:
+        for sub in started.subscriptions:
             sub.undeclare()
     finally:
-        if session is not None:
-            session.close()  # also on an error: Zenoh's threads would keep the interpreter from exiting
+        if started.session is not None:
+            started.session.close()
         codes = stop_services(running.started)
         if emu is not None:
             emu.down()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-        for name in ("launcher.pid", "pids"):  # `splittag down` must not signal pids a finished run left
-            (run_dir / name).unlink(missing_ok=True)
+        forget_run_files(run_dir)
     return _summarise_run(run_dir, monitor, codes)
