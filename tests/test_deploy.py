@@ -192,9 +192,16 @@ def test_a_service_refusing_its_settings_says_why_before_any_connection(tmp_path
     # Nothing listens there, and it would wait 10 minutes for it: the check must come first.
     env["SPLITTAG_CAMERA_ZENOH__CONNECT"] = '["tcp/127.0.0.1:9"]'
     env["SPLITTAG_CAMERA_ZENOH__CONNECT_TIMEOUT_SECS"] = "600"
+    solo = {"SPLITTAG_SLAM_ZENOH__MODE": "peer", "SPLITTAG_SLAM_RUN_DIR": str(tmp_path / "run")}  # no router needed
     bad = [
         (["-m", "services.camera"], env, "camera: configuration error: source folder"),
         (["-m", "services.slam"], {**os.environ, "SPLITTAG_SLAM_MAX_PENDING_MAP_QUERIES": "x"}, "max_pending_map_q"),
+        # A tag map that is not there: found once slam starts; restarting it could not help.
+        (
+            ["-m", "services.slam"],
+            {**os.environ, **solo, "SPLITTAG_SLAM_TAG_MAP": str(tmp_path / "no.yaml")},
+            "tag map",
+        ),
     ]
     for argv, environ, expected in bad:
         out = subprocess.run(

@@ -38,26 +38,30 @@ class _Stopped(Exception):
     """SIGINT/SIGTERM while waiting for the services the camera streams to."""
 
 
-def check_source(settings: CameraSettings) -> None:
-    """The configured source can be read (service_main runs this before any Zenoh session): a missing
-    folder, video file or camera_info, or a malformed listing, is a configuration error said at once,
-    not a crash-and-restart loop behind a connection timeout. The demo scene and V4L2 devices are
-    opened when streaming starts."""
+def check_source(settings: CameraSettings) -> FrameSource | None:
+    """The configured source, made and checked before any Zenoh session (service_main's `check`): a
+    missing folder, video file or camera_info, or a malformed listing, is a configuration error said at
+    once, not a crash-and-restart loop behind a connection timeout. None for the demo scene (rendered
+    or read from its cache when streaming starts); V4L2 devices open when streaming starts."""
     if settings.source == "demo":
-        return
+        return None
     try:
-        make_source(settings)
+        source = make_source(settings)
     except (OSError, ValueError) as exc:  # FileNotFoundError is an OSError; GeometryError a ValueError
         raise ConfigurationError(f"source {settings.source} {settings.path!r}: {exc}") from None
     # A file must be there; a URL (rtsp://...) or a GStreamer pipeline (... ! ...) is OpenCV's to open.
     local_file = settings.source == "video" and "://" not in settings.path and "!" not in settings.path
     if local_file and not Path(settings.path).is_file():
         raise ConfigurationError(f"source video {settings.path!r}: no such file")
+    return source
 
 
-def run(settings: CameraSettings, *, session: zenoh.Session, stop: threading.Event) -> int:
-    """Stream until the source ends (loop off), max_frames is reached, or `stop` is set."""
-    source = make_source(settings)
+def run(
+    settings: CameraSettings, *, session: zenoh.Session, stop: threading.Event, source: FrameSource | None = None
+) -> int:
+    """Stream until the source ends (loop off), max_frames is reached, or `stop` is set. `source`: the
+    one `check_source` made (else made here)."""
+    source = source if source is not None else make_source(settings)
     pub = declare_tensor_publisher(session, keys.frames(settings.robot_id), Frame.SCHEMA)
     gt_pub = session.declare_publisher(keys.ground_truth(settings.robot_id), encoding=encoding_for(CameraPose.SCHEMA))
     # reliable and blocking: a lost stamp would leave its frame in live time in trajectory.tum

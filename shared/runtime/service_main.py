@@ -21,6 +21,8 @@ from shared.runtime.cpus import CpuPlacementError, pin_cpus
 from shared.runtime.logs import setup_logging
 from shared.runtime.settings import CONFIG_EXIT, ConfigurationError, ServiceSettings, one_line_error
 from shared.transport.session import open_session
+from shared.vision.geometry import CameraFileError
+from shared.vision.tagmap import TagMapError
 
 S = TypeVar("S", bound=ServiceSettings)
 
@@ -71,9 +73,9 @@ def service_main(
         return 1
     try:
         run(settings, session, stop)
-    except (ConfigurationError, ModelFileError, FileNotFoundError) as exc:
-        # What the settings name is missing or unusable (weights folder, tag map, camera file):
-        # restarting cannot help.
+    except (ConfigurationError, ModelFileError, TagMapError, CameraFileError) as exc:
+        # A file the settings name is missing or unusable (weights folder, tag map, camera file):
+        # restarting cannot help. (Any other error, a FileNotFoundError included, is restarted.)
         log.error("%s: configuration error: %s", name, one_line_error(exc))
         return CONFIG_EXIT
     except Exception:

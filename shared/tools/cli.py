@@ -734,8 +734,16 @@ def _user_errors() -> tuple[tuple[type[BaseException], ...], tuple[type[BaseExce
     from shared.tools.launch import LaunchError
     from shared.transport.split_client import SplitQueryError
     from shared.vision.geometry import CameraFileError
+    from shared.vision.tagmap import TagMapError
 
-    usage = (ModelFileError, ConfigurationError, FileNotFoundError, tomllib.TOMLDecodeError, CameraFileError)
+    usage = (
+        ModelFileError,
+        ConfigurationError,
+        FileNotFoundError,
+        tomllib.TOMLDecodeError,
+        CameraFileError,
+        TagMapError,
+    )
     return usage, (SplitQueryError, LaunchError, zenoh.ZError)
 
 

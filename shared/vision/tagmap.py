@@ -62,13 +62,17 @@ class TagMapFile(BaseModel):
         return self.default_size_m
 
 
+class TagMapError(GeometryError):
+    """A tag-map file that is not there or not a tag map (a user's file, not maths)."""
+
+
 def load_tag_map(path: Path) -> TagMapFile:
     """Read a tag-map YAML/JSON file, with a clear error for a malformed one."""
     try:
         doc = yaml.safe_load(Path(path).read_text())
         return TagMapFile.model_validate(doc)
     except (OSError, yaml.YAMLError, ValidationError) as exc:
-        raise GeometryError(f"tag map {path}: {exc}") from exc
+        raise TagMapError(f"tag map {path}: {exc}") from exc
 
 
 def write_tag_map(path: Path, tag_map: TagMapFile) -> None:
