@@ -1011,6 +1011,10 @@ def test_trajectory_is_written_in_the_data_sets_time_when_every_frame_has_it(tmp
     node.write_outputs(tmp_path)
     stamps = [t for t, _ in read_tum(tmp_path / "trajectory.tum")]
     np.testing.assert_allclose(stamps, np.array(source_ns) / 1e9, rtol=0, atol=1e-6)
+    # exactly the data set's stamps (a float second of this size is only good to ~0.2 us)
+    for name in ("trajectory.tum", "groundtruth.tum"):
+        written = [line.split()[0] for line in (tmp_path / name).read_text().splitlines()]
+        assert written == [f"{t // 10**9}.{t % 10**9:09d}" for t in source_ns], name
     np.testing.assert_allclose([t for t, _ in read_tum(tmp_path / "groundtruth.tum")], stamps, rtol=0, atol=1e-6)
     assert json.loads((tmp_path / "slam.json").read_text())["time"] == "data set (rgb.txt)"
 
@@ -1177,3 +1181,83 @@ def test_a_view_that_disagrees_with_the_tag_map_fades_where_the_map_is_the_whole
     assert camera_error_cm("cauchy", unsurveyed_in_view=False) < 0.05
     assert camera_error_cm("huber", unsurveyed_in_view=False) > 0.5
     assert camera_error_cm("cauchy", unsurveyed_in_view=True) == camera_error_cm("huber", unsurveyed_in_view=True)
+
+
+def test_a_jump_is_placed_by_the_views_and_bends_nothing_before_it() -> None:
+    """A folder replayed from its start (or a robot carried elsewhere): the views of mapped tags place
+    the camera metres from its last pose. Its constant-velocity prior used to win (each pass's first
+    pose 1.6 m off, the frames before it pulled towards it); now that frame is placed by its views
+    and the trajectory before it stays put. Control: with the jump margins out of reach, the old
+    behaviour comes back (the test can fail)."""
+    anchor = SCENE.tags[3]
+    traj = _constant_velocity(30)
+
+    def run(margin_m: float) -> tuple[MarkerSlam, list[float]]:
+        slam = MarkerSlam(
+            SlamSettings(anchor_tag_id=anchor.id, jump_margin_m=margin_m),
+            known_tags={anchor.id: (anchor.size_m, anchor.pose())},
+        )
+        errors = []
+        for i in range(30):  # frames 20-29 replay poses 0-9: a 2.7 m jump at frame 20
+            truth = traj[i if i < 20 else i - 20]
+            res = slam.update(i, i * TRAJ_FRAME_NS, [_exact_obs(*v) for v in _visible(truth)])
+            assert res.world_from_camera is not None
+            errors.append(float(np.linalg.norm(res.world_from_camera[:3, 3] - truth[:3, 3])))
+        return slam, errors
+
+    slam, errors = run(0.5)
+    assert slam.state.jumps == 1
+    assert max(errors) < 1e-3, errors
+    final = dict(slam.trajectory())
+    for i in range(30):
+        truth = traj[i if i < 20 else i - 20]
+        assert np.linalg.norm(final[i * TRAJ_FRAME_NS][:3, 3] - truth[:3, 3]) < 1e-3, i
+    old, old_errors = run(1000.0)
+    assert old.state.jumps == 0 and old_errors[20] > 0.1
+
+
+def test_slam_rescales_a_tag_the_edge_solved_at_another_size(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """edge_infer without slam's tag map solves every tag at its default size: PnP's translation is
+    then off by the ratio of the sizes, and the map and trajectory with it. slam takes each tag at its
+    own map's size (translation rescaled) and says so once per tag."""
+    from shared.vision.tagmap import TagMapFile, TagSpec, write_tag_map
+
+    write_tag_map(tmp_path / "sizes.json", TagMapFile(tags=[TagSpec(id=t.id, size_m=t.size_m) for t in SCENE.tags]))
+    poses = _constant_velocity(12)
+
+    def wrong_size(msg: TagPoses) -> TagPoses:
+        k = 0.16 / msg.tags[0].tag_size_m
+
+        def scaled(m: np.ndarray) -> np.ndarray:
+            out = np.array(m, np.float64)
+            out[:3, 3] *= k
+            return out
+
+        tags = [
+            t.model_copy(
+                update={
+                    "tag_size_m": 0.16,
+                    "camera_from_tag": scaled(t.camera_from_tag),
+                    "alt_camera_from_tag": scaled(t.alt_camera_from_tag),
+                }
+            )
+            for t in msg.tags
+        ]
+        return msg.model_copy(update={"tags": tags})
+
+    assert SCENE.tags[0].size_m != 0.16
+    for with_map, expect_cm in ((True, 0.1), (False, None)):
+        node = SlamNode(SlamServiceSettings(run_dir=tmp_path, tag_map=tmp_path / "sizes.json" if with_map else None))
+        with caplog.at_level("WARNING"):
+            for i in range(12):
+                node.on_poses(wrong_size(_tag_poses(i, 1_000 + i, poses[i])))
+        est = {t - 1_000: p for t, p in node.slam.trajectory()}
+        ate, n = absolute_trajectory_error(est, dict(enumerate(poses)))
+        assert n == 12
+        if expect_cm is not None:
+            assert ate * 100 < expect_cm, ate
+            warned = [r.message for r in caplog.records if "was solved at 0.1600 m" in r.message]
+            assert len(warned) == len({t.tag_id for i in range(12) for t in _tag_poses(i, 0, poses[i]).tags})
+        else:
+            assert ate * 100 > 1.0  # without slam's map the wrong size stands (the control)
+        caplog.clear()

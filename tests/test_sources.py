@@ -282,3 +282,67 @@ def test_camera_service_sends_each_frames_data_set_time(tmp_path: Path) -> None:
     assert [(by_seq[f.seq].capture_nanos, by_seq[f.seq].source_stamp_nanos) for f in frames] == [
         (f.capture_nanos, t) for f, t in zip(frames, listed, strict=True)
     ]
+
+
+def test_a_folder_whose_images_are_not_the_camera_infos_size_is_a_configuration_error(tmp_path: Path) -> None:
+    """A camera_info of another size than the images: one line at start-up (the service would skip every
+    image and crash-loop on 'no frames'); a folder whose first image is no image likewise."""
+    from services.camera.service import check_source
+    from shared.runtime.settings import ConfigurationError
+
+    folder, _, _ = _folder(tmp_path)
+    big = tmp_path / "camera_info_1080p.yaml"
+    big.write_text(camera_to_yaml(CAM.model_copy(update={"width": 1920, "height": 1080})))
+    with pytest.raises(ConfigurationError, match=r"0000.png is 1280x720 but the camera_info says 1920x1080"):
+        check_source(CameraSettings(source="folder", path=str(folder), camera_info=big))
+    (folder / "0000.png").write_bytes(b"not a png")
+    with pytest.raises(ConfigurationError, match="not an image OpenCV can read"):
+        check_source(CameraSettings(source="folder", path=str(folder), camera_info=tmp_path / "camera_info.yaml"))
+
+
+def test_ground_truth_from_another_clock_is_refused_and_a_partial_match_is_warned(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Ground truth whose stamps meet no image of rgb.txt (another recording, or shifted by 0.5 s) is
+    an error naming both spans, not a run that silently writes no groundtruth.tum; a partial match
+    says how many images go without truth."""
+    root = tmp_path / "dataset"
+    (root / "rgb").mkdir(parents=True)
+    for i in range(3):
+        cv2.imwrite(str(root / "rgb" / f"{i}.png"), _tag_image(i))
+    (root / "rgb.txt").write_text("".join(f"{100 + i / 10:.6f} rgb/{i}.png\n" for i in range(3)))
+    info = tmp_path / "camera_info.yaml"
+    info.write_text(camera_to_yaml(CAM))
+    gt = tmp_path / "groundtruth.txt"
+    write_tum(gt, [(100.5 + i / 10, make_pose(np.eye(3), [float(i), 0.0, 0.0])) for i in range(3)])
+    with pytest.raises(GeometryError, match=r"none of its 3 poses is within 20 ms .*images 100\.000000-100\.200000"):
+        FolderSource(root / "rgb", info, gt)
+    write_tum(gt, [(100.0 + i / 10, make_pose(np.eye(3), [float(i), 0.0, 0.0])) for i in range(2)])
+    with caplog.at_level("WARNING"):
+        frames = list(FolderSource(root / "rgb", info, gt).frames())
+    assert [f.world_from_camera is not None for f in frames] == [True, True, False]
+    assert "1 of 3 images have no ground-truth pose" in caplog.text
+
+
+def test_a_folder_plays_once_by_default_and_a_looped_one_keeps_its_time_going_forward(tmp_path: Path) -> None:
+    """`loop` unset loops only the demo scene: a data set replayed in a loop folds its trajectory onto
+    itself. Looped on purpose, each new pass of a stamped folder is shifted by the pass's span (last -
+    first + one frame period), so the data-set time slam writes never runs backwards."""
+    assert CameraSettings().loops and not CameraSettings(source="folder").loops
+    assert CameraSettings(source="folder", loop=True).loops and not CameraSettings(loop=False).loops
+    folder, info, _ = _folder(tmp_path)
+    listed = [1_000_000_000, 1_100_000_000, 1_200_000_000]
+    (folder / "rgb.txt").write_text("".join(f"{t / 1e9:.6f} {i:04d}.png\n" for i, t in enumerate(listed)))
+    once = CameraSettings(robot_id="src4", source="folder", path=str(folder), camera_info=info, fps=50.0)
+    _, _, published = _stream(once.model_copy(update={"run_dir": tmp_path}), "src4", 3)
+    assert published == 3  # ended with the folder
+    stamps: list[FrameStamp] = []
+    looped = once.model_copy(update={"loop": True, "max_frames": 7, "run_dir": tmp_path})
+    _, _, published = _stream(looped, "src4", 7, stamps)
+    assert published == 7
+    span = 300_000_000  # 0.2 s of stamps + one 0.1 s period
+    assert [s.source_stamp_nanos for s in sorted(stamps, key=lambda s: s.seq)] == [
+        *listed,
+        *(t + span for t in listed),
+        listed[0] + 2 * span,
+    ]

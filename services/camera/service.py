@@ -47,6 +47,8 @@ def check_source(settings: CameraSettings) -> FrameSource | None:
         return None
     try:
         source = make_source(settings)
+        if isinstance(source, FolderSource):
+            source.check()
     except (OSError, ValueError) as exc:  # FileNotFoundError is an OSError; GeometryError a ValueError
         raise ConfigurationError(f"source {settings.source} {settings.path!r}: {exc}") from None
     # A file must be there; a URL (rtsp://...) or a GStreamer pipeline (... ! ...) is OpenCV's to open.
@@ -91,10 +93,13 @@ def run(
     gt_keypoints = source.gt_keypoints if isinstance(source, DemoSource) else None
     period = 1.0 / settings.fps
     seq = 0
+    passes = 0  # completed passes over the source
+    span = source.span_nanos if isinstance(source, FolderSource) else None
     next_t = time.monotonic()
     try:
         while not stop.is_set():
             produced = False
+            shift = passes * span if span is not None else 0
             for index, item in enumerate(source.frames()):
                 produced = True
                 if index < settings.start_frame and not seq:
@@ -122,7 +127,7 @@ def run(
                                 robot_id=settings.robot_id,
                                 seq=seq,
                                 capture_nanos=capture,
-                                source_stamp_nanos=item.stamp_nanos,
+                                source_stamp_nanos=item.stamp_nanos + shift,
                             )
                         )
                     )
@@ -152,9 +157,16 @@ def run(
                 raise RuntimeError("the source produced no frames")
             if not seq:  # the whole first pass was skipped: looping again would skip it again, forever
                 raise ValueError(f"start_frame {settings.start_frame} is past the source's last frame")
-            if not settings.loop:
+            if not settings.loops:
                 log.info("source ended after %d frames", seq)
                 return seq
+            passes += 1
+            if span is not None:
+                log.info(
+                    "pass %d: data-set stamps shifted by %.3f s so time keeps going forward",
+                    passes + 1,
+                    passes * span / 1e9,
+                )
     finally:
         token.undeclare()
         viz.close()

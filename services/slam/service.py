@@ -34,18 +34,20 @@ from shared.slam.marker_slam import (
     absolute_trajectory_error_arrays,
     check_observation,
     check_robot_count,
+    rescale_observation,
 )
 from shared.transport.session import declare_fifo_subscriber, encoding_for
 from shared.vision.camera import CameraIntrinsics
 from shared.vision.files import atomic_write_text
 from shared.vision.geometry import check_rigid
 from shared.vision.tagmap import TagSpec, load_tag_map, tag_map_from_poses, write_tag_map
-from shared.vision.trajectory import PoseLog, StampMap, read_tum, write_tum_arrays
+from shared.vision.trajectory import PoseLog, StampMap, read_tum_nanos, write_tum_arrays
 from shared.viz.recording import make_viz
 from shared.wire import keys
 from shared.wire.messages import CameraPose, FrameStamp, MapTag, TagMap, TagPoses, decode, encode
 
 log = logging.getLogger(__name__)
+MAX_RESIZED_WARNINGS = 64  # tags whose size mismatch is said (each once)
 
 GT_WAITING_FRAMES = 1024  # ground truth held for frames whose TagPoses have not come yet
 
@@ -66,7 +68,7 @@ class RobotRun:
     source_stamps: StampMap = field(default_factory=StampMap)
     stamp_recent: OrderedDict[int, int] = field(default_factory=OrderedDict)
     # the resumed run's trajectory, as arrays (seconds, poses): written first, never shortened
-    previous_stamps_s: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float64))
+    previous_stamps_nanos: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     previous_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4), np.float64))
     last_pose: np.ndarray | None = None
     frames: int = 0  # TagPoses fused for this robot (the periodic map publication and drawing count them)
@@ -103,6 +105,10 @@ class SlamNode:
                     update={"anchor_tag_id": slam_settings.anchor_tag_id or tm.anchor_tag_id}
                 )
         self.slam = MarkerSlam(slam_settings, known_tags=known, known_sigmas=known_sigmas, surveyed=surveyed)
+        # The sizes slam's map gives: a tag the edge solved at another size (its own tag map, or none) is
+        # rescaled to this one (PnP's translation scales with the size), said once per tag.
+        self.sizes = configured
+        self._resized: set[int] = set()
         self.runs: dict[str, RobotRun] = {}
         for robot in (
             settings.robots if isinstance(settings.robots, list) else [] if self.fleet else [settings.robot_id]
@@ -112,6 +118,24 @@ class SlamNode:
             log.info("resuming from %s: %d tags, robots %s", checkpoint, len(known), sorted(self.runs))
         self.revision = 0
         self.lock = threading.Lock()
+
+    def _sized(self, o: Observation) -> Observation:
+        """The observation at the size slam's tag map gives its tag (unchanged without a map)."""
+        if self.sizes is None or not (o.size_m > 0 and math.isfinite(o.size_m)):
+            return o  # (check_observation refuses a size that is no size)
+        size = self.sizes.size_of(o.tag_id)
+        if abs(size - o.size_m) <= 1e-3 * size:
+            return o
+        if o.tag_id not in self._resized and len(self._resized) < MAX_RESIZED_WARNINGS:
+            self._resized.add(o.tag_id)
+            log.warning(
+                "tag %d was solved at %.4f m but slam's tag map says %.4f m: rescaled (give edge_infer and "
+                "robot_infer the same tag_map)",
+                o.tag_id,
+                o.size_m,
+                size,
+            )
+        return rescale_observation(o, size)
 
     def _trajectory_file(self, robot: str, what: str = "trajectory") -> str:
         return f"{what}_{robot}.tum" if self.fleet else f"{what}.tum"
@@ -131,9 +155,7 @@ class SlamNode:
             run = self.runs[robot] = RobotRun(robot)
             path = self.settings.run_dir / self._trajectory_file(robot)
             if self.resumed is not None and path.is_file():
-                previous = read_tum(path)
-                run.previous_stamps_s = np.array([t for t, _ in previous], np.float64)
-                run.previous_poses = np.array([p for _, p in previous], np.float64).reshape(-1, 4, 4)
+                run.previous_stamps_nanos, run.previous_poses = read_tum_nanos(path)
         return run
 
     @property
@@ -163,7 +185,7 @@ class SlamNode:
             robot = msg.robot_id if self.fleet else self.settings.robot_id  # one robot: its key decided
             run = self.run_of(robot)
             focal = None if msg.intrinsics is None else (msg.intrinsics.fx + msg.intrinsics.fy) / 2
-            observations = [Observation.from_message(t, focal) for t in msg.tags]
+            observations = [self._sized(Observation.from_message(t, focal)) for t in msg.tags]
             for o in observations:
                 check_observation(o)  # before the indexer remembers the frame
             frame = run.indexer.index(msg.seq, msg.capture_nanos)
@@ -250,7 +272,7 @@ class SlamNode:
             marginals = self._tag_sigmas(tag_map)
             state = self.slam.state
             frames, lost, rejected = state.frames, state.lost, state.rejected_ambiguous
-            fragments = state.fragments
+            fragments, jumps = state.fragments, state.jumps
             soft_skipped, soft_localised = state.soft_reads_skipped, state.soft_reads_localised
             tracked_skipped, tracked_localised = state.tracked_skipped, state.tracked_localised
             robots = sorted(self.runs)
@@ -290,6 +312,7 @@ class SlamNode:
             "lost_frames": lost,
             "rejected_ambiguous": rejected,
             "fragments": fragments,  # map fragments begun after long gaps without tags
+            "jumps": jumps,  # frames placed away from the motion by their views (SlamSettings.jump_margin_m)
             "soft_reads_skipped": soft_skipped,  # blind soft reads left out (SlamSettings.soft_reads)
             "soft_reads_localised": soft_localised,  # soft reads that placed the camera against a known tag
             "tracked_skipped": tracked_skipped,  # tracked views left out (SlamSettings.tracked_reads)
@@ -323,25 +346,32 @@ class SlamNode:
                 int((~traj_found).sum()),
                 len(traj_found),
             )
-        out_stamps = source_traj if in_source_time else traj_stamps
-        stamps_s, poses = out_stamps / 1e9, traj_poses
-        if len(run.previous_stamps_s):  # a resumed run: the earlier trajectory first, never less
-            newer = stamps_s > run.previous_stamps_s[-1]
-            stamps_s = np.concatenate([run.previous_stamps_s, stamps_s[newer]])
+        # stamps in integer nanoseconds throughout: written exactly (a data set's stamps come back as given)
+        stamps, poses = np.asarray(source_traj if in_source_time else traj_stamps, np.int64), traj_poses
+        if len(run.previous_stamps_nanos):  # a resumed run: the earlier trajectory first, never less
+            newer = stamps > run.previous_stamps_nanos[-1]
+            stamps = np.concatenate([run.previous_stamps_nanos, stamps[newer]])
             poses = np.concatenate([run.previous_poses, poses[newer]])
-        write_tum_arrays(run_dir / self._trajectory_file(robot), stamps_s, poses)
-        out: dict[str, Any] = {"poses": len(stamps_s), "time": "data set (rgb.txt)" if in_source_time else "capture"}
+        write_tum_arrays(run_dir / self._trajectory_file(robot), stamps, poses)
+        out: dict[str, Any] = {"poses": len(stamps), "time": "data set (rgb.txt)" if in_source_time else "capture"}
         if len(gt_stamps):
             write_tum_arrays(
                 run_dir / self._trajectory_file(robot, "groundtruth"),
-                (source_gt if in_source_time else gt_stamps) / 1e9,
+                np.asarray(source_gt if in_source_time else gt_stamps, np.int64),
                 gt_poses,
             )
             try:
+                # TUM's ATE (after SE(3) alignment); and, when a tag map gives slam's world (its anchor's
+                # pose), the error in that world as it is, which counts the map's placement too
                 ate, n = absolute_trajectory_error_arrays(
                     traj_stamps, traj_poses[:, :3, 3], gt_stamps, gt_poses[:, :3, 3]
                 )
-                out.update({"ate_m": ate, "ate_frames": n})
+                out.update({"ate_m": ate, "ate_frames": n, "ate_aligned": True})
+                if self.slam.anchor is not None and self.slam.anchor in self.slam.known:
+                    raw, _ = absolute_trajectory_error_arrays(
+                        traj_stamps, traj_poses[:, :3, 3], gt_stamps, gt_poses[:, :3, 3], align=False
+                    )
+                    out["ate_unaligned_m"] = raw
             except ValueError as exc:
                 out["ate_error"] = str(exc)
         return out
@@ -464,6 +494,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
             return {
                 "robots": sorted(node.runs),
                 "fragments": state.fragments,
+                "jumps": state.jumps,
                 "soft_reads_skipped": state.soft_reads_skipped,
                 "soft_reads_localised": state.soft_reads_localised,
                 "tracked_skipped": state.tracked_skipped,

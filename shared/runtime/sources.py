@@ -239,12 +239,51 @@ class FolderSource:
             rows = read_tum(groundtruth)
             if self.stamps_nanos is not None:
                 seconds = [t / 1e9 for t in self.stamps_nanos]
-                nearest = associate_stamps(seconds, np.array([t for t, _ in rows], np.float64), GT_MAX_DT_S)
+                gt_seconds = np.array([t for t, _ in rows], np.float64)
+                nearest = associate_stamps(seconds, gt_seconds, GT_MAX_DT_S)
                 self.gt = [None if j is None else rows[j][1] for j in nearest]
+                matched = sum(j is not None for j in nearest)
+                if rows and not matched:
+                    raise GeometryError(
+                        f"{groundtruth}: none of its {len(rows)} poses is within {GT_MAX_DT_S * 1e3:.0f} ms of "
+                        f"an image of {listing} (images {seconds[0]:.6f}-{seconds[-1]:.6f} s, ground truth "
+                        f"{gt_seconds.min():.6f}-{gt_seconds.max():.6f} s): another recording, or another clock?"
+                    )
+                if matched < len(nearest):
+                    log.warning(
+                        "%s: %d of %d images have no ground-truth pose within %.0f ms (they go without truth)",
+                        groundtruth,
+                        len(nearest) - matched,
+                        len(nearest),
+                        GT_MAX_DT_S * 1e3,
+                    )
             elif len(rows) != len(self.files):
                 raise GeometryError(f"{groundtruth} has {len(rows)} poses for {len(self.files)} images")
             else:
                 self.gt = [p for _, p in rows]
+
+    @property
+    def span_nanos(self) -> int | None:
+        """How long one pass of the stamped images lasts (last - first stamp plus the median frame
+        period), the shift of each new pass when the source loops; None without stamps."""
+        stamps = self.stamps_nanos
+        if not stamps:
+            return None
+        period = int(np.median(np.diff(stamps))) if len(stamps) > 1 else 0
+        return stamps[-1] - stamps[0] + max(period, 1)
+
+    def check(self) -> None:
+        """Read the first image: unreadable, or of another size than the camera_info's, is a GeometryError
+        said at once (the service would otherwise skip every image and find no frames)."""
+        first = self.files[0]
+        img = cv2.imread(str(first), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise GeometryError(f"{first}: not an image OpenCV can read")
+        if img.shape != (self.camera.height, self.camera.width):
+            raise GeometryError(
+                f"{first} is {img.shape[1]}x{img.shape[0]} but the camera_info says "
+                f"{self.camera.width}x{self.camera.height}"
+            )
 
     def frames(self) -> Iterator[SourceFrame]:
         for i, f in enumerate(self.files):

@@ -32,7 +32,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Final, Literal
 
 import gtsam
@@ -46,6 +46,9 @@ from shared.vision.trajectory import PoseLog
 from shared.wire.messages import TagPose
 
 L = gtsam.symbol_shorthand.L
+
+
+JUMP_SIGMAS: Final[float] = 3.0  # a view says the camera jumped only this many of its sigmas beyond the envelope
 
 
 class SlamSettings(BaseModel):
@@ -150,6 +153,15 @@ class SlamSettings(BaseModel):
     max_turn_deg_s: float = Field(default=180.0, gt=0)
     envelope_margin_m: float = Field(default=0.15, ge=0)
     envelope_margin_deg: float = Field(default=10.0, ge=0)
+    # A jump: the unambiguous views of mapped tags place the camera farther from its last pose than the
+    # motion envelope allows by more than these margins (a recording replayed from its start, a robot
+    # carried elsewhere, a camera restarted at another place). That frame gets no constant-velocity
+    # prior and no prediction: the views place it, and the frames before it are not bent towards it
+    # (a folder replayed in a loop had each pass's first pose 1.6 m off and the 9 frames before it
+    # pulled up to 4 m). The margins sit well above what a far tag's tilt error moves the camera
+    # (5 deg at 3.5 m is 0.3 m), so a bad read is not taken for a jump.
+    jump_margin_m: float = Field(default=0.5, ge=0)
+    jump_margin_deg: float = Field(default=30.0, ge=0)
 
     @model_validator(mode="before")
     @classmethod
@@ -222,6 +234,7 @@ class SlamState:
     soft_reads_localised: int = 0  # soft reads that placed the camera against a mapped tag ("localise")
     tracked_skipped: int = 0  # tracked views left out (SlamSettings.tracked_reads)
     tracked_localised: int = 0  # tracked views that placed the camera against a mapped tag ("localise")
+    jumps: int = 0  # frames whose views placed the camera beyond the motion envelope (SlamSettings.jump_margin_m)
 
 
 def _central(poses: list[Array]) -> Array:
@@ -727,6 +740,13 @@ class MarkerSlam:
         still_from: int | None = None
         joined = False
         mapped = [(o, wt) for o in observations if (wt := self._world_from_tag(o.tag_id)) is not None]
+        jumped = predicted is not None and self._jumped(track, stamp_nanos, mapped)
+        if jumped:
+            predicted = None  # the views say the camera is elsewhere: they place it, not the motion
+            self.state.jumps += 1
+            logging.getLogger(__name__).info(
+                "slam: frame %d of %r jumped away from the motion (no motion prior for it)", frame, robot
+            )
         # Camera initial guess: each mapped tag's view (branch chosen against the prediction or, without
         # one, against the unambiguous views), the one nearest the median position wins.
         reference = predicted
@@ -855,7 +875,7 @@ class MarkerSlam:
             )
         # Not None when this frame is bridged by the prediction (the same last two poses); None when the
         # velocity is beyond the motion envelope or the last two poses are too far apart.
-        motion = self._motion_factor(track, frame)
+        motion = None if jumped else self._motion_factor(track, frame)
         if motion is not None:
             graph.add(motion)
         if long_gap:
@@ -947,6 +967,35 @@ class MarkerSlam:
             moved_m <= s.envelope_margin_m + s.max_speed_m_s * secs
             and _rot_deg(after, before) <= s.envelope_margin_deg + s.max_turn_deg_s * secs
         )
+
+    def _jumped(self, track: _Track, stamp_nanos: int, mapped: list[tuple[Observation, Array]]) -> bool:
+        """Whether this frame's views of mapped tags say the camera jumped: no unambiguous view places it
+        within the motion envelope (plus the jump margins) of the robot's last pose, and at least one
+        places it beyond by more than JUMP_SIGMAS of its own uncertainty (the view's and its tag's): a
+        far or face-on tag, whose tilt barely holds, moves the camera by decimetres and is no jump."""
+        s = self.settings
+        clear = [(o, wt) for o, wt in mapped if not self.is_ambiguous(o)]
+        if not clear or not track.stamps:
+            return False
+        last = max(track.stamps)
+        before = self._pose(track, last)
+        secs = max((stamp_nanos - track.stamps[last]) / 1e9, 0.0)
+        reach_m = s.jump_margin_m + s.envelope_margin_m + s.max_speed_m_s * secs
+        reach_rad = math.radians(s.jump_margin_deg + s.envelope_margin_deg + s.max_turn_deg_s * secs)
+        beyond: list[tuple[float, float, Observation, Array]] = []
+        for o, wt in clear:
+            seen = wt @ np.linalg.inv(o.camera_from_tag)
+            moved_m = float(np.linalg.norm(seen[:3, 3] - before[:3, 3]))
+            turned_rad = math.radians(_rot_deg(seen, before))
+            if moved_m <= reach_m and turned_rad <= reach_rad:
+                return False  # a view agrees with the motion
+            beyond.append((moved_m - reach_m, turned_rad - reach_rad, o, wt))
+        for over_m, over_rad, o, wt in beyond:
+            _, cov = camera_prior(wt, o.camera_from_tag, self.covariance(o), self._tag_covariance(o.tag_id))
+            sigma_rad, sigma_m = math.sqrt(np.trace(cov[:3, :3])), math.sqrt(np.trace(cov[3:, 3:]))
+            if over_m > JUMP_SIGMAS * sigma_m or over_rad > JUMP_SIGMAS * sigma_rad:
+                return True
+        return False
 
     def _still_origin(self, track: _Track, observations: list[Observation]) -> int | None:
         """The robot's last frame with a pose, when this frame (only new tags in view, no motion to
@@ -1125,6 +1174,21 @@ def _constant_velocity_error(
     return error
 
 
+def rescale_observation(o: Observation, size_m: float) -> Observation:
+    """The same view of a tag of another size: a planar PnP's pose scales its translation with the
+    tag's size (the same pixels), rotations and reprojection errors unchanged."""
+    k = size_m / o.size_m
+
+    def scaled(m: Array) -> Array:
+        out = np.array(m, np.float64, copy=True)
+        out[:3, 3] *= k
+        return out
+
+    return replace(
+        o, size_m=size_m, camera_from_tag=scaled(o.camera_from_tag), alt_camera_from_tag=scaled(o.alt_camera_from_tag)
+    )
+
+
 def camera_prior(world_from_tag: Array, camera_from_tag: Array, view_cov: Array, tag_cov: Array) -> tuple[Array, Array]:
     """A view of a tag as a prior on the camera alone: (world_from_camera, its 6x6 covariance in GTSAM's
     tangent, rotation first). BetweenFactor(camera, tag, m) perturbs m on the right, m exp(xi); the
@@ -1207,14 +1271,16 @@ def absolute_trajectory_error(est: dict[int, Array], gt: dict[int, Array]) -> tu
 
 
 def absolute_trajectory_error_arrays(
-    est_stamps: Array, est_positions: Array, gt_stamps: Array, gt_positions: Array
+    est_stamps: Array, est_positions: Array, gt_stamps: Array, gt_positions: Array, *, align: bool = True
 ) -> tuple[float, int]:
-    """`absolute_trajectory_error` for arrays of stamps (n,) and positions (n, 3)."""
+    """`absolute_trajectory_error` for arrays of stamps (n,) and positions (n, 3): after SE(3) alignment
+    (TUM's ATE), or as they are (`align=False`: the trajectory is in the ground truth's world)."""
     _, ie, ig = np.intersect1d(est_stamps, gt_stamps, assume_unique=False, return_indices=True)
     if len(ie) < 3:
         raise ValueError(f"need >= 3 matching stamps, have {len(ie)}")
     a = np.asarray(est_positions)[ie]
     b = np.asarray(gt_positions)[ig]
-    t = umeyama_se3(a, b)
-    aligned = (t[:3, :3] @ a.T).T + t[:3, 3]
-    return float(np.sqrt(np.mean(np.sum((aligned - b) ** 2, axis=1)))), len(ie)
+    if align:
+        t = umeyama_se3(a, b)
+        a = (t[:3, :3] @ a.T).T + t[:3, 3]
+    return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1)))), len(ie)

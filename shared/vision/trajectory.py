@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import io
+from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 
 from shared.vision.files import atomic_write_text
 from shared.vision.geometry import Array, GeometryError, make_pose
@@ -34,20 +36,56 @@ def write_tum(path: Path, rows: list[tuple[float, Array]]) -> None:
     write_tum_arrays(path, stamps, poses)
 
 
-def write_tum_arrays(path: Path, stamps_s: Array, poses: Array) -> None:
-    """`write_tum` for arrays (n,) seconds and (n, 4, 4): vectorised, no Python object per pose (a long
-    run writes its whole trajectory every few seconds)."""
+def write_tum_arrays(path: Path, stamps: Array, poses: Array) -> None:
+    """`write_tum` for arrays (n,) and (n, 4, 4): vectorised, no Python object per pose (a long run
+    writes its whole trajectory every few seconds). Stamps in seconds (floats), or in nanoseconds
+    (integers: written exactly, e.g. 1341847980.722988000 for a data set's 1341847980.722988, where a
+    float second of that size is only good to ~0.2 us)."""
     from scipy.spatial.transform import Rotation
 
-    n = len(stamps_s)
+    n = len(stamps)
     if n == 0:
         atomic_write_text(Path(path), "")
         return
     quats = Rotation.from_matrix(poses[:, :3, :3]).as_quat()
-    table = np.column_stack([stamps_s, poses[:, :3, 3], quats])
     buf = io.StringIO()
-    np.savetxt(buf, table, fmt="%.9f")
-    atomic_write_text(Path(path), buf.getvalue())
+    if np.issubdtype(np.asarray(stamps).dtype, np.integer):
+        np.savetxt(buf, np.column_stack([poses[:, :3, 3], quats]), fmt="%.9f")
+        lines = buf.getvalue().splitlines()
+        text = "".join(f"{format_stamp_nanos(int(t))} {line}\n" for t, line in zip(stamps, lines, strict=True))
+    else:
+        np.savetxt(buf, np.column_stack([stamps, poses[:, :3, 3], quats]), fmt="%.9f")
+        text = buf.getvalue()
+    atomic_write_text(Path(path), text)
+
+
+def format_stamp_nanos(nanos: int) -> str:
+    """A stamp in nanoseconds as exact decimal seconds (9 decimals)."""
+    sign = "-" if nanos < 0 else ""
+    secs, frac = divmod(abs(nanos), 1_000_000_000)
+    return f"{sign}{secs}.{frac:09d}"
+
+
+def parse_stamp_nanos(text: str) -> int:
+    """Decimal seconds (a TUM or rgb.txt stamp) as nanoseconds, exact to the digits given."""
+    try:
+        stamp = Decimal(text.strip())
+    except InvalidOperation:
+        raise GeometryError(f"not a time stamp: {text!r}") from None
+    if not stamp.is_finite():
+        raise GeometryError(f"not a time stamp: {text!r}")
+    return int(stamp.scaleb(9).to_integral_value())
+
+
+def read_tum_nanos(path: Path) -> tuple[NDArray[np.int64], Array]:
+    """`read_tum` with exact stamps: ((n,) nanoseconds, (n, 4, 4) poses)."""
+    rows = read_tum(path)
+    stamps = [
+        parse_stamp_nanos(line.split()[0])
+        for line in Path(path).read_text().splitlines()
+        if line.strip() and not line.startswith("#")
+    ]
+    return np.array(stamps, np.int64), np.array([p for _, p in rows], np.float64).reshape(-1, 4, 4)
 
 
 class PoseLog:
