@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from shared.tools.launch import Monitor
 from shared.wire.messages import CameraPose, TagPoses, encode
@@ -176,3 +177,21 @@ def test_the_run_has_one_tag_map_and_the_demos_only_for_the_demo(tmp_path: Path)
     assert {own[s]["tag_map"] for s in MAP_USERS} == {"mine.yaml"}
     both = tables('[edge_infer]\ntag_map = "edge.yaml"\n[slam]\ntag_map = "mine.yaml"\n', "both")
     assert [both[s]["tag_map"] for s in MAP_USERS] == ["edge.yaml", "mine.yaml", "mine.yaml"]
+
+
+def test_a_fleets_demo_map_leaves_slam_to_map_and_relative_maps_are_the_services(tmp_path: Path) -> None:
+    """The fleet runner takes the same one-map rule, the demo's map for the robots' perception only
+    (slam builds the fleet's map); a relative tag_map is read from the repository root, as the services
+    (started there) read it, wherever the launcher runs."""
+    from shared.tools.launch import REPO, run_map_tables, run_tag_map
+
+    tables, path = run_map_tables({}, tmp_path, demo_users=("edge_infer", "robot_infer"))
+    assert set(tables) == {"edge_infer", "robot_infer"} and path == tmp_path / "tag_map.yaml"
+    tables, path = run_map_tables({"camera": {"source": "folder"}, "robot_infer": {"tag_map": "m.yaml"}}, tmp_path)
+    assert tables == {"edge_infer": {"tag_map": "m.yaml"}, "slam": {"tag_map": "m.yaml"}} and path == REPO / "m.yaml"
+    config = tmp_path / "config.toml"
+    config.write_text('[slam]\ntag_map = "deploy/fleet_tag_map_that_is_not_there.yaml"\n')
+    from shared.vision.tagmap import TagMapError
+
+    with pytest.raises(TagMapError, match=str(REPO / "deploy")):
+        run_tag_map(config)

@@ -637,6 +637,16 @@ def test_a_bridged_robot_that_sees_only_world_tags_next_joins_its_fragment() -> 
     assert not slam.bridged(46) and slam.state.fragments == 1
 
 
+def test_a_bridged_fragment_joins_the_world_at_the_first_view_of_a_world_tag() -> None:
+    """The fragment's last pose is the long gap's guess, metres from the truth: the first view of a
+    world tag is the join, not a jump (a review found the jump test blocking it: 2 m off for good)."""
+    slam, letters = _plan_run({range(10): {4, 5}, range(45, 52): {7}, range(52, 56): {5}})
+    assert slam.state.jumps == 0 and not slam.bridged(46) and letters[45:56] == "b" * 7 + "t" * 4
+    traj = _constant_velocity(70)
+    ate, n = absolute_trajectory_error(dict(slam.trajectory()), dict(enumerate(traj)))  # (the anchor's world)
+    assert n == 21 and ate < 1e-3, (n, ate)
+
+
 def test_new_tags_right_after_a_fragment_starts_belong_to_it() -> None:
     """The frame after a fragment's first has no motion to extrapolate (one pose since the gap): it is
     held still from that pose in the same fragment, not a second fragment; one join ties both tags."""
@@ -1225,10 +1235,11 @@ def test_slam_rescales_a_tag_the_edge_solved_at_another_size(tmp_path: Path, cap
     write_tag_map(tmp_path / "sizes.json", TagMapFile(tags=[TagSpec(id=t.id, size_m=t.size_m) for t in SCENE.tags]))
     poses = _constant_velocity(12)
 
-    def wrong_size(msg: TagPoses) -> TagPoses:
-        k = 0.16 / msg.tags[0].tag_size_m
+    def solved_at(tag_id: int) -> float:  # each tag at its own wrong size: rescaling is per tag
+        return 0.16 if tag_id % 2 else 0.25
 
-        def scaled(m: np.ndarray) -> np.ndarray:
+    def wrong_size(msg: TagPoses) -> TagPoses:
+        def scaled(m: np.ndarray, k: float) -> np.ndarray:
             out = np.array(m, np.float64)
             out[:3, 3] *= k
             return out
@@ -1236,16 +1247,16 @@ def test_slam_rescales_a_tag_the_edge_solved_at_another_size(tmp_path: Path, cap
         tags = [
             t.model_copy(
                 update={
-                    "tag_size_m": 0.16,
-                    "camera_from_tag": scaled(t.camera_from_tag),
-                    "alt_camera_from_tag": scaled(t.alt_camera_from_tag),
+                    "tag_size_m": solved_at(t.tag_id),
+                    "camera_from_tag": scaled(t.camera_from_tag, solved_at(t.tag_id) / t.tag_size_m),
+                    "alt_camera_from_tag": scaled(t.alt_camera_from_tag, solved_at(t.tag_id) / t.tag_size_m),
                 }
             )
             for t in msg.tags
         ]
         return msg.model_copy(update={"tags": tags})
 
-    assert SCENE.tags[0].size_m != 0.16
+    assert all(t.size_m not in (0.16, 0.25) for t in SCENE.tags)
     for with_map, expect_cm in ((True, 0.1), (False, None)):
         node = SlamNode(SlamServiceSettings(run_dir=tmp_path, tag_map=tmp_path / "sizes.json" if with_map else None))
         with caplog.at_level("WARNING"):
@@ -1256,8 +1267,39 @@ def test_slam_rescales_a_tag_the_edge_solved_at_another_size(tmp_path: Path, cap
         assert n == 12
         if expect_cm is not None:
             assert ate * 100 < expect_cm, ate
-            warned = [r.message for r in caplog.records if "was solved at 0.1600 m" in r.message]
+            warned = [r.message for r in caplog.records if "but slam's tag map says" in r.message]
             assert len(warned) == len({t.tag_id for i in range(12) for t in _tag_poses(i, 0, poses[i]).tags})
+            assert {"0.1600", "0.2500"} <= {m.split("solved at ")[1][:6] for m in warned}
         else:
             assert ate * 100 > 1.0  # without slam's map the wrong size stands (the control)
         caplog.clear()
+
+
+def test_truth_is_drawn_in_the_estimates_frame_when_slam_has_no_world() -> None:
+    """Without world poses slam works in its anchor tag's frame: Rerun drew the truth metres away; the
+    truth fitted onto the trajectory lands on it (and is not drawn from fewer than 3 shared stamps)."""
+    from shared.slam.marker_slam import truth_in_estimate_frame
+
+    rng = np.random.default_rng(3)
+    truth = rng.normal(0, 1, (20, 3))
+    anchor_from_world = look_at(np.array([3.0, -1.0, 2.0]), np.array([0.0, 0.0, 0.0]))
+    est = (anchor_from_world[:3, :3] @ truth.T).T + anchor_from_world[:3, 3]
+    stamps = np.arange(20, dtype=np.int64)
+    moved = truth_in_estimate_frame(stamps[5:], est[5:], stamps, truth)  # the truth has frames slam lacks
+    assert moved is not None
+    np.testing.assert_allclose(moved, est, atol=1e-9)
+    assert np.linalg.norm(truth - est, axis=1).min() > 0.5  # (they were apart)
+    assert truth_in_estimate_frame(stamps[:2], est[:2], stamps, truth) is None
+
+
+def test_a_size_that_is_no_size_is_refused_before_any_rescaling(tmp_path: Path) -> None:
+    """slam rescales a tag to its map's size only after the message's own size passed the checks: a
+    1-micrometre tag stays refused (the rescale would have made it look fine)."""
+    from shared.vision.tagmap import TagMapFile, TagSpec, write_tag_map
+
+    write_tag_map(tmp_path / "sizes.json", TagMapFile(tags=[TagSpec(id=t.id, size_m=t.size_m) for t in SCENE.tags]))
+    node = SlamNode(SlamServiceSettings(run_dir=tmp_path, tag_map=tmp_path / "sizes.json"))
+    msg = _tag_poses(0, 1_000, _constant_velocity(2)[0])
+    tiny = msg.model_copy(update={"tags": [t.model_copy(update={"tag_size_m": 1e-6}) for t in msg.tags]})
+    with pytest.raises(SlamInputError):
+        node.on_poses(tiny)

@@ -346,3 +346,12 @@ def test_a_folder_plays_once_by_default_and_a_looped_one_keeps_its_time_going_fo
         *(t + span for t in listed),
         listed[0] + 2 * span,
     ]
+
+
+def test_a_looped_folders_span_is_its_time_span_whatever_rgb_txts_order() -> None:
+    """rgb.txt lists images in its own order; a pass's span is latest - earliest stamp + one period."""
+    source = FolderSource.__new__(FolderSource)
+    source.stamps_nanos = [1_200, 1_000, 1_100]
+    assert source.span_nanos == 300
+    source.stamps_nanos = None
+    assert source.span_nanos is None

@@ -35,6 +35,7 @@ from shared.slam.marker_slam import (
     check_observation,
     check_robot_count,
     rescale_observation,
+    truth_in_estimate_frame,
 )
 from shared.transport.session import declare_fifo_subscriber, encoding_for
 from shared.vision.camera import CameraIntrinsics
@@ -108,6 +109,8 @@ class SlamNode:
         # The sizes slam's map gives: a tag the edge solved at another size (its own tag map, or none) is
         # rescaled to this one (PnP's translation scales with the size), said once per tag.
         self.sizes = configured
+        # the tags whose world the configured map gives (a checkpoint's poses are in slam's own world)
+        self.world_tags = {t.id for t in configured.tags if t.world_from_tag is not None} if configured else set()
         self._resized: set[int] = set()
         self.runs: dict[str, RobotRun] = {}
         for robot in (
@@ -121,8 +124,8 @@ class SlamNode:
 
     def _sized(self, o: Observation) -> Observation:
         """The observation at the size slam's tag map gives its tag (unchanged without a map)."""
-        if self.sizes is None or not (o.size_m > 0 and math.isfinite(o.size_m)):
-            return o  # (check_observation refuses a size that is no size)
+        if self.sizes is None:
+            return o
         size = self.sizes.size_of(o.tag_id)
         if abs(size - o.size_m) <= 1e-3 * size:
             return o
@@ -185,9 +188,10 @@ class SlamNode:
             robot = msg.robot_id if self.fleet else self.settings.robot_id  # one robot: its key decided
             run = self.run_of(robot)
             focal = None if msg.intrinsics is None else (msg.intrinsics.fx + msg.intrinsics.fy) / 2
-            observations = [self._sized(Observation.from_message(t, focal)) for t in msg.tags]
+            observations = [Observation.from_message(t, focal) for t in msg.tags]
             for o in observations:
-                check_observation(o)  # before the indexer remembers the frame
+                check_observation(o)  # before the indexer remembers the frame (the size as sent, too)
+            observations = [self._sized(o) for o in observations]
             frame = run.indexer.index(msg.seq, msg.capture_nanos)
             res = self.slam.update(frame, msg.capture_nanos, observations, robot=robot)
             truth = run.gt_recent.pop(msg.capture_nanos, None)
@@ -367,7 +371,7 @@ class SlamNode:
                     traj_stamps, traj_poses[:, :3, 3], gt_stamps, gt_poses[:, :3, 3]
                 )
                 out.update({"ate_m": ate, "ate_frames": n, "ate_aligned": True})
-                if self.slam.anchor is not None and self.slam.anchor in self.slam.known:
+                if self.slam.anchor is not None and self.slam.anchor in self.world_tags:
                     raw, _ = absolute_trajectory_error_arrays(
                         traj_stamps, traj_poses[:, :3, 3], gt_stamps, gt_poses[:, :3, 3], align=False
                     )
@@ -529,11 +533,17 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
             viz.tag_map(cam.capture_nanos, {t.tag_id: (t.size_m, t.world_from_tag) for t in tag_map.tags})
         if settings.rerun.enabled and run.frames % 10 == 0:  # O(trajectory): only when drawn
             with node.lock:
-                traj = node.slam.trajectory_arrays(robot)[1][:, :3, 3]
-                gt = node.runs[robot].gt.positions()
+                stamps, poses = node.slam.trajectory_arrays(robot)
+                gt_stamps, gt_poses = node.runs[robot].gt.arrays()
+                in_truths_world = node.slam.anchor is not None and node.slam.anchor in node.world_tags
+            traj = poses[:, :3, 3]
+            gt: np.ndarray | None = gt_poses[:, :3, 3]
+            if not in_truths_world and len(gt_stamps):  # slam's world is its anchor tag's: the truth fitted to it
+                gt = truth_in_estimate_frame(stamps, traj, gt_stamps, gt_poses[:, :3, 3])
             where = f"world/robots/{robot}" if node.fleet else "world"  # the fleet view: a trajectory each
             viz.trajectory(cam.capture_nanos, f"{where}/trajectory", traj)
-            viz.trajectory(cam.capture_nanos, f"{where}/groundtruth", gt)
+            if gt is not None:
+                viz.trajectory(cam.capture_nanos, f"{where}/groundtruth", gt)
 
     last_checkpoint = time.monotonic()
     try:

@@ -264,11 +264,11 @@ class FolderSource:
 
     @property
     def span_nanos(self) -> int | None:
-        """How long one pass of the stamped images lasts (last - first stamp plus the median frame
+        """How long one pass of the stamped images lasts (latest - earliest stamp plus the median frame
         period), the shift of each new pass when the source loops; None without stamps."""
-        stamps = self.stamps_nanos
-        if not stamps:
+        if not self.stamps_nanos:
             return None
+        stamps = sorted(self.stamps_nanos)  # (rgb.txt's order is the images', not necessarily time's)
         period = int(np.median(np.diff(stamps))) if len(stamps) > 1 else 0
         return stamps[-1] - stamps[0] + max(period, 1)
 

@@ -974,7 +974,14 @@ class MarkerSlam:
         places it beyond by more than JUMP_SIGMAS of its own uncertainty (the view's and its tag's): a
         far or face-on tag, whose tilt barely holds, moves the camera by decimetres and is no jump."""
         s = self.settings
-        clear = [(o, wt) for o, wt in mapped if not self.is_ambiguous(o)]
+        # Only tags of the robot's own fragment: the last pose of a robot in a fragment placed by a long
+        # gap's guess may be metres from the world's tags, and a view of those is the join, not a jump.
+        own = self._fragments.find(track.fragment)
+        clear = [
+            (o, wt)
+            for o, wt in mapped
+            if not self.is_ambiguous(o) and self._fragments.find(self._tag_fragment[o.tag_id]) == own
+        ]
         if not clear or not track.stamps:
             return False
         last = max(track.stamps)
@@ -1268,6 +1275,19 @@ def absolute_trajectory_error(est: dict[int, Array], gt: dict[int, Array]) -> tu
         np.array(common, np.int64),
         np.array([gt[s][:3, 3] for s in common]).reshape(-1, 3),
     )
+
+
+def truth_in_estimate_frame(
+    est_stamps: Array, est_positions: Array, gt_stamps: Array, gt_positions: Array
+) -> Array | None:
+    """Ground-truth positions (n, 3) moved into the estimate's frame by the SE(3) fit over the stamps
+    both have (None with fewer than 3): what a viewer draws beside a trajectory whose world is not the
+    truth's (slam without world poses works in its anchor tag's frame)."""
+    _, ie, ig = np.intersect1d(est_stamps, gt_stamps, assume_unique=False, return_indices=True)
+    if len(ie) < 3:
+        return None
+    t = umeyama_se3(np.asarray(gt_positions)[ig], np.asarray(est_positions)[ie])
+    return np.asarray((t[:3, :3] @ np.asarray(gt_positions).T).T + t[:3, 3])
 
 
 def absolute_trajectory_error_arrays(

@@ -151,16 +151,12 @@ class FleetProcess:
 
 def demo_tables(run_dir: Path, *, slam_map: bool = False) -> dict[str, Any]:
     """The demo scene's tag map (sizes and world poses) for edge_infer and robot_infer, and for slam
-    with `slam_map` (then its poses are priors; without, slam builds the map from what the robots see)."""
-    import yaml
+    with `slam_map` (then its poses are priors; without, slam builds the map from what the robots see):
+    launch.run_map_tables for the demo source."""
+    from shared.tools.launch import run_map_tables
 
-    from shared.tools.launch import demo_tag_map
-
-    path = run_dir / "tag_map.yaml"
-    run_dir.mkdir(parents=True, exist_ok=True)
-    path.write_text(yaml.safe_dump(demo_tag_map().model_dump(), sort_keys=False))
     users = ("edge_infer", "robot_infer", "slam") if slam_map else ("edge_infer", "robot_infer")
-    return {name: {"tag_map": str(path)} for name in users}
+    return run_map_tables({}, run_dir, demo_users=users)[0]
 
 
 def fleet_configs(
@@ -304,14 +300,15 @@ def run_fleet(
         Started,
         attach_monitor,
         configuration_error_line,
-        demo_tag_map,
         forget_run_files,
         new_run_dir,
+        run_map_tables,
         start_process,
         stop_services,
         wait_for_run,
     )
     from shared.tools.supervise import Supervisor
+    from shared.vision.tagmap import load_tag_map
     from shared.viz.recording import merge_recordings
     from shared.wire import keys
 
@@ -322,7 +319,9 @@ def run_fleet(
         print(f"warning: {line}", flush=True)
     run_dir = new_run_dir(runs_root)
     base = tomllib.loads(Path(config).read_text())
-    extra = demo_tables(run_dir) if base.get("camera", {}).get("source", "demo") == "demo" else {}
+    # One tag map for the run (launch.run_map_tables); the demo scene's goes to edge_infer and robot_infer
+    # only: without a map of its own, slam builds the fleet's map from what the robots see.
+    extra, run_map = run_map_tables(base, run_dir, demo_users=("edge_infer", "robot_infer"))
     specs = [
         s for s in fleet_configs(plan, run_dir, config, extra=extra) if only is None or (s.robot_id or "edge") == only
     ]
@@ -358,11 +357,12 @@ def run_fleet(
                 running[i] = (spec, start(spec))
                 write_pids()
 
-    # Tag errors against the demo map always; slam's pose error only when slam works in that map's world
+    # Tag errors against the run's map; slam's pose error only when slam works in that map's world
     # (without a map its world is its anchor tag's, and the error read 369 cm for poses 0.1 cm right).
     slam_has_map = "tag_map" in {**base.get("slam", {}), **extra.get("slam", {})}
+    run_tags = load_tag_map(run_map) if run_map is not None else None
     monitors = {
-        r: Monitor(demo_tag_map(), max_records=200_000, slam_has_map=slam_has_map)
+        r: Monitor(run_tags, max_records=200_000, slam_has_map=slam_has_map)
         for r in plan.robots
         if only in (None, "edge", r)
     }

@@ -373,6 +373,48 @@ def attach_monitor(session: zenoh.Session, robot_id: str, monitor: Monitor) -> l
 MAP_USERS = ("edge_infer", "robot_infer", "slam")  # the services that read `tag_map`
 
 
+def repo_path(path: str | Path) -> Path:
+    """A path as the services read it: they run from the repository root (start_process), so a relative
+    path in a config is relative to it, wherever the launcher was started."""
+    p = Path(path).expanduser()
+    return p if p.is_absolute() else REPO / p
+
+
+def run_map_tables(
+    tables: dict[str, Any], run_dir: Path, *, demo_users: tuple[str, ...] = MAP_USERS
+) -> tuple[dict[str, dict[str, Any]], Path | None]:
+    """One tag map for a run whose config `tables` are given: (the tables that give it to the services
+    that name none, the map's path or None).
+
+    The map the tables name (slam's, else edge_infer's, else robot_infer's) goes to each of the three that
+    names none, so the edge solves every tag at the size slam maps it with; different maps are warned
+    about. None named: the demo scene's map for the demo source (written to run_dir/tag_map.yaml, for
+    `demo_users`); for any other source no map (every tag at the services' default_tag_size_m, slam's
+    world its anchor tag's), with a warning: the demo's map would give a user's tags the demo's sizes
+    and poses."""
+    named = {svc: tables.get(svc, {}).get("tag_map") for svc in MAP_USERS}
+    given = [str(named[svc]) for svc in ("slam", "edge_infer", "robot_infer") if named[svc]]
+    if len({repo_path(g).resolve() for g in given}) > 1:
+        log.warning(
+            "the services name different tag maps (%s): a tag solved at one size and mapped at another is "
+            "rescaled by slam, but give them one map",
+            ", ".join(f"{svc}: {named[svc]}" for svc in MAP_USERS if named[svc]),
+        )
+    if given:
+        return {svc: {"tag_map": given[0]} for svc in MAP_USERS if not named[svc]}, repo_path(given[0])
+    if tables.get("camera", {}).get("source", "demo") == "demo":
+        path = run_dir / "tag_map.yaml"
+        run_dir.mkdir(parents=True, exist_ok=True)
+        path.write_text(yaml.safe_dump(demo_tag_map().model_dump(), sort_keys=False))
+        return {svc: {"tag_map": str(path)} for svc in demo_users}, path
+    log.warning(
+        "no tag_map: every tag is solved at the services' default size (default_tag_size_m, 0.2 m) and slam's "
+        "world is the frame of the tag it anchors on; name a tag map (README: Your own data) under [slam] "
+        "(the launcher gives it to edge_infer and robot_infer too)"
+    )
+    return {}, None
+
+
 def write_run_config(
     run_dir: Path,
     base_config: Path,
@@ -380,40 +422,11 @@ def write_run_config(
     topology: Topology | None = None,
     extra: dict[str, dict[str, Any]] | None = None,
 ) -> Path:
-    """The run's config.toml: the deploy TOML with run_dir and one tag map for the whole run, its
-    endpoints from `topology` when given (shared.tools.topology), then `extra`.
-
-    The run's tag map: the one the config names (slam's, else edge_infer's, else robot_infer's), given
-    to each of the three that names none, so the edge solves every tag at the size slam maps it with;
-    different maps are warned about. None named: the demo scene's map for the demo source (written to
-    run_dir/tag_map.yaml); for any other source no map (every tag at the services' default size, slam's
-    world its first anchor tag's), with a warning: the demo's map would give your tags the demo's sizes
-    and poses."""
+    """The run's config.toml: the deploy TOML with run_dir and one tag map for the whole run
+    (`run_map_tables`), its endpoints from `topology` when given (shared.tools.topology), then `extra`."""
     base = tomllib.loads(base_config.read_text())
-    merged = merge(base, extra or {})
-    named = {svc: merged.get(svc, {}).get("tag_map") for svc in MAP_USERS}
-    given = [str(named[svc]) for svc in ("slam", "edge_infer", "robot_infer") if named[svc]]
-    if len(set(given)) > 1:
-        log.warning(
-            "the services name different tag maps (%s): a tag solved at one size and mapped at another is "
-            "rescaled by slam, but give them one map",
-            ", ".join(f"{svc}: {named[svc]}" for svc in MAP_USERS if named[svc]),
-        )
-    run_map: str | None = given[0] if given else None
-    if run_map is None and merged.get("camera", {}).get("source", "demo") == "demo":
-        tag_map_path = run_dir / "tag_map.yaml"
-        tag_map_path.write_text(yaml.safe_dump(demo_tag_map().model_dump(), sort_keys=False))
-        run_map = str(tag_map_path)
-    elif run_map is None:
-        log.warning(
-            "no tag_map: every tag is solved at the default size (default_tag_size_m) and slam's world is the "
-            "frame of the tag it anchors on; name a tag map (README: Your own data) under [slam] (the "
-            "launcher gives it to edge_infer and robot_infer too)"
-        )
-    run_tables: dict[str, dict[str, Any]] = {"common": {"run_dir": str(run_dir)}}
-    for svc in MAP_USERS:
-        if run_map is not None and not named[svc]:
-            run_tables[svc] = {"tag_map": run_map}
+    maps, _ = run_map_tables(merge(base, extra or {}), run_dir)
+    run_tables = merge({"common": {"run_dir": str(run_dir)}}, maps)
     return write_config(
         run_dir / "config.toml", base=base_config, topology=topology, extra=merge(run_tables, extra or {})
     )
@@ -443,7 +456,7 @@ def run_tag_map(config: Path) -> TagMapFile | None:
     """The tag map the run's slam uses (its config's `slam.tag_map`), so the monitor measures errors in
     slam's world; None when it names none (slam's world is then its anchor tag's: no error is measured)."""
     path = tomllib.loads(config.read_text()).get("slam", {}).get("tag_map")
-    return load_tag_map(Path(path)) if path else None
+    return load_tag_map(repo_path(path)) if path else None
 
 
 def monitor_settings(config: Path) -> tuple[str, ZenohSettings]:
