@@ -141,6 +141,7 @@ def test_the_cli_says_a_users_mistake_in_one_line(tmp_path: Path) -> None:
         (["up", "--config", str(bad_toml), "--runs", str(tmp_path / "runs")], "not valid TOML"),
         (["split", "set"], "give k"),
         (["split", "get", "3"], "are for set"),
+        (["split", "set", "9", "--connect", "tcp/127.0.0.1:1"], "split index must be an int in 0..7, got 9"),
         (
             ["detect", str(tmp_path), "--camera", str(tmp_path / "nope.yaml"), "--tag-size", "0.1", "--json", "o.json"],
             "nope.yaml",

@@ -131,6 +131,14 @@ def _cmd_split(args: argparse.Namespace) -> int:
     if args.action != "set" and (k is not None or codec is not None):
         print(f"splittag split {args.action}: k and --codec are for set", file=sys.stderr)
         return 2
+    if k is not None:  # said before reaching for the router: a bad k is the user's, not the network's
+        from shared.wire.cuts import check_cut
+
+        try:
+            check_cut(k)
+        except ValueError as exc:
+            print(f"splittag split set: {exc}", file=sys.stderr)
+            return 2
     print(split_query(args.robot_id, args.connect, k=k, codec=codec, release=release, tls=tls))
     return 0
 
