@@ -7,6 +7,7 @@ import pytest
 from shared.control.compute import ComputeEstimator, head_per_tag_ms, tail_per_tag_ms
 
 CUMULATIVE = [0.1, 15.0, 19.0, 22.0, 23.0, 27.0, 28.0, 32.0]
+TAILS = [32.0 - c for c in CUMULATIVE]  # (the edge times each tail on its own: calibrate_tail_ms)
 
 
 def test_robot_scale_learnt_at_heavy_cuts_applies_to_all() -> None:
@@ -22,7 +23,7 @@ def test_robot_scale_learnt_at_heavy_cuts_applies_to_all() -> None:
 
 
 def test_light_cuts_teach_nothing_and_stale_scale_decays_to_calibration() -> None:
-    est = ComputeEstimator(tail_per_tag_ms(CUMULATIVE, pnp_ms=0.1))  # edge: heavy at k = 0
+    est = ComputeEstimator(tail_per_tag_ms(TAILS, pnp_ms=0.1))  # edge: heavy at k = 0
     for _ in range(13):
         est.observe(k=0, tags=3, network_ms=1.5 * 3 * (31.9 + 0.1))
     assert est.live_scale == pytest.approx(1.5)
@@ -45,6 +46,6 @@ def test_views_multiply_only_the_whole_network_passes() -> None:
     robot = head_per_tag_ms(CUMULATIVE, views=4)
     assert robot[:7] == head_per_tag_ms(CUMULATIVE)[:7]
     assert robot[7] == pytest.approx(4 * 32.0)
-    edge = tail_per_tag_ms(CUMULATIVE, pnp_ms=0.1, views=4)
-    assert edge[1:] == tail_per_tag_ms(CUMULATIVE, pnp_ms=0.1)[1:]
+    edge = tail_per_tag_ms(TAILS, pnp_ms=0.1, views=4)
+    assert edge[1:] == tail_per_tag_ms(TAILS, pnp_ms=0.1)[1:]
     assert edge[0] == pytest.approx(4 * (32.0 - 0.1) + 0.1)

@@ -25,7 +25,7 @@ import zenoh
 from services.edge_infer.settings import EdgeInferSettings
 from shared.control.compute import ComputeEstimator, tail_per_tag_ms
 from shared.model.profile import calibrate_pnp_ms
-from shared.model.runtime import calibrate_cumulative_ms, load_split_net
+from shared.model.runtime import calibrate_tail_ms, load_split_net
 from shared.model.views import with_views
 from shared.model.weights import load_keypoint_fusion
 from shared.perception.split import EdgeInput, check_features, edge_batch
@@ -115,7 +115,7 @@ class EdgeInfer:
         emulated = s.emulated_ms_per_tag_by_k
         self.emulated = [emulated[0] * s.views, *emulated[1:]] if emulated else None
         self.per_tag_ms = self.emulated or tail_per_tag_ms(
-            calibrate_cumulative_ms(one_view), pnp_ms=calibrate_pnp_ms(), views=s.views
+            calibrate_tail_ms(one_view), pnp_ms=calibrate_pnp_ms(), views=s.views
         )
         self.default_map = load_tag_map(s.tag_map) if s.tag_map else TagMapFile(default_size_m=s.default_tag_size_m)
         # Every robot's own map is read now: a bad file stops the worker at start, not when the robot arrives.

@@ -113,10 +113,10 @@ def head_per_tag_ms(cumulative_ms: Sequence[float], *, views: int = 1) -> list[f
     return out
 
 
-def tail_per_tag_ms(cumulative_ms: Sequence[float], pnp_ms: float, *, views: int = 1) -> list[float]:
-    """Edge side: the rest of the network after each cut, plus PnP, per tag; from cut 0 (the whole
-    network) once per test-time view. `cumulative_ms` is one view's (calibrated without views)."""
-    full = float(cumulative_ms[-1])
-    out = [max(0.0, full - float(v)) + pnp_ms for v in cumulative_ms]
-    out[0] = max(0.0, views * (full - float(cumulative_ms[0]))) + pnp_ms
+def tail_per_tag_ms(tail_ms: Sequence[float], pnp_ms: float, *, views: int = 1) -> list[float]:
+    """Edge side: the rest of the network after each cut (`tail_ms`, one view's, timed per cut:
+    shared.model.runtime.calibrate_tail_ms), plus PnP, per tag; from cut 0 (the whole network) once per
+    test-time view."""
+    out = [max(0.0, float(v)) + pnp_ms for v in tail_ms]
+    out[0] = max(0.0, views * float(tail_ms[0])) + pnp_ms
     return out

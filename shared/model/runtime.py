@@ -72,6 +72,25 @@ def load_split_net(weights: Path, precision: PrecisionChoice, *, threads: int | 
     return TorchSplitNet(load_model(weights), bf16=precision == "bf16")
 
 
+def calibrate_tail_ms(net: SplitNet, *, repetitions: int = 5) -> list[float]:
+    """Tail time per tag (batch 1) from every cut to the keypoints, ms, each timed on its own cut's
+    features (the minimum over repetitions): what the edge computes. Not the whole network minus the
+    head: each half is its own compiled graph, and a fresh trial read E(4) = 0.2 ms (PnP alone) and
+    E(6) > E(5) from that difference."""
+    x = np.random.default_rng(0).integers(0, 256, (1, INPUT_SIZE, INPUT_SIZE), dtype=np.uint8)
+    out = []
+    for cut in CUTS:
+        z = net.head(x, cut.k)
+        net.tail(z, cut.k)  # compiles this half on first use (OpenVINO), outside the timing
+        times = []
+        for _ in range(repetitions):
+            t0 = time.perf_counter()
+            net.tail(z, cut.k)
+            times.append((time.perf_counter() - t0) * 1e3)
+        out.append(min(times))
+    return out
+
+
 def calibrate_cumulative_ms(net: SplitNet, *, repetitions: int = 5) -> list[float]:
     """Cumulative head time per tag (batch 1) at every cut, ms: the minimum over repetitions (services
     start together and calibrate while their neighbours load; live measurements scale it later)."""

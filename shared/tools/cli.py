@@ -444,7 +444,7 @@ def _cmd_link_cost(args: argparse.Namespace) -> int:
     import torch
 
     from shared.model.profile import calibrate_pnp_ms
-    from shared.model.runtime import calibrate_cumulative_ms, load_split_net
+    from shared.model.runtime import calibrate_cumulative_ms, calibrate_tail_ms, load_split_net
     from shared.tools.linkprobe import cost_table, link_fit_of, plot_costs
     from shared.wire.cuts import CUTS, tensor_bytes
 
@@ -454,7 +454,7 @@ def _cmd_link_cost(args: argparse.Namespace) -> int:
     cumulative = calibrate_cumulative_ms(net, repetitions=args.repetitions)
     pnp = calibrate_pnp_ms()
     compute = [args.tags * c for c in cumulative]
-    edge = [args.tags * (cumulative[-1] - c + pnp) for c in cumulative]
+    edge = [args.tags * (t + pnp) for t in calibrate_tail_ms(net, repetitions=args.repetitions)]
     payload = [args.tags * tensor_bytes(c.k, "fp16") / 1024 for c in CUTS]
     table = cost_table(compute_ms=compute, edge_ms=edge, payload_kB=payload, fit=fit, gammas=args.gamma)
     print(

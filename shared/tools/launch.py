@@ -667,7 +667,12 @@ def run_pipeline(
     if emu is not None:
         emu.log_dir = run_dir
         emu.up(profile(link or "5g"))
-        print(f"emulated link up: profile {link}; `sudo splittag link set PROFILE` switches it live", flush=True)
+        cli = Path(sys.executable).parent / "splittag"
+        print(
+            f"emulated link up: profile {link}; `sudo {cli} link set PROFILE` switches it live; the edge's router "
+            f"is {zs.connect[0]}: `{cli} split get --connect {zs.connect[0]}` (and set, release) steers the split",
+            flush=True,
+        )
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     monitor = Monitor(run_tag_map(run_config), max_records=200_000)  # a deployment may run for days

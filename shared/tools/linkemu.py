@@ -351,7 +351,8 @@ class LinkEmulator:
                 )
             )
         control_request(s.control_path, {"delay_ms": p.delay_ms})
-        log.info("link profile %s: rate %s Mbit/s, delay %.1f ms", p.name, p.rate_mbit or "unshaped", p.delay_ms)
+        rate = f"{p.rate_mbit} Mbit/s" if p.rate_mbit else "unshaped"
+        log.info("link profile %s: rate %s, delay %.1f ms", p.name, rate, p.delay_ms)
 
     def down(self) -> None:
         """Remove everything (idempotent)."""
