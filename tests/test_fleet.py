@@ -193,6 +193,11 @@ def test_a_liveliness_key_that_does_not_parse_is_counted_not_followed() -> None:
     _on_token(_Token("splittag/@fleet/fleet/oops", zenoh.SampleKind.PUT), keys.worker_of, up, down, guard)  # type: ignore[arg-type]
     assert seen == ["edge2"]
     assert guard.stats()["rejected_by_reason"] == {"liveliness: ValueError": 1}
+    guard.run("tag_poses", 10, lambda: None)
+    guard.run("ground_truth", 10, lambda: None)
+    guard.run("ground_truth", 10, lambda: None)
+    assert guard.stats()["accepted"] == 3  # (slam's stats: what it took, by input)
+    assert guard.stats()["accepted_by_input"] == {"tag_poses": 1, "ground_truth": 2}
 
 
 def test_make_certs_writes_each_host_only_its_own_keys(tmp_path: Path) -> None:

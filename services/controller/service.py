@@ -41,6 +41,7 @@ def _probe_loop(
     burst_from = core.link.changes
     last_probe = 0.0
     busy_since: float | None = None
+    answered = False  # until the echo first answers, a failed probe is the edge still starting: info, not warning
     while not stop.wait(0.005):
         now = time.monotonic()
         with lock:
@@ -67,10 +68,11 @@ def _probe_loop(
             try:
                 r = prober.round_trip(encode(probe_features(size)))
             except ProbeError as exc:
-                log.warning("probe of %d bytes failed: %s", size, exc)
+                log.log(logging.WARNING if answered else logging.INFO, "probe of %d bytes failed: %s", size, exc)
                 continue
             finally:
                 last_probe = time.monotonic()
+            answered = True
             with lock:
                 if r.link is not None:
                     core.add_crossing(r.payload_bytes, r.link)

@@ -38,6 +38,7 @@ class InputGuard:
         self._clock = clock
         self._lock = threading.Lock()
         self.accepted = 0
+        self.accepted_by_input: Counter[str] = Counter()  # slam takes TagPoses, ground truth, frame stamps...
         self.rejected: Counter[str] = Counter()
         self._last_log = -float("inf")
         self._unlogged = 0
@@ -51,6 +52,7 @@ class InputGuard:
             return None
         with self._lock:
             self.accepted += 1
+            self.accepted_by_input[what] += 1
         return result
 
     def reject(self, what: str, payload_bytes: int, exc: BaseException) -> None:
@@ -80,11 +82,12 @@ class InputGuard:
         )
 
     def stats(self) -> dict[str, Any]:
-        """accepted, rejected and rejected by reason."""
+        """accepted (in all and by input), rejected and rejected by reason."""
         with self._lock:
             return {
                 "service": self.service,
                 "accepted": self.accepted,
+                "accepted_by_input": dict(self.accepted_by_input),
                 "rejected": sum(self.rejected.values()),
                 "rejected_by_reason": dict(self.rejected),
             }
