@@ -49,3 +49,29 @@ def test_views_multiply_only_the_whole_network_passes() -> None:
     edge = tail_per_tag_ms(TAILS, pnp_ms=0.1, views=4)
     assert edge[1:] == tail_per_tag_ms(TAILS, pnp_ms=0.1)[1:]
     assert edge[0] == pytest.approx(4 * (32.0 - 0.1) + 0.1)
+
+
+def test_the_edge_times_each_tail_on_its_own_cuts_input_and_runs_no_head() -> None:
+    """calibrate_tail_ms feeds each tail an input of its cut's shape and dtype, as edge_step does (ROI
+    pixels uint8 at cut 0, float32 after), and never runs a head: the edge compiles none it never uses."""
+    import numpy as np
+
+    from shared.model.runtime import calibrate_tail_ms
+    from shared.wire.cuts import CUTS
+
+    class Recording:
+        def __init__(self) -> None:
+            self.calls: list[tuple[int, tuple[int, ...], str]] = []
+
+        def head(self, rois: object, k: int) -> object:
+            raise AssertionError("the edge's calibration ran a head")
+
+        def tail(self, z: np.ndarray, k: int) -> np.ndarray:
+            self.calls.append((k, z.shape, str(z.dtype)))
+            return np.zeros((z.shape[0], 16, 2), np.float32)
+
+    net = Recording()
+    out = calibrate_tail_ms(net, repetitions=2)  # type: ignore[arg-type]
+    assert len(out) == len(CUTS) and all(v >= 0 for v in out)
+    expected = [(c.k, (1, *c.shape), "uint8" if c.k == 0 else "float32") for c in CUTS]
+    assert sorted(set(net.calls)) == expected and len(net.calls) == 3 * len(CUTS)  # one untimed + 2 timed each

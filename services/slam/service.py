@@ -68,7 +68,7 @@ class RobotRun:
     # frame's TagPoses come; trajectory.tum is written in that time when every pose has one.
     source_stamps: StampMap = field(default_factory=StampMap)
     stamp_recent: OrderedDict[int, int] = field(default_factory=OrderedDict)
-    # the resumed run's trajectory, as arrays (seconds, poses): written first, never shortened
+    # the resumed run's trajectory, as arrays (nanoseconds, poses): written first, never shortened
     previous_stamps_nanos: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     previous_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4), np.float64))
     last_pose: np.ndarray | None = None
@@ -108,7 +108,8 @@ class SlamNode:
         self.slam = MarkerSlam(slam_settings, known_tags=known, known_sigmas=known_sigmas, surveyed=surveyed)
         # The sizes slam's map gives: a tag the edge solved at another size (its own tag map, or none) is
         # rescaled to this one (PnP's translation scales with the size), said once per tag.
-        self.sizes = configured
+        self.sizes = configured  # (its sizes by id below: looked up for every tag of every frame)
+        self._size_by_id = {t.id: t.size_m for t in configured.tags} if configured else {}
         # the tags whose world the configured map gives (a checkpoint's poses are in slam's own world)
         self.world_tags = {t.id for t in configured.tags if t.world_from_tag is not None} if configured else set()
         self._resized: set[int] = set()
@@ -126,7 +127,7 @@ class SlamNode:
         """The observation at the size slam's tag map gives its tag (unchanged without a map)."""
         if self.sizes is None:
             return o
-        size = self.sizes.size_of(o.tag_id)
+        size = self._size_by_id.get(o.tag_id, self.sizes.default_size_m)
         if abs(size - o.size_m) <= 1e-3 * size:
             return o
         if o.tag_id not in self._resized and len(self._resized) < MAX_RESIZED_WARNINGS:

@@ -10,7 +10,6 @@ import logging
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
-from decimal import Decimal, InvalidOperation
 from pathlib import Path
 from typing import Final, Protocol
 
@@ -29,7 +28,7 @@ from shared.vision.geometry import (
     lattice_in_tag,
     project,
 )
-from shared.vision.trajectory import read_tum
+from shared.vision.trajectory import parse_stamp_nanos, read_tum
 
 log = logging.getLogger(__name__)
 
@@ -163,9 +162,6 @@ def expand_paths(paths: list[Path]) -> list[Path]:
     return out
 
 
-_MAX_STAMP_S: Final[Decimal] = Decimal(2**63).scaleb(-9)  # stamps travel as int64 nanoseconds
-
-
 def parse_rgb_list(text: str, root: Path, *, name: str = "rgb.txt") -> list[tuple[int, Path]]:
     """A TUM-style image list: `timestamp filename` per line (seconds; filename relative to `root`), `#`
     comments; [(nanoseconds, exact to the digits given, path)] in file order. Raises GeometryError
@@ -178,12 +174,10 @@ def parse_rgb_list(text: str, root: Path, *, name: str = "rgb.txt") -> list[tupl
         if len(parts) != 2:
             raise GeometryError(f"{name}:{n}: expected 'timestamp filename', got {line.strip()!r}")
         try:
-            stamp = Decimal(parts[0])
-        except InvalidOperation:
-            raise GeometryError(f"{name}:{n}: timestamp {parts[0]!r} is not a number") from None
-        if not stamp.is_finite() or not 0 <= stamp < _MAX_STAMP_S:
-            raise GeometryError(f"{name}:{n}: timestamp {parts[0]!r} must be a finite time in [0, 2**63 ns) s")
-        out.append((int(stamp.scaleb(9).to_integral_value()), root / parts[1]))
+            stamp = parse_stamp_nanos(parts[0])
+        except GeometryError as exc:
+            raise GeometryError(f"{name}:{n}: {exc}") from None
+        out.append((stamp, root / parts[1]))
     return out
 
 

@@ -153,13 +153,14 @@ class SlamSettings(BaseModel):
     max_turn_deg_s: float = Field(default=180.0, gt=0)
     envelope_margin_m: float = Field(default=0.15, ge=0)
     envelope_margin_deg: float = Field(default=10.0, ge=0)
-    # A jump: the unambiguous views of mapped tags place the camera farther from its last pose than the
-    # motion envelope allows by more than these margins (a recording replayed from its start, a robot
-    # carried elsewhere, a camera restarted at another place). That frame gets no constant-velocity
-    # prior and no prediction: the views place it, and the frames before it are not bent towards it
-    # (a folder replayed in a loop had each pass's first pose 1.6 m off and the 9 frames before it
-    # pulled up to 4 m). The margins sit well above what a far tag's tilt error moves the camera
-    # (5 deg at 3.5 m is 0.3 m), so a bad read is not taken for a jump.
+    # A jump: the unambiguous views of the robot's own fragment's tags place the camera farther from its
+    # last pose than the motion envelope allows, by more than these margins and by more than JUMP_SIGMAS
+    # of a view's own uncertainty, and none agrees with the motion (a recording replayed from its start,
+    # a robot carried elsewhere). That frame gets no constant-velocity prior and no prediction: the
+    # views place it, and the frames before it are not bent towards it (a folder replayed in a loop had
+    # each pass's first pose 1.6 m off and the 9 frames before it pulled up to 4 m). The margins alone
+    # do not tell a bad read from a jump (two blurred far reads put the default fast room's camera
+    # 1.27 m off at frame 67): the sigma test does.
     jump_margin_m: float = Field(default=0.5, ge=0)
     jump_margin_deg: float = Field(default=30.0, ge=0)
 
@@ -1277,16 +1278,22 @@ def absolute_trajectory_error(est: dict[int, Array], gt: dict[int, Array]) -> tu
     )
 
 
+def _matched(est_stamps: Array, est_positions: Array, gt_stamps: Array, gt_positions: Array) -> tuple[Array, Array]:
+    """The estimate's and the truth's positions at the stamps both have (m, 3) each."""
+    _, ie, ig = np.intersect1d(est_stamps, gt_stamps, assume_unique=False, return_indices=True)
+    return np.asarray(est_positions)[ie], np.asarray(gt_positions)[ig]
+
+
 def truth_in_estimate_frame(
     est_stamps: Array, est_positions: Array, gt_stamps: Array, gt_positions: Array
 ) -> Array | None:
     """Ground-truth positions (n, 3) moved into the estimate's frame by the SE(3) fit over the stamps
     both have (None with fewer than 3): what a viewer draws beside a trajectory whose world is not the
     truth's (slam without world poses works in its anchor tag's frame)."""
-    _, ie, ig = np.intersect1d(est_stamps, gt_stamps, assume_unique=False, return_indices=True)
-    if len(ie) < 3:
+    a, b = _matched(est_stamps, est_positions, gt_stamps, gt_positions)
+    if len(a) < 3:
         return None
-    t = umeyama_se3(np.asarray(gt_positions)[ig], np.asarray(est_positions)[ie])
+    t = umeyama_se3(b, a)
     return np.asarray((t[:3, :3] @ np.asarray(gt_positions).T).T + t[:3, 3])
 
 
@@ -1295,12 +1302,10 @@ def absolute_trajectory_error_arrays(
 ) -> tuple[float, int]:
     """`absolute_trajectory_error` for arrays of stamps (n,) and positions (n, 3): after SE(3) alignment
     (TUM's ATE), or as they are (`align=False`: the trajectory is in the ground truth's world)."""
-    _, ie, ig = np.intersect1d(est_stamps, gt_stamps, assume_unique=False, return_indices=True)
-    if len(ie) < 3:
-        raise ValueError(f"need >= 3 matching stamps, have {len(ie)}")
-    a = np.asarray(est_positions)[ie]
-    b = np.asarray(gt_positions)[ig]
+    a, b = _matched(est_stamps, est_positions, gt_stamps, gt_positions)
+    if len(a) < 3:
+        raise ValueError(f"need >= 3 matching stamps, have {len(a)}")
     if align:
         t = umeyama_se3(a, b)
         a = (t[:3, :3] @ a.T).T + t[:3, 3]
-    return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1)))), len(ie)
+    return float(np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1)))), len(a)

@@ -302,6 +302,7 @@ def run_fleet(
         configuration_error_line,
         forget_run_files,
         new_run_dir,
+        run_for,
         run_map_tables,
         start_process,
         stop_services,
@@ -385,14 +386,13 @@ def run_fleet(
         )
         if started.up:
             print(f"fleet run {run_dir}: {', '.join(s.name for s in specs)} up; Ctrl-C stops", flush=True)
-            t_end = None if duration_secs is None else time.monotonic() + duration_secs
-            while not stop.wait(1.0):
-                if not quiet:
-                    for robot, monitor in monitors.items():
-                        print(f"{robot:>10} {monitor.line()}", flush=True)
-                if t_end is not None and time.monotonic() > t_end:
-                    break
-                restart_dead()
+            run_for(
+                stop,
+                duration_secs,
+                lines=lambda: [f"{robot:>10} {monitor.line()}" for robot, monitor in monitors.items()],
+                quiet=quiet,
+                supervise=restart_dead,
+            )
         for sub in started.subscriptions:
             sub.undeclare()
     finally:

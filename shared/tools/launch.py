@@ -518,6 +518,25 @@ class Started:
     up: bool = False
 
 
+def run_for(
+    stop: threading.Event,
+    duration_secs: float | None,
+    *,
+    lines: Callable[[], list[str]],
+    quiet: bool,
+    supervise: Callable[[], object],
+) -> None:
+    """A started run, once a second: print the live `lines` (unless `quiet`) and `supervise` (restart
+    the dead; a False return ends the run: its camera's source ended); until `stop`, `duration_secs`."""
+    t_end = None if duration_secs is None else time.monotonic() + duration_secs
+    while not stop.wait(1.0):
+        if not quiet:
+            for line in lines():
+                print(line, flush=True)
+        if (t_end is not None and time.monotonic() > t_end) or supervise() is False:
+            break
+
+
 def wait_for_run(
     settings: ZenohSettings,
     wanted: list[str],
@@ -694,12 +713,7 @@ def run_pipeline(
         )
         if started.up:
             print(f"run {run_dir}: {', '.join(services)} alive; Ctrl-C stops", flush=True)
-            t_end = None if duration_secs is None else time.monotonic() + duration_secs
-            while not stop.wait(1.0):
-                if not quiet:
-                    print(monitor.line(), flush=True)
-                if (t_end is not None and time.monotonic() > t_end) or not running.supervise():
-                    break
+            run_for(stop, duration_secs, lines=lambda: [monitor.line()], quiet=quiet, supervise=running.supervise)
         for sub in started.subscriptions:
             sub.undeclare()
     finally:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
+from typing import Final
 
 import numpy as np
 from numpy.typing import NDArray
@@ -13,10 +14,8 @@ from shared.vision.files import atomic_write_text
 from shared.vision.geometry import Array, GeometryError, make_pose
 
 
-def read_tum(path: Path) -> list[tuple[float, Array]]:
-    """TUM trajectory lines `t tx ty tz qx qy qz qw` -> [(t, world_from_camera)]."""
-    from scipy.spatial.transform import Rotation
-
+def _tum_rows(path: Path) -> list[list[str]]:
+    """The 8 fields of each TUM line (comments and blank lines skipped)."""
     out = []
     for n, line in enumerate(Path(path).read_text().splitlines(), start=1):
         if not line.strip() or line.startswith("#"):
@@ -24,9 +23,20 @@ def read_tum(path: Path) -> list[tuple[float, Array]]:
         parts = line.split()
         if len(parts) != 8:
             raise GeometryError(f"{path}:{n}: expected 8 numbers, got {len(parts)}")
-        v = [float(p) for p in parts]
-        out.append((v[0], make_pose(Rotation.from_quat(v[4:8]).as_matrix(), v[1:4])))
+        out.append(parts)
     return out
+
+
+def _pose_of(fields: list[str]) -> Array:
+    from scipy.spatial.transform import Rotation
+
+    v = [float(p) for p in fields]
+    return make_pose(Rotation.from_quat(v[3:7]).as_matrix(), v[0:3])
+
+
+def read_tum(path: Path) -> list[tuple[float, Array]]:
+    """TUM trajectory lines `t tx ty tz qx qy qz qw` -> [(t, world_from_camera)]."""
+    return [(float(parts[0]), _pose_of(parts[1:])) for parts in _tum_rows(path)]
 
 
 def write_tum(path: Path, rows: list[tuple[float, Array]]) -> None:
@@ -60,32 +70,31 @@ def write_tum_arrays(path: Path, stamps: Array, poses: Array) -> None:
 
 
 def format_stamp_nanos(nanos: int) -> str:
-    """A stamp in nanoseconds as exact decimal seconds (9 decimals)."""
-    sign = "-" if nanos < 0 else ""
-    secs, frac = divmod(abs(nanos), 1_000_000_000)
-    return f"{sign}{secs}.{frac:09d}"
+    """A stamp in nanoseconds (>= 0, as parse_stamp_nanos reads them) as exact decimal seconds."""
+    secs, frac = divmod(nanos, 1_000_000_000)
+    return f"{secs}.{frac:09d}"
+
+
+_MAX_STAMP_S: Final[Decimal] = Decimal(2**63).scaleb(-9)  # stamps travel as int64 nanoseconds
 
 
 def parse_stamp_nanos(text: str) -> int:
-    """Decimal seconds (a TUM or rgb.txt stamp) as nanoseconds, exact to the digits given."""
+    """Decimal seconds (a TUM or rgb.txt stamp) as nanoseconds, exact to the digits given; GeometryError
+    for anything that is not a time in [0, 2**63 ns)."""
     try:
-        stamp = Decimal(text.strip())
+        stamp = Decimal(text)
     except InvalidOperation:
-        raise GeometryError(f"not a time stamp: {text!r}") from None
-    if not stamp.is_finite():
-        raise GeometryError(f"not a time stamp: {text!r}")
+        raise GeometryError(f"timestamp {text!r} is not a number") from None
+    if not stamp.is_finite() or not 0 <= stamp < _MAX_STAMP_S:
+        raise GeometryError(f"timestamp {text!r} must be a finite time in [0, 2**63 ns) s")
     return int(stamp.scaleb(9).to_integral_value())
 
 
 def read_tum_nanos(path: Path) -> tuple[NDArray[np.int64], Array]:
     """`read_tum` with exact stamps: ((n,) nanoseconds, (n, 4, 4) poses)."""
-    rows = read_tum(path)
-    stamps = [
-        parse_stamp_nanos(line.split()[0])
-        for line in Path(path).read_text().splitlines()
-        if line.strip() and not line.startswith("#")
-    ]
-    return np.array(stamps, np.int64), np.array([p for _, p in rows], np.float64).reshape(-1, 4, 4)
+    rows = _tum_rows(path)
+    stamps = np.array([parse_stamp_nanos(parts[0]) for parts in rows], np.int64)
+    return stamps, np.array([_pose_of(parts[1:]) for parts in rows], np.float64).reshape(-1, 4, 4)
 
 
 class PoseLog:
