@@ -108,11 +108,24 @@ def test_only_authorised_identities_steer_and_publish(tmp_path: Path, certs: Pat
             with lock:
                 seqs.append(decode(sample.payload.to_bytes(), TagPoses).seq)
 
+        # Everything of the robot the operator may read reaches it at the edge, but no camera frame:
+        # robot_infer's router keeps them (a deny on the way out, on top of the roles' rules).
+        seen_keys: dict[str, int] = {}
+
+        def on_any(sample: zenoh.Sample) -> None:
+            with lock:
+                seen_keys[str(sample.key_expr)] = seen_keys.get(str(sample.key_expr), 0) + 1
+
         sub = operator.declare_subscriber(keys.tag_poses(ROBOT), on_poses)
+        everything = operator.declare_subscriber(f"splittag/{ROBOT}/**", on_any)
         deadline = time.monotonic() + 90
         while time.monotonic() < deadline and len(seqs) < 3:
             time.sleep(0.2)
         assert len(seqs) >= 3, "no poses over the TLS deployment"
+        with lock:
+            assert seen_keys.get(keys.tag_poses(ROBOT), 0) >= 3 and keys.ground_truth(ROBOT) in seen_keys, seen_keys
+            assert keys.frames(ROBOT) not in seen_keys, seen_keys
+        everything.undeclare()
 
         # slam's stats queryable (declared through the edge router's ACL) answers the operator.
         assert "accepted" in service_stats(operator, ROBOT, "slam", timeout_secs=10)

@@ -224,3 +224,78 @@ def test_a_fleets_robot_identities_act_for_their_robot_alone() -> None:
     assert _covers(rules["cameras-robot1-read"], keys.edge_worker("fleet", "edge1"))  # the tier's tokens
     with pytest.raises(ValueError, match="in no role"):
         AccessControlSettings(robot_of_name={"stranger": "robot1"})
+
+
+@pytest.mark.parametrize("frames_leave_robot", [False, True])
+def test_frames_stay_on_the_robots_router_whoever_subscribes(frames_leave_robot: bool) -> None:
+    """robot_infer's router delivers the camera's frames to its own session and to no other process: a
+    tool at the edge subscribed to everything of the robot gets its ground truth but no frame (real
+    sessions: an edge router, the robot's router connected to it, the camera and the tool as clients).
+    With frames_leave_robot the same tool gets every frame (the positive control)."""
+    import threading
+    import time
+
+    import zenoh
+
+    from services.robot_infer.settings import RobotInferSettings
+    from shared.transport.session import free_tcp_port, open_session, wait_for_liveliness
+
+    robot_id = "r1"
+    edge_ep, robot_ep = f"tcp/127.0.0.1:{free_tcp_port()}", f"tcp/127.0.0.1:{free_tcp_port()}"
+    robot_zenoh = RobotInferSettings(
+        zenoh=ZenohSettings(mode="router", listen=[robot_ep], connect=[edge_ep]), frames_leave_robot=frames_leave_robot
+    ).zenoh
+    assert robot_zenoh.keep_local == ([] if frames_leave_robot else ["splittag/*/frame/**"])
+    counts = {"robot": 0, keys.frames(robot_id): 0, keys.ground_truth(robot_id): 0}
+    lock = threading.Lock()
+
+    def on_robot(_: zenoh.Sample) -> None:
+        with lock:
+            counts["robot"] += 1
+
+    def on_tool(sample: zenoh.Sample) -> None:
+        with lock:
+            counts[str(sample.key_expr)] += 1
+
+    n = 10
+    sessions = [open_session(ZenohSettings(mode="router", listen=[edge_ep]))]
+    try:
+        sessions.append(robot := open_session(robot_zenoh))
+        sessions.append(tool := open_session(ZenohSettings(mode="client", connect=[edge_ep])))
+        sessions.append(camera := open_session(ZenohSettings(mode="client", connect=[robot_ep])))
+        # (kept referenced: zenoh undeclares a dropped subscriber or token)
+        declared: list[zenoh.Subscriber[None] | zenoh.LivelinessToken] = [
+            robot.declare_subscriber(keys.frames(robot_id), on_robot),
+            robot.liveliness().declare_token("test/robot"),
+            tool.declare_subscriber(f"splittag/{robot_id}/**", on_tool),
+            tool.liveliness().declare_token("test/tool"),
+        ]
+        wait_for_liveliness(camera, ["test/robot", "test/tool"], timeout_secs=20)
+        time.sleep(0.5)  # the subscribers' interest reaches the camera's router after the tokens
+        for _ in range(n):
+            camera.put(keys.frames(robot_id), b"f" * 100_000, congestion_control=zenoh.CongestionControl.BLOCK)
+            camera.put(keys.ground_truth(robot_id), b"g", congestion_control=zenoh.CongestionControl.BLOCK)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and (counts["robot"] < n or counts[keys.ground_truth(robot_id)] < n):
+            time.sleep(0.05)
+        time.sleep(0.3)  # a frame let through would have come before the ground truth put after it
+        for d in declared:
+            d.undeclare()
+    finally:
+        for s in reversed(sessions):
+            s.close()
+    assert counts["robot"] == n, counts  # robot_infer's own session gets every frame
+    assert counts[keys.ground_truth(robot_id)] == n, counts  # and the link works for everything else
+    assert counts[keys.frames(robot_id)] == (n if frames_leave_robot else 0), counts
+
+
+def test_keep_local_needs_a_router_and_joins_the_roles_rules() -> None:
+    """Only a router can hold keys back; under access control every role's policy denies their puts
+    on the way out (a deny wins over each role's allows)."""
+    with pytest.raises(ValueError, match="router"):
+        ZenohSettings(mode="client", keep_local=["splittag/*/frame/**"])
+    acl = access_control_config(AccessControlSettings(enabled=True), keep_local=["splittag/*/frame/**"])
+    rule = next(r for r in acl["rules"] if r["id"] == "keep-local")
+    assert rule["permission"] == "deny" and rule["flows"] == ["egress"] and "put" in rule["messages"]
+    assert acl["policies"] and all("keep-local" in p["rules"] for p in acl["policies"])
+    assert not any(r["id"] == "keep-local" for r in access_control_config(AccessControlSettings(enabled=True))["rules"])

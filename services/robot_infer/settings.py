@@ -11,10 +11,13 @@ from pydantic_settings import SettingsConfigDict
 from shared.model.precision import PrecisionChoice
 from shared.model.views import Views
 from shared.runtime.settings import ServiceSettings
+from shared.transport.access import DATA_KEYS
 from shared.vision.proposals import Stage1Settings
 from shared.vision.tracking import TrackingSettings
 from shared.wire.cuts import CodecName
 from shared.wire.messages import PerCut
+
+FRAME_KEYS = DATA_KEYS["frame"]  # every robot's, every version
 
 
 class RobotInferSettings(ServiceSettings):
@@ -75,6 +78,12 @@ class RobotInferSettings(ServiceSettings):
     # fixed reference, and a frame whose real compute exceeds its target takes the real time.
     gamma: float = Field(default=1.0, gt=0)
     emulated_ms_per_tag_by_k: PerCut | None = None
+    # Where robot_infer's session is a router (every deploy config: the camera joins it), the camera's
+    # frames stop there: its router forwards them to no other process, whoever subscribes (an edge-side
+    # tool on `splittag/<robot>/**` once pulled every frame over the uplink and, the camera publishing
+    # with congestion control BLOCK, took the pipeline from 15 fps to 2). true: frames go to any
+    # subscriber, on the robot or across the link (recording raw frames at the edge).
+    frames_leave_robot: bool = False
 
     @model_validator(mode="after")
     def _faster_needs_a_reference(self) -> RobotInferSettings:
@@ -83,4 +92,10 @@ class RobotInferSettings(ServiceSettings):
                 f"gamma {self.gamma} < 1 would make the robot faster than this CPU: "
                 "set emulated_ms_per_tag_by_k (a fixed reference profile) to emulate a faster robot"
             )
+        return self
+
+    @model_validator(mode="after")
+    def _frames_stay_on_the_router(self) -> RobotInferSettings:
+        if not self.frames_leave_robot and self.zenoh.mode == "router" and FRAME_KEYS not in self.zenoh.keep_local:
+            self.zenoh = self.zenoh.model_copy(update={"keep_local": [*self.zenoh.keep_local, FRAME_KEYS]})
         return self

@@ -132,8 +132,29 @@ def _rule(rule_id: str, permission: str, messages: list[str], keys: list[str], f
     return {"id": rule_id, "permission": permission, "messages": messages, "flows": flows, "key_exprs": keys}
 
 
-def access_control_config(settings: AccessControlSettings) -> dict[str, Any]:
-    """The `access_control` section of a router's Zenoh config for these roles."""
+KEEP_LOCAL_RULE: Final[str] = "keep-local"
+
+
+def _keep_local_rule(keys: list[str]) -> dict[str, Any]:
+    return _rule(KEEP_LOCAL_RULE, "deny", ["put", "delete"], keys, ["egress"])
+
+
+def keep_local_config(keys: list[str]) -> dict[str, Any]:
+    """An `access_control` section that only holds `keys` on this router: allow everything, but deny
+    their puts on the way out to every other process (a subject with no attributes matches every
+    face). The router's own session still receives them: local delivery passes no face's ACL."""
+    return {
+        "enabled": True,
+        "default_permission": "allow",
+        "rules": [_keep_local_rule(keys)],
+        "subjects": [{"id": "every-face"}],
+        "policies": [{"id": "keep-local-policy", "rules": [KEEP_LOCAL_RULE], "subjects": ["every-face"]}],
+    }
+
+
+def access_control_config(settings: AccessControlSettings, *, keep_local: list[str] | None = None) -> dict[str, Any]:
+    """The `access_control` section of a router's Zenoh config for these roles. `keep_local`: keys whose
+    puts go out to no face at all, whatever a role may read (a deny wins over every allow)."""
     rules = [
         _rule("everything", "allow", ALL_MESSAGES, EVERY_KEY, ["ingress", "egress"]),
         # What the router sends a restricted role: only what it subscribed to, queried or serves.
@@ -200,6 +221,10 @@ def access_control_config(settings: AccessControlSettings) -> dict[str, Any]:
                 rules.append(_rule(f"{name}{suffix}-interest", "allow", INTEREST_MESSAGES, EVERY_KEY, ["egress"]))
                 readers = [f"{name}{suffix}-read", f"{name}{suffix}-receive", f"{name}{suffix}-interest"]
             role(f"{name}{suffix}", members, [*readers, *granted, *denied])
+    if keep_local:
+        rules.append(_keep_local_rule(keep_local))
+        for policy in policies:
+            policy["rules"].append(KEEP_LOCAL_RULE)
     return {
         "enabled": True,
         "default_permission": "deny",

@@ -12,9 +12,9 @@ from pathlib import Path
 from typing import Final, Literal
 
 import zenoh
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from shared.transport.access import AccessControlSettings, access_control_config
+from shared.transport.access import AccessControlSettings, access_control_config, keep_local_config
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +79,18 @@ class ZenohSettings(BaseModel):
     tls: TlsSettings | None = None  # needed by tls/ endpoints
     # Enforced by a router on the messages of the peers and clients it serves (shared.transport.access).
     access_control: AccessControlSettings = Field(default_factory=AccessControlSettings)
+    # Keys whose puts a router delivers to its own session and to no other process, whoever subscribes
+    # (robot_infer's router keeps the camera's frames: shared.transport.access.keep_local_config).
+    # Only a router can enforce it: set on a peer or client it is refused.
+    keep_local: list[str] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _only_a_router_keeps(self) -> ZenohSettings:
+        if self.keep_local and self.mode != "router":
+            raise ValueError(
+                f"keep_local ({self.keep_local}) needs mode = 'router': a {self.mode} forwards nothing to hold back"
+            )
+        return self
 
 
 def build_config(settings: ZenohSettings) -> zenoh.Config:
@@ -124,7 +136,10 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
     if settings.access_control.enabled:
         if settings.tls is None or not settings.tls.mutual:
             raise ValueError("access control matches certificate names: it needs zenoh.tls with mutual = true")
-        config.insert_json5("access_control", json.dumps(access_control_config(settings.access_control)))
+        acl = access_control_config(settings.access_control, keep_local=settings.keep_local)
+        config.insert_json5("access_control", json.dumps(acl))
+    elif settings.keep_local:
+        config.insert_json5("access_control", json.dumps(keep_local_config(settings.keep_local)))
     return config
 
 
