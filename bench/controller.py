@@ -72,10 +72,12 @@ def write_config(
     gamma: float = GAMMA,
     fps: float = FPS,
     compute: EmulatedCompute | None = None,
+    robot_extra: dict[str, Any] | None = None,
 ) -> Path:
-    """The services' TOML for the two namespaces (compute: fixed profiles instead of this CPU's)."""
+    """The services' TOML for the two namespaces (compute: fixed profiles instead of this CPU's;
+    robot_extra: more robot_infer settings)."""
     topology = Topology.emulated_link(edge_addr=emu.edge_addr, mgmt_edge_addr=emu.mgmt_edge_addr)
-    robot: dict[str, Any] = {"split_k": 7, "gamma": gamma}
+    robot: dict[str, Any] = {"split_k": 7, "gamma": gamma, **(robot_extra or {})}
     edge: dict[str, Any] = {}
     if compute is not None:
         robot["emulated_ms_per_tag_by_k"] = compute.robot_ms_per_tag_by_k
@@ -136,12 +138,14 @@ def stream(
     gamma: float = GAMMA,
     fps: float = FPS,
     compute: EmulatedCompute | None = None,
+    robot_extra: dict[str, Any] | None = None,
+    schedule: tuple[str, ...] = SCHEDULE,
 ) -> Run:
-    """Start the services in the namespaces, stream through SCHEDULE, stop everything."""
+    """Start the services in the namespaces, stream through `schedule`'s link profiles, stop everything."""
     s = emu.settings
-    cfg = write_config(tmp, s, gamma=gamma, fps=fps, compute=compute)
+    cfg = write_config(tmp, s, gamma=gamma, fps=fps, compute=compute, robot_extra=robot_extra)
     robot, edge = in_netns(s.robot_ns, []), in_netns(s.edge_ns, [])
-    emu.set_profile(PROFILES[SCHEDULE[0]])
+    emu.set_profile(PROFILES[schedule[0]])
     started = [start_service("edge_infer", cfg, tmp, wrapper=edge)]
     run = Run(Monitor(None))
     try:
@@ -175,7 +179,7 @@ def stream(
             query_split(session, ROBOT, params=f"k={oracle_k[0]}")
         time.sleep(warmup_secs)
         run.start_nanos = time.time_ns()
-        for i, name in enumerate(SCHEDULE):
+        for i, name in enumerate(schedule):
             t_phase = time.monotonic()
             if i:
                 emu.set_profile(PROFILES[name])

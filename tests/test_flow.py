@@ -5,9 +5,11 @@ from __future__ import annotations
 import threading
 from functools import partial
 
+import numpy as np
 import pytest
 
 from shared.transport.flow import EdgePacer, EdgeWatch, InFlightWindow, may_run_ahead
+from shared.wire.messages import LinkStamps
 from tests.fakes import FakeClock
 
 
@@ -277,3 +279,121 @@ def test_pacer_does_not_count_the_wait_behind_its_own_frame() -> None:
     assert pacer.edge_wait_secs == pytest.approx(0.030)
     pacer.forget()  # another edge (worker, clock, load): measured afresh
     assert pacer.edge_wait_secs == 0.0
+
+
+def _pipeline(pacer: EdgePacer | None, chain: dict[str, float], frames: int = 300) -> tuple[float, float]:
+    """A robot, a FIFO uplink (a = max(s + t0, a_prev) + beta S) and an edge (done = max(a, done_prev) +
+    E), event by event on a fake clock, as robot_infer runs them: a window of 2 credits, the pacer's delay
+    waited in one go, a fresh frame taken at the start. (median latency start -> done, frames/s) over
+    the second half."""
+    robot, t0, beta_kB, kB, edge = (chain[k] for k in ("robot", "t0", "beta_kB", "kB", "edge"))
+    clock = pacer._clock if pacer is not None else FakeClock()
+    assert isinstance(clock, FakeClock)
+    flight: list[tuple[int, float, float, float]] = []  # (seq, sent, arrival, done)
+    prev_arrival = edge_free = 0.0
+    lat: list[float] = []
+    dones: list[float] = []
+    flight_prev: dict[int, float] = {}  # seq -> arrival of the frame ahead of it
+
+    def deliver(until: float) -> None:
+        while flight and flight[0][3] <= until:
+            seq, sent, arrival, done = flight.pop(0)
+            clock.now = max(clock.now, done)
+            if pacer is not None:
+                pacer.answered(
+                    seq,
+                    tags=1,
+                    link_secs=arrival - sent,
+                    edge_secs=edge,
+                    edge_received_nanos=round(arrival * 1e9),
+                    edge_done_nanos=round(done * 1e9),
+                    link=LinkStamps(
+                        sent_nanos=round(sent * 1e9),
+                        received_nanos=round(arrival * 1e9),
+                        previous_received_nanos=round(flight_prev[seq] * 1e9),
+                    ),
+                )
+
+    for seq in range(frames):
+        while len(flight) >= 2:
+            deliver(flight[0][3])
+        target = clock.now + (pacer.start_delay_secs() if pacer is not None else 0.0)
+        deliver(target)  # answers during the wait update the pacer, not this wait
+        clock.now = max(clock.now, target)
+        start = clock.now
+        clock.now += robot
+        deliver(clock.now)
+        sent = clock.now
+        flight_prev[seq] = prev_arrival
+        arrival = max(sent + t0, prev_arrival) + beta_kB * kB
+        done = max(arrival, edge_free) + edge
+        prev_arrival, edge_free = arrival, done
+        if pacer is not None:
+            pacer.sent(seq, tags=1, robot_secs=robot, payload_bytes=round(kB * 1024))
+        flight.append((seq, sent, arrival, done))
+        if seq >= frames // 2:
+            lat.append(done - start)
+            dones.append(done)
+    return float(np.median(lat)), (len(dones) - 1) / (dones[-1] - dones[0])
+
+
+def test_pacer_with_a_link_model_keeps_one_frame_on_a_slow_uplink() -> None:
+    """Link-bound chain (robot 20 ms, uplink 40 ms + 300 ms of serialisation, a split tensor on the
+    emulated 5G link; edge 20 ms): paced to the edge alone, the robot reads the time a frame waited
+    behind the one ahead as a slower link, starts earlier still, and keeps both credits queued on the
+    uplink (600 ms, as unpaced); with the link as a queue each frame starts as the one ahead finishes
+    crossing: the critical path's 380 ms at the link's throughput."""
+    from shared.control.linkmodel import OnlineLinkEstimator
+
+    chain = {"robot": 0.020, "t0": 0.040, "beta_kB": 0.300 / 500, "kB": 500.0, "edge": 0.020}
+    path = chain["robot"] + chain["t0"] + chain["beta_kB"] * chain["kB"] + chain["edge"]  # 380 ms
+    rate = 1 / (chain["beta_kB"] * chain["kB"])  # 3.3 frames/s: the link's
+    delay_only, fps_delay = _pipeline(EdgePacer(smoothing=1.0, clock=FakeClock()), chain)
+    linked, fps_link = _pipeline(EdgePacer(clock=FakeClock(), link=OnlineLinkEstimator()), chain)
+    print(
+        f"latency {delay_only * 1e3:.0f} -> {linked * 1e3:.0f} ms (path {path * 1e3:.0f}), "
+        f"{fps_delay:.2f} -> {fps_link:.2f} fps"
+    )
+    assert fps_delay == pytest.approx(fps_link, rel=0.02)  # the same throughput, the link's
+    assert delay_only > 1.5 * path  # the scenario is the queued one
+    assert linked <= 1.05 * path
+    assert fps_link >= 0.97 * rate
+
+
+def test_pacer_with_a_link_model_still_paces_to_a_slow_edge() -> None:
+    """Edge-bound chain (edge 150 ms, a fast link): the link model changes nothing there."""
+    from shared.control.linkmodel import OnlineLinkEstimator
+
+    chain = {"robot": 0.010, "t0": 0.002, "beta_kB": 0.00001, "kB": 300.0, "edge": 0.150}
+    path = chain["robot"] + chain["t0"] + chain["beta_kB"] * chain["kB"] + chain["edge"]
+    no_pacer, _ = _pipeline(None, chain)
+    linked, fps = _pipeline(EdgePacer(clock=FakeClock(), link=OnlineLinkEstimator(prior_t0_ms=1.0)), chain)
+    assert no_pacer > 1.5 * path  # unpaced, the second credit waits at the edge
+    assert linked <= 1.05 * path
+    assert fps >= 0.97 / chain["edge"]
+
+
+def test_pacer_feeds_each_answered_crossing_to_its_link_model() -> None:
+    """What the link model is told: the payload the frame was sent with and its link stamps."""
+
+    class RecordingLink:
+        n = 0
+        t0_ms = 40.0
+        beta_ms_per_kB = 0.2
+
+        def __init__(self) -> None:
+            self.crossings: list[dict[str, float | None]] = []
+
+        def add_crossing(self, **kw: float | None) -> None:
+            self.crossings.append(kw)
+
+    link = RecordingLink()
+    clock = FakeClock(10.0)
+    pacer = EdgePacer(clock=clock, link=link)
+    pacer.sent(7, tags=2, robot_secs=0.02, payload_bytes=51_200)
+    clock.now += 0.2
+    stamps = LinkStamps(sent_nanos=1_000_000_000, received_nanos=1_150_000_000, previous_received_nanos=0)
+    pacer.answered(7, tags=2, link_secs=0.15, edge_secs=0.03, link=stamps)
+    assert link.crossings == [{"size_kB": 50.0, "sent_ms": 1000.0, "received_ms": 1150.0, "previous_received_ms": None}]
+    pacer.answered(8, tags=2, link_secs=0.15, edge_secs=0.03, link=stamps)  # never sent: nothing to fit
+    assert len(link.crossings) == 1

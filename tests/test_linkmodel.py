@@ -168,3 +168,17 @@ def test_arrival_clock_and_link_occupancy() -> None:
     occ.sent(sent_ms=100.0, size_kB=100.0, beta_ms_per_kB=0.5)  # busy until 150
     occ.sent(sent_ms=120.0, size_kB=20.0, beta_ms_per_kB=0.5)  # queued behind: until 160
     assert not occ.idle(159.0) and occ.idle(160.0) and not occ.idle(161.0, guard_ms=2.0)
+
+
+def test_one_payload_size_keeps_the_fit_on_what_it_saw() -> None:
+    """robot_infer's frames at one k cross with one payload size: the samples only say t0 + beta S.
+    The fit must keep predicting that (5 ms here) sample after sample; clamping a negative beta to 0
+    alone once walked t0 from 0 to 1500 ms (and the pacer then held every frame back by seconds)."""
+    est = OnlineLinkEstimator(prior_t0_ms=1.0)
+    previous = None
+    for i in range(300):
+        sent = 150.0 * i
+        est.add_crossing(size_kB=300.0, sent_ms=sent, received_ms=sent + 5.0, previous_received_ms=previous)
+        previous = sent + 5.0
+        assert est.t0_ms + 300.0 * est.beta_ms_per_kB == pytest.approx(5.0, abs=0.5), i
+        assert 0.0 <= est.t0_ms <= 5.5

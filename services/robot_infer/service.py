@@ -14,6 +14,8 @@ import zenoh
 
 from services.robot_infer.settings import RobotInferSettings
 from shared.control.compute import ComputeEstimator, head_per_tag_ms
+from shared.control.controller import ControllerTuning
+from shared.control.linkmodel import OnlineLinkEstimator
 from shared.model.runtime import calibrate_cumulative_ms, load_split_net
 from shared.model.views import with_views
 from shared.model.weights import load_keypoint_fusion
@@ -91,7 +93,14 @@ class RobotInfer:
         self.state = SplitState(SplitConfig(k=s.split_k, codec=s.codec, pinned=False, source="default"))
         # Each frame in flight keeps its Features: if its edge vanishes, the robot computes it on board.
         self.window: InFlightWindow[Features] = InFlightWindow(s.max_in_flight, timeout_secs=s.in_flight_timeout_secs)
-        self.pacer = EdgePacer() if s.pace_to_edge and s.max_in_flight else None
+        # The uplink as a queue (pace_to_link): the controller's queue-aware fit, with its tuning's defaults
+        tuning = ControllerTuning()
+        link = (
+            OnlineLinkEstimator(half_life=tuning.half_life_samples, cusum_threshold=tuning.change_threshold)
+            if s.pace_to_link
+            else None
+        )
+        self.pacer = EdgePacer(link=link) if s.pace_to_edge and s.max_in_flight else None
         self.watch = EdgeWatch(answer_timeout_secs=s.edge_answer_timeout_secs)
         self.guard = InputGuard("robot_infer")
         # stage 1 of the next frame while the network runs (settings.overlap_stage1)
@@ -170,6 +179,7 @@ class RobotInfer:
                     edge_received_nanos=poses.link.received_nanos,
                     # capture_to_pose is the edge's done stamp minus the capture stamp: done on the edge's clock
                     edge_done_nanos=poses.capture_nanos + round(timings.capture_to_pose_secs * 1e9),
+                    link=poses.link,
                 )
 
     def _on_edge(self, sample: zenoh.Sample) -> None:
@@ -274,7 +284,7 @@ class RobotInfer:
         sent_nanos = time.time_ns()
         self.window.send(frame.seq, lambda: self.pub.put(wire), keep=features, gone=lambda: not self.watch.alive)
         if self.pacer is not None:
-            self.pacer.sent(frame.seq, tags=len(tags), robot_secs=compute_secs)
+            self.pacer.sent(frame.seq, tags=len(tags), robot_secs=compute_secs, payload_bytes=len(wire))
         sent = FrameSent(robot_id=self.settings.robot_id, seq=frame.seq, sent_nanos=sent_nanos, payload_bytes=len(wire))
         self.sent_pub.put(encode(sent))
         fixed_ms = (timings.detect_secs + timings.warp_secs) * 1e3

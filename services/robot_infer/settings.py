@@ -64,6 +64,9 @@ class RobotInferSettings(ServiceSettings):
     max_in_flight: int = Field(default=2, ge=0)  # frames sent without TagPoses back yet; 0 = no limit
     # Start each frame when it would reach the edge as the edge becomes free (shared.transport.flow.EdgePacer)
     pace_to_edge: bool = True
+    # ... and on the uplink as the frame ahead has crossed it: the pacer models the link as a queue
+    # (t0 + beta S, fitted from the frames' link stamps as the controller fits it) instead of a delay.
+    pace_to_link: bool = True
     in_flight_timeout_secs: float = Field(default=2.0, gt=0)  # a frame never answered returns its credit
     profile_period_secs: float = Field(default=1.0, gt=0)  # ComputeProfile C(k) publication period
     # Without the edge (its liveliness token gone, or an answer this late) the robot runs the whole

@@ -125,8 +125,19 @@ class OnlineLinkEstimator:
         px = self.p @ x
         k = weight * px / (self.lam + weight * float(x @ px))
         # A link has no negative floor or slope: clamping keeps a half-re-fitted estimate physical
-        # (a negative beta would make the biggest payload look cheapest for a moment).
-        self.theta = np.maximum(self.theta + k * resid, 0.0)
+        # (a negative beta would make the biggest payload look cheapest for a moment). The other
+        # parameter then carries what the update fitted at this sample: clamped alone, a run of one
+        # payload size (robot_infer's frames at one k; the fit's two parameters then seen only as
+        # t0 + beta S) walked t0 from 0 to 1500 ms while every sample said 5 (tests/test_linkmodel.py).
+        theta = self.theta + k * resid
+        if theta.min() < 0.0:
+            fitted = float(x @ theta)
+            theta = np.maximum(theta, 0.0)
+            carriers = [i for i in range(2) if theta[i] > 0.0 and x[i] > 0.0]
+            if carriers:
+                i = carriers[0]
+                theta[i] = max(0.0, theta[i] + (fitted - float(x @ theta)) / x[i])
+        self.theta = theta
         self.p = (self.p - np.outer(k, px)) / self.lam
         # Cap each variance at the prior's (scaling its row and column keeps P positive definite).
         cap = np.sqrt(np.minimum(1.0, np.asarray(self.PRIOR_VARIANCE) / np.maximum(np.diag(self.p), 1e-300)))

@@ -9,7 +9,10 @@ limit. A frame whose TagPoses never come back (edge restarted, message rejected)
 Features) until the answer comes; when the edge is known to be gone (`clear(recover=True)`), the
 frames it held become orphans the robot computes itself (`take_orphans`), so a dying edge costs no
 frame. Within the window, `EdgePacer` times when the robot starts
-each frame so that it reaches the edge just as the edge becomes free (no queueing at the edge).
+each frame so that it reaches the edge just as the edge becomes free (no queueing at the edge)
+and, given a link model, reaches the uplink just as the frame ahead has crossed it (no queueing on
+the link: on the emulated 5G uplink a split tensor takes longer to cross than the robot takes to make
+the next one).
 """
 
 from __future__ import annotations
@@ -17,7 +20,9 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from typing import Generic, TypeVar
+from typing import Generic, Protocol, TypeVar
+
+from shared.wire.messages import LinkStamps
 
 T = TypeVar("T")
 
@@ -196,6 +201,23 @@ class EdgeWatch:
             return not self._alive or oldest_in_flight_secs > self.answer_timeout_secs
 
 
+class LinkModel(Protocol):
+    """The uplink as a FIFO pipe, a = max(p + t0, a_prev) + beta S (shared.control.linkmodel's
+    OnlineLinkEstimator, which robot_infer gives its pacer: the same queue-aware fit as the controller's)."""
+
+    n: int
+
+    @property
+    def t0_ms(self) -> float: ...
+
+    @property
+    def beta_ms_per_kB(self) -> float: ...
+
+    def add_crossing(
+        self, *, size_kB: float, sent_ms: float, received_ms: float, previous_received_ms: float | None
+    ) -> None: ...
+
+
 class EdgePacer:
     """When the robot should start its next frame so that the frame reaches the edge as the edge
     becomes free: no frame waits in the edge's queue (that wait is pure latency), and the robot takes
@@ -210,39 +232,86 @@ class EdgePacer:
     frame, which the max() already models), and each answer re-anchors the prediction of the frames
     still in flight to when it really arrived. Without W an overloaded shared edge looked free to every
     robot's pacer, and each robot kept its whole window queued there: twice the latency for the same
-    throughput. Thread-safe: answers arrive on Zenoh's threads. The in-flight window stays the hard cap."""
+    throughput. Thread-safe: answers arrive on Zenoh's threads. The in-flight window stays the hard cap.
 
-    def __init__(self, *, smoothing: float = 0.3, clock: Callable[[], float] = time.monotonic) -> None:
+    With a `link` model (fed here with every answered frame's crossing: its payload and link stamps)
+    the link is a server too, not a delay: frame n arrives at a_n = max(s_n + t0, a_(n-1)) + beta S_n,
+    and L above becomes a_n - s_n. A frame started before a_(n-1) - t0 - R waits on the uplink behind
+    the one ahead; the measured L of such a frame includes that wait (it read as a slower link, so the
+    next frame started earlier still and the robot kept its whole window queued on the uplink: the
+    emulated 5G link at k = 3 measured 1063 ms against a predicted 729). Until the model has
+    `min_link_samples` crossings, the measured L stands in."""
+
+    def __init__(
+        self,
+        *,
+        smoothing: float = 0.3,
+        clock: Callable[[], float] = time.monotonic,
+        link: LinkModel | None = None,
+        min_link_samples: int = 5,
+    ) -> None:
         if not 0 < smoothing <= 1:
             raise ValueError("smoothing must be in (0, 1]")
         self._alpha = smoothing
         self._clock = clock
         self._lock = threading.Lock()
+        self.link = link
+        self._min_link_samples = min_link_samples
         self.robot_secs = 0.0
         self.link_secs = 0.0
+        self.payload_kB = 0.0
         self.edge_secs_per_tag = 0.0
         self.edge_secs_fixed = 0.0
         self.edge_wait_secs = 0.0  # W: waiting at the edge behind other robots' frames
         self._done_at: dict[int, float] = {}  # seq -> predicted edge completion (robot clock)
         self._last_done_at = 0.0
         self._edge_done_nanos = 0  # when the edge finished this robot's latest answered frame (edge clock)
+        self._sent: dict[int, tuple[float, float]] = {}  # seq -> (sent, payload kB), for the link model
+        self._arrive_at: dict[int, float] = {}  # seq -> predicted arrival at the edge (robot clock + offset)
+        self._link_free_at = 0.0  # the latest predicted arrival: the uplink is busy until then
 
     def _avg(self, old: float, new: float) -> float:
         return new if old == 0.0 else old + self._alpha * (new - old)
 
+    def _link_params(self) -> tuple[float, float] | None:
+        """(t0 s, beta s/kB) once the link model has seen enough crossings."""
+        if self.link is None or self.link.n < self._min_link_samples:
+            return None
+        return self.link.t0_ms / 1e3, self.link.beta_ms_per_kB / 1e3
+
     def start_delay_secs(self) -> float:
         """How long to wait before taking the next frame (0: start now)."""
         with self._lock:
-            start = self._last_done_at - self.robot_secs - self.link_secs
+            params = self._link_params()
+            if params is None:
+                start = self._last_done_at - self.robot_secs - self.link_secs
+            else:
+                t0, beta = params
+                # on the uplink as the frame ahead has crossed it, at the edge as the edge frees up
+                link_free = self._link_free_at - t0
+                edge_free = self._last_done_at - t0 - beta * self.payload_kB
+                start = max(link_free, edge_free) - self.robot_secs
             return max(0.0, start - self._clock())
 
-    def sent(self, seq: int, *, tags: int, robot_secs: float) -> None:
-        """Frame `seq` with `tags` tags left the robot after `robot_secs` of robot compute."""
+    def sent(self, seq: int, *, tags: int, robot_secs: float, payload_bytes: int = 0) -> None:
+        """Frame `seq` with `tags` tags and `payload_bytes` on the wire left the robot after
+        `robot_secs` of robot compute."""
         with self._lock:
             now = self._clock()
+            kB = payload_bytes / 1024.0
             self.robot_secs = self._avg(self.robot_secs, robot_secs)
+            self.payload_kB = self._avg(self.payload_kB, kB)
             edge = self.edge_wait_secs + self.edge_secs_fixed + self.edge_secs_per_tag * tags
-            done = max(now + self.link_secs, self._last_done_at) + edge
+            self._sent[seq] = (now, kB)
+            params = self._link_params()
+            if params is None:
+                arrive = now + self.link_secs
+            else:
+                t0, beta = params
+                arrive = max(now + t0, self._link_free_at) + beta * kB
+            self._arrive_at[seq] = arrive
+            self._link_free_at = max(self._link_free_at, arrive)
+            done = max(arrive, self._last_done_at) + edge
             self._done_at[seq] = done
             self._last_done_at = done
 
@@ -255,9 +324,11 @@ class EdgePacer:
         edge_secs: float,
         edge_received_nanos: int | None = None,
         edge_done_nanos: int | None = None,
+        link: LinkStamps | None = None,
     ) -> None:
         """The edge's answer for `seq` arrived now, saying what its link and edge compute took and, with
-        both stamps (edge clock), when the edge received the frame and finished it."""
+        both stamps (edge clock), when the edge received the frame and finished it; `link`: how it
+        crossed the uplink (for the link model)."""
         with self._lock:
             now = self._clock()
             self.link_secs = self._avg(self.link_secs, max(0.0, link_secs))
@@ -271,8 +342,27 @@ class EdgePacer:
                 foreign = max(0.0, waited - max(0.0, behind_own))
                 self.edge_wait_secs += self._alpha * (foreign - self.edge_wait_secs)  # 0 is a value here
                 self._edge_done_nanos = edge_done_nanos  # the latest answer's (a new worker: its clock)
+            sent = self._sent.pop(seq, None)
+            predicted_arrival = self._arrive_at.pop(seq, None)
+            if link is not None and sent is not None:
+                if self.link is not None:
+                    prev = link.previous_received_nanos
+                    self.link.add_crossing(
+                        size_kB=sent[1],
+                        sent_ms=link.sent_nanos / 1e6,
+                        received_ms=link.received_nanos / 1e6,
+                        previous_received_ms=prev / 1e6 if prev else None,
+                    )
+                if predicted_arrival is not None:  # re-anchor the uplink's queue on the real arrival
+                    arrived = sent[0] + (link.received_nanos - link.sent_nanos) / 1e9
+                    shift = arrived - predicted_arrival
+                    self._arrive_at = {s: t + shift for s, t in self._arrive_at.items() if s > seq}
+                    self._link_free_at = max(self._arrive_at.values(), default=arrived)
+            for stale in [s for s in self._sent if s < seq]:  # older answers that never came
+                del self._sent[stale]
+                self._arrive_at.pop(stale, None)
             predicted = self._done_at.pop(seq, None)
-            for stale in [s for s in self._done_at if s < seq]:  # older answers that never came
+            for stale in [s for s in self._done_at if s < seq]:
                 del self._done_at[stale]
             if predicted is not None:
                 shift = now - predicted  # the answer is the edge's completion (+ a small return trip)
@@ -287,3 +377,6 @@ class EdgePacer:
             self._last_done_at = 0.0
             self.edge_wait_secs = 0.0
             self._edge_done_nanos = 0
+            self._sent.clear()
+            self._arrive_at.clear()
+            self._link_free_at = 0.0
