@@ -8,7 +8,7 @@ from functools import partial
 import numpy as np
 import pytest
 
-from shared.transport.flow import EdgePacer, EdgeWatch, InFlightWindow, may_run_ahead
+from shared.transport.flow import EdgePacer, EdgeWatch, InFlightWindow, UplinkQueue, may_run_ahead
 from shared.wire.messages import LinkStamps
 from tests.fakes import FakeClock
 
@@ -281,119 +281,158 @@ def test_pacer_does_not_count_the_wait_behind_its_own_frame() -> None:
     assert pacer.edge_wait_secs == 0.0
 
 
-def _pipeline(pacer: EdgePacer | None, chain: dict[str, float], frames: int = 300) -> tuple[float, float]:
+WALL = 1.7e9  # the stamps' wall clock is the pacer's monotonic clock + this (+ the edge's offset)
+
+
+def _pipeline(
+    pacer: EdgePacer | None,
+    chain: dict[str, float],
+    frames: int = 300,
+    *,
+    t0_after: tuple[int, float] | None = None,
+    edge_clock_after: tuple[int, float] | None = None,
+) -> tuple[float, float]:
     """A robot, a FIFO uplink (a = max(s + t0, a_prev) + beta S) and an edge (done = max(a, done_prev) +
     E), event by event on a fake clock, as robot_infer runs them: a window of 2 credits, the pacer's delay
-    waited in one go, a fresh frame taken at the start. (median latency start -> done, frames/s) over
-    the second half."""
+    waited in one go, a fresh frame taken at the start, answers as they come. The link stamps are on
+    wall clocks (the robot's = the pacer's + WALL; the edge's offset by `edge_clock_after` = (from frame,
+    seconds)); `t0_after` = (from frame, t0) steps the link's floor. (median latency start -> done,
+    frames/s) over the last third."""
     robot, t0, beta_kB, kB, edge = (chain[k] for k in ("robot", "t0", "beta_kB", "kB", "edge"))
     clock = pacer._clock if pacer is not None else FakeClock()
     assert isinstance(clock, FakeClock)
-    flight: list[tuple[int, float, float, float]] = []  # (seq, sent, arrival, done)
+    flight: list[tuple[int, float, float, float, float]] = []  # (seq, sent, arrival, done, arrival ahead)
     prev_arrival = edge_free = 0.0
+    offset = 0.0
     lat: list[float] = []
     dones: list[float] = []
-    flight_prev: dict[int, float] = {}  # seq -> arrival of the frame ahead of it
 
     def deliver(until: float) -> None:
         while flight and flight[0][3] <= until:
-            seq, sent, arrival, done = flight.pop(0)
+            seq, sent, arrival, done, ahead = flight.pop(0)
             clock.now = max(clock.now, done)
             if pacer is not None:
                 pacer.answered(
                     seq,
                     tags=1,
-                    link_secs=arrival - sent,
+                    link_secs=arrival - sent + offset,
                     edge_secs=edge,
-                    edge_received_nanos=round(arrival * 1e9),
-                    edge_done_nanos=round(done * 1e9),
+                    edge_received_nanos=round((arrival + WALL + offset) * 1e9),
+                    edge_done_nanos=round((done + WALL + offset) * 1e9),
                     link=LinkStamps(
-                        sent_nanos=round(sent * 1e9),
-                        received_nanos=round(arrival * 1e9),
-                        previous_received_nanos=round(flight_prev[seq] * 1e9),
+                        sent_nanos=round((sent + WALL) * 1e9),
+                        received_nanos=round((arrival + WALL + offset) * 1e9),
+                        previous_received_nanos=round((ahead + WALL + offset) * 1e9) if ahead else 0,
                     ),
                 )
 
     for seq in range(frames):
-        while len(flight) >= 2:
+        if t0_after is not None and seq == t0_after[0]:
+            t0 = t0_after[1]
+        if edge_clock_after is not None and seq == edge_clock_after[0]:
+            offset = edge_clock_after[1]
+        while len(flight) >= 2:  # a credit
             deliver(flight[0][3])
         target = clock.now + (pacer.start_delay_secs() if pacer is not None else 0.0)
         deliver(target)  # answers during the wait update the pacer, not this wait
         clock.now = max(clock.now, target)
         start = clock.now
-        clock.now += robot
-        deliver(clock.now)
+        while flight and flight[0][3] <= start + robot:  # answers during the robot's compute
+            deliver(flight[0][3])
+        clock.now = start + robot
         sent = clock.now
-        flight_prev[seq] = prev_arrival
         arrival = max(sent + t0, prev_arrival) + beta_kB * kB
         done = max(arrival, edge_free) + edge
+        flight.append((seq, sent, arrival, done, prev_arrival))
         prev_arrival, edge_free = arrival, done
         if pacer is not None:
             pacer.sent(seq, tags=1, robot_secs=robot, payload_bytes=round(kB * 1024))
-        flight.append((seq, sent, arrival, done))
-        if seq >= frames // 2:
+        if seq >= frames - frames // 3:
             lat.append(done - start)
             dones.append(done)
     return float(np.median(lat)), (len(dones) - 1) / (dones[-1] - dones[0])
 
 
-def test_pacer_with_a_link_model_keeps_one_frame_on_a_slow_uplink() -> None:
+LINK_BOUND = {"robot": 0.020, "t0": 0.040, "beta_kB": 0.300 / 500, "kB": 500.0, "edge": 0.020}
+
+
+def _path(chain: dict[str, float]) -> float:
+    return chain["robot"] + chain["t0"] + chain["beta_kB"] * chain["kB"] + chain["edge"]
+
+
+def test_pacer_with_an_uplink_keeps_one_frame_on_a_slow_uplink() -> None:
     """Link-bound chain (robot 20 ms, uplink 40 ms + 300 ms of serialisation, a split tensor on the
     emulated 5G link; edge 20 ms): paced to the edge alone, the robot reads the time a frame waited
     behind the one ahead as a slower link, starts earlier still, and keeps both credits queued on the
     uplink (600 ms, as unpaced); with the link as a queue each frame starts as the one ahead finishes
     crossing: the critical path's 380 ms at the link's throughput."""
-    from shared.control.linkmodel import OnlineLinkEstimator
-
-    chain = {"robot": 0.020, "t0": 0.040, "beta_kB": 0.300 / 500, "kB": 500.0, "edge": 0.020}
-    path = chain["robot"] + chain["t0"] + chain["beta_kB"] * chain["kB"] + chain["edge"]  # 380 ms
+    chain, path = LINK_BOUND, _path(LINK_BOUND)
     rate = 1 / (chain["beta_kB"] * chain["kB"])  # 3.3 frames/s: the link's
     delay_only, fps_delay = _pipeline(EdgePacer(smoothing=1.0, clock=FakeClock()), chain)
-    linked, fps_link = _pipeline(EdgePacer(clock=FakeClock(), link=OnlineLinkEstimator()), chain)
+    pacer = EdgePacer(clock=FakeClock(), uplink=UplinkQueue())
+    linked, fps_link = _pipeline(pacer, chain)
     print(
         f"latency {delay_only * 1e3:.0f} -> {linked * 1e3:.0f} ms (path {path * 1e3:.0f}), "
         f"{fps_delay:.2f} -> {fps_link:.2f} fps"
     )
-    assert fps_delay == pytest.approx(fps_link, rel=0.02)  # the same throughput, the link's
     assert delay_only > 1.5 * path  # the scenario is the queued one
     assert linked <= 1.05 * path
-    assert fps_link >= 0.97 * rate
+    assert fps_link >= 0.95 * rate and fps_delay >= 0.99 * rate
+    assert pacer.uplink is not None and pacer.uplink.x_secs_per_kB == pytest.approx(chain["beta_kB"], rel=0.01)
 
 
-def test_pacer_with_a_link_model_still_paces_to_a_slow_edge() -> None:
-    """Edge-bound chain (edge 150 ms, a fast link): the link model changes nothing there."""
-    from shared.control.linkmodel import OnlineLinkEstimator
+@pytest.mark.parametrize(
+    "change",
+    [
+        {"t0_after": (100, 0.300)},  # the floor steps up (another route)
+        {"t0_after": (100, 0.005)},  # and down
+        {"edge_clock_after": (100, 0.5)},  # the edge's clock steps (NTP), ahead
+        {"edge_clock_after": (100, -0.3)},  # behind the robot's by more than t0
+    ],
+    ids=["floor-up", "floor-down", "edge-clock-ahead", "edge-clock-behind"],
+)
+def test_pacer_with_an_uplink_recovers_from_a_step(change: dict[str, tuple[int, float]]) -> None:
+    """A step of the link's floor or of the edge's clock mid-run: within the window the pacer is back to
+    the link's throughput (or what two credits carry) at the critical path's latency (a t0 / beta fit
+    that told queued frames by its own t0 locked at 40-80 % of the throughput here: found in review).
+    After the floor falls, the latency stays what it was (t0 is not probed: UplinkQueue)."""
+    chain = dict(LINK_BOUND)
+    pacer = EdgePacer(clock=FakeClock(), uplink=UplinkQueue())
+    latency, fps = _pipeline(pacer, chain, **change)  # type: ignore[arg-type]
+    before = _path(chain)
+    if "t0_after" in change:
+        chain["t0"] = change["t0_after"][1]
+    # the link's rate, or what 2 credits carry when a frame's round trip is longer than 2 on the link
+    rate = min(1 / (chain["beta_kB"] * chain["kB"]), 2 / _path(chain))
+    assert fps >= 0.95 * rate, (fps, rate)
+    fell = chain["t0"] < LINK_BOUND["t0"]  # then the frames still queue by the fall: no worse than before it
+    assert latency <= 1.05 * (before if fell else _path(chain)), (latency, _path(chain))
 
-    chain = {"robot": 0.010, "t0": 0.002, "beta_kB": 0.00001, "kB": 300.0, "edge": 0.150}
-    path = chain["robot"] + chain["t0"] + chain["beta_kB"] * chain["kB"] + chain["edge"]
-    no_pacer, _ = _pipeline(None, chain)
-    linked, fps = _pipeline(EdgePacer(clock=FakeClock(), link=OnlineLinkEstimator(prior_t0_ms=1.0)), chain)
-    assert no_pacer > 1.5 * path  # unpaced, the second credit waits at the edge
-    assert linked <= 1.05 * path
-    assert fps >= 0.97 / chain["edge"]
+
+def test_pacer_with_an_uplink_still_paces_to_a_slow_edge_and_lets_a_slow_robot_run() -> None:
+    """Edge-bound chain (edge 150 ms, a fast link): the uplink changes nothing there; robot-bound
+    (robot 100 ms): no wait at all."""
+    edge_bound = {"robot": 0.010, "t0": 0.002, "beta_kB": 0.00001, "kB": 300.0, "edge": 0.150}
+    no_pacer, _ = _pipeline(None, edge_bound)
+    linked, fps = _pipeline(EdgePacer(clock=FakeClock(), uplink=UplinkQueue()), edge_bound)
+    assert no_pacer > 1.5 * _path(edge_bound)  # unpaced, the second credit waits at the edge
+    assert linked <= 1.05 * _path(edge_bound)
+    assert fps >= 0.97 / edge_bound["edge"]
+    robot_bound = {"robot": 0.100, "t0": 0.010, "beta_kB": 0.00005, "kB": 300.0, "edge": 0.020}
+    latency, fps = _pipeline(EdgePacer(clock=FakeClock(), uplink=UplinkQueue()), robot_bound)
+    assert fps == pytest.approx(1 / robot_bound["robot"], rel=0.01)
+    assert latency == pytest.approx(_path(robot_bound), rel=0.01)
 
 
-def test_pacer_feeds_each_answered_crossing_to_its_link_model() -> None:
-    """What the link model is told: the payload the frame was sent with and its link stamps."""
-
-    class RecordingLink:
-        n = 0
-        t0_ms = 40.0
-        beta_ms_per_kB = 0.2
-
-        def __init__(self) -> None:
-            self.crossings: list[dict[str, float | None]] = []
-
-        def add_crossing(self, **kw: float | None) -> None:
-            self.crossings.append(kw)
-
-    link = RecordingLink()
-    clock = FakeClock(10.0)
-    pacer = EdgePacer(clock=clock, link=link)
-    pacer.sent(7, tags=2, robot_secs=0.02, payload_bytes=51_200)
-    clock.now += 0.2
-    stamps = LinkStamps(sent_nanos=1_000_000_000, received_nanos=1_150_000_000, previous_received_nanos=0)
-    pacer.answered(7, tags=2, link_secs=0.15, edge_secs=0.03, link=stamps)
-    assert link.crossings == [{"size_kB": 50.0, "sent_ms": 1000.0, "received_ms": 1150.0, "previous_received_ms": None}]
-    pacer.answered(8, tags=2, link_secs=0.15, edge_secs=0.03, link=stamps)  # never sent: nothing to fit
-    assert len(link.crossings) == 1
+def test_uplink_bounds_from_every_crossing() -> None:
+    """x and t0 from the bounds every frame gives, queued or not, on two clocks (offset 1000 s)."""
+    up = UplinkQueue()
+    assert up.x_secs_per_kB is None and up.t0_secs is None and up.transit_secs(10.0) is None
+    # t0 0.04 s, x 0.001 s/kB: a free frame (sent 0, 100 kB) and one queued behind it (sent 0.05)
+    up.add(size_kB=100.0, sent_secs=0.0, received_secs=1000.14, previous_received_secs=None)
+    up.add(size_kB=100.0, sent_secs=0.05, received_secs=1000.24, previous_received_secs=1000.14)
+    assert up.x_secs_per_kB == pytest.approx(0.001)
+    assert up.t0_secs == pytest.approx(1000.04)
+    assert up.transit_secs(50.0) == pytest.approx(1000.09)
+    up.reset()
+    assert up.x_secs_per_kB is None and up.t0_secs is None

@@ -289,11 +289,27 @@ def test_frames_stay_on_the_robots_router_whoever_subscribes(frames_leave_robot:
     assert counts[keys.frames(robot_id)] == (n if frames_leave_robot else 0), counts
 
 
-def test_keep_local_needs_a_router_and_joins_the_roles_rules() -> None:
+def test_keep_local_needs_a_router_and_joins_the_roles_rules(tmp_path: Path) -> None:
     """Only a router can hold keys back; under access control every role's policy denies their puts
-    on the way out (a deny wins over each role's allows)."""
+    on the way out (within a subject's policy a deny wins over its allows); a config file's own access
+    control is not silently replaced (a default-deny router would open to everyone), and frames cannot
+    be both kept and let go."""
+    from services.robot_infer.settings import RobotInferSettings
+
     with pytest.raises(ValueError, match="router"):
         ZenohSettings(mode="client", keep_local=["splittag/*/frame/**"])
+    own = tmp_path / "router.json5"
+    own.write_text(
+        '{access_control: {enabled: true, default_permission: "deny", rules: [{id: "r", permission: "allow", '
+        'flows: ["ingress"], messages: ["put"], key_exprs: ["a/**"]}], subjects: [{id: "s"}], '
+        'policies: [{rules: ["r"], subjects: ["s"]}]}}'
+    )
+    with pytest.raises(ValueError, match="own access_control"):
+        build_config(ZenohSettings(mode="router", config_file=own, keep_local=["splittag/*/frame/**"]))
+    with pytest.raises(ValueError, match="frames_leave_robot"):
+        RobotInferSettings(
+            zenoh=ZenohSettings(mode="router", keep_local=["splittag/*/frame/**"]), frames_leave_robot=True
+        )
     acl = access_control_config(AccessControlSettings(enabled=True), keep_local=["splittag/*/frame/**"])
     rule = next(r for r in acl["rules"] if r["id"] == "keep-local")
     assert rule["permission"] == "deny" and rule["flows"] == ["egress"] and "put" in rule["messages"]

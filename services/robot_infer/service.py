@@ -14,14 +14,12 @@ import zenoh
 
 from services.robot_infer.settings import RobotInferSettings
 from shared.control.compute import ComputeEstimator, head_per_tag_ms
-from shared.control.controller import ControllerTuning
-from shared.control.linkmodel import OnlineLinkEstimator
 from shared.model.runtime import calibrate_cumulative_ms, load_split_net
 from shared.model.views import with_views
 from shared.model.weights import load_keypoint_fusion
 from shared.perception.split import RobotTimings, Stage1Output, edge_step, robot_head, robot_stage1
 from shared.runtime.guard import InputGuard, serve_stats
-from shared.transport.flow import EdgePacer, EdgeWatch, InFlightWindow, may_run_ahead
+from shared.transport.flow import EdgePacer, EdgeWatch, InFlightWindow, UplinkQueue, may_run_ahead
 from shared.transport.latest import LatestValid, declare_latest_valid
 from shared.transport.session import declare_tensor_publisher, encoding_for
 from shared.transport.split_control import SplitState, serve_split
@@ -93,14 +91,8 @@ class RobotInfer:
         self.state = SplitState(SplitConfig(k=s.split_k, codec=s.codec, pinned=False, source="default"))
         # Each frame in flight keeps its Features: if its edge vanishes, the robot computes it on board.
         self.window: InFlightWindow[Features] = InFlightWindow(s.max_in_flight, timeout_secs=s.in_flight_timeout_secs)
-        # The uplink as a queue (pace_to_link): the controller's queue-aware fit, with its tuning's defaults
-        tuning = ControllerTuning()
-        link = (
-            OnlineLinkEstimator(half_life=tuning.half_life_samples, cusum_threshold=tuning.change_threshold)
-            if s.pace_to_link
-            else None
-        )
-        self.pacer = EdgePacer(link=link) if s.pace_to_edge and s.max_in_flight else None
+        uplink = UplinkQueue() if s.pace_to_link else None  # the uplink as a queue, not a delay
+        self.pacer = EdgePacer(uplink=uplink) if s.pace_to_edge and s.max_in_flight else None
         self.watch = EdgeWatch(answer_timeout_secs=s.edge_answer_timeout_secs)
         self.guard = InputGuard("robot_infer")
         # stage 1 of the next frame while the network runs (settings.overlap_stage1)
@@ -281,10 +273,12 @@ class RobotInfer:
         self.rest_secs += 0.3 * (compute_secs - stage1 - self.rest_secs)
         features = self._features(frame, tags, split.k, split.codec, compute_secs)
         wire = encode(features)
-        sent_nanos = time.time_ns()
+        sent_nanos, sent_at = time.time_ns(), time.monotonic()
         self.window.send(frame.seq, lambda: self.pub.put(wire), keep=features, gone=lambda: not self.watch.alive)
         if self.pacer is not None:
-            self.pacer.sent(frame.seq, tags=len(tags), robot_secs=compute_secs, payload_bytes=len(wire))
+            self.pacer.sent(
+                frame.seq, tags=len(tags), robot_secs=compute_secs, payload_bytes=len(wire), sent_at=sent_at
+            )
         sent = FrameSent(robot_id=self.settings.robot_id, seq=frame.seq, sent_nanos=sent_nanos, payload_bytes=len(wire))
         self.sent_pub.put(encode(sent))
         fixed_ms = (timings.detect_secs + timings.warp_secs) * 1e3

@@ -65,7 +65,7 @@ class RobotInferSettings(ServiceSettings):
     # Start each frame when it would reach the edge as the edge becomes free (shared.transport.flow.EdgePacer)
     pace_to_edge: bool = True
     # ... and on the uplink as the frame ahead has crossed it: the pacer models the link as a queue
-    # (t0 + beta S, fitted from the frames' link stamps as the controller fits it) instead of a delay.
+    # (shared.transport.flow.UplinkQueue, from the answers' link stamps) instead of a delay.
     pace_to_link: bool = True
     in_flight_timeout_secs: float = Field(default=2.0, gt=0)  # a frame never answered returns its credit
     profile_period_secs: float = Field(default=1.0, gt=0)  # ComputeProfile C(k) publication period
@@ -99,6 +99,8 @@ class RobotInferSettings(ServiceSettings):
 
     @model_validator(mode="after")
     def _frames_stay_on_the_router(self) -> RobotInferSettings:
+        if self.frames_leave_robot and FRAME_KEYS in self.zenoh.keep_local:
+            raise ValueError(f"frames_leave_robot = true, but zenoh.keep_local keeps {FRAME_KEYS} on the robot")
         if not self.frames_leave_robot and self.zenoh.mode == "router" and FRAME_KEYS not in self.zenoh.keep_local:
             self.zenoh = self.zenoh.model_copy(update={"keep_local": [*self.zenoh.keep_local, FRAME_KEYS]})
         return self

@@ -154,7 +154,8 @@ def keep_local_config(keys: list[str]) -> dict[str, Any]:
 
 def access_control_config(settings: AccessControlSettings, *, keep_local: list[str] | None = None) -> dict[str, Any]:
     """The `access_control` section of a router's Zenoh config for these roles. `keep_local`: keys whose
-    puts go out to no face at all, whatever a role may read (a deny wins over every allow)."""
+    puts go out to no face at all, whatever a role may read (the rule joins every policy, and within
+    one a deny wins over its allows)."""
     rules = [
         _rule("everything", "allow", ALL_MESSAGES, EVERY_KEY, ["ingress", "egress"]),
         # What the router sends a restricted role: only what it subscribed to, queried or serves.

@@ -19,8 +19,9 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
-from typing import Generic, Protocol, TypeVar
+from typing import Generic, TypeVar
 
 from shared.wire.messages import LinkStamps
 
@@ -201,21 +202,69 @@ class EdgeWatch:
             return not self._alive or oldest_in_flight_secs > self.answer_timeout_secs
 
 
-class LinkModel(Protocol):
-    """The uplink as a FIFO pipe, a = max(p + t0, a_prev) + beta S (shared.control.linkmodel's
-    OnlineLinkEstimator, which robot_infer gives its pacer: the same queue-aware fit as the controller's)."""
+class UplinkQueue:
+    """The uplink as the pacer needs it, from answered frames' link stamps alone: how long a frame of
+    S kB occupies the link (x S) and its transit when it finds the link free (t0 + x S).
 
-    n: int
+    The link is a FIFO pipe: a frame sent at s arrives at a = max(s + t0, a_prev) + x S, a_prev being
+    the arrival of the message ahead of it (a frame or a probe). Every frame therefore bounds both
+    unknowns from above, whether or not it waited: x S <= a - a_prev (equal when it waited) and
+    t0 <= a - s - x S (equal when it did not). Both are the minimum of their bounds over the last
+    `window` frames, with no need to tell which frames waited (a fit that told them apart with its own
+    t0 locked onto a wrong t0 / beta split after a step of the floor or of the edge's clock, holding the
+    link at 40-80 % of its throughput: found in review). A step of the floor or of either clock passes
+    out of the window within `window` frames whichever way it goes (t0 carries the clocks' offset;
+    only differences on one clock are used for x). The sender needs no t0 to keep the pipe free of
+    queues: on its own clock the pipe takes the next frame without a wait from F_n = max(s_n, F_(n-1))
+    + x S_n on, and re-anchoring F on an arrival a needs t0 (F = a - t0). A pacer that starts each frame
+    at F reads back what it chose, so an x too large would confirm itself: once in every `probe_every`
+    frames one starts `probe_fraction` of a frame's link time early, which finds the link free (a
+    smaller bound on x) or waits a little (x exactly). t0 is not probed: after the floor falls, frames
+    paced on the old t0 queue behind each other by the fall until one finds the link idle (the latency
+    stays what it was before the fall; probing late would cost throughput wherever x is only a loose
+    bound, as on an edge-bound cut). Pure."""
+
+    def __init__(self, *, window: int = 20, probe_every: int = 8, probe_fraction: float = 0.25) -> None:
+        if window < 1 or probe_every < 1 or not 0 <= probe_fraction < 1:
+            raise ValueError("window and probe_every >= 1, probe_fraction in [0, 1)")
+        self.probe_every = probe_every
+        self.probe_fraction = probe_fraction
+        self._spacing: deque[float] = deque(maxlen=window)  # (a - a_prev) / S: x's bounds
+        self._transits: deque[tuple[float, float]] = deque(maxlen=window)  # (a - s, S): t0's, given x
 
     @property
-    def t0_ms(self) -> float: ...
+    def x_secs_per_kB(self) -> float | None:
+        """The link's time per kB, None before two messages crossed in a row."""
+        return min(self._spacing) if self._spacing else None
 
     @property
-    def beta_ms_per_kB(self) -> float: ...
+    def t0_secs(self) -> float | None:
+        """The link's floor (plus the clocks' offset), None before the first crossing."""
+        if not self._transits:
+            return None
+        x = self.x_secs_per_kB or 0.0
+        return min(transit - x * kB for transit, kB in self._transits)
 
-    def add_crossing(
-        self, *, size_kB: float, sent_ms: float, received_ms: float, previous_received_ms: float | None
-    ) -> None: ...
+    def transit_secs(self, size_kB: float) -> float | None:
+        """A frame's time from send to arrival when it finds the link free."""
+        t0 = self.t0_secs
+        return None if t0 is None else t0 + (self.x_secs_per_kB or 0.0) * size_kB
+
+    def add(
+        self, *, size_kB: float, sent_secs: float, received_secs: float, previous_received_secs: float | None
+    ) -> None:
+        """One answered frame's crossing: sent on the sender's clock, received and the message ahead
+        of it received (None: nothing ahead since the receiver started) on the receiver's."""
+        if size_kB <= 0:
+            return
+        self._transits.append((received_secs - sent_secs, size_kB))
+        if previous_received_secs is not None and received_secs > previous_received_secs:
+            self._spacing.append((received_secs - previous_received_secs) / size_kB)
+
+    def reset(self) -> None:
+        """Another edge (another receiver clock, another link perhaps): learn afresh."""
+        self._spacing.clear()
+        self._transits.clear()
 
 
 class EdgePacer:
@@ -234,29 +283,28 @@ class EdgePacer:
     robot's pacer, and each robot kept its whole window queued there: twice the latency for the same
     throughput. Thread-safe: answers arrive on Zenoh's threads. The in-flight window stays the hard cap.
 
-    With a `link` model (fed here with every answered frame's crossing: its payload and link stamps)
-    the link is a server too, not a delay: frame n arrives at a_n = max(s_n + t0, a_(n-1)) + beta S_n,
-    and L above becomes a_n - s_n. A frame started before a_(n-1) - t0 - R waits on the uplink behind
-    the one ahead; the measured L of such a frame includes that wait (it read as a slower link, so the
-    next frame started earlier still and the robot kept its whole window queued on the uplink: the
-    emulated 5G link at k = 3 measured 1063 ms against a predicted 729). Until the model has
-    `min_link_samples` crossings, the measured L stands in."""
+    With an `uplink` (UplinkQueue, fed here with every answered frame's payload and link stamps) the
+    link is a server too, not a delay: the pipe takes frame n without a wait from F_n = max(s_n,
+    F_(n-1)) + x S_n on (robot clock), the frame arrives at F_n + t0 and L above becomes its transit on
+    a free link, t0 + x S. A frame started before F_(n-1) - R waits on the uplink behind the one ahead,
+    and the measured L of such a frame includes that wait: it read as a slower link, the next frame
+    started earlier still, and on a link-bound cut the robot kept its whole in-flight window queued on
+    the uplink (the emulated 5G link at k = 3 measured 1063 ms against a predicted 729). Until the
+    uplink has measured x, the measured L stands in."""
 
     def __init__(
         self,
         *,
         smoothing: float = 0.3,
         clock: Callable[[], float] = time.monotonic,
-        link: LinkModel | None = None,
-        min_link_samples: int = 5,
+        uplink: UplinkQueue | None = None,
     ) -> None:
         if not 0 < smoothing <= 1:
             raise ValueError("smoothing must be in (0, 1]")
         self._alpha = smoothing
         self._clock = clock
         self._lock = threading.Lock()
-        self.link = link
-        self._min_link_samples = min_link_samples
+        self.uplink = uplink
         self.robot_secs = 0.0
         self.link_secs = 0.0
         self.payload_kB = 0.0
@@ -266,51 +314,57 @@ class EdgePacer:
         self._done_at: dict[int, float] = {}  # seq -> predicted edge completion (robot clock)
         self._last_done_at = 0.0
         self._edge_done_nanos = 0  # when the edge finished this robot's latest answered frame (edge clock)
-        self._sent: dict[int, tuple[float, float]] = {}  # seq -> (sent, payload kB), for the link model
-        self._arrive_at: dict[int, float] = {}  # seq -> predicted arrival at the edge (robot clock + offset)
-        self._link_free_at = 0.0  # the latest predicted arrival: the uplink is busy until then
+        self._sent: dict[int, tuple[float, float]] = {}  # seq -> (sent, payload kB), robot clock
+        self._free_at: dict[int, float] = {}  # seq -> F: the uplink takes the next frame from then on
+        self._link_free_at = 0.0  # the latest F
+        self._frames_sent = 0
 
     def _avg(self, old: float, new: float) -> float:
         return new if old == 0.0 else old + self._alpha * (new - old)
 
-    def _link_params(self) -> tuple[float, float] | None:
-        """(t0 s, beta s/kB) once the link model has seen enough crossings."""
-        if self.link is None or self.link.n < self._min_link_samples:
-            return None
-        return self.link.t0_ms / 1e3, self.link.beta_ms_per_kB / 1e3
+    def _x(self) -> float | None:
+        return None if self.uplink is None else self.uplink.x_secs_per_kB
 
     def start_delay_secs(self) -> float:
         """How long to wait before taking the next frame (0: start now)."""
         with self._lock:
-            params = self._link_params()
-            if params is None:
+            x = self._x()
+            transit = None if self.uplink is None or x is None else self.uplink.transit_secs(self.payload_kB)
+            if x is None or transit is None:
                 start = self._last_done_at - self.robot_secs - self.link_secs
             else:
-                t0, beta = params
+                assert self.uplink is not None
+                link_free = self._link_free_at
+                if self._frames_sent % self.uplink.probe_every == self.uplink.probe_every - 1:
+                    link_free -= self.uplink.probe_fraction * x * self.payload_kB  # see UplinkQueue
                 # on the uplink as the frame ahead has crossed it, at the edge as the edge frees up
-                link_free = self._link_free_at - t0
-                edge_free = self._last_done_at - t0 - beta * self.payload_kB
-                start = max(link_free, edge_free) - self.robot_secs
+                start = max(link_free, self._last_done_at - transit) - self.robot_secs
             return max(0.0, start - self._clock())
 
-    def sent(self, seq: int, *, tags: int, robot_secs: float, payload_bytes: int = 0) -> None:
+    def sent(
+        self, seq: int, *, tags: int, robot_secs: float, payload_bytes: int = 0, sent_at: float | None = None
+    ) -> None:
         """Frame `seq` with `tags` tags and `payload_bytes` on the wire left the robot after
-        `robot_secs` of robot compute."""
+        `robot_secs` of robot compute; `sent_at`: when it was put (robot clock; default now: a put
+        that blocked would otherwise count as link time)."""
         with self._lock:
-            now = self._clock()
+            now = self._clock() if sent_at is None else sent_at
             kB = payload_bytes / 1024.0
+            self._frames_sent += 1
             self.robot_secs = self._avg(self.robot_secs, robot_secs)
             self.payload_kB = self._avg(self.payload_kB, kB)
             edge = self.edge_wait_secs + self.edge_secs_fixed + self.edge_secs_per_tag * tags
             self._sent[seq] = (now, kB)
-            params = self._link_params()
-            if params is None:
+            x = self._x()
+            t0 = None if self.uplink is None else self.uplink.t0_secs
+            if x is None or t0 is None:
                 arrive = now + self.link_secs
+                free = now
             else:
-                t0, beta = params
-                arrive = max(now + t0, self._link_free_at) + beta * kB
-            self._arrive_at[seq] = arrive
-            self._link_free_at = max(self._link_free_at, arrive)
+                free = max(now, self._link_free_at) + x * kB
+                arrive = free + t0
+            self._free_at[seq] = free
+            self._link_free_at = max(self._link_free_at, free)
             done = max(arrive, self._last_done_at) + edge
             self._done_at[seq] = done
             self._last_done_at = done
@@ -328,7 +382,7 @@ class EdgePacer:
     ) -> None:
         """The edge's answer for `seq` arrived now, saying what its link and edge compute took and, with
         both stamps (edge clock), when the edge received the frame and finished it; `link`: how it
-        crossed the uplink (for the link model)."""
+        crossed the uplink (for the uplink's model)."""
         with self._lock:
             now = self._clock()
             self.link_secs = self._avg(self.link_secs, max(0.0, link_secs))
@@ -343,24 +397,19 @@ class EdgePacer:
                 self.edge_wait_secs += self._alpha * (foreign - self.edge_wait_secs)  # 0 is a value here
                 self._edge_done_nanos = edge_done_nanos  # the latest answer's (a new worker: its clock)
             sent = self._sent.pop(seq, None)
-            predicted_arrival = self._arrive_at.pop(seq, None)
-            if link is not None and sent is not None:
-                if self.link is not None:
-                    prev = link.previous_received_nanos
-                    self.link.add_crossing(
-                        size_kB=sent[1],
-                        sent_ms=link.sent_nanos / 1e6,
-                        received_ms=link.received_nanos / 1e6,
-                        previous_received_ms=prev / 1e6 if prev else None,
-                    )
-                if predicted_arrival is not None:  # re-anchor the uplink's queue on the real arrival
-                    arrived = sent[0] + (link.received_nanos - link.sent_nanos) / 1e9
-                    shift = arrived - predicted_arrival
-                    self._arrive_at = {s: t + shift for s, t in self._arrive_at.items() if s > seq}
-                    self._link_free_at = max(self._arrive_at.values(), default=arrived)
+            self._free_at.pop(seq, None)
             for stale in [s for s in self._sent if s < seq]:  # older answers that never came
                 del self._sent[stale]
-                self._arrive_at.pop(stale, None)
+                self._free_at.pop(stale, None)
+            if link is not None and sent is not None and self.uplink is not None:
+                prev = link.previous_received_nanos
+                self.uplink.add(
+                    size_kB=sent[1],
+                    sent_secs=link.sent_nanos / 1e9,
+                    received_secs=link.received_nanos / 1e9,
+                    previous_received_secs=prev / 1e9 if prev else None,
+                )
+                self._re_anchor_uplink(sent[0] + (link.received_nanos - link.sent_nanos) / 1e9)
             predicted = self._done_at.pop(seq, None)
             for stale in [s for s in self._done_at if s < seq]:
                 del self._done_at[stale]
@@ -368,6 +417,20 @@ class EdgePacer:
                 shift = now - predicted  # the answer is the edge's completion (+ a small return trip)
                 self._done_at = {s: t + shift for s, t in self._done_at.items()}
                 self._last_done_at = max(self._done_at.values(), default=now)
+
+    def _re_anchor_uplink(self, arrived: float) -> None:
+        """The answered frame arrived at `arrived` (robot clock + the clocks' offset): the pipe took the
+        next frame from arrived - t0 on; the frames still in flight follow from there, in order."""
+        assert self.uplink is not None
+        x, t0 = self.uplink.x_secs_per_kB, self.uplink.t0_secs
+        if x is None or t0 is None:
+            return
+        free = arrived - t0
+        for seq in sorted(self._sent):
+            sent_at, kB = self._sent[seq]
+            free = max(sent_at, free) + x * kB
+            self._free_at[seq] = free
+        self._link_free_at = free
 
     def forget(self) -> None:
         """The edge restarted or is gone: nothing is in flight any more (and the next edge, perhaps
@@ -378,5 +441,7 @@ class EdgePacer:
             self.edge_wait_secs = 0.0
             self._edge_done_nanos = 0
             self._sent.clear()
-            self._arrive_at.clear()
+            self._free_at.clear()
             self._link_free_at = 0.0
+            if self.uplink is not None:
+                self.uplink.reset()

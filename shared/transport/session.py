@@ -139,6 +139,13 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
         acl = access_control_config(settings.access_control, keep_local=settings.keep_local)
         config.insert_json5("access_control", json.dumps(acl))
     elif settings.keep_local:
+        if settings.config_file is not None and json.loads(config.get_json("access_control")).get("enabled"):
+            # (replacing the file's rules would open a default-deny router to everyone)
+            raise ValueError(
+                f"{settings.config_file} has its own access_control: keep_local ({settings.keep_local}) would "
+                "replace it; add a rule denying put on those keys (egress) to each of its policies and set "
+                "keep_local = [] (robot_infer: frames_leave_robot = true)"
+            )
         config.insert_json5("access_control", json.dumps(keep_local_config(settings.keep_local)))
     return config
 
