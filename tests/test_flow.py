@@ -8,7 +8,14 @@ from functools import partial
 import numpy as np
 import pytest
 
-from shared.transport.flow import EdgePacer, EdgeWatch, InFlightWindow, UplinkQueue, may_run_ahead
+from shared.transport.flow import (
+    EdgePacer,
+    EdgeWatch,
+    InFlightWindow,
+    UplinkQueue,
+    credits_needed,
+    may_run_ahead,
+)
 from shared.wire.messages import LinkStamps
 from tests.fakes import FakeClock
 
@@ -291,13 +298,15 @@ def _pipeline(
     *,
     t0_after: tuple[int, float] | None = None,
     edge_clock_after: tuple[int, float] | None = None,
+    adaptive: bool = False,
 ) -> tuple[float, float]:
     """A robot, a FIFO uplink (a = max(s + t0, a_prev) + beta S) and an edge (done = max(a, done_prev) +
     E), event by event on a fake clock, as robot_infer runs them: a window of 2 credits, the pacer's delay
     waited in one go, a fresh frame taken at the start, answers as they come. The link stamps are on
     wall clocks (the robot's = the pacer's + WALL; the edge's offset by `edge_clock_after` = (from frame,
-    seconds)); `t0_after` = (from frame, t0) steps the link's floor. (median latency start -> done,
-    frames/s) over the last third."""
+    seconds)); `t0_after` = (from frame, t0) steps the link's floor; `adaptive`: the window's credits
+    from credits_needed after each answer, as robot_infer sets them (2 to 6). (median latency start ->
+    done, frames/s) over the last third."""
     robot, t0, beta_kB, kB, edge = (chain[k] for k in ("robot", "t0", "beta_kB", "kB", "edge"))
     clock = pacer._clock if pacer is not None else FakeClock()
     assert isinstance(clock, FakeClock)
@@ -306,11 +315,15 @@ def _pipeline(
     offset = 0.0
     lat: list[float] = []
     dones: list[float] = []
+    credits = 2
+    answer_secs = 0.0
 
     def deliver(until: float) -> None:
+        nonlocal credits, answer_secs
         while flight and flight[0][3] <= until:
             seq, sent, arrival, done, ahead = flight.pop(0)
             clock.now = max(clock.now, done)
+            answer_secs = done - sent if not answer_secs else answer_secs + 0.3 * (done - sent - answer_secs)
             if pacer is not None:
                 pacer.answered(
                     seq,
@@ -325,13 +338,17 @@ def _pipeline(
                         previous_received_nanos=round((ahead + WALL + offset) * 1e9) if ahead else 0,
                     ),
                 )
+                if adaptive:
+                    period = pacer.period_secs()
+                    cycle = robot + answer_secs
+                    credits = credits_needed(cycle_secs=cycle, period_secs=period, floor=2, ceiling=6)
 
     for seq in range(frames):
         if t0_after is not None and seq == t0_after[0]:
             t0 = t0_after[1]
         if edge_clock_after is not None and seq == edge_clock_after[0]:
             offset = edge_clock_after[1]
-        while len(flight) >= 2:  # a credit
+        while len(flight) >= credits:  # a credit
             deliver(flight[0][3])
         target = clock.now + (pacer.start_delay_secs() if pacer is not None else 0.0)
         deliver(target)  # answers during the wait update the pacer, not this wait
@@ -436,3 +453,43 @@ def test_uplink_bounds_from_every_crossing() -> None:
     assert up.transit_secs(50.0) == pytest.approx(1000.09)
     up.reset()
     assert up.x_secs_per_kB is None and up.t0_secs is None
+
+
+def test_credits_follow_the_time_in_flight_over_the_chains_period() -> None:
+    assert credits_needed(cycle_secs=0.62, period_secs=0.3, floor=2, ceiling=6) == 3
+    assert credits_needed(cycle_secs=0.6, period_secs=0.3, floor=2, ceiling=6) == 2  # exactly two periods
+    assert credits_needed(cycle_secs=0.1, period_secs=0.3, floor=2, ceiling=6) == 2  # never below the floor
+    assert credits_needed(cycle_secs=9.0, period_secs=0.1, floor=2, ceiling=6) == 6  # nor above the ceiling
+    assert credits_needed(cycle_secs=0.0, period_secs=0.3, floor=2, ceiling=6) == 2  # not known yet
+
+
+def test_a_long_uplink_floor_gets_the_credits_it_needs() -> None:
+    """Link-bound with a 300 ms floor (a credit comes back 640 ms after its frame starts, the link takes
+    a frame every 300 ms): two credits carry 3.1 frames/s; the window sized by credits_needed carries
+    the link's 3.33 at the same latency."""
+    chain = dict(LINK_BOUND, t0=0.300)
+    rate = 1 / (chain["beta_kB"] * chain["kB"])
+    fixed_latency, fixed_fps = _pipeline(EdgePacer(clock=FakeClock(), uplink=UplinkQueue()), chain)
+    latency, fps = _pipeline(EdgePacer(clock=FakeClock(), uplink=UplinkQueue()), chain, adaptive=True)
+    assert fixed_fps < 0.95 * rate  # the scenario is credit-bound
+    assert fps >= 0.97 * rate
+    assert latency <= 1.05 * _path(chain) and fixed_latency <= 1.05 * _path(chain)
+
+
+def test_the_window_takes_a_new_capacity_at_once() -> None:
+    """A frame waiting for a credit gets one as soon as the window grows; the time in flight is measured."""
+    clock = FakeClock()
+    w: InFlightWindow[None] = InFlightWindow(1, clock=clock)
+    w.sent(1)
+    stop = threading.Event()
+    got: list[bool] = []
+    waiter = threading.Thread(target=lambda: got.append(w.acquire(stop, poll_secs=5.0)))
+    waiter.start()
+    w.set_capacity(2)
+    waiter.join(timeout=2.0)
+    assert got == [True]
+    clock.now += 0.25
+    w.done(1)
+    assert w.answer_secs == pytest.approx(0.25)
+    with pytest.raises(ValueError):
+        w.set_capacity(0)

@@ -19,7 +19,14 @@ from shared.model.views import with_views
 from shared.model.weights import load_keypoint_fusion
 from shared.perception.split import RobotTimings, Stage1Output, edge_step, robot_head, robot_stage1
 from shared.runtime.guard import InputGuard, serve_stats
-from shared.transport.flow import EdgePacer, EdgeWatch, InFlightWindow, UplinkQueue, may_run_ahead
+from shared.transport.flow import (
+    EdgePacer,
+    EdgeWatch,
+    InFlightWindow,
+    UplinkQueue,
+    credits_needed,
+    may_run_ahead,
+)
 from shared.transport.latest import LatestValid, declare_latest_valid
 from shared.transport.session import declare_tensor_publisher, encoding_for
 from shared.transport.split_control import SplitState, serve_split
@@ -135,6 +142,7 @@ class RobotInfer:
         """Flow and fallback counters, served with the input counters on the stats key."""
         return {
             "in_flight": self.window.in_flight,
+            "in_flight_capacity": self.window.capacity,
             "credits_expired": self.window.expired,
             "on_board_frames": self.on_board_frames,
             "recovered_frames": self.recovered_frames,
@@ -172,6 +180,15 @@ class RobotInfer:
                     # capture_to_pose is the edge's done stamp minus the capture stamp: done on the edge's clock
                     edge_done_nanos=poses.capture_nanos + round(timings.capture_to_pose_secs * 1e9),
                     link=poses.link,
+                )
+                camera = self.frames.interval_secs() or 0.0
+                self.window.set_capacity(
+                    credits_needed(
+                        cycle_secs=self.pacer.robot_secs + self.window.answer_secs,
+                        period_secs=max(self.pacer.period_secs(), camera),
+                        floor=self.settings.max_in_flight,
+                        ceiling=self.settings.in_flight_limit,
+                    )
                 )
 
     def _on_edge(self, sample: zenoh.Sample) -> None:

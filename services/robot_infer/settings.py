@@ -62,6 +62,11 @@ class RobotInferSettings(ServiceSettings):
     # old (docs/pipeline.md, *Fresh frames*). 0 = always take the newest frame at once.
     fresh_frame_fraction: float = Field(default=0.5, ge=0.0, lt=1.0)
     max_in_flight: int = Field(default=2, ge=0)  # frames sent without TagPoses back yet; 0 = no limit
+    # With the pacer on, the window grows up to this many when a credit's cycle (the robot's compute of
+    # a frame, then its time in flight) spans more of the chain's periods (its slowest stage, or the
+    # camera) than max_in_flight: an uplink's floor would otherwise set the frame rate
+    # (flow.credits_needed). = max_in_flight: a fixed window.
+    in_flight_limit: int = Field(default=6, ge=1)
     # Start each frame when it would reach the edge as the edge becomes free (shared.transport.flow.EdgePacer)
     pace_to_edge: bool = True
     # ... and on the uplink as the frame ahead has crossed it: the pacer models the link as a queue
@@ -95,6 +100,12 @@ class RobotInferSettings(ServiceSettings):
                 f"gamma {self.gamma} < 1 would make the robot faster than this CPU: "
                 "set emulated_ms_per_tag_by_k (a fixed reference profile) to emulate a faster robot"
             )
+        return self
+
+    @model_validator(mode="after")
+    def _window_limits(self) -> RobotInferSettings:
+        if self.max_in_flight and self.in_flight_limit < self.max_in_flight:
+            raise ValueError(f"in_flight_limit {self.in_flight_limit} < max_in_flight {self.max_in_flight}")
         return self
 
     @model_validator(mode="after")

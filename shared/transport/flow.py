@@ -17,6 +17,7 @@ the next one).
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections import deque
@@ -45,6 +46,7 @@ class InFlightWindow(Generic[T]):
         self._orphans: list[tuple[int, T]] = []  # (seq, what it was sent with)
         self._cond = threading.Condition()
         self.expired = 0
+        self.answer_secs = 0.0  # exponential average of a frame's time in flight, put -> answer
 
     def _expire(self) -> None:
         now = self._clock()
@@ -147,8 +149,22 @@ class InFlightWindow(Generic[T]):
         with self._cond:
             self._kept.pop(seq, None)
             self._orphans = [(s, kept) for s, kept in self._orphans if s != seq]
-            if self._sent.pop(seq, None) is not None:
+            sent = self._sent.pop(seq, None)
+            if sent is not None:
+                took = self._clock() - sent
+                self.answer_secs = (
+                    took if self.answer_secs == 0.0 else self.answer_secs + 0.3 * (took - self.answer_secs)
+                )
                 self._cond.notify_all()
+
+    def set_capacity(self, capacity: int) -> None:
+        """A new number of credits (> 0: a window cannot be switched off once made); a frame waiting
+        for a credit takes a new one at once."""
+        if capacity < 1 or self.capacity == 0:
+            raise ValueError("a window's capacity stays >= 1 (and 0, no window, stays 0)")
+        with self._cond:
+            self.capacity = capacity
+            self._cond.notify_all()
 
     @property
     def in_flight(self) -> int:
@@ -156,6 +172,18 @@ class InFlightWindow(Generic[T]):
         with self._cond:
             self._expire()
             return len(self._sent)
+
+
+def credits_needed(*, cycle_secs: float, period_secs: float, floor: int, ceiling: int) -> int:
+    """Credits that keep a chain of period `period_secs` (its slowest stage, or the camera) busy when
+    each credit comes back `cycle_secs` after the robot starts a frame with it (the robot's compute,
+    then the frame's time in flight, put -> answer): ceil(cycle / period), within [floor, ceiling]
+    (unknown figures: the floor). With fewer the window, not the chain, sets the frame rate: a 40 ms
+    uplink floor held k = 0 on the emulated 5G link at 12.4-12.6 fps with a 15 fps camera and an edge
+    good for 25."""
+    if cycle_secs <= 0 or period_secs <= 0:
+        return floor
+    return max(floor, min(ceiling, math.ceil(cycle_secs / period_secs - 1e-9)))
 
 
 def may_run_ahead(*, in_flight: int, capacity: int, pace_delay_secs: float, edge_alive: bool) -> bool:
@@ -219,23 +247,34 @@ class UplinkQueue:
     + x S_n on, and re-anchoring F on an arrival a needs t0 (F = a - t0). A pacer that starts each frame
     at F reads back what it chose, so an x too large would confirm itself: once in every `probe_every`
     frames one starts `probe_fraction` of a frame's link time early, which finds the link free (a
-    smaller bound on x) or waits a little (x exactly). t0 is not probed: after the floor falls, frames
+    smaller bound on x) or waits a little (x exactly). The bound on x is only used while some frame in
+    the window arrived further apart from the one before it than it was sent (the link held it back):
+    where the camera, the robot or the edge is the slower stage, every spacing is theirs, a loose bound
+    that would make the link look exactly that slow and hold frames until the next camera frame is
+    due (a frame dropped from the latest-only ring at 2 fps: found by tests/test_pipeline_multiprocess.py);
+    there the measured L stands in, as before. t0 is not probed: after the floor falls, frames
     paced on the old t0 queue behind each other by the fall until one finds the link idle (the latency
     stays what it was before the fall; probing late would cost throughput wherever x is only a loose
     bound, as on an edge-bound cut). Pure."""
 
-    def __init__(self, *, window: int = 20, probe_every: int = 8, probe_fraction: float = 0.25) -> None:
+    def __init__(
+        self, *, window: int = 20, probe_every: int = 8, probe_fraction: float = 0.25, tolerance_secs: float = 0.001
+    ) -> None:
         if window < 1 or probe_every < 1 or not 0 <= probe_fraction < 1:
             raise ValueError("window and probe_every >= 1, probe_fraction in [0, 1)")
         self.probe_every = probe_every
         self.probe_fraction = probe_fraction
+        self.tolerance_secs = tolerance_secs
         self._spacing: deque[float] = deque(maxlen=window)  # (a - a_prev) / S: x's bounds
         self._transits: deque[tuple[float, float]] = deque(maxlen=window)  # (a - s, S): t0's, given x
+        self._stretched: deque[bool] = deque(maxlen=window)  # arrived further apart than sent
+        self._last: tuple[float, float] | None = None  # the previous frame's (sent, received)
 
     @property
     def x_secs_per_kB(self) -> float | None:
-        """The link's time per kB, None before two messages crossed in a row."""
-        return min(self._spacing) if self._spacing else None
+        """The link's time per kB while the link is seen to hold frames back (None otherwise: a loose
+        bound, the spacing of a camera's frames, is not the link's)."""
+        return min(self._spacing) if self._spacing and any(self._stretched) else None
 
     @property
     def t0_secs(self) -> float | None:
@@ -260,11 +299,17 @@ class UplinkQueue:
         self._transits.append((received_secs - sent_secs, size_kB))
         if previous_received_secs is not None and received_secs > previous_received_secs:
             self._spacing.append((received_secs - previous_received_secs) / size_kB)
+        if self._last is not None:
+            sent_apart, arrived_apart = sent_secs - self._last[0], received_secs - self._last[1]
+            self._stretched.append(arrived_apart > sent_apart + self.tolerance_secs)
+        self._last = (sent_secs, received_secs)
 
     def reset(self) -> None:
         """Another edge (another receiver clock, another link perhaps): learn afresh."""
         self._spacing.clear()
         self._transits.clear()
+        self._stretched.clear()
+        self._last = None
 
 
 class EdgePacer:
@@ -308,6 +353,7 @@ class EdgePacer:
         self.robot_secs = 0.0
         self.link_secs = 0.0
         self.payload_kB = 0.0
+        self.tags = 0.0
         self.edge_secs_per_tag = 0.0
         self.edge_secs_fixed = 0.0
         self.edge_wait_secs = 0.0  # W: waiting at the edge behind other robots' frames
@@ -321,6 +367,15 @@ class EdgePacer:
 
     def _avg(self, old: float, new: float) -> float:
         return new if old == 0.0 else old + self._alpha * (new - old)
+
+    def period_secs(self) -> float:
+        """The chain's slowest stage per frame as measured (0 until known): the robot, the uplink's
+        occupancy (once measured) or the edge, with its wait behind other robots' frames."""
+        with self._lock:
+            x = self._x()
+            link = 0.0 if x is None else x * self.payload_kB
+            edge = self.edge_wait_secs + self.edge_secs_fixed + self.edge_secs_per_tag * self.tags
+            return max(self.robot_secs, link, edge)
 
     def _x(self) -> float | None:
         return None if self.uplink is None else self.uplink.x_secs_per_kB
@@ -353,6 +408,7 @@ class EdgePacer:
             self._frames_sent += 1
             self.robot_secs = self._avg(self.robot_secs, robot_secs)
             self.payload_kB = self._avg(self.payload_kB, kB)
+            self.tags = self._avg(self.tags, float(tags))
             edge = self.edge_wait_secs + self.edge_secs_fixed + self.edge_secs_per_tag * tags
             self._sent[seq] = (now, kB)
             x = self._x()
