@@ -299,14 +299,20 @@ def _pipeline(
     t0_after: tuple[int, float] | None = None,
     edge_clock_after: tuple[int, float] | None = None,
     adaptive: bool = False,
+    camera_secs: float = 0.0,
+    jitter_secs: float = 0.0,
+    skipped: list[int] | None = None,
 ) -> tuple[float, float]:
     """A robot, a FIFO uplink (a = max(s + t0, a_prev) + beta S) and an edge (done = max(a, done_prev) +
     E), event by event on a fake clock, as robot_infer runs them: a window of 2 credits, the pacer's delay
     waited in one go, a fresh frame taken at the start, answers as they come. The link stamps are on
     wall clocks (the robot's = the pacer's + WALL; the edge's offset by `edge_clock_after` = (from frame,
     seconds)); `t0_after` = (from frame, t0) steps the link's floor; `adaptive`: the window's credits
-    from credits_needed after each answer, as robot_infer sets them (2 to 6). (median latency start ->
-    done, frames/s) over the last third."""
+    from credits_needed after each answer, as robot_infer sets them (2 to 6, with an uplink model);
+    `camera_secs`: frames come from a camera at that interval, the robot takes the newest at the start
+    (waiting for one it has not taken; frames it never took are appended to `skipped`) and latency
+    counts from its capture; `jitter_secs`: each arrival later by up to that (uniform, seeded). (median
+    latency start (or capture) -> done, frames/s) over the last third."""
     robot, t0, beta_kB, kB, edge = (chain[k] for k in ("robot", "t0", "beta_kB", "kB", "edge"))
     clock = pacer._clock if pacer is not None else FakeClock()
     assert isinstance(clock, FakeClock)
@@ -316,14 +322,16 @@ def _pipeline(
     lat: list[float] = []
     dones: list[float] = []
     credits = 2
-    answer_secs = 0.0
+    answers: list[float] = []
+    rng = np.random.default_rng(7)
+    last_capture = -1.0
 
     def deliver(until: float) -> None:
-        nonlocal credits, answer_secs
+        nonlocal credits
         while flight and flight[0][3] <= until:
             seq, sent, arrival, done, ahead = flight.pop(0)
             clock.now = max(clock.now, done)
-            answer_secs = done - sent if not answer_secs else answer_secs + 0.3 * (done - sent - answer_secs)
+            answers.append(done - sent)
             if pacer is not None:
                 pacer.answered(
                     seq,
@@ -338,9 +346,9 @@ def _pipeline(
                         previous_received_nanos=round((ahead + WALL + offset) * 1e9) if ahead else 0,
                     ),
                 )
-                if adaptive:
-                    period = pacer.period_secs()
-                    cycle = robot + answer_secs
+                if adaptive and pacer.uplink is not None:  # as robot_infer
+                    period = max(pacer.period_secs(), camera_secs)
+                    cycle = robot + float(np.median(answers[-20:]))
                     credits = credits_needed(cycle_secs=cycle, period_secs=period, floor=2, ceiling=6)
 
     for seq in range(frames):
@@ -354,18 +362,28 @@ def _pipeline(
         deliver(target)  # answers during the wait update the pacer, not this wait
         clock.now = max(clock.now, target)
         start = clock.now
+        capture = start
+        if camera_secs:
+            newest = np.floor(start / camera_secs + 1e-9) * camera_secs
+            if newest <= last_capture:  # taken already: wait for the next
+                newest = last_capture + camera_secs
+                deliver(newest)
+                clock.now = start = max(clock.now, newest)
+            if skipped is not None and last_capture >= 0:
+                skipped.extend([1] * (round((newest - last_capture) / camera_secs) - 1))
+            capture = last_capture = newest
         while flight and flight[0][3] <= start + robot:  # answers during the robot's compute
             deliver(flight[0][3])
         clock.now = start + robot
         sent = clock.now
-        arrival = max(sent + t0, prev_arrival) + beta_kB * kB
+        arrival = max(sent + t0, prev_arrival) + beta_kB * kB + (rng.uniform(0, jitter_secs) if jitter_secs else 0.0)
         done = max(arrival, edge_free) + edge
         flight.append((seq, sent, arrival, done, prev_arrival))
         prev_arrival, edge_free = arrival, done
         if pacer is not None:
             pacer.sent(seq, tags=1, robot_secs=robot, payload_bytes=round(kB * 1024))
         if seq >= frames - frames // 3:
-            lat.append(done - start)
+            lat.append(done - capture)
             dones.append(done)
     return float(np.median(lat)), (len(dones) - 1) / (dones[-1] - dones[0])
 
@@ -490,6 +508,49 @@ def test_the_window_takes_a_new_capacity_at_once() -> None:
     assert got == [True]
     clock.now += 0.25
     w.done(1)
-    assert w.answer_secs == pytest.approx(0.25)
+    assert w.answer_secs == pytest.approx(0.25) and w.typical_answer_secs == pytest.approx(0.25)
     with pytest.raises(ValueError):
         w.set_capacity(0)
+
+
+@pytest.mark.parametrize("offset", [-2.0, 2.0])
+@pytest.mark.parametrize("uplink", [True, False], ids=["queue", "delay"])
+def test_pacer_whatever_the_edges_clock(offset: float, uplink: bool) -> None:
+    """The edge's clock 2 s behind or ahead of the robot's from the start: every prediction is on one
+    clock (this one plus the offset) and the offset cancels. Re-anchored on the answers' arrival, an
+    edge 3 s behind held the link-bound chain at 0.70 frames/s (a review); the edge-bound chain checks
+    the pacer without a link model too."""
+    edge_bound = {"robot": 0.010, "t0": 0.002, "beta_kB": 0.00001, "kB": 300.0, "edge": 0.150}
+    for chain in (LINK_BOUND, edge_bound):
+        rate = min(1 / (chain["beta_kB"] * chain["kB"]), 1 / chain["edge"], 2 / _path(chain))
+        pacer = EdgePacer(clock=FakeClock(), uplink=UplinkQueue() if uplink else None)
+        latency, fps = _pipeline(pacer, chain, edge_clock_after=(0, offset))
+        if uplink or chain is edge_bound:  # (the link as a delay queues a link-bound chain anyway)
+            assert fps >= 0.95 * rate, (chain, fps, rate)
+            assert latency <= 1.05 * _path(chain), (chain, latency)
+
+
+def test_pacer_never_holds_a_camera_bound_chain() -> None:
+    """A 2 fps camera, a fast link with 3 ms of jitter, the edge 65 ms: the link never holds a frame
+    back, so the uplink knows no x and no frame waits past its capture: none is skipped. (The spacing
+    of a camera's frames, taken for the link's, held each frame until the next was due and lost frames
+    from the latest-only ring: tests/test_pipeline_multiprocess.py.)"""
+    chain = {"robot": 0.050, "t0": 0.001, "beta_kB": 0.00002, "kB": 257.0, "edge": 0.065}
+    skipped: list[int] = []
+    pacer = EdgePacer(clock=FakeClock(), uplink=UplinkQueue())
+    latency, fps = _pipeline(pacer, chain, frames=120, camera_secs=0.5, jitter_secs=0.003, skipped=skipped)
+    assert not skipped
+    assert pacer.uplink is not None and pacer.uplink.x_secs_per_kB is None
+    assert fps == pytest.approx(2.0, rel=0.01)
+    assert latency <= _path(chain) + 0.004
+
+
+def test_pacer_forgets_a_frame_whose_answer_never_comes() -> None:
+    """A lost answer of a later seq (a camera that restarted counts from 0 again) is forgotten after
+    stale_secs, not kept in every re-anchoring of the uplink for good."""
+    clock = FakeClock()
+    pacer = EdgePacer(clock=clock, uplink=UplinkQueue(), stale_secs=2.0)
+    pacer.sent(500, tags=1, robot_secs=0.02, payload_bytes=100_000)
+    clock.now += 3.0
+    pacer.sent(0, tags=1, robot_secs=0.02, payload_bytes=100_000)
+    assert 500 not in pacer._sent and 0 in pacer._sent

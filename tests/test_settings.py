@@ -155,3 +155,16 @@ def test_the_cli_says_a_users_mistake_in_one_line(tmp_path: Path) -> None:
         assert expected in out.stderr and "Traceback" not in out.stderr, (argv, out.stderr)
         assert len(out.stderr.strip().splitlines()) == 1, (argv, out.stderr)
     assert not (tmp_path / "runs").exists()  # refused before a run folder was made
+
+
+def test_the_in_flight_window_asked_for_stays_that_window() -> None:
+    """in_flight_limit: 6 by default; a max_in_flight set alone keeps its window fixed (a deployment
+    that set 1 to bound latency or memory does not get 6); a limit below the window is refused."""
+    from services.robot_infer.settings import RobotInferSettings
+
+    assert RobotInferSettings().in_flight_limit == 6
+    assert RobotInferSettings(max_in_flight=1).in_flight_limit == 1
+    assert RobotInferSettings(max_in_flight=8).in_flight_limit == 8
+    assert RobotInferSettings(max_in_flight=1, in_flight_limit=4).in_flight_limit == 4
+    with pytest.raises(ValueError, match="in_flight_limit"):
+        RobotInferSettings(max_in_flight=3, in_flight_limit=2)

@@ -99,7 +99,8 @@ class RobotInfer:
         # Each frame in flight keeps its Features: if its edge vanishes, the robot computes it on board.
         self.window: InFlightWindow[Features] = InFlightWindow(s.max_in_flight, timeout_secs=s.in_flight_timeout_secs)
         uplink = UplinkQueue() if s.pace_to_link else None  # the uplink as a queue, not a delay
-        self.pacer = EdgePacer(uplink=uplink) if s.pace_to_edge and s.max_in_flight else None
+        paced = s.pace_to_edge and s.max_in_flight
+        self.pacer = EdgePacer(uplink=uplink, stale_secs=s.in_flight_timeout_secs) if paced else None
         self.watch = EdgeWatch(answer_timeout_secs=s.edge_answer_timeout_secs)
         self.guard = InputGuard("robot_infer")
         # stage 1 of the next frame while the network runs (settings.overlap_stage1)
@@ -181,15 +182,16 @@ class RobotInfer:
                     edge_done_nanos=poses.capture_nanos + round(timings.capture_to_pose_secs * 1e9),
                     link=poses.link,
                 )
-                camera = self.frames.interval_secs() or 0.0
-                self.window.set_capacity(
-                    credits_needed(
-                        cycle_secs=self.pacer.robot_secs + self.window.answer_secs,
-                        period_secs=max(self.pacer.period_secs(), camera),
-                        floor=self.settings.max_in_flight,
-                        ceiling=self.settings.in_flight_limit,
+                if self.pacer.uplink is not None:  # the link as a delay would grow the window on its own queue
+                    camera = self.frames.interval_secs() or 0.0
+                    self.window.set_capacity(
+                        credits_needed(
+                            cycle_secs=self.pacer.robot_secs + self.window.typical_answer_secs,
+                            period_secs=max(self.pacer.period_secs(), camera),
+                            floor=self.settings.max_in_flight,
+                            ceiling=self.settings.in_flight_limit,
+                        )
                     )
-                )
 
     def _on_edge(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.PUT:

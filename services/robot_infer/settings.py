@@ -66,6 +66,7 @@ class RobotInferSettings(ServiceSettings):
     # a frame, then its time in flight) spans more of the chain's periods (its slowest stage, or the
     # camera) than max_in_flight: an uplink's floor would otherwise set the frame rate
     # (flow.credits_needed). = max_in_flight: a fixed window.
+    # (unset: 6, or max_in_flight when that is set alone: a window asked for stays that window)
     in_flight_limit: int = Field(default=6, ge=1)
     # Start each frame when it would reach the edge as the edge becomes free (shared.transport.flow.EdgePacer)
     pace_to_edge: bool = True
@@ -104,6 +105,9 @@ class RobotInferSettings(ServiceSettings):
 
     @model_validator(mode="after")
     def _window_limits(self) -> RobotInferSettings:
+        if "in_flight_limit" not in self.model_fields_set:
+            given = "max_in_flight" in self.model_fields_set
+            self.in_flight_limit = max(1, self.max_in_flight) if given else max(6, self.max_in_flight)
         if self.max_in_flight and self.in_flight_limit < self.max_in_flight:
             raise ValueError(f"in_flight_limit {self.in_flight_limit} < max_in_flight {self.max_in_flight}")
         return self

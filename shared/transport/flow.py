@@ -18,6 +18,7 @@ the next one).
 from __future__ import annotations
 
 import math
+import statistics
 import threading
 import time
 from collections import deque
@@ -47,6 +48,7 @@ class InFlightWindow(Generic[T]):
         self._cond = threading.Condition()
         self.expired = 0
         self.answer_secs = 0.0  # exponential average of a frame's time in flight, put -> answer
+        self._answers: deque[float] = deque(maxlen=20)
 
     def _expire(self) -> None:
         now = self._clock()
@@ -155,7 +157,14 @@ class InFlightWindow(Generic[T]):
                 self.answer_secs = (
                     took if self.answer_secs == 0.0 else self.answer_secs + 0.3 * (took - self.answer_secs)
                 )
+                self._answers.append(took)
                 self._cond.notify_all()
+
+    @property
+    def typical_answer_secs(self) -> float:
+        """The median time in flight of the last 20 answers (0: none yet)."""
+        with self._cond:
+            return float(statistics.median(self._answers)) if self._answers else 0.0
 
     def set_capacity(self, capacity: int) -> None:
         """A new number of credits (> 0: a window cannot be switched off once made); a frame waiting
@@ -247,34 +256,43 @@ class UplinkQueue:
     + x S_n on, and re-anchoring F on an arrival a needs t0 (F = a - t0). A pacer that starts each frame
     at F reads back what it chose, so an x too large would confirm itself: once in every `probe_every`
     frames one starts `probe_fraction` of a frame's link time early, which finds the link free (a
-    smaller bound on x) or waits a little (x exactly). The bound on x is only used while some frame in
-    the window arrived further apart from the one before it than it was sent (the link held it back):
-    where the camera, the robot or the edge is the slower stage, every spacing is theirs, a loose bound
-    that would make the link look exactly that slow and hold frames until the next camera frame is
-    due (a frame dropped from the latest-only ring at 2 fps: found by tests/test_pipeline_multiprocess.py);
-    there the measured L stands in, as before. t0 is not probed: after the floor falls, frames
+    smaller bound on x) or waits a little (x exactly). Only frames the link held back give bounds on x:
+    frames that arrived more than `stretch_fraction` further apart than they were sent (margin over
+    jitter), of at least `min_size_kB`. Where the camera, the robot or the edge is slower, every
+    spacing is theirs, a loose bound that made the link look exactly as slow as the camera and held
+    frames until the next one was due (a frame dropped from the latest-only ring at 2 fps: found by
+    tests/test_pipeline_multiprocess.py); with no held-back frame in the window x is unknown and
+    the measured L stands in, as before. t0 is not probed: after the floor falls, frames
     paced on the old t0 queue behind each other by the fall until one finds the link idle (the latency
     stays what it was before the fall; probing late would cost throughput wherever x is only a loose
     bound, as on an edge-bound cut). Pure."""
 
     def __init__(
-        self, *, window: int = 20, probe_every: int = 8, probe_fraction: float = 0.25, tolerance_secs: float = 0.001
+        self,
+        *,
+        window: int = 20,
+        probe_every: int = 8,
+        probe_fraction: float = 0.25,
+        stretch_fraction: float = 0.1,
+        min_size_kB: float = 16.0,
     ) -> None:
-        if window < 1 or probe_every < 1 or not 0 <= probe_fraction < 1:
-            raise ValueError("window and probe_every >= 1, probe_fraction in [0, 1)")
+        if window < 1 or probe_every < 1 or not 0 <= probe_fraction < 1 or stretch_fraction <= 0:
+            raise ValueError("window and probe_every >= 1, probe_fraction in [0, 1), stretch_fraction > 0")
         self.probe_every = probe_every
         self.probe_fraction = probe_fraction
-        self.tolerance_secs = tolerance_secs
-        self._spacing: deque[float] = deque(maxlen=window)  # (a - a_prev) / S: x's bounds
+        self.stretch_fraction = stretch_fraction
+        self.min_size_kB = min_size_kB
+        self.window = window
+        self._spacing: deque[tuple[int, float]] = deque()  # (frame, (a - a_prev) / S) of held-back frames
         self._transits: deque[tuple[float, float]] = deque(maxlen=window)  # (a - s, S): t0's, given x
-        self._stretched: deque[bool] = deque(maxlen=window)  # arrived further apart than sent
         self._last: tuple[float, float] | None = None  # the previous frame's (sent, received)
+        self._frames = 0
 
     @property
     def x_secs_per_kB(self) -> float | None:
-        """The link's time per kB while the link is seen to hold frames back (None otherwise: a loose
-        bound, the spacing of a camera's frames, is not the link's)."""
-        return min(self._spacing) if self._spacing and any(self._stretched) else None
+        """The link's time per kB, from the frames it held back among the last `window` (None: none was;
+        an old bound would keep an x the link has since outgrown, and a paced frame would never show it)."""
+        return min(bound for _, bound in self._spacing) if self._spacing else None
 
     @property
     def t0_secs(self) -> float | None:
@@ -296,19 +314,23 @@ class UplinkQueue:
         of it received (None: nothing ahead since the receiver started) on the receiver's."""
         if size_kB <= 0:
             return
+        self._frames += 1
+        while self._spacing and self._spacing[0][0] <= self._frames - self.window:
+            self._spacing.popleft()
         self._transits.append((received_secs - sent_secs, size_kB))
-        if previous_received_secs is not None and received_secs > previous_received_secs:
-            self._spacing.append((received_secs - previous_received_secs) / size_kB)
-        if self._last is not None:
-            sent_apart, arrived_apart = sent_secs - self._last[0], received_secs - self._last[1]
-            self._stretched.append(arrived_apart > sent_apart + self.tolerance_secs)
-        self._last = (sent_secs, received_secs)
+        last, self._last = self._last, (sent_secs, received_secs)
+        if last is None or previous_received_secs is None or received_secs <= previous_received_secs:
+            return
+        sent_apart, arrived_apart = sent_secs - last[0], received_secs - last[1]
+        # held back: arrived further apart than sent, by a margin jitter does not reach; a payload of a
+        # real size (a per-message cost over 1 kB at k = 7 would read as a link 1000x too slow at k = 3)
+        if arrived_apart > (1 + self.stretch_fraction) * max(sent_apart, 0.0) and size_kB >= self.min_size_kB:
+            self._spacing.append((self._frames, (received_secs - previous_received_secs) / size_kB))
 
     def reset(self) -> None:
         """Another edge (another receiver clock, another link perhaps): learn afresh."""
         self._spacing.clear()
         self._transits.clear()
-        self._stretched.clear()
         self._last = None
 
 
@@ -343,9 +365,11 @@ class EdgePacer:
         smoothing: float = 0.3,
         clock: Callable[[], float] = time.monotonic,
         uplink: UplinkQueue | None = None,
+        stale_secs: float = 2.0,
     ) -> None:
         if not 0 < smoothing <= 1:
             raise ValueError("smoothing must be in (0, 1]")
+        self._stale_secs = stale_secs  # a frame unanswered this long is forgotten (its answer was lost)
         self._alpha = smoothing
         self._clock = clock
         self._lock = threading.Lock()
@@ -410,6 +434,10 @@ class EdgePacer:
             self.payload_kB = self._avg(self.payload_kB, kB)
             self.tags = self._avg(self.tags, float(tags))
             edge = self.edge_wait_secs + self.edge_secs_fixed + self.edge_secs_per_tag * tags
+            for stale in [q for q, (t, _) in self._sent.items() if t < now - self._stale_secs]:  # never answered
+                del self._sent[stale]
+                self._free_at.pop(stale, None)
+                self._done_at.pop(stale, None)
             self._sent[seq] = (now, kB)
             x = self._x()
             t0 = None if self.uplink is None else self.uplink.t0_secs
@@ -441,7 +469,8 @@ class EdgePacer:
         crossed the uplink (for the uplink's model)."""
         with self._lock:
             now = self._clock()
-            self.link_secs = self._avg(self.link_secs, max(0.0, link_secs))
+            # (not clamped at 0: with the clocks' offset in it, it can be negative, and that offset must cancel)
+            self.link_secs = self._avg(self.link_secs, link_secs)
             if tags:
                 self.edge_secs_per_tag = self._avg(self.edge_secs_per_tag, max(0.0, edge_secs) / tags)
             else:
@@ -470,9 +499,17 @@ class EdgePacer:
             for stale in [s for s in self._done_at if s < seq]:
                 del self._done_at[stale]
             if predicted is not None:
-                shift = now - predicted  # the answer is the edge's completion (+ a small return trip)
+                # Where it was done, on the clock the predictions are on: this clock plus the edge's
+                # offset (the measured link time L and the uplink's t0 carry it), taken from the frame's
+                # own stamps. Anchored on the answer's arrival instead, an edge clock behind this one by
+                # more than a transit pushed every start later by the offset (a review: 3.33 -> 0.70
+                # frames/s at -3 s); with no stamps the answer is the completion (+ a small return trip).
+                actual = now
+                if sent is not None and link is not None and edge_done_nanos is not None:
+                    actual = sent[0] + (edge_done_nanos - link.sent_nanos) / 1e9
+                shift = actual - predicted
                 self._done_at = {s: t + shift for s, t in self._done_at.items()}
-                self._last_done_at = max(self._done_at.values(), default=now)
+                self._last_done_at = max(self._done_at.values(), default=actual)
 
     def _re_anchor_uplink(self, arrived: float) -> None:
         """The answered frame arrived at `arrived` (robot clock + the clocks' offset): the pipe took the
