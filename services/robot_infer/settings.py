@@ -65,8 +65,8 @@ class RobotInferSettings(ServiceSettings):
     # With the pacer on, the window grows up to this many when a credit's cycle (the robot's compute of
     # a frame, then its time in flight) spans more of the chain's periods (its slowest stage, or the
     # camera) than max_in_flight: an uplink's floor would otherwise set the frame rate
-    # (flow.credits_needed). = max_in_flight: a fixed window.
-    # (unset: 6, or max_in_flight when that is set alone: a window asked for stays that window)
+    # (flow.credits_needed). Unset: 6, or max_in_flight when that is set alone (a window asked for stays
+    # that window); = max_in_flight: a fixed window.
     in_flight_limit: int = Field(default=6, ge=1)
     # Start each frame when it would reach the edge as the edge becomes free (shared.transport.flow.EdgePacer)
     pace_to_edge: bool = True

@@ -47,8 +47,7 @@ class InFlightWindow(Generic[T]):
         self._orphans: list[tuple[int, T]] = []  # (seq, what it was sent with)
         self._cond = threading.Condition()
         self.expired = 0
-        self.answer_secs = 0.0  # exponential average of a frame's time in flight, put -> answer
-        self._answers: deque[float] = deque(maxlen=20)
+        self._answers: deque[float] = deque(maxlen=20)  # the last answers' times in flight, put -> answer
 
     def _expire(self) -> None:
         now = self._clock()
@@ -153,11 +152,7 @@ class InFlightWindow(Generic[T]):
             self._orphans = [(s, kept) for s, kept in self._orphans if s != seq]
             sent = self._sent.pop(seq, None)
             if sent is not None:
-                took = self._clock() - sent
-                self.answer_secs = (
-                    took if self.answer_secs == 0.0 else self.answer_secs + 0.3 * (took - self.answer_secs)
-                )
-                self._answers.append(took)
+                self._answers.append(self._clock() - sent)
                 self._cond.notify_all()
 
     @property
@@ -244,28 +239,29 @@ class UplinkQueue:
     S kB occupies the link (x S) and its transit when it finds the link free (t0 + x S).
 
     The link is a FIFO pipe: a frame sent at s arrives at a = max(s + t0, a_prev) + x S, a_prev being
-    the arrival of the message ahead of it (a frame or a probe). Every frame therefore bounds both
-    unknowns from above, whether or not it waited: x S <= a - a_prev (equal when it waited) and
-    t0 <= a - s - x S (equal when it did not). Both are the minimum of their bounds over the last
-    `window` frames, with no need to tell which frames waited (a fit that told them apart with its own
-    t0 locked onto a wrong t0 / beta split after a step of the floor or of the edge's clock, holding the
-    link at 40-80 % of its throughput: found in review). A step of the floor or of either clock passes
-    out of the window within `window` frames whichever way it goes (t0 carries the clocks' offset;
-    only differences on one clock are used for x). The sender needs no t0 to keep the pipe free of
-    queues: on its own clock the pipe takes the next frame without a wait from F_n = max(s_n, F_(n-1))
-    + x S_n on, and re-anchoring F on an arrival a needs t0 (F = a - t0). A pacer that starts each frame
-    at F reads back what it chose, so an x too large would confirm itself: once in every `probe_every`
-    frames one starts `probe_fraction` of a frame's link time early, which finds the link free (a
-    smaller bound on x) or waits a little (x exactly). Only frames the link held back give bounds on x:
-    frames that arrived more than `stretch_fraction` further apart than they were sent (margin over
-    jitter), of at least `min_size_kB`. Where the camera, the robot or the edge is slower, every
-    spacing is theirs, a loose bound that made the link look exactly as slow as the camera and held
-    frames until the next one was due (a frame dropped from the latest-only ring at 2 fps: found by
-    tests/test_pipeline_multiprocess.py); with no held-back frame in the window x is unknown and
-    the measured L stands in, as before. t0 is not probed: after the floor falls, frames
-    paced on the old t0 queue behind each other by the fall until one finds the link idle (the latency
-    stays what it was before the fall; probing late would cost throughput wherever x is only a loose
-    bound, as on an edge-bound cut). Pure."""
+    the arrival of the message ahead of it (a frame or a probe). A frame therefore bounds both unknowns
+    from above, whether or not it waited: x S <= a - a_prev (equal when it waited) and t0 <= a - s - x S
+    (equal when it did not). Each is the minimum of its bounds over the last `window` frames, the bound
+    on x taken only from frames that visibly waited (below); no estimate of t0 decides which frames
+    count (a fit that told them apart with its own t0 locked onto a wrong t0 / beta split after a step
+    of the floor or of the edge's clock, holding the link at 40-80 % of its throughput: found in
+    review). A step of the floor or of either clock passes out of the window within `window` frames
+    whichever way it goes (t0 carries the clocks' offset; only differences on one clock are used for x).
+    The sender needs no t0 to keep the pipe free of queues: on its own clock the pipe takes the next
+    frame without a wait from F_n = max(s_n, F_(n-1)) + x S_n on, and re-anchoring F on an arrival a
+    needs t0 (F = a - t0). A pacer that starts each frame at F reads back what it chose, so an x too
+    large would confirm itself: once in every `probe_every` frames one starts `probe_fraction` of a
+    frame's link time early, which finds the link free (a smaller bound on x) or waits a little (x
+    exactly). Only frames the link held back give bounds on x: frames that arrived more than
+    `stretch_fraction` further apart than they were sent (margin over jitter), of at least
+    `min_size_kB`. Where the camera, the robot or the edge is slower, every spacing is theirs, a loose
+    bound that made the link look exactly as slow as the camera and held frames until the next one was
+    due (a frame dropped from the latest-only ring at 2 fps: found by
+    tests/test_pipeline_multiprocess.py); with no held-back frame in the window x is unknown and the
+    measured L stands in, as before. t0 is not probed: after the floor falls, frames paced on the old t0
+    queue behind each other by the fall until one finds the link idle (the latency stays what it was
+    before the fall; probing late would cost throughput wherever x is only a loose bound, as on an edge-
+    bound cut). Pure."""
 
     def __init__(
         self,
@@ -385,8 +381,7 @@ class EdgePacer:
         self._last_done_at = 0.0
         self._edge_done_nanos = 0  # when the edge finished this robot's latest answered frame (edge clock)
         self._sent: dict[int, tuple[float, float]] = {}  # seq -> (sent, payload kB), robot clock
-        self._free_at: dict[int, float] = {}  # seq -> F: the uplink takes the next frame from then on
-        self._link_free_at = 0.0  # the latest F
+        self._link_free_at = 0.0  # F of the latest frame sent: the uplink takes the next one from then on
         self._frames_sent = 0
 
     def _avg(self, old: float, new: float) -> float:
@@ -408,11 +403,10 @@ class EdgePacer:
         """How long to wait before taking the next frame (0: start now)."""
         with self._lock:
             x = self._x()
-            transit = None if self.uplink is None or x is None else self.uplink.transit_secs(self.payload_kB)
-            if x is None or transit is None:
+            transit = None if self.uplink is None else self.uplink.transit_secs(self.payload_kB)
+            if self.uplink is None or x is None or transit is None:
                 start = self._last_done_at - self.robot_secs - self.link_secs
             else:
-                assert self.uplink is not None
                 link_free = self._link_free_at
                 if self._frames_sent % self.uplink.probe_every == self.uplink.probe_every - 1:
                     link_free -= self.uplink.probe_fraction * x * self.payload_kB  # see UplinkQueue
@@ -436,7 +430,6 @@ class EdgePacer:
             edge = self.edge_wait_secs + self.edge_secs_fixed + self.edge_secs_per_tag * tags
             for stale in [q for q, (t, _) in self._sent.items() if t < now - self._stale_secs]:  # never answered
                 del self._sent[stale]
-                self._free_at.pop(stale, None)
                 self._done_at.pop(stale, None)
             self._sent[seq] = (now, kB)
             x = self._x()
@@ -447,7 +440,6 @@ class EdgePacer:
             else:
                 free = max(now, self._link_free_at) + x * kB
                 arrive = free + t0
-            self._free_at[seq] = free
             self._link_free_at = max(self._link_free_at, free)
             done = max(arrive, self._last_done_at) + edge
             self._done_at[seq] = done
@@ -482,10 +474,8 @@ class EdgePacer:
                 self.edge_wait_secs += self._alpha * (foreign - self.edge_wait_secs)  # 0 is a value here
                 self._edge_done_nanos = edge_done_nanos  # the latest answer's (a new worker: its clock)
             sent = self._sent.pop(seq, None)
-            self._free_at.pop(seq, None)
             for stale in [s for s in self._sent if s < seq]:  # older answers that never came
                 del self._sent[stale]
-                self._free_at.pop(stale, None)
             if link is not None and sent is not None and self.uplink is not None:
                 prev = link.previous_received_nanos
                 self.uplink.add(
@@ -522,7 +512,6 @@ class EdgePacer:
         for seq in sorted(self._sent):
             sent_at, kB = self._sent[seq]
             free = max(sent_at, free) + x * kB
-            self._free_at[seq] = free
         self._link_free_at = free
 
     def forget(self) -> None:
@@ -534,7 +523,6 @@ class EdgePacer:
             self.edge_wait_secs = 0.0
             self._edge_done_nanos = 0
             self._sent.clear()
-            self._free_at.clear()
             self._link_free_at = 0.0
             if self.uplink is not None:
                 self.uplink.reset()
