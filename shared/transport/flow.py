@@ -259,9 +259,10 @@ class UplinkQueue:
     due (a frame dropped from the latest-only ring at 2 fps: found by
     tests/test_pipeline_multiprocess.py); with no held-back frame in the window x is unknown and the
     measured L stands in, as before. t0 is not probed: after the floor falls, frames paced on the old t0
-    queue behind each other by the fall until one finds the link idle (the latency stays what it was
-    before the fall; probing late would cost throughput wherever x is only a loose bound, as on an edge-
-    bound cut). Pure."""
+    queue behind each other by the fall until one finds the link idle, which any lateness of a frame
+    does (with 2 ms of arrival jitter the simulated chain is back at the new path's latency; on a link
+    without any, the latency stays what it was before the fall). Probing late would cost throughput
+    wherever x is only a loose bound, as on an edge-bound cut. Pure."""
 
     def __init__(
         self,
