@@ -1,4 +1,5 @@
-"""End-to-end frame-to-pose latency (p50/p99) and throughput for every split k on loopback.
+"""End-to-end frame-to-pose latency (p50/p99), throughput and each process's CPU use for every split k
+on loopback.
 
 Starts edge_infer, robot_infer and the demo camera (15 fps, 3-4 tags in view) as separate
 processes, then for each k sets the split through the Zenoh query, waits for the change to take
@@ -24,10 +25,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import psutil
 
 from bench.machine import cpu_label
 from services.robot_infer.settings import RobotInferSettings
 from shared.model.precision import resolve_for_folder
+from shared.runtime.cpus import allowed_cpus
 from shared.tools.launch import Monitor, attach_monitor, demo_tag_map, loopback_config, start_service, stop_services
 from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
 from shared.transport.split_client import query_split
@@ -93,7 +96,13 @@ class Mode:
     fresh: float = 0.5
 
 
-Row = tuple[CutInfo, float, float, float, float, float, float, float, float, float, float]
+Row = tuple[CutInfo, float, float, float, float, float, float, float, float, float, float, dict[str, float]]
+CPU_OF = ("robot_infer", "edge_infer", "camera", "bench")  # the processes whose CPU time a table shows
+
+
+def _cpu_secs(procs: dict[str, psutil.Process]) -> dict[str, float]:
+    """User + system CPU seconds each process has used so far (all its threads)."""
+    return {name: sum(p.cpu_times()[:2]) for name, p in procs.items()}
 
 
 def measure(args: argparse.Namespace, mode: Mode) -> list[Row]:
@@ -121,14 +130,16 @@ def measure(args: argparse.Namespace, mode: Mode) -> list[Row]:
         wait_for_liveliness(
             session, [keys.alive(ROBOT, s) for s in ("edge_infer", "robot_infer", "camera")], timeout_secs=120
         )
+        procs = {s.name: psutil.Process(s.popen.pid) for s in services} | {"bench": psutil.Process()}
         for cut in (CUTS[k] for k in args.ks):
             query_split(session, ROBOT, params=f"k={cut.k}")
             time.sleep(args.settle_secs)
             start = len(monitor.records)
-            t0 = time.monotonic()
+            t0, cpu0 = time.monotonic(), _cpu_secs(procs)
             time.sleep(args.window_secs)
             recs = [r for r in monitor.records[start:] if r["k"] == cut.k]
-            elapsed = time.monotonic() - t0
+            elapsed, cpu1 = time.monotonic() - t0, _cpu_secs(procs)
+            cpu = {name: 100 * (cpu1[name] - cpu0[name]) / elapsed for name in procs}
             e2e = np.array([r["e2e_ms"] for r in recs])
             rows.append(
                 (
@@ -143,6 +154,7 @@ def measure(args: argparse.Namespace, mode: Mode) -> list[Row]:
                     np.median([r["payload_bytes"] for r in recs]),
                     float(np.nanmedian([r["before_robot_ms"] for r in recs])),
                     float(np.nanmedian([r["at_edge_ms"] for r in recs])),
+                    cpu,
                 )
             )
         for s in subs:
@@ -160,7 +172,9 @@ def print_table(args: argparse.Namespace, rows: list[Row], mode: Mode) -> None:
     the frames the pipeline could have turned into poses (1.0 = nothing lost to waiting). Where the
     waiting is: `age` = capture -> sent minus the robot's compute (how old the frame was when the robot
     took it, and any wait inside the robot), `edge q` = received -> pose minus the edge's compute
-    (queueing at the edge); medians."""
+    (queueing at the edge); medians. `cpu %`: each process's CPU time over the window (all its threads;
+    100 = one core; `bench` is this process, the monitor), `box` = their sum / the cores this run may use:
+    near 1.0 the services wait for a core, not for each other."""
     print(
         f"camera {args.fps} fps, window {args.window_secs} s per k, loopback, 2-core CPU, {args.precision}, rerun "
         f"{'on' if args.rerun else 'off'}, tracking {'on' if mode.tracking else 'off'}, "
@@ -172,15 +186,17 @@ def print_table(args: argparse.Namespace, rows: list[Row], mode: Mode) -> None:
     print(
         f"{'k':>2} {'cut':<10} {'fps':>6} {'e2e p50':>8} {'e2e p99':>8} {'robot':>7} {'link':>6} {'edge':>6} "
         f"{'path':>6} {'e2e/path':>9} {'age':>6} {'edge q':>7} {'fps x slowest':>14} {'fps/cap':>8} {'tags':>5} "
-        f"{'msg kB':>8}"
+        f"{'msg kB':>8}  cpu % {'/'.join(n.removesuffix('_infer') for n in CPU_OF)} {'box':>5}"
     )
-    for cut, fps, p50, p99, rb, tr, ed, tags, size, age, edge_q in rows:
+    cores = len(allowed_cpus())
+    for cut, fps, p50, p99, rb, tr, ed, tags, size, age, edge_q, cpu in rows:
         path = rb + tr + ed
         cap = min(args.fps, 1e3 / max(rb, ed))
         print(
             f"{cut.k:>2} {cut.name:<10} {fps:>6.1f} {p50:>8.1f} {p99:>8.1f} {rb:>7.1f} {tr:>6.1f} {ed:>6.1f} "
             f"{path:>6.1f} {p50 / path:>9.2f} {age:>6.1f} {edge_q:>7.1f} {fps * max(rb, ed) / 1e3:>14.2f} "
-            f"{fps / cap:>8.2f} {tags:>5.1f} {size / 1024:>8.1f}"
+            f"{fps / cap:>8.2f} {tags:>5.1f} {size / 1024:>8.1f}  "
+            f"{'/'.join(f'{cpu[n]:.0f}' for n in CPU_OF):>23} {sum(cpu.values()) / (100 * cores):>5.2f}"
         )
 
 

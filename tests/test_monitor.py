@@ -120,8 +120,9 @@ def test_the_monitor_measures_in_the_world_of_the_map_slam_is_given(tmp_path: Pa
 
 
 def test_the_live_line_says_how_long_the_poses_have_stopped() -> None:
-    """Before the first TagPoses it waits; once they stop (the edge is down: the robot computes on
-    board, out of this monitor's sight) it says for how long and since which frame."""
+    """Before the first TagPoses it waits; once they stop it says for how long and since which frame,
+    and where to look: the edge while the robot's camera still streams (the robot computes on board,
+    out of a monitor's sight at the edge), the robot's host when its ground truth stopped too."""
     now = [100.0]
     monitor = Monitor(None, clock=lambda: now[0])
     assert monitor.line() == "waiting for TagPoses..."
@@ -130,7 +131,18 @@ def test_the_live_line_says_how_long_the_poses_have_stopped() -> None:
     monitor.on_poses(encode(poses.model_copy(update={"seq": 41})))
     now[0] += 5.0
     line = monitor.line()
-    assert line.startswith("no TagPoses for 5.0 s (the last: frame 41)") and "is the edge up?" in line, line
+    assert line.startswith("no TagPoses for 5.0 s (the last: frame 41)") and "is the robot up, and the edge?" in line
+    # The camera's ground truth still streaming: the robot's side is up, the poses stopped: the edge.
+    truth = EXAMPLES[CameraPose.SCHEMA]
+    assert isinstance(truth, CameraPose)
+    monitor.on_gt(encode(truth.model_copy(update={"seq": 60})))
+    now[0] += 1.0
+    line = monitor.line()
+    assert line.startswith("no TagPoses for 6.0 s") and "while its camera streams; is the edge up?" in line, line
+    # Both stopped (a robot's host went down: found by a fresh-clone trial, which was told to check the edge).
+    now[0] += 4.0
+    line = monitor.line()
+    assert "nor its camera's ground truth for 5.0 s; is the robot's host up" in line, line
 
 
 def test_no_slam_error_when_slam_works_in_a_world_of_its_own() -> None:

@@ -106,3 +106,62 @@ def test_a_secure_fleet_scopes_each_robots_identities_to_that_robot(tmp_path: Pa
                 sub.undeclare()
         finally:
             operator.close()
+
+
+def test_a_robots_host_runs_its_part_from_its_own_bundle(tmp_path: Path) -> None:
+    """`splittag fleet --only robot1` on a robot's host whose certs folder is hosts/robot1/ of what
+    `--make-certs` wrote (the CA's certificate and that robot's identities, nothing else): the launcher's
+    monitor reads the robot's own router as its camera, so the host comes up and its frames get poses,
+    computed on board while no edge is there (it asked for the operator's key, which only the edge's
+    host holds, and exited at once: found by a fresh-clone trial)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    plan = FleetPlan.loopback(1, 1, controller=True).model_copy(update={"certs": tmp_path / "certs"})
+    make_certs(plan)
+    bundle = tmp_path / "certs" / "hosts" / "robot1"
+    assert not (bundle / "operator.key").exists()
+    config = tmp_path / "robot1.toml"
+    config.write_text(
+        f"""
+[fleet]
+robots = ["robot1"]
+edge_workers = ["edge1"]
+edge_port = {plan.edge_port}
+robot_ports = {{ robot1 = {plan.robot_port("robot1")} }}
+controller = true
+certs = "{bundle}"
+
+[common.rerun]
+enabled = false
+
+[common.zenoh]
+connect_timeout_secs = 120.0
+
+[robot_infer]
+weights = "{REPO / "models"}"
+split_k = 7
+
+[camera]
+source = "demo"
+fps = 3.0
+"""
+    )
+    runs = tmp_path / "runs"
+    out = subprocess.run(
+        [
+            *(sys.executable, "-m", "shared.tools.cli", "fleet", "--config", str(config)),
+            *("--only", "robot1", "--duration", "8", "--runs", str(runs)),
+        ],
+        cwd=REPO,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
+    assert "holds private keys" not in out.stdout  # the bundle is this host's alone
+    summary = json.loads(next(runs.glob("*/summary.json")).read_text())
+    assert summary["robots"]["robot1"]["frames"] >= 3, summary

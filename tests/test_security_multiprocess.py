@@ -136,8 +136,8 @@ def test_only_authorised_identities_steer_and_publish(tmp_path: Path, certs: Pat
         # The camera's identity may not: its query is dropped by the edge router; nothing changes.
         camera = _session(topology, certs, "camera")
         try:
-            with pytest.raises(SplitQueryError):
-                query_split(camera, ROBOT, params="k=2", timeout_secs=2)
+            with pytest.raises(SplitQueryError, match="access control does not let 'camera' ask it"):
+                query_split(camera, ROBOT, params="k=2", timeout_secs=2, identity="camera")
             assert query_split(operator, ROBOT, timeout_secs=10).k == 5
 
             # Nor query (or save) the map, which the operator may (the rule once named an old map key);

@@ -142,6 +142,8 @@ def test_the_cli_says_a_users_mistake_in_one_line(tmp_path: Path) -> None:
         (["split", "set"], "give k"),
         (["split", "get", "3"], "are for set"),
         (["split", "set", "9", "--connect", "tcp/127.0.0.1:1"], "split index must be an int in 0..7, got 9"),
+        # a TLS endpoint without certificates (a trial got a traceback)
+        (["split", "get", "--connect", "tls/127.0.0.1:7447"], "is a TLS endpoint: give --certs"),
         (
             ["detect", str(tmp_path), "--camera", str(tmp_path / "nope.yaml"), "--tag-size", "0.1", "--json", "o.json"],
             "nope.yaml",
@@ -155,6 +157,16 @@ def test_the_cli_says_a_users_mistake_in_one_line(tmp_path: Path) -> None:
         assert expected in out.stderr and "Traceback" not in out.stderr, (argv, out.stderr)
         assert len(out.stderr.strip().splitlines()) == 1, (argv, out.stderr)
     assert not (tmp_path / "runs").exists()  # refused before a run folder was made
+
+
+def test_split_connects_over_tls_when_given_certificates() -> None:
+    """`splittag split --certs` without --connect reaches the local edge router over TLS (it tried
+    plain TCP: found by a fresh-clone trial); an endpoint given is used as it is."""
+    from shared.tools.cli import split_endpoint
+
+    assert split_endpoint(None, tls=False) == "tcp/127.0.0.1:7447"
+    assert split_endpoint(None, tls=True) == "tls/127.0.0.1:7447"
+    assert split_endpoint("tcp/10.0.0.2:7447", tls=True) == "tcp/10.0.0.2:7447"
 
 
 def test_the_in_flight_window_asked_for_stays_that_window() -> None:

@@ -355,3 +355,38 @@ def test_a_looped_folders_span_is_its_time_span_whatever_rgb_txts_order() -> Non
     assert source.span_nanos == 300
     source.stamps_nanos = None
     assert source.span_nanos is None
+
+
+def _demo_source(cache_dir: str, camera_json: str) -> int:
+    from shared.runtime.sources import DemoSource
+    from shared.vision.camera import CameraIntrinsics
+
+    DemoSource(n_frames=3, cache_dir=Path(cache_dir), camera=CameraIntrinsics.model_validate_json(camera_json))
+    return 0
+
+
+def test_demo_cameras_starting_together_render_the_cache_once(tmp_path: Path) -> None:
+    """A fleet's cameras start together on a fresh clone: one renders the demo scene's cache while the
+    other waits for it (a lock file), so neither trips over the other's files (one camera exited when
+    both wrote the same temporary file: found by a fresh-clone trial). Here the test holds the lock:
+    nothing renders until it lets go; then two cameras at once both get every frame."""
+    import fcntl
+    import multiprocessing
+
+    from shared.runtime.sources import DemoSource
+
+    small = type(CAM).model_validate(
+        CAM.model_dump() | {"width": 160, "height": 120, "fx": 130.0, "fy": 130.0, "cx": 79.5, "cy": 59.5}
+    )
+    folder = DemoSource.cache_folder(tmp_path, n_frames=3, camera=small)
+    folder.mkdir(parents=True)
+    ctx = multiprocessing.get_context("spawn")
+    with ctx.Pool(2) as pool, open(folder / ".render.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        jobs = [pool.apply_async(_demo_source, (str(tmp_path), small.model_dump_json())) for _ in range(2)]
+        jobs[0].wait(8)
+        assert not jobs[0].ready() and not list(folder.glob("*.png")), "a camera rendered past the lock"
+        fcntl.flock(lock, fcntl.LOCK_UN)
+        assert [j.get(120) for j in jobs] == [0, 0]
+    assert sorted(p.name for p in folder.glob("*.png")) == ["00000.png", "00001.png", "00002.png"]
+    assert not list(folder.glob("*tmp*")) and (folder / "scene.json").is_file()

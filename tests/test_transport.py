@@ -202,6 +202,38 @@ def test_waiting_for_liveliness_lets_the_waiter_work_meanwhile() -> None:
         session.close()
 
 
+def test_a_router_starts_before_the_router_it_connects_to_and_joins_it_later() -> None:
+    """A router (robot_infer's) whose edge is not up yet opens at once and connects when the edge comes
+    up (zenoh keeps trying in the background); a client with nothing to connect to still fails loudly."""
+    import time
+
+    from shared.transport.session import free_tcp_port, open_session
+
+    edge = f"tcp/127.0.0.1:{free_tcp_port()}"
+    started = time.monotonic()
+    robot = open_session(ZenohSettings(mode="router", connect=[edge], connect_timeout_secs=30))
+    try:
+        assert time.monotonic() - started < 10  # not the 30 s connect timeout
+        got: list[bytes] = []
+        sub = robot.declare_subscriber("splittag/r/test", lambda s: got.append(s.payload.to_bytes()))
+        server = open_session(ZenohSettings(mode="router", listen=[edge]))
+        try:
+            deadline = time.monotonic() + 30
+            while not got:
+                assert time.monotonic() < deadline, "the robot's router never joined the edge's"
+                server.put("splittag/r/test", b"x")
+                time.sleep(0.3)
+        finally:
+            server.close()
+        sub.undeclare()
+        with pytest.raises(Exception, match="Unable to connect"):
+            open_session(
+                ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{free_tcp_port()}"], connect_timeout_secs=1)
+            )
+    finally:
+        robot.close()
+
+
 def test_a_fleets_robot_identities_act_for_their_robot_alone() -> None:
     """Scoped names (`robot_of_name`): a robot's router may do everything on its robot's keys and
     nothing on another's; its camera publishes that robot's frames only; workers and slam stay

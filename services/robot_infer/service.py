@@ -346,7 +346,11 @@ class RobotInfer:
         self._finish_on_board(self._features(frame, tags, k, "fp32", compute_secs))
         self.on_board_frames += 1
         if self.on_board_frames == 1 or self.on_board_frames % 100 == 0:
-            log.warning("edge unavailable: %d frames computed on board", self.on_board_frames)
+            log.warning(
+                "edge unavailable: %d frames computed on board (its router: %s, connecting in the background)",
+                self.on_board_frames,
+                ", ".join(self.settings.zenoh.connect) or "none configured",
+            )
 
     def _finish_on_board(self, features: Features) -> bool:
         """The edge's half of one frame here (any k: the robot holds the whole network): TagPoses out."""

@@ -358,7 +358,13 @@ class SlamNode:
             stamps = np.concatenate([run.previous_stamps_nanos, stamps[newer]])
             poses = np.concatenate([run.previous_poses, poses[newer]])
         write_tum_arrays(run_dir / self._trajectory_file(robot), stamps, poses)
-        out: dict[str, Any] = {"poses": len(stamps), "time": "data set (rgb.txt)" if in_source_time else "capture"}
+        # `poses` counts the trajectory as written, a resumed run's earlier poses first (`resumed_poses` of
+        # them); `frames` (slam.json) and the ATE count what this process placed since it started.
+        out: dict[str, Any] = {
+            "poses": len(stamps),
+            "resumed_poses": len(stamps) - int(newer.sum()) if len(run.previous_stamps_nanos) else 0,
+            "time": "data set (rgb.txt)" if in_source_time else "capture",
+        }
         if len(gt_stamps):
             write_tum_arrays(
                 run_dir / self._trajectory_file(robot, "groundtruth"),

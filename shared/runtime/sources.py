@@ -4,10 +4,12 @@ set's own time of the frame when it has one)."""
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import logging
 import math
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -100,28 +102,46 @@ class DemoSource:
         self.camera = camera or default_camera()
         self.scene = demo_scene()
         self.trajectory = demo_trajectory(n_frames)
-        key = hashlib.sha256(
-            json.dumps([self.scene.model_dump(), self.camera.model_dump(), n_frames, "render-v1"]).encode()
-        ).hexdigest()[:16]
-        self.cache = Path(cache_dir) / f"demo-{key}"
+        self.cache = self.cache_folder(cache_dir, n_frames=n_frames, camera=self.camera)
         self._ensure_rendered()
 
+    @staticmethod
+    def cache_folder(cache_dir: Path, *, n_frames: int, camera: CameraIntrinsics) -> Path:
+        """Where the renders of this scene, camera and length are cached (under `cache_dir`)."""
+        key = hashlib.sha256(
+            json.dumps([demo_scene().model_dump(), camera.model_dump(), n_frames, "render-v1"]).encode()
+        ).hexdigest()[:16]
+        return Path(cache_dir) / f"demo-{key}"
+
+    def _missing(self) -> list[int]:
+        return [i for i in range(len(self.trajectory)) if not (self.cache / f"{i:05d}.png").is_file()]
+
     def _ensure_rendered(self) -> None:
-        missing = [i for i in range(len(self.trajectory)) if not (self.cache / f"{i:05d}.png").is_file()]
-        if not missing:
+        """Render the frames the cache lacks. One process renders at a time (a lock file in the cache):
+        a fleet's cameras start together on a fresh clone, and two renderers writing the same temporary
+        file had one's rename fail and that camera exit (found by a fresh-clone trial); the one that
+        waited finds the frames there."""
+        if not self._missing():
             return
         from shared.sim.scene import SceneRenderer
 
         self.cache.mkdir(parents=True, exist_ok=True)
-        renderer = SceneRenderer(self.scene, self.camera)
-        try:
-            for i in tqdm(missing, desc="rendering demo scene (cached)", leave=False):
-                tmp = self.cache / f"{i:05d}.tmp.png"
-                cv2.imwrite(str(tmp), renderer.render(self.trajectory[i]))
-                tmp.replace(self.cache / f"{i:05d}.png")
-        finally:
-            renderer.close()
-        (self.cache / "scene.json").write_text(self.scene.model_dump_json(indent=2))
+        with open(self.cache / ".render.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes, or the process dies
+            missing = self._missing()  # what another camera left, if it rendered meanwhile
+            if not missing:
+                return
+            renderer = SceneRenderer(self.scene, self.camera)
+            try:
+                for i in tqdm(missing, desc="rendering demo scene (cached)", leave=False):
+                    tmp = self.cache / f"{i:05d}.{os.getpid()}.tmp.png"
+                    cv2.imwrite(str(tmp), renderer.render(self.trajectory[i]))
+                    tmp.replace(self.cache / f"{i:05d}.png")
+            finally:
+                renderer.close()
+            tmp = self.cache / f"scene.{os.getpid()}.tmp.json"
+            tmp.write_text(self.scene.model_dump_json(indent=2))
+            tmp.replace(self.cache / "scene.json")
 
     def gt_keypoints(self, world_from_camera: Array) -> list[Array]:
         """Exact image keypoints of every tag fully in view from `world_from_camera`."""

@@ -119,11 +119,24 @@ def _running(pid: int) -> bool:
     return fields[0] != "Z"
 
 
+def split_endpoint(connect: str | None, *, tls: bool) -> str:
+    """Where `splittag split` connects: the endpoint given, else the local edge router (tls/ when
+    certificates are given: `--certs` alone used to try plain TCP)."""
+    if connect is not None:
+        return connect
+    default = Topology().edge_router
+    return "tls/" + default.split("/", 1)[1] if tls else default
+
+
 def _cmd_split(args: argparse.Namespace) -> int:
     from shared.transport.session import TlsSettings
     from shared.transport.split_client import split_query
 
     tls = TlsSettings.from_dir(args.certs, args.identity) if args.certs else None
+    connect = split_endpoint(args.connect, tls=tls is not None)
+    if connect.startswith("tls/") and tls is None:
+        print(f"splittag split: {connect} is a TLS endpoint: give --certs (and --identity)", file=sys.stderr)
+        return 2
     k, codec, release = args.k, args.codec, args.action == "release"
     if args.action == "set" and k is None and codec is None:
         print("splittag split set: give k (0..7) and/or --codec", file=sys.stderr)
@@ -139,7 +152,7 @@ def _cmd_split(args: argparse.Namespace) -> int:
         except ValueError as exc:
             print(f"splittag split set: {exc}", file=sys.stderr)
             return 2
-    print(split_query(args.robot_id, args.connect, k=k, codec=codec, release=release, tls=tls))
+    print(split_query(args.robot_id, connect, k=k, codec=codec, release=release, tls=tls))
     return 0
 
 
@@ -548,7 +561,11 @@ def _add_control_commands(sub: Any) -> None:
     p.add_argument("k", type=int, nargs="?", help="split index 0..7 (for set)")
     p.add_argument("--codec", choices=["fp16", "fp32"], help="set: how cuts 1..6 travel (with or without k)")
     p.add_argument("--robot-id", default="robot1")
-    p.add_argument("--connect", default=Topology().edge_router, help="zenoh endpoint to connect to")
+    p.add_argument(
+        "--connect",
+        default=None,
+        help=f"zenoh endpoint to connect to (default {Topology().edge_router}, tls/ with --certs)",
+    )
     p.add_argument("--certs", type=Path, help="TLS deployments: the certificates folder (deploy/make-certs.sh)")
     p.add_argument("--identity", default="operator", help="TLS deployments: whose certificate to present")
     p.set_defaults(func=_cmd_split)

@@ -222,6 +222,19 @@ def operator_settings(plan: FleetPlan) -> ZenohSettings:
     return ZenohSettings(mode="client", connect=[plan.edge_router], tls=tls)
 
 
+def monitor_settings(plan: FleetPlan, only: str | None) -> ZenohSettings:
+    """The launcher's monitor session: the operator's to the edge tier when this host runs the edge
+    (or everything); on a robot's host (`only` = that robot) a session to the robot's own router, which
+    is up whether or not the edge is, as the robot's camera: the one identity of that host's bundle
+    (hosts/<robot>/) that may read its robot's keys and nothing else's, and may not steer (the operator's
+    key belongs on the edge's host; asked for it, a robot host could not start: found by a fresh-clone
+    trial)."""
+    if only is None or only == "edge":
+        return operator_settings(plan)
+    tls = TlsSettings.from_dir(plan.certs, f"{only}-camera") if plan.certs is not None else None
+    return ZenohSettings(mode="client", connect=[plan.robot_router(only)], tls=tls)
+
+
 def foreign_keys(plan: FleetPlan, only: str | None) -> list[str]:
     """On a host that runs one part of a TLS fleet (`--only`), the private keys in the certs folder
     that are not that part's: each is another process's identity (and ca.key mints any), so a robot
@@ -376,7 +389,7 @@ def run_fleet(
         wanted = [keys.edge_worker(plan.tier, w) for w in plan.edge_workers if only in (None, "edge")]
         wanted += [keys.alive(r, "robot_infer") for r in monitors if only != "edge"]
         started = wait_for_run(
-            operator_settings(plan),  # slam's router
+            monitor_settings(plan, only),
             wanted,
             attach=lambda session: [sub for r, m in monitors.items() for sub in attach_monitor(session, r, m)],
             supervise=restart_dead,

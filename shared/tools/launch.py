@@ -187,6 +187,7 @@ class Monitor:
     clock: Callable[[], float] = time.monotonic  # when each message arrived (a fake in tests)
     # slam was given `tag_map` (its world is the map's): only then is its pose comparable with ground truth
     slam_has_map: bool = True
+    _last_gt_at: float | None = None  # when the camera's ground truth last arrived (this monitor's clock)
 
     def _decode(self, payload: bytes, kind: type[M]) -> M | None:
         """One message of `kind`, or None (counted in `bad`, logged) when the payload is not one."""
@@ -261,6 +262,7 @@ class Monitor:
         if msg is None:
             return
         with self._lock:
+            self._last_gt_at = self.clock()
             self.gt[msg.seq] = msg.world_from_camera
             while len(self.gt) > self.max_ground_truth:
                 del self.gt[next(iter(self.gt))]  # the oldest (insertion order)
@@ -286,15 +288,25 @@ class Monitor:
         with self._lock:
             recent = [r for r in self._recent if now - r["t"] <= 1.0]
             last = self._recent[-1] if self._recent else None
+            gt_at = self._last_gt_at
         if not recent:
             if last is None:
                 return "waiting for TagPoses..."
-            # Say what a silence means: this monitor listens at the edge's router, so while the edge is
-            # down the poses the robot computes on board do not reach it.
-            return (
-                f"no TagPoses for {now - last['t']:.1f} s (the last: frame {last['seq']}); is the edge up? "
-                "The robot computes on board while it is not, and this monitor listens at the edge"
-            )
+            # Say what a silence means. The camera's ground truth still coming: the robot's side is up and
+            # reaches this monitor, so the poses are what stopped (a monitor at the edge's router does not
+            # see those the robot computes on board while the edge is down). Both stopped: the robot.
+            silent = f"no TagPoses for {now - last['t']:.1f} s (the last: frame {last['seq']})"
+            if gt_at is not None and now - gt_at <= 2.0:
+                return (
+                    f"{silent} while its camera streams; is the edge up? The robot computes on board while it "
+                    "is not, and a monitor at the edge's router does not see those poses"
+                )
+            if gt_at is not None:
+                return (
+                    f"{silent}, nor its camera's ground truth for {now - gt_at:.1f} s; is the robot's host up "
+                    "(its camera, robot_infer), and its link to the edge?"
+                )
+            return f"{silent}; is the robot up, and the edge? (a monitor at the edge sees no on-board poses)"
         med = {k: float(np.median([r[k] for r in recent])) for k in ("robot_ms", "transport_ms", "edge_ms", "e2e_ms")}
         errs = [e for r in recent for e in r["errors_cm"]]
         err = f" e_t {np.median(errs):.2f} cm" if errs else ""

@@ -69,7 +69,9 @@ class ZenohSettings(BaseModel):
     multicast_scouting: bool = False
     shared_memory: bool = False
     config_file: Path | None = None  # JSON5; the fields above are applied on top of it
-    connect_timeout_secs: float = Field(default=30.0, gt=0)  # open() fails after this long
+    # A client or peer: open() fails after this long without a connection; a router starts without one
+    # and keeps connecting in the background.
+    connect_timeout_secs: float = Field(default=30.0, gt=0)
     # Larger messages are refused by the transport before they are reassembled (zenoh's default: 1 GiB).
     max_message_bytes: int = Field(default=MAX_MESSAGE_BYTES, gt=0)
     # Largest batch a link sends (the smaller of the two ends is used); a larger message goes in
@@ -107,9 +109,13 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
     if settings.connect or settings.config_file is None:
         config.insert_json5("connect/endpoints", json.dumps(settings.connect))
     if settings.connect:
-        # Wait for the other side to come up (start order does not matter), but fail loudly.
+        # A client or peer waits for the other side to come up (start order does not matter), but fails
+        # loudly. A router starts at once and keeps connecting in the background, as zenoh's own router
+        # default does: robot_infer's router, whose robot computes on board while no edge is in reach (it
+        # used to exit when the edge was not up within the timeout, and a robot's host started before
+        # its edge never came up: found by a fresh-clone trial).
         config.insert_json5("connect/timeout_ms", json.dumps(int(settings.connect_timeout_secs * 1000)))
-        config.insert_json5("connect/exit_on_failure", "true")
+        config.insert_json5("connect/exit_on_failure", json.dumps(settings.mode != "router"))
     config.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
     config.insert_json5("transport/shared_memory/enabled", json.dumps(settings.shared_memory))
     config.insert_json5("transport/link/rx/max_message_size", json.dumps(settings.max_message_bytes))

@@ -13,14 +13,22 @@ class SplitQueryError(RuntimeError):
     """The robot refused the request or did not answer."""
 
 
-def query_split(session: zenoh.Session, robot_id: str, *, params: str = "", timeout_secs: float = 5.0) -> SplitConfig:
-    """One get on splittag/<robot_id>/split[?params]; returns the reply's SplitConfig."""
+def query_split(
+    session: zenoh.Session, robot_id: str, *, params: str = "", timeout_secs: float = 5.0, identity: str | None = None
+) -> SplitConfig:
+    """One get on splittag/<robot_id>/split[?params]; returns the reply's SplitConfig. `identity`: the
+    certificate the session presents (TLS), named when nothing answers."""
     selector = keys.split(robot_id) + (f"?{params}" if params else "")
     for reply in session.get(selector, timeout=timeout_secs):
         if reply.ok is not None:
             return decode(reply.ok.payload.to_bytes(), SplitConfig)
         err = reply.err.payload.to_string() if reply.err is not None else "unknown error"
         raise SplitQueryError(err)
+    if identity is not None:  # access control drops a query it denies: no reply, no error
+        raise SplitQueryError(
+            f"no reply on {selector}: robot_infer is not running, or access control does not let "
+            f"{identity!r} ask it (a denied query gets no reply)"
+        )
     raise SplitQueryError(f"no reply on {selector} (is robot_infer running?)")
 
 
@@ -41,7 +49,7 @@ def split_query(
         sets = [f"k={k}"] if k is not None else []
         sets += [f"codec={codec}"] if codec is not None else []
         params = "release=1" if release else ";".join(sets)  # Zenoh separates selector parameters by ';'
-        cfg = query_split(session, robot_id, params=params)
+        cfg = query_split(session, robot_id, params=params, identity=tls.certificate.stem if tls else None)
         return f"k={cfg.k} codec={cfg.codec} pinned={cfg.pinned} source={cfg.source}"
     finally:
         session.close()
