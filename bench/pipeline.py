@@ -136,10 +136,12 @@ def measure(args: argparse.Namespace, mode: Mode) -> list[Row]:
             time.sleep(args.settle_secs)
             start = len(monitor.records)
             t0, cpu0 = time.monotonic(), _cpu_secs(procs)
+            psutil.cpu_percent()  # the host's busy share from here on
             time.sleep(args.window_secs)
             recs = [r for r in monitor.records[start:] if r["k"] == cut.k]
             elapsed, cpu1 = time.monotonic() - t0, _cpu_secs(procs)
             cpu = {name: 100 * (cpu1[name] - cpu0[name]) / elapsed for name in procs}
+            cpu["host"] = psutil.cpu_percent()  # every process on the machine, % of all its CPUs
             e2e = np.array([r["e2e_ms"] for r in recs])
             rows.append(
                 (
@@ -173,8 +175,9 @@ def print_table(args: argparse.Namespace, rows: list[Row], mode: Mode) -> None:
     waiting is: `age` = capture -> sent minus the robot's compute (how old the frame was when the robot
     took it, and any wait inside the robot), `edge q` = received -> pose minus the edge's compute
     (queueing at the edge); medians. `cpu %`: each process's CPU time over the window (all its threads;
-    100 = one core; `bench` is this process, the monitor), `box` = their sum / the cores this run may use:
-    near 1.0 the services wait for a core, not for each other."""
+    100 = one core; `bench` is this process, the monitor), `4 procs` = their sum / the CPUs this run may
+    use, `host` = the whole machine's busy share (anything else running shows as host - 4 procs): near
+    1.0 the services wait for a core, not for each other."""
     print(
         f"camera {args.fps} fps, window {args.window_secs} s per k, loopback, 2-core CPU, {args.precision}, rerun "
         f"{'on' if args.rerun else 'off'}, tracking {'on' if mode.tracking else 'off'}, "
@@ -186,7 +189,8 @@ def print_table(args: argparse.Namespace, rows: list[Row], mode: Mode) -> None:
     print(
         f"{'k':>2} {'cut':<10} {'fps':>6} {'e2e p50':>8} {'e2e p99':>8} {'robot':>7} {'link':>6} {'edge':>6} "
         f"{'path':>6} {'e2e/path':>9} {'age':>6} {'edge q':>7} {'fps x slowest':>14} {'fps/cap':>8} {'tags':>5} "
-        f"{'msg kB':>8}  cpu % {'/'.join(n.removesuffix('_infer') for n in CPU_OF)} {'box':>5}"
+        f"{'msg kB':>8} {'cpu % ' + '/'.join(n.removesuffix('_infer') for n in CPU_OF):>31} {'4 procs':>7} "
+        f"{'host':>5}"
     )
     cores = len(allowed_cpus())
     for cut, fps, p50, p99, rb, tr, ed, tags, size, age, edge_q, cpu in rows:
@@ -195,8 +199,9 @@ def print_table(args: argparse.Namespace, rows: list[Row], mode: Mode) -> None:
         print(
             f"{cut.k:>2} {cut.name:<10} {fps:>6.1f} {p50:>8.1f} {p99:>8.1f} {rb:>7.1f} {tr:>6.1f} {ed:>6.1f} "
             f"{path:>6.1f} {p50 / path:>9.2f} {age:>6.1f} {edge_q:>7.1f} {fps * max(rb, ed) / 1e3:>14.2f} "
-            f"{fps / cap:>8.2f} {tags:>5.1f} {size / 1024:>8.1f}  "
-            f"{'/'.join(f'{cpu[n]:.0f}' for n in CPU_OF):>23} {sum(cpu.values()) / (100 * cores):>5.2f}"
+            f"{fps / cap:>8.2f} {tags:>5.1f} {size / 1024:>8.1f} "
+            f"{'/'.join(f'{cpu[n]:.0f}' for n in CPU_OF):>31} {sum(cpu[n] for n in CPU_OF) / (100 * cores):>7.2f} "
+            f"{cpu['host'] / 100:>5.2f}"
         )
 
 

@@ -143,6 +143,12 @@ def test_the_live_line_says_how_long_the_poses_have_stopped() -> None:
     now[0] += 4.0
     line = monitor.line()
     assert "nor its camera's ground truth for 5.0 s; is the robot's host up" in line, line
+    # At the robot's own router (a fleet's robot host), on-board poses arrive: the silence is robot_infer's.
+    at_robot = Monitor(None, clock=lambda: now[0], at_robot=True)
+    at_robot.on_poses(encode(poses.model_copy(update={"seq": 41})))
+    at_robot.on_gt(encode(truth.model_copy(update={"seq": 60})))
+    now[0] += 1.5
+    assert "is robot_infer running?" in at_robot.line(), at_robot.line()
 
 
 def test_no_slam_error_when_slam_works_in_a_world_of_its_own() -> None:

@@ -16,7 +16,7 @@ import zenoh
 from shared.tools.fleet import FleetPlan, demo_tables, fleet_configs, make_certs, operator_settings
 from shared.tools.topology import merge
 from shared.transport.session import TlsSettings, ZenohSettings, open_session, wait_for_liveliness
-from shared.transport.split_client import query_split
+from shared.transport.split_client import SplitQueryError, query_split
 from shared.wire import keys
 from shared.wire.messages import TagPoses, decode
 from tests.examples import injected_tag_poses
@@ -76,6 +76,23 @@ def test_a_secure_fleet_scopes_each_robots_identities_to_that_robot(tmp_path: Pa
             def as_identity(name: str) -> zenoh.Session:
                 tls = TlsSettings.from_dir(plan.certs, name) if plan.certs else None
                 return open_session(ZenohSettings(mode="client", connect=[plan.edge_router], tls=tls))
+
+            # A controller steers its own robot on the controller's key, as a controller: the operator's
+            # pin holds (one that asked the person's key pinned over the operator: a fresh-clone trial).
+            ctl2, ctl1 = as_identity("robot2-controller"), as_identity("robot1-controller")
+            try:
+                with pytest.raises(SplitQueryError, match="no reply"):
+                    query_split(ctl2, "robot2", params="k=6", timeout_secs=3)  # the person's key: denied
+                with pytest.raises(SplitQueryError, match="pinned"):
+                    query_split(ctl2, "robot2", params="k=6", auto=True, timeout_secs=10)
+                with pytest.raises(SplitQueryError, match="no reply"):
+                    query_split(ctl1, "robot2", params="k=6", auto=True, timeout_secs=3)  # not its robot
+                assert query_split(operator, "robot2", timeout_secs=10).k == 5
+                query_split(operator, "robot2", params="release=1", timeout_secs=10)
+                assert query_split(ctl2, "robot2", params="k=6", auto=True, timeout_secs=10).k == 6
+            finally:
+                ctl2.close()
+                ctl1.close()
 
             robot1 = as_identity("robot1")
             camera1 = as_identity("robot1-camera")
@@ -147,21 +164,32 @@ split_k = 7
 [camera]
 source = "demo"
 fps = 3.0
+demo_frames = 12  # its own short cache: rendered in seconds even on a fresh clone
 """
     )
     runs = tmp_path / "runs"
-    out = subprocess.run(
-        [
-            *(sys.executable, "-m", "shared.tools.cli", "fleet", "--config", str(config)),
-            *("--only", "robot1", "--duration", "8", "--runs", str(runs)),
-        ],
+    cli = [sys.executable, "-m", "shared.tools.cli"]
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    launcher = subprocess.Popen(
+        [*cli, "fleet", "--config", str(config), "--only", "robot1", "--duration", "12", "--runs", str(runs)],
         cwd=REPO,
-        env={**os.environ, "PYTHONPATH": str(REPO)},
-        capture_output=True,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
         text=True,
-        timeout=300,
     )
-    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
-    assert "holds private keys" not in out.stdout  # the bundle is this host's alone
-    summary = json.loads(next(runs.glob("*/summary.json")).read_text())
-    assert summary["robots"]["robot1"]["frames"] >= 3, summary
+    try:
+        out, _ = launcher.communicate(timeout=300)
+    except subprocess.TimeoutExpired:
+        launcher.terminate()  # the launcher stops its services
+        out, _ = launcher.communicate(timeout=60)
+        raise
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+        subprocess.run([*cli, "down", "--runs", str(runs)], cwd=REPO, env=env, capture_output=True, timeout=60)
+    assert launcher.returncode == 0, out[-3000:]
+    assert "holds private keys" not in out  # the bundle is this host's alone
+    summary = json.loads(next(runs.glob("*/summary.json")).read_text())["robots"]["robot1"]
+    # poses, and the camera's ground truth (each pose's error): the monitor reads both as the camera
+    assert summary["frames"] >= 3 and summary.get("tag_observations", 0) >= 3, summary

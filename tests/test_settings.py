@@ -144,6 +144,7 @@ def test_the_cli_says_a_users_mistake_in_one_line(tmp_path: Path) -> None:
         (["split", "set", "9", "--connect", "tcp/127.0.0.1:1"], "split index must be an int in 0..7, got 9"),
         # a TLS endpoint without certificates (a trial got a traceback)
         (["split", "get", "--connect", "tls/127.0.0.1:7447"], "is a TLS endpoint: give --certs"),
+        (["split", "get", "--connect", "tcp/127.0.0.1:7447", "--certs", str(tmp_path)], "listens on a tls/"),
         (
             ["detect", str(tmp_path), "--camera", str(tmp_path / "nope.yaml"), "--tag-size", "0.1", "--json", "o.json"],
             "nope.yaml",

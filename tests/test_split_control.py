@@ -91,3 +91,41 @@ def test_a_wildcard_set_is_refused_over_real_zenoh() -> None:
         queryable.undeclare()
         client.close()
         server.close()
+
+
+def test_the_controllers_key_sets_only_as_the_controller_over_real_zenoh() -> None:
+    """On splittag/<r>/split/auto every set is the controller's whatever it claims: refused while a
+    person's pin holds, never a pin, never a release (under access control a controller's identity
+    steers only there: one that left `source` out on the person's key pinned over an operator, found by
+    a fresh-clone trial). A read there answers on that key; another key beneath split sets nothing."""
+    from shared.transport.session import ZenohSettings, free_tcp_port, open_session
+    from shared.transport.split_client import SplitQueryError, query_split
+    from shared.transport.split_control import serve_split
+    from shared.wire import keys
+
+    port = free_tcp_port()
+    server = open_session(ZenohSettings(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
+    client = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
+    state = _state()
+    queryable = serve_split(server, keys.split("w1"), state)
+    try:
+        applied = query_split(client, "w1", params="k=4", auto=True)
+        assert applied == SplitConfig(k=4, codec="fp16", pinned=False, source="controller")
+        assert query_split(client, "w1", params="k=3").pinned  # a person pins
+        for params, why in (("k=5", "pinned"), ("k=5;source=user", "not 'user'"), ("release=1", "release")):
+            with pytest.raises(SplitQueryError, match=why):
+                query_split(client, "w1", params=params, auto=True)
+        as_user = encode(SplitConfig(k=6, codec="fp16", pinned=True, source="user"))
+        replies = list(client.get(keys.split_auto("w1"), payload=as_user, timeout=5))
+        assert replies and replies[0].err is not None and "pinned" in replies[0].err.payload.to_string()
+        assert state.get() == SplitConfig(k=3, codec="fp16", pinned=True, source="user")
+        read = [r.ok for r in client.get(keys.split_auto("w1"), timeout=5) if r.ok is not None]
+        assert read and str(read[0].key_expr) == keys.split_auto("w1")
+        errors = [r.err.payload.to_string() for r in client.get(keys.split("w1") + "/other?k=1", timeout=5) if r.err]
+        assert errors and "is set on" in errors[0] and state.get().k == 3
+        query_split(client, "w1", params="release=1")
+        assert query_split(client, "w1", params="k=5", auto=True).k == 5
+    finally:
+        queryable.undeclare()
+        client.close()
+        server.close()

@@ -102,10 +102,16 @@ def test_access_rules_per_role() -> None:
     policies = {p["subjects"][0]: set(p["rules"]) for p in acl["policies"]}
     assert policies["trusted"] == {"everything"}
     assert "no-steer" in policies["cameras"] and "no-steer" in policies["slam"]
-    assert "no-steer" not in policies["operators"] and "no-steer" not in policies["controllers"]
+    # a person's key (a set pins) for operators alone; the controller's key (refused while pinned) for both
+    assert "no-steer" not in policies["operators"] and "no-steer" in policies["controllers"]
+    assert "no-auto-steer" not in policies["operators"] and "no-auto-steer" not in policies["controllers"]
+    assert "no-auto-steer" in policies["cameras"] and "no-auto-steer" in policies["slam"]
     assert "no-map-query" not in policies["operators"] and "no-map-query" in policies["slam"]
     assert policies["operators"] == {"receive", "read"}
-    assert policies["cameras"] == {"receive", "read", "cameras-publish", "cameras-announce", "no-steer", "no-map-query"}
+    assert policies["cameras"] == {
+        *("receive", "read", "cameras-publish", "cameras-announce"),
+        *("no-steer", "no-auto-steer", "no-map-query"),
+    }
     for rule in acl["rules"]:
         if rule["permission"] == "allow" and rule["id"] not in ("everything", "receive", "read"):
             assert rule["flows"] == ["ingress"] and rule["key_exprs"], rule  # writes come in, each to named keys
@@ -163,7 +169,13 @@ def test_access_rules_cover_the_keys_the_services_use() -> None:
         may_serve = rules.get(f"{role}-serve", [])
         for key in wildcards:
             assert not _covers(may_put, key) and not _covers(may_serve, key), (role, key)
-        for key in (keys.split("r1"), keys.echo("r1"), keys.echo("r1") + "/raw", keys.stats("r1", "robot_infer")):
+        for key in (
+            keys.split("r1"),
+            keys.split_auto("r1"),
+            keys.echo("r1"),
+            keys.echo("r1") + "/raw",
+            keys.stats("r1", "robot_infer"),
+        ):
             assert not _covers(may_serve, key), (role, key)
         announce = rules.get(f"{role}-announce", [])
         assert not _covers(announce, keys.alive("r1", "edge_infer")) and not _covers(announce, "splittag/r1/**")
@@ -171,7 +183,8 @@ def test_access_rules_cover_the_keys_the_services_use() -> None:
     assert _covers(rules["slam-announce"], keys.fleet_service("slam"))
     assert _covers(rules["cameras-announce"], keys.alive("r1", "camera"))
     assert _covers(rules["no-map-query"], keys.tag_map("r1"))
-    assert _covers(rules["no-steer"], keys.split("r1"))
+    assert _covers(rules["no-steer"], keys.split("r1")) and not _covers(rules["no-steer"], keys.split_auto("r1"))
+    assert _covers(rules["no-auto-steer"], keys.split_auto("r1"))
 
 
 def test_waiting_for_liveliness_lets_the_waiter_work_meanwhile() -> None:
@@ -202,9 +215,11 @@ def test_waiting_for_liveliness_lets_the_waiter_work_meanwhile() -> None:
         session.close()
 
 
-def test_a_router_starts_before_the_router_it_connects_to_and_joins_it_later() -> None:
+def test_a_router_starts_before_the_router_it_connects_to_and_joins_it_later(caplog: pytest.LogCaptureFixture) -> None:
     """A router (robot_infer's) whose edge is not up yet opens at once and connects when the edge comes
-    up (zenoh keeps trying in the background); a client with nothing to connect to still fails loudly."""
+    up (zenoh keeps trying in the background), and one that reaches nothing within its connect timeout
+    says so once (a wrong address or certificate is not silent); a client with nothing to connect to
+    still fails loudly."""
     import time
 
     from shared.transport.session import free_tcp_port, open_session
@@ -226,6 +241,14 @@ def test_a_router_starts_before_the_router_it_connects_to_and_joins_it_later() -
         finally:
             server.close()
         sub.undeclare()
+        nowhere = f"tcp/127.0.0.1:{free_tcp_port()}"
+        with caplog.at_level("WARNING", logger="shared.transport.session"):
+            lonely = open_session(ZenohSettings(mode="router", connect=[nowhere], connect_timeout_secs=0.5))
+            deadline = time.monotonic() + 10
+            while not any(nowhere in r.getMessage() for r in caplog.records) and time.monotonic() < deadline:
+                time.sleep(0.1)
+            lonely.close()
+        assert any(f"none of ['{nowhere}'] reached" in r.getMessage() for r in caplog.records), caplog.text
         with pytest.raises(Exception, match="Unable to connect"):
             open_session(
                 ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{free_tcp_port()}"], connect_timeout_secs=1)

@@ -347,7 +347,8 @@ class RobotInfer:
         self.on_board_frames += 1
         if self.on_board_frames == 1 or self.on_board_frames % 100 == 0:
             log.warning(
-                "edge unavailable: %d frames computed on board (its router: %s, connecting in the background)",
+                "edge unavailable (no edge_infer token, or an answer overdue): %d frames computed on board "
+                "(the edge's router: %s)",
                 self.on_board_frames,
                 ", ".join(self.settings.zenoh.connect) or "none configured",
             )

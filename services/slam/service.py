@@ -362,7 +362,7 @@ class SlamNode:
         # them); `frames` (slam.json) and the ATE count what this process placed since it started.
         out: dict[str, Any] = {
             "poses": len(stamps),
-            "resumed_poses": len(stamps) - int(newer.sum()) if len(run.previous_stamps_nanos) else 0,
+            "resumed_poses": len(run.previous_stamps_nanos),
             "time": "data set (rgb.txt)" if in_source_time else "capture",
         }
         if len(gt_stamps):

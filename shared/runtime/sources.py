@@ -126,8 +126,14 @@ class DemoSource:
         from shared.sim.scene import SceneRenderer
 
         self.cache.mkdir(parents=True, exist_ok=True)
-        with open(self.cache / ".render.lock", "w") as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes, or the process dies
+        with open(self.cache / ".render.lock", "a") as lock:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes, or the process dies
+            except OSError as exc:  # a file system without locks (some NFS, CIFS, FUSE mounts)
+                log.warning("%s: no lock (%s): rendering alongside any other camera", self.cache, exc)
+            else:  # the lock holder's: what a renderer killed mid-frame left
+                for stale in self.cache.glob("*.tmp.*"):
+                    stale.unlink(missing_ok=True)
             missing = self._missing()  # what another camera left, if it rendered meanwhile
             if not missing:
                 return

@@ -137,6 +137,9 @@ def _cmd_split(args: argparse.Namespace) -> int:
     if connect.startswith("tls/") and tls is None:
         print(f"splittag split: {connect} is a TLS endpoint: give --certs (and --identity)", file=sys.stderr)
         return 2
+    if tls is not None and not connect.startswith("tls/"):
+        print(f"splittag split: --certs with {connect}: a TLS deployment listens on a tls/ endpoint", file=sys.stderr)
+        return 2
     k, codec, release = args.k, args.codec, args.action == "release"
     if args.action == "set" and k is None and codec is None:
         print("splittag split set: give k (0..7) and/or --codec", file=sys.stderr)

@@ -222,7 +222,7 @@ def operator_settings(plan: FleetPlan) -> ZenohSettings:
     return ZenohSettings(mode="client", connect=[plan.edge_router], tls=tls)
 
 
-def monitor_settings(plan: FleetPlan, only: str | None) -> ZenohSettings:
+def launcher_monitor_settings(plan: FleetPlan, only: str | None) -> ZenohSettings:
     """The launcher's monitor session: the operator's to the edge tier when this host runs the edge
     (or everything); on a robot's host (`only` = that robot) a session to the robot's own router, which
     is up whether or not the edge is, as the robot's camera: the one identity of that host's bundle
@@ -376,7 +376,7 @@ def run_fleet(
     slam_has_map = "tag_map" in {**base.get("slam", {}), **extra.get("slam", {})}
     run_tags = load_tag_map(run_map) if run_map is not None else None
     monitors = {
-        r: Monitor(run_tags, max_records=200_000, slam_has_map=slam_has_map)
+        r: Monitor(run_tags, max_records=200_000, slam_has_map=slam_has_map, at_robot=only == r)
         for r in plan.robots
         if only in (None, "edge", r)
     }
@@ -389,7 +389,7 @@ def run_fleet(
         wanted = [keys.edge_worker(plan.tier, w) for w in plan.edge_workers if only in (None, "edge")]
         wanted += [keys.alive(r, "robot_infer") for r in monitors if only != "edge"]
         started = wait_for_run(
-            monitor_settings(plan, only),
+            launcher_monitor_settings(plan, only),
             wanted,
             attach=lambda session: [sub for r, m in monitors.items() for sub in attach_monitor(session, r, m)],
             supervise=restart_dead,

@@ -188,6 +188,8 @@ class Monitor:
     # slam was given `tag_map` (its world is the map's): only then is its pose comparable with ground truth
     slam_has_map: bool = True
     _last_gt_at: float | None = None  # when the camera's ground truth last arrived (this monitor's clock)
+    # listening at the robot's own router (a fleet's robot host), which sees the poses computed on board
+    at_robot: bool = False
 
     def _decode(self, payload: bytes, kind: type[M]) -> M | None:
         """One message of `kind`, or None (counted in `bad`, logged) when the payload is not one."""
@@ -296,6 +298,11 @@ class Monitor:
             # reaches this monitor, so the poses are what stopped (a monitor at the edge's router does not
             # see those the robot computes on board while the edge is down). Both stopped: the robot.
             silent = f"no TagPoses for {now - last['t']:.1f} s (the last: frame {last['seq']})"
+            if gt_at is not None and now - gt_at <= 2.0 and self.at_robot:
+                return (
+                    f"{silent} while its camera streams; is robot_infer running? (this monitor listens at the "
+                    "robot's router, where even the poses computed on board arrive)"
+                )
             if gt_at is not None and now - gt_at <= 2.0:
                 return (
                     f"{silent} while its camera streams; is the edge up? The robot computes on board while it "
@@ -506,7 +513,8 @@ def configuration_error_line(service: Service) -> str:
 def open_monitor_session(
     settings: ZenohSettings, tick: Callable[[], object], *, timeout_secs: float = 120.0
 ) -> zenoh.Session:
-    """The launcher's session to the edge router, which one of the run's services opens: tried in
+    """The launcher's session to a router one of the run's services opens (the edge's; on a fleet's
+    robot host the robot's): tried in
     2 s attempts with `tick` (supervision) between them, so a service that refused its settings or a
     Ctrl-C ends the wait at once instead of after one long connection timeout."""
     attempt = settings.model_copy(update={"connect_timeout_secs": min(2.0, settings.connect_timeout_secs)})

@@ -51,14 +51,15 @@ DATA_KEYS: Final[dict[str, str]] = {
     "map": "splittag/*/map/**",
     "controller": "splittag/*/controller/**",
 }
-SPLIT_KEY: Final[str] = "splittag/*/split"
+SPLIT_KEY: Final[str] = "splittag/*/split"  # a person's: a set there pins
+SPLIT_AUTO_KEY: Final[str] = "splittag/*/split/auto"  # a controller's: refused while a person's pin holds
 # Every version of a key (`/**` also matches the key itself): the map went v2 -> v3 while this said v2,
 # and every identity could query (and save) the map unchecked; tests/test_access.py now checks these
 # against the keys the services use.
 MAP_KEY: Final[str] = "splittag/*/map/**"
 # The queryables the services declare; a role may declare only its own (MAY_SERVE).
 SERVICE_QUERYABLES: Final[dict[str, str]] = {
-    "split": "splittag/*/split",
+    "split": "splittag/*/split/**",  # the person's key and the controller's beneath it
     "echo": "splittag/*/echo/**",  # and the raw echo beneath it
     "map": MAP_KEY,
     "robot_infer_stats": "splittag/*/robot_infer/stats",
@@ -96,7 +97,10 @@ READ_MESSAGES: Final[list[str]] = ["declare_subscriber", "query", "liveliness_qu
 # subscriptions, queryables and queries (a fleet slam subscribes to `splittag/*/ground_truth/v3`, an
 # operator asks `splittag/*/split`); the data that then flows stays on the robot's own keys.
 INTEREST_MESSAGES: Final[list[str]] = [*READ_MESSAGES, "declare_queryable"]
-MAY_STEER: Final[set[str]] = {"operators", "controllers"}
+MAY_STEER: Final[set[str]] = {"operators"}  # may ask SPLIT_KEY: set and pin
+# May ask SPLIT_AUTO_KEY, where every set is a controller's (a controller that asked the person's key
+# without `source=controller` pinned over an operator: found by a fresh-clone trial).
+MAY_STEER_AUTO: Final[set[str]] = {"operators", "controllers"}
 MAY_SAVE_MAP: Final[set[str]] = {"operators"}
 
 
@@ -162,6 +166,7 @@ def access_control_config(settings: AccessControlSettings, *, keep_local: list[s
         _rule("receive", "allow", ALL_MESSAGES, EVERY_KEY, ["egress"]),
         _rule("read", "allow", READ_MESSAGES, EVERY_KEY, ["ingress"]),
         _rule("no-steer", "deny", ["query"], [SPLIT_KEY], ["ingress"]),
+        _rule("no-auto-steer", "deny", ["query"], [SPLIT_AUTO_KEY], ["ingress"]),
         _rule("no-map-query", "deny", ["query"], [MAP_KEY], ["ingress"]),
     ]
     subjects: list[dict[str, Any]] = []
@@ -199,7 +204,15 @@ def access_control_config(settings: AccessControlSettings, *, keep_local: list[s
             (f"{name}-serve", ["declare_queryable", "reply"], [SERVICE_QUERYABLES[q] for q in sorted(MAY_SERVE[name])]),
             (f"{name}-announce", ["liveliness_token"], sorted(MAY_ANNOUNCE[name])),
         ]
-        denied = [r for r, may in (("no-steer", name in MAY_STEER), ("no-map-query", name in MAY_SAVE_MAP)) if not may]
+        denied = [
+            r
+            for r, may in (
+                ("no-steer", name in MAY_STEER),
+                ("no-auto-steer", name in MAY_STEER_AUTO),
+                ("no-map-query", name in MAY_SAVE_MAP),
+            )
+            if not may
+        ]
         role_names: list[str] = getattr(settings, name)
         scopes: list[str | None] = [None, *sorted({scoped[n] for n in role_names if n in scoped})]
         for scope in scopes:

@@ -168,7 +168,32 @@ def open_session(settings: ZenohSettings) -> zenoh.Session:
         settings.multicast_scouting,
         settings.shared_memory,
     )
+    if settings.mode == "router" and settings.connect:
+        _warn_if_unconnected(session, settings)
     return session
+
+
+def _warn_if_unconnected(session: zenoh.Session, settings: ZenohSettings) -> None:
+    """A router keeps connecting in the background without a word (zenoh logs each failed attempt at
+    debug level): after `connect_timeout_secs` with nothing reached, say so once, with the likely
+    causes, so a wrong address or certificate is not mistaken for an edge that is merely away."""
+
+    def check() -> None:
+        try:
+            if session.is_closed() or any(session.info.routers_zid()) or any(session.info.peers_zid()):
+                return
+        except Exception:  # closed meanwhile: nothing to say
+            return
+        log.warning(
+            "zenoh router: none of %s reached in %.0f s; still trying in the background (check the address, "
+            "that the other side listens there, and with TLS the certificates' CA and names)",
+            settings.connect,
+            settings.connect_timeout_secs,
+        )
+
+    timer = threading.Timer(settings.connect_timeout_secs, check)
+    timer.daemon = True
+    timer.start()
 
 
 def encoding_for(schema: str) -> zenoh.Encoding:

@@ -14,11 +14,19 @@ class SplitQueryError(RuntimeError):
 
 
 def query_split(
-    session: zenoh.Session, robot_id: str, *, params: str = "", timeout_secs: float = 5.0, identity: str | None = None
+    session: zenoh.Session,
+    robot_id: str,
+    *,
+    params: str = "",
+    timeout_secs: float = 5.0,
+    identity: str | None = None,
+    auto: bool = False,
 ) -> SplitConfig:
-    """One get on splittag/<robot_id>/split[?params]; returns the reply's SplitConfig. `identity`: the
-    certificate the session presents (TLS), named when nothing answers."""
-    selector = keys.split(robot_id) + (f"?{params}" if params else "")
+    """One get on splittag/<robot_id>/split[?params] (`auto`: on the controller's key, split/auto, where
+    every set is a controller's); returns the reply's SplitConfig. `identity`: the certificate the
+    session presents (TLS), named when nothing answers."""
+    key = keys.split_auto(robot_id) if auto else keys.split(robot_id)
+    selector = key + (f"?{params}" if params else "")
     for reply in session.get(selector, timeout=timeout_secs):
         if reply.ok is not None:
             return decode(reply.ok.payload.to_bytes(), SplitConfig)

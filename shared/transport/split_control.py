@@ -12,6 +12,12 @@ Protocol on `splittag/<robot_id>/split` (any Zenoh client can use it):
 - parsed strictly: `release` is 0, 1, true or false (`release=0` keeps a pin), an unknown or
   repeated parameter is an error, and a set through a wildcard key (`splittag/*/split?k=5`) is refused.
 - anything invalid -> an error reply (UTF-8 text saying what was wrong); nothing changes.
+
+A controller asks on `splittag/<robot_id>/split/auto` (keys.split_auto): every set there is the
+controller's whatever its parameters or payload say (`source=user` is an error), so under access
+control (shared.transport.access) a controller's identity steers there and may not ask the person's key:
+a controller that left `source` out used to pin like a person, over an operator's pin (found by a
+fresh-clone trial of the TLS fleet).
 """
 
 from __future__ import annotations
@@ -116,21 +122,45 @@ def _params_from_payload(payload: bytes) -> dict[str, str]:
 
 
 def serve_split(session: zenoh.Session, key: str, state: SplitState) -> zenoh.Queryable[None]:
-    """Declare the split queryable."""
+    """Declare the split queryable on `key` (a person's) and `key/auto` (a controller's)."""
     enc = encoding_for(SplitConfig.SCHEMA)
+    auto = key + "/auto"
 
     def on_query(query: zenoh.Query) -> None:
         payload = query.payload.to_bytes() if query.payload is not None else None
+        framing = framing_of(payload)  # the asker's: the reply is one it reads
+        asked = str(query.key_expr)
         try:
             params = parse_parameters(str(query.parameters))
-            if (params or payload) and any(c in str(query.key_expr) for c in "*$"):
-                raise SplitRequestError(f"{query.key_expr} names robots by a wildcard: set one robot's split at a time")
+            if (params or payload) and any(c in asked for c in "*$"):
+                raise SplitRequestError(f"{asked} names robots by a wildcard: set one robot's split at a time")
+            if asked == auto:
+                params = _as_controller(params, payload)
+                payload = None
+            elif asked != key and (params or payload):
+                raise SplitRequestError(f"{asked}: the split is set on {key} or {auto}")
             applied = state.apply(params, payload)
         except SplitRequestError as exc:
             log.warning("split request refused: %s", exc)
             query.reply_err(str(exc).encode())
             return
         # On this robot's own key (a wildcard get learns which robot answered), in the asker's framing.
-        query.reply(key, encode(applied, framing=framing_of(payload)), encoding=enc)
+        query.reply(auto if asked == auto else key, encode(applied, framing=framing), encoding=enc)
 
-    return session.declare_queryable(key, on_query)
+    return session.declare_queryable(key + "/**", on_query)  # `/**` matches the key itself too
+
+
+def _as_controller(params: dict[str, str], payload: bytes | None) -> dict[str, str]:
+    """A request on the controller's key as parameters, its source the controller's."""
+    if payload:
+        if params:
+            raise SplitRequestError("give the request as parameters or as a SplitConfig payload, not both")
+        params = _params_from_payload(payload)
+        if params.get("release") == "1":  # a payload from a user with pinned false: a release
+            raise SplitRequestError("a controller may not release a person's pin")
+        params["source"] = "controller"
+    if params.get("source", "controller") != "controller":
+        raise SplitRequestError(f"on the controller's key every set is the controller's, not {params['source']!r}")
+    if params.get("release", "0") in ("1", "true"):
+        raise SplitRequestError("a controller may not release a person's pin")
+    return {**params, "source": "controller"} if params else params

@@ -64,6 +64,12 @@ def split(robot_id: str) -> str:
     return f"{ROOT}/{_check(robot_id, 'robot id')}/split"
 
 
+def split_auto(robot_id: str) -> str:
+    """The same queryable for a controller: every set here is a controller's (refused while a person's
+    setting is pinned), so access control can let a controller steer without letting it pin."""
+    return f"{split(robot_id)}/auto"
+
+
 def compute(robot_id: str, side: str) -> str:
     """ComputeProfile v1: robot_infer (side robot) and edge_infer (side edge) -> controller, ~1 Hz."""
     if side not in ("robot", "edge"):
