@@ -87,6 +87,13 @@ def test_a_secure_fleet_scopes_each_robots_identities_to_that_robot(tmp_path: Pa
                     query_split(ctl2, "robot2", params="k=6", auto=True, timeout_secs=10)
                 with pytest.raises(SplitQueryError, match="no reply"):
                     query_split(ctl1, "robot2", params="k=6", auto=True, timeout_secs=3)  # not its robot
+                worker = as_identity("edge1")  # trusted with every robot's data, not with steering
+                try:
+                    for auto in (False, True):
+                        with pytest.raises(SplitQueryError, match="no reply"):
+                            query_split(worker, "robot2", params="release=1", auto=auto, timeout_secs=3)
+                finally:
+                    worker.close()
                 assert query_split(operator, "robot2", timeout_secs=10).k == 5
                 query_split(operator, "robot2", params="release=1", timeout_secs=10)
                 assert query_split(ctl2, "robot2", params="k=6", auto=True, timeout_secs=10).k == 6

@@ -102,6 +102,7 @@ def test_the_controllers_key_sets_only_as_the_controller_over_real_zenoh() -> No
     from shared.transport.split_client import SplitQueryError, query_split
     from shared.transport.split_control import serve_split
     from shared.wire import keys
+    from shared.wire.messages import decode
 
     port = free_tcp_port()
     server = open_session(ZenohSettings(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
@@ -121,6 +122,11 @@ def test_the_controllers_key_sets_only_as_the_controller_over_real_zenoh() -> No
         assert state.get() == SplitConfig(k=3, codec="fp16", pinned=True, source="user")
         read = [r.ok for r in client.get(keys.split_auto("w1"), timeout=5) if r.ok is not None]
         assert read and str(read[0].key_expr) == keys.split_auto("w1")
+        for wide in (keys.split_auto("w1") + "/**", keys.split("w1") + "/*", "splittag/*/split/auto"):
+            read = [r.ok for r in client.get(wide, timeout=5) if r.ok is not None]  # answered (none once)
+            assert read and decode(read[0].payload.to_bytes(), SplitConfig).k == 3, wide
+        errors = [r.err.payload.to_string() for r in client.get(keys.split("w1") + "/other", timeout=5) if r.err]
+        assert errors and "is read on" in errors[0]
         errors = [r.err.payload.to_string() for r in client.get(keys.split("w1") + "/other?k=1", timeout=5) if r.err]
         assert errors and "is set on" in errors[0] and state.get().k == 3
         query_split(client, "w1", params="release=1")

@@ -260,14 +260,18 @@ def test_a_router_starts_before_the_router_it_connects_to_and_joins_it_later(cap
 def test_a_fleets_robot_identities_act_for_their_robot_alone() -> None:
     """Scoped names (`robot_of_name`): a robot's router may do everything on its robot's keys and
     nothing on another's; its camera publishes that robot's frames only; workers and slam stay
-    trusted with every robot; a scoped name must be in a role that acts for one robot."""
+    trusted with every robot's data, the workers without steering; a scoped name must be in a role
+    that acts for one robot."""
     from shared.tools.fleet import FleetPlan
 
     plan = FleetPlan(robots=["robot1", "robot2"], edge_workers=["edge1"], controller=True, certs=Path("c"))
     acl = access_control_config(AccessControlSettings(**plan.access_control()))
     rules = {r["id"]: r["key_exprs"] for r in acl["rules"]}
     subjects = {s["id"]: s["cert_common_names"] for s in acl["subjects"]}
-    assert subjects["trusted"] == ["slam", "edge1"]
+    assert subjects["trusted"] == ["slam"] and subjects["trusted-clients"] == ["edge1"]
+    # the workers: every robot's data, but neither split key (a reviewer: any worker could pin any robot)
+    worker = next(set(p["rules"]) for p in acl["policies"] if p["subjects"] == ["trusted-clients"])
+    assert worker == {"everything", "no-steer", "no-auto-steer"}
     assert subjects["robot-robot1"] == ["robot1"] and subjects["cameras-robot2"] == ["robot2-camera"]
     assert _covers(rules["robot-robot1-everything"], keys.features("robot1"))
     assert not _covers(rules["robot-robot1-everything"], keys.tag_poses("robot2"))

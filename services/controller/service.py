@@ -1,5 +1,7 @@
 """The controller loop: evidence from TagPoses, ComputeProfiles and sparse probes; a decision every
-decide_period_secs; the split applied through the same Zenoh query a person uses; state published.
+decide_period_secs; the split applied through the public split query, on the controller's key
+(`splittag/<robot>/split/auto`: every set there is a controller's, refused while a person's pin
+holds); state published.
 
 Why its own process (not inside robot_infer): it must never delay a frame (probing blocks for a
 round trip, fitting costs CPU at its own pace); it can be stopped, restarted or replaced (e.g. by an
@@ -159,12 +161,25 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
     token = session.liveliness().declare_token(keys.alive(rid, "controller"))
     viz = make_viz(settings.rerun, service="controller", run_dir=settings.run_dir)
     switches = 0
+    unread_since: float | None = None  # since when the split has not been readable (None: it is)
+    warned = False
     log.info("controller ready (enabled=%s)", settings.enabled)
     try:
         while not stop.wait(settings.decide_period_secs):
             decided = _decide(settings, session, core, lock)
             if decided is None:
+                unread_since = unread_since or time.monotonic()
+                if not warned and time.monotonic() - unread_since > 10.0:
+                    # An old robot_infer without the controller's key, or access control that denies it,
+                    # looked exactly like a robot not yet up (a reviewer): say so once.
+                    log.warning(
+                        "no answer on %s for 10 s: is robot_infer running (a version that serves it), and may "
+                        "this identity ask it?",
+                        keys.split_auto(rid),
+                    )
+                    warned = True
                 continue
+            unread_since, warned = None, False
             state, switched = decided
             switches += switched
             pub.put(encode(state))

@@ -120,7 +120,8 @@ class FleetPlan(BaseModel):
         """The routers' access control settings (shared.transport.access) for these identities."""
         return {
             "enabled": True,
-            "trusted": ["slam", *self.edge_workers, *self.robots],
+            "trusted": ["slam", *self.robots],  # the routers
+            "trusted_clients": list(self.edge_workers),  # everything but steering
             "operators": ["operator"],
             "controllers": [f"{r}-controller" for r in self.robots] if self.controller else [],
             "slam": [],  # slam is the edge tier's router itself, trusted by the robots' routers

@@ -9,7 +9,7 @@ everything (subscribe, query, receive) but write only what is theirs, by allow-l
 | role | may publish | may serve (queryables, replies) | liveliness token | may not query |
 | --- | --- | --- | --- | --- |
 | operator (people, `splittag split`, the launcher's monitor) | nothing | nothing | none | |
-| controller | its ControllerState | its stats | its own | the map (save) |
+| controller | its ControllerState | its stats | its own | the person's split key (pin), the map (save) |
 | slam | camera poses, its map | its map, its stats | its own (and a fleet's) | the split (steer), the map |
 | camera | frames, ground truth, data-set stamps | nothing | its own | the split, the map |
 
@@ -18,7 +18,10 @@ Allow-lists, not "everything but": Zenoh applies a rule to a message whose key t
 subscribers on every key of r1 receive) or a queryable declared on `splittag/**`, and an allow-all
 let both through. Now such a key is included in no allow rule of a restricted role and is refused
 (tests/test_security_multiprocess.py). Zenoh's ACL cannot tell a split get from a set (both are
-queries): steering is allowed to the operator and controller only; a set or a map save through a
+queries, and it never sees a query's parameters): the person's split key (`splittag/*/split`, where a
+set pins) is the operator's alone, the controller's key (`splittag/*/split/auto`, every set there a
+controller's, refused while a pin holds) the operator's and the controllers'; a fleet's edge workers,
+trusted with every robot's data, may ask neither (`trusted_clients`); a set or a map save through a
 wildcard key is refused by robot_infer and slam themselves.
 """
 
@@ -111,6 +114,10 @@ class AccessControlSettings(BaseModel):
 
     enabled: bool = False
     trusted: list[str] = Field(default_factory=lambda: ["edge", "robot"])
+    # Trusted like `trusted` but may not steer (neither split key): processes, not routers, that serve
+    # every robot, such as a fleet's edge workers (they never set a split; a router's identity may not
+    # be here: the routers forward each other's queries, an operator's too).
+    trusted_clients: list[str] = Field(default_factory=list)
     operators: list[str] = Field(default_factory=lambda: ["operator"])
     controllers: list[str] = Field(default_factory=lambda: ["controller"])
     slam: list[str] = Field(default_factory=lambda: ["slam"])
@@ -180,6 +187,7 @@ def access_control_config(settings: AccessControlSettings, *, keep_local: list[s
 
     scoped = settings.robot_of_name
     role("trusted", [n for n in settings.trusted if n not in scoped], ["everything"])
+    role("trusted-clients", settings.trusted_clients, ["everything", "no-steer", "no-auto-steer"])
     for robot in sorted(set(scoped.values())):
         # A robot's own router: everything on its robot's keys, and reading the fleet's (the workers').
         mine = [f"splittag/{robot}/**"]

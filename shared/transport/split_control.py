@@ -144,8 +144,15 @@ def serve_split(session: zenoh.Session, key: str, state: SplitState) -> zenoh.Qu
             log.warning("split request refused: %s", exc)
             query.reply_err(str(exc).encode())
             return
-        # On this robot's own key (a wildcard get learns which robot answered), in the asker's framing.
-        query.reply(auto if asked == auto else key, encode(applied, framing=framing), encoding=enc)
+        # On this robot's own key (a wildcard get learns which robot answered), in the asker's framing: the
+        # person's key or the controller's, whichever the asked key reaches (zenoh refuses a reply on a key
+        # that does not intersect the query's: `split/auto/**` got no answer at all).
+        asked_key = zenoh.KeyExpr(asked)
+        on = key if asked_key.intersects(zenoh.KeyExpr(key)) else auto
+        if not asked_key.intersects(zenoh.KeyExpr(on)):
+            query.reply_err(f"{asked}: the split is read on {key} or {auto}".encode())
+            return
+        query.reply(on, encode(applied, framing=framing), encoding=enc)
 
     return session.declare_queryable(key + "/**", on_query)  # `/**` matches the key itself too
 
