@@ -27,6 +27,7 @@ from bench.controller import ROBOT, SCHEDULE, EmulatedCompute, Run, stream
 from shared.control.compute import REFERENCE_HEAD_MS_PER_TAG
 from shared.tools.linkemu import PROFILES, LinkEmulator, LinkEmulatorSettings, unavailable_reason
 from shared.transport.split_client import query_split
+from shared.wire import keys
 from shared.wire.sizing import features_payload_bytes
 
 pytestmark = pytest.mark.multiprocess
@@ -50,8 +51,12 @@ def emulator(tmp_path_factory: pytest.TempPathFactory) -> Any:
 
 def test_controller_follows_the_link_and_respects_pinning(emulator: LinkEmulator, tmp_path: Path) -> None:
     pin: dict[str, int] = {}
+    frames_at_edge: list[int] = []
+    watch: list[zenoh.Subscriber[None]] = []
 
     def on_phase(i: int, name: str, session: zenoh.Session, run: Run) -> None:
+        if i == 0:  # a tool at the edge, across the emulated link, asking for the robot's camera frames
+            watch.append(session.declare_subscriber(keys.frames(ROBOT), lambda s: frames_at_edge.append(1)))
         if i != len(SCHEDULE) - 1:
             return
         time.sleep(PIN_AFTER_SECS)
@@ -76,6 +81,9 @@ def test_controller_follows_the_link_and_respects_pinning(emulator: LinkEmulator
     )
     frames = run.frames()
     assert len(frames) >= 0.6 * FPS * PHASE_SECS * len(SCHEDULE), f"only {len(frames)} frames"
+    # ... while not one raw frame crossed the uplink to the edge's subscriber (robot_infer's router keeps
+    # them: keep_local), which would have taken the shaped link from the features
+    assert watch and not frames_at_edge, f"{len(frames_at_edge)} camera frames crossed the uplink"
 
     # Each phase is judged at its end: 9 s on one profile (the last one's pin, from 2 s to 4.5 s, changes
     # the split, not the link, and the controller has 4.5 s after the release to settle again).
