@@ -143,6 +143,13 @@ def test_the_live_line_says_how_long_the_poses_have_stopped() -> None:
     now[0] += 4.0
     line = monitor.line()
     assert "nor its camera's ground truth for 5.0 s; is the robot's host up" in line, line
+    # The poses caught up with the camera's last frame (a folder's end): the camera went quiet, not the edge
+    # (a trial's runs ended with 'is the edge up?' in 3 of 9).
+    ended = Monitor(None, clock=lambda: now[0])
+    ended.on_gt(encode(truth.model_copy(update={"seq": 299})))
+    ended.on_poses(encode(poses.model_copy(update={"seq": 299})))
+    now[0] += 1.1
+    assert "the camera has sent nothing newer for 1.1 s" in ended.line(), ended.line()
     # At the robot's own router (a fleet's robot host), on-board poses arrive: the silence is robot_infer's.
     at_robot = Monitor(None, clock=lambda: now[0], at_robot=True)
     at_robot.on_poses(encode(poses.model_copy(update={"seq": 41})))
@@ -213,3 +220,33 @@ def test_a_fleets_demo_map_leaves_slam_to_map_and_relative_maps_are_the_services
 
     with pytest.raises(TagMapError, match=str(REPO / "deploy")):
         run_tag_map(config)
+
+
+def test_a_run_started_from_another_directory_gets_an_absolute_folder_and_a_refused_one_none(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The services start in the repository, the launcher anywhere: the run folder it hands them is
+    absolute (a trial's `splittag up` from another directory failed: 'config file runs/... does not
+    exist'), and a run refused before anything started (a tag map naming a tag twice) leaves no runs/
+    behind, in one line and exit 2."""
+    import subprocess
+    import sys
+
+    from shared.tools.launch import new_run_dir
+
+    monkeypatch.chdir(tmp_path)
+    run = new_run_dir(Path("runs"))
+    assert run.is_absolute() and run.parent == tmp_path / "runs" and (tmp_path / "runs" / "current").is_symlink()
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "map.yaml").write_text("tags:\n- {id: 286, size_m: 0.166}\n- {id: 286, size_m: 0.2}\n")
+    (elsewhere / "mine.toml").write_text(f'[slam]\ntag_map = "{elsewhere / "map.yaml"}"\n')
+    out = subprocess.run(
+        [sys.executable, "-m", "shared.tools.cli", "up", "--config", str(elsewhere / "mine.toml"), "--duration", "1"],
+        cwd=elsewhere,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 2 and "listed more than once: [286]" in out.stderr, out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1 and not (elsewhere / "runs").exists(), out.stderr

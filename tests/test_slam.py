@@ -357,6 +357,22 @@ def test_a_tag_map_with_a_bad_uncertainty_is_refused_with_its_reason(
         load_tag_map(path)
 
 
+@pytest.mark.parametrize(
+    ("doc", "why"),
+    [
+        # edge_infer took the first size, slam the last: a trial's ATE went 0.62 -> 17.5 cm, silently
+        ({"tags": [{"id": 286, "size_m": 0.166}, {"id": 286, "size_m": 0.2}]}, r"listed more than once: \[286\]"),
+        # slam waited for a tag the map never named: every frame lost, not a word
+        ({"anchor_tag_id": 999, "tags": [{"id": 286, "size_m": 0.166}]}, "anchor_tag_id 999 is not one of"),
+    ],
+)
+def test_a_tag_map_names_each_tag_once_and_lists_its_anchor(tmp_path: Path, doc: dict[str, object], why: str) -> None:
+    path = tmp_path / "map.yaml"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(GeometryError, match=why):
+        load_tag_map(path)
+
+
 def test_bad_frames_are_refused_before_they_touch_the_state() -> None:
     """Each of these used to kill slam (GTSAM errors); now each is a SlamInputError and the next good
     frame is fused as if nothing had happened."""
@@ -434,6 +450,20 @@ def test_a_repeated_message_is_refused_and_a_restarted_camera_goes_on(tmp_path: 
     assert len(node.slam.trajectory()) == 20
     with pytest.raises(SlamInputError, match="future"):  # would make every real frame after it look stale
         node.on_poses(_tag_poses(99, time.time_ns() + 3_600 * 10**9, poses[0]))
+
+
+def test_slam_says_when_it_waits_for_an_anchor_that_never_comes(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Frames lost only because the anchor tag is not in view: slam says which tag it waits for and
+    which it sees (a trial's anchor was named wrongly: 134 frames lost without a word)."""
+    node = SlamNode(SlamServiceSettings(run_dir=tmp_path, resume=False, slam=SlamSettings(anchor_tag_id=999)))
+    poses = _constant_velocity(30)
+    with caplog.at_level("WARNING", logger="services.slam.service"):
+        for i in range(30):
+            assert node.on_poses(_tag_poses(i, 1_000 + i, poses[i]))[0].status == "lost"
+    said = [r.getMessage() for r in caplog.records if "waiting for the anchor tag 999" in r.getMessage()]
+    assert len(said) == 1 and "30 frames lost" in said[0] and "tags seen so far: [" in said[0], caplog.text
 
 
 def test_a_restarted_slam_resumes_its_map_and_trajectory(tmp_path: Path) -> None:

@@ -260,7 +260,7 @@ def test_folder_source_refuses_a_bad_rgb_txt_with_the_line(tmp_path: Path) -> No
         with pytest.raises(GeometryError, match=why):
             FolderSource(folder, info)
     (folder / "rgb.txt").write_text("1.0 a.png\n2.0 missing.png\n")
-    with pytest.raises(FileNotFoundError, match="1 missing images"):
+    with pytest.raises(FileNotFoundError, match=r"1 missing image, e\.g\."):
         FolderSource(folder, info)
 
 

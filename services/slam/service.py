@@ -75,6 +75,8 @@ class RobotRun:
     frames: int = 0  # TagPoses fused for this robot (the periodic map publication and drawing count them)
     map_due: bool = False  # the shared map changed since this robot's map key last carried it
     intrinsics: CameraIntrinsics | None = None  # the frustum is logged again when they change
+    unanchored: int = 0  # frames lost waiting for the tag map's anchor tag to come into view
+    seen_before_anchor: set[int] = field(default_factory=set)  # what was seen meanwhile (for the warning)
 
 
 class SlamNode:
@@ -214,6 +216,19 @@ class SlamNode:
                 covariance_world=res.covariance_world,  # None when lost (the pose is the last one repeated)
             )
             run.frames += 1
+            wanted = self.slam.settings.anchor_tag_id
+            if self.slam.anchor is None and wanted is not None and res.status == "lost":
+                run.unanchored += 1
+                run.seen_before_anchor.update(o.tag_id for o in observations)
+                if run.unanchored in (30, 300) or run.unanchored % 3000 == 0:  # said when it matters
+                    log.warning(
+                        "%s: %d frames lost waiting for the anchor tag %d (the tag map's anchor_tag_id) to come "
+                        "into view; tags seen so far: %s",
+                        robot,
+                        run.unanchored,
+                        wanted,
+                        sorted(run.seen_before_anchor)[:20] or "none",
+                    )
             if res.map_changed:  # one shared map: every robot's map key carries the change
                 self.revision += 1
                 for other in self.runs.values():

@@ -246,7 +246,8 @@ class FolderSource:
             entries = parse_rgb_list(listing.read_text(), listing.parent, name=str(listing))
             missing = [str(p) for _, p in entries if not p.is_file()]
             if missing:
-                raise FileNotFoundError(f"{listing} lists {len(missing)} missing images, e.g. {missing[0]}")
+                count = f"{len(missing)} missing image" + ("s" if len(missing) > 1 else "")
+                raise FileNotFoundError(f"{listing} lists {count}, e.g. {missing[0]}")
             self.files = [p for _, p in entries]
             self.stamps_nanos = [t for t, _ in entries]
             log.info("%s: %d images with their time stamps", listing, len(entries))

@@ -314,6 +314,7 @@ def run_fleet(
         Started,
         attach_monitor,
         configuration_error_line,
+        discard_run_dir,
         forget_run_files,
         new_run_dir,
         run_for,
@@ -333,13 +334,20 @@ def run_fleet(
     for line in foreign_keys(plan, only):
         print(f"warning: {line}", flush=True)
     run_dir = new_run_dir(runs_root)
-    base = tomllib.loads(Path(config).read_text())
-    # One tag map for the run (launch.run_map_tables); the demo scene's goes to edge_infer and robot_infer
-    # only: without a map of its own, slam builds the fleet's map from what the robots see.
-    extra, run_map = run_map_tables(base, run_dir, demo_users=("edge_infer", "robot_infer"))
-    specs = [
-        s for s in fleet_configs(plan, run_dir, config, extra=extra) if only is None or (s.robot_id or "edge") == only
-    ]
+    try:
+        base = tomllib.loads(Path(config).read_text())
+        # One tag map for the run (launch.run_map_tables); the demo scene's goes to edge_infer and robot_infer
+        # only: without a map of its own, slam builds the fleet's map from what the robots see.
+        extra, run_map = run_map_tables(base, run_dir, demo_users=("edge_infer", "robot_infer"))
+        specs = [
+            s
+            for s in fleet_configs(plan, run_dir, config, extra=extra)
+            if only is None or (s.robot_id or "edge") == only
+        ]
+        run_tags = load_tag_map(run_map) if run_map is not None else None
+    except Exception:
+        discard_run_dir(run_dir)  # refused before anything started
+        raise
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     supervisor = Supervisor()
@@ -375,7 +383,6 @@ def run_fleet(
     # Tag errors against the run's map; slam's pose error only when slam works in that map's world
     # (without a map its world is its anchor tag's, and the error read 369 cm for poses 0.1 cm right).
     slam_has_map = "tag_map" in {**base.get("slam", {}), **extra.get("slam", {})}
-    run_tags = load_tag_map(run_map) if run_map is not None else None
     monitors = {
         r: Monitor(run_tags, max_records=200_000, slam_has_map=slam_has_map, at_robot=only == r)
         for r in plan.robots

@@ -59,7 +59,10 @@ def demo_tag_map() -> TagMapFile:
 
 
 def new_run_dir(root: Path = CURRENT_RUN.parent) -> Path:
-    """runs/<timestamp>-<pid>, with runs/current (services' default run_dir) pointing at it."""
+    """runs/<timestamp>-<pid>, with runs/current (services' default run_dir) pointing at it; absolute:
+    the services start in the repository, the launcher anywhere (a relative run folder made under
+    another directory was handed to them as is: 'config file runs/... does not exist')."""
+    root = Path(root).resolve()
     run = root / time.strftime(f"%Y%m%d-%H%M%S-{os.getpid()}")
     run.mkdir(parents=True, exist_ok=True)
     current = root / CURRENT_RUN.name
@@ -67,6 +70,20 @@ def new_run_dir(root: Path = CURRENT_RUN.parent) -> Path:
         current.unlink()
     current.symlink_to(run.name)
     return run
+
+
+def discard_run_dir(run: Path) -> None:
+    """A run refused before anything started: its folder, the `current` link to it, and the runs folder
+    itself when nothing else is in it, go (no stray runs/ for a mistyped tag map)."""
+    import shutil
+
+    root = run.parent
+    current = root / CURRENT_RUN.name
+    if current.is_symlink() and os.readlink(current) == run.name:
+        current.unlink()
+    shutil.rmtree(run, ignore_errors=True)
+    with contextlib.suppress(OSError):
+        root.rmdir()  # only when empty
 
 
 @dataclass
@@ -188,6 +205,7 @@ class Monitor:
     # slam was given `tag_map` (its world is the map's): only then is its pose comparable with ground truth
     slam_has_map: bool = True
     _last_gt_at: float | None = None  # when the camera's ground truth last arrived (this monitor's clock)
+    _last_gt_seq: int = -1  # the newest frame the camera sent ground truth for
     # listening at the robot's own router (a fleet's robot host), which sees the poses computed on board
     at_robot: bool = False
 
@@ -265,6 +283,7 @@ class Monitor:
             return
         with self._lock:
             self._last_gt_at = self.clock()
+            self._last_gt_seq = max(self._last_gt_seq, msg.seq)
             self.gt[msg.seq] = msg.world_from_camera
             while len(self.gt) > self.max_ground_truth:
                 del self.gt[next(iter(self.gt))]  # the oldest (insertion order)
@@ -290,7 +309,7 @@ class Monitor:
         with self._lock:
             recent = [r for r in self._recent if now - r["t"] <= 1.0]
             last = self._recent[-1] if self._recent else None
-            gt_at = self._last_gt_at
+            gt_at, gt_seq = self._last_gt_at, self._last_gt_seq
         if not recent:
             if last is None:
                 return "waiting for TagPoses..."
@@ -298,6 +317,11 @@ class Monitor:
             # reaches this monitor, so the poses are what stopped (a monitor at the edge's router does not
             # see those the robot computes on board while the edge is down). Both stopped: the robot.
             silent = f"no TagPoses for {now - last['t']:.1f} s (the last: frame {last['seq']})"
+            if gt_at is not None and gt_seq <= last["seq"]:  # the poses caught up: the camera went quiet
+                return (
+                    f"{silent}: the camera has sent nothing newer for {now - gt_at:.1f} s (its source ended or "
+                    "paused, or the robot's host is down?)"
+                )
             if gt_at is not None and now - gt_at <= 2.0 and self.at_robot:
                 return (
                     f"{silent} while its camera streams; is robot_infer running? (this monitor listens at the "
@@ -701,8 +725,13 @@ def run_pipeline(
         services = (*services, "controller")
     topology, wrappers, emu = _placement(config, services, link)
     run_dir = new_run_dir(runs_root)
-    run_config = write_run_config(run_dir, config, topology=topology, extra=extra)
-    robot_id, zs = monitor_settings(run_config)
+    try:
+        run_config = write_run_config(run_dir, config, topology=topology, extra=extra)
+        robot_id, zs = monitor_settings(run_config)
+        run_tags = run_tag_map(run_config)
+    except Exception:
+        discard_run_dir(run_dir)  # refused before anything started
+        raise
     if emu is not None:
         emu.log_dir = run_dir
         emu.up(profile(link or "5g"))
@@ -714,7 +743,7 @@ def run_pipeline(
         )
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    monitor = Monitor(run_tag_map(run_config), max_records=200_000)  # a deployment may run for days
+    monitor = Monitor(run_tags, max_records=200_000)  # a deployment may run for days
     running = _Services(run_config, run_dir, wrappers)
     started = Started()
     try:
