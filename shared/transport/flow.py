@@ -246,8 +246,7 @@ class UplinkQueue:
     count (a fit that told them apart with its own t0 locked onto a wrong t0 / beta split after a step
     of the floor or of the edge's clock, holding the link at 40-80 % of its throughput: found in
     review). A step of the floor or of either clock passes out of the window within `window` frames
-    whichever way it goes, a rise of t0 within `step_frames` (`_drop_older_if_the_floor_rose`; t0
-    carries the clocks' offset; only differences on one clock are used for x).
+    whichever way it goes (t0 carries the clocks' offset; only differences on one clock are used for x).
     The sender needs no t0 to keep the pipe free of queues: on its own clock the pipe takes the next
     frame without a wait from F_n = max(s_n, F_(n-1)) + x S_n on, and re-anchoring F on an arrival a
     needs t0 (F = a - t0). A pacer that starts each frame at F reads back what it chose, so an x too
@@ -273,15 +272,9 @@ class UplinkQueue:
         probe_fraction: float = 0.25,
         stretch_fraction: float = 0.1,
         min_size_kB: float = 16.0,
-        step_frames: int = 4,
-        step_margin_secs: float = 0.005,
     ) -> None:
         if window < 1 or probe_every < 1 or not 0 <= probe_fraction < 1 or stretch_fraction <= 0:
             raise ValueError("window and probe_every >= 1, probe_fraction in [0, 1), stretch_fraction > 0")
-        if not 1 <= step_frames < window or step_margin_secs < 0:
-            raise ValueError("step_frames in [1, window), step_margin_secs >= 0")
-        self.step_frames = step_frames
-        self.step_margin_secs = step_margin_secs
         self.probe_every = probe_every
         self.probe_fraction = probe_fraction
         self.stretch_fraction = stretch_fraction
@@ -322,7 +315,6 @@ class UplinkQueue:
         while self._spacing and self._spacing[0][0] <= self._frames - self.window:
             self._spacing.popleft()
         self._transits.append((received_secs - sent_secs, size_kB))
-        self._drop_older_if_the_floor_rose()
         last, self._last = self._last, (sent_secs, received_secs)
         if last is None or previous_received_secs is None or received_secs <= previous_received_secs:
             return
@@ -331,27 +323,6 @@ class UplinkQueue:
         # real size (a per-message cost over 1 kB at k = 7 would read as a link 1000x too slow at k = 3)
         if arrived_apart > (1 + self.stretch_fraction) * max(sent_apart, 0.0) and size_kB >= self.min_size_kB:
             self._spacing.append((self._frames, (received_secs - previous_received_secs) / size_kB))
-
-    def _drop_older_if_the_floor_rose(self) -> None:
-        """The floor (or the receiver clock's offset, which t0 carries) stepped up: every one of the last
-        `step_frames` bounds on t0 is above the window's minimum by more than `step_margin_secs`, a tenth
-        of a frame's link time and twice the older bounds' spread above their minimum (queueing and
-        jitter stay under it: 20 ms of jitter on a fast link cost 14 % of its frames at a fixed
-        margin), so the older, smaller bounds
-        are the old floor's: dropped. Kept, they held t0 too small for a whole window, the pacer
-        anchored the pipe late and left the link idle (the edge clock 0.5 s ahead: about 20 frames at
-        70-80 % of the link's throughput in the simulated chain). A fall needs nothing: its first bound
-        is the new minimum."""
-        if len(self._transits) <= self.step_frames:
-            return
-        x = self.x_secs_per_kB or 0.0
-        bounds = [transit - x * kB for transit, kB in self._transits]
-        older, recent = bounds[: -self.step_frames], bounds[-self.step_frames :]
-        spread = statistics.median(older) - min(older)  # how far above the floor frames land anyway (jitter)
-        margin = self.step_margin_secs + 0.1 * x * self._transits[-1][1] + 2.0 * spread
-        if min(recent) > min(bounds) + margin:
-            for _ in range(len(self._transits) - self.step_frames):
-                self._transits.popleft()
 
     def reset(self) -> None:
         """Another edge (another receiver clock, another link perhaps): learn afresh."""
