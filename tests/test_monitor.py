@@ -231,12 +231,19 @@ def test_a_run_started_from_another_directory_gets_an_absolute_folder_and_a_refu
     behind, in one line and exit 2."""
     import subprocess
     import sys
+    import time
 
-    from shared.tools.launch import new_run_dir
+    from shared.tools.launch import discard_run_dir, link_current, new_run_dir
 
     monkeypatch.chdir(tmp_path)
     run = new_run_dir(Path("runs"))
-    assert run.is_absolute() and run.parent == tmp_path / "runs" and (tmp_path / "runs" / "current").is_symlink()
+    assert run.is_absolute() and run.parent == tmp_path / "runs"
+    link_current(run)
+    # a second run refused: the first stays, and runs/current still points at it (`splittag down` finds it)
+    time.sleep(1.1)
+    refused = new_run_dir(Path("runs"))
+    discard_run_dir(refused, made_root=False)
+    assert run.is_dir() and not refused.exists() and (tmp_path / "runs" / "current").resolve() == run
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     (elsewhere / "map.yaml").write_text("tags:\n- {id: 286, size_m: 0.166}\n- {id: 286, size_m: 0.2}\n")

@@ -8,7 +8,7 @@ import pytest
 
 from services.camera.settings import CameraSettings
 from shared.runtime.settings import CONFIG_ENV, CURRENT_RUN
-from shared.tools.launch import new_run_dir
+from shared.tools.launch import link_current, new_run_dir
 
 
 def test_splittag_config_names_the_toml_when_no_config_is_given(
@@ -32,6 +32,7 @@ def test_services_default_run_dir_is_the_folder_the_launcher_points_at(tmp_path:
     """Services used to default to runs/latest while the launcher maintained runs/current."""
     assert CameraSettings.load().run_dir == CURRENT_RUN
     run = new_run_dir(tmp_path / CURRENT_RUN.parent)
+    link_current(run)
     assert (tmp_path / CURRENT_RUN).resolve() == run.resolve()
 
 

@@ -30,7 +30,7 @@ from shared.slam.marker_slam import (
 )
 from shared.vision.geometry import GeometryError, default_camera, lattice_in_tag, make_pose, project
 from shared.vision.pnp import solve_planar_pnp
-from shared.vision.tagmap import load_tag_map
+from shared.vision.tagmap import load_tag_map, tag_map_from_poses, write_tag_map
 from shared.vision.trajectory import StampMap, read_tum
 from shared.wire.messages import HopTimings, TagPose, TagPoses
 
@@ -464,6 +464,20 @@ def test_slam_says_when_it_waits_for_an_anchor_that_never_comes(
             assert node.on_poses(_tag_poses(i, 1_000 + i, poses[i]))[0].status == "lost"
     said = [r.getMessage() for r in caplog.records if "waiting for the anchor tag 999" in r.getMessage()]
     assert len(said) == 1 and "30 frames lost" in said[0] and "tags seen so far: [" in said[0], caplog.text
+    # A known map places frames before its anchor is seen, and a frame without tags is lost for that
+    # reason alone: no word about the anchor then (a reviewer found it said so).
+    known = {t.id: (t.size_m, t.pose()) for t in SCENE.tags}
+    write_tag_map(tmp_path / "known.json", tag_map_from_poses(known, anchor_tag_id=SCENE.tags[-1].id))
+    caplog.clear()
+    mapped = SlamNode(SlamServiceSettings(run_dir=tmp_path / "m", resume=False, tag_map=tmp_path / "known.json"))
+    longer = _constant_velocity(36)
+    statuses = []
+    with caplog.at_level("WARNING", logger="services.slam.service"):
+        for i in range(36):
+            only = {t.id for t in SCENE.tags[:-1]} if i < 2 else set()  # then 34 frames that see nothing
+            statuses.append(mapped.on_poses(_tag_poses(i, 1_000 + i, longer[i], only=only))[0].status)
+    assert statuses.count("lost") >= 30 and mapped.slam.anchor is None, statuses
+    assert not [r for r in caplog.records if "waiting for the anchor" in r.getMessage()], caplog.text
 
 
 def test_a_restarted_slam_resumes_its_map_and_trajectory(tmp_path: Path) -> None:

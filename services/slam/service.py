@@ -41,7 +41,7 @@ from shared.transport.session import declare_fifo_subscriber, encoding_for
 from shared.vision.camera import CameraIntrinsics
 from shared.vision.files import atomic_write_text
 from shared.vision.geometry import check_rigid
-from shared.vision.tagmap import TagSpec, load_tag_map, tag_map_from_poses, write_tag_map
+from shared.vision.tagmap import TagMapFile, TagSpec, load_tag_map, tag_map_from_poses, write_tag_map
 from shared.vision.trajectory import PoseLog, StampMap, read_tum_nanos, write_tum_arrays
 from shared.viz.recording import make_viz
 from shared.wire import keys
@@ -217,7 +217,9 @@ class SlamNode:
             )
             run.frames += 1
             wanted = self.slam.settings.anchor_tag_id
-            if self.slam.anchor is None and wanted is not None and res.status == "lost":
+            # nothing mapped yet (a known or resumed map places frames before the anchor is seen, and
+            # localisation never sets one: a frame without tags there is lost for another reason)
+            if self.slam.anchor is None and wanted is not None and res.status == "lost" and not self.slam.tags:
                 run.unanchored += 1
                 run.seen_before_anchor.update(o.tag_id for o in observations)
                 if run.unanchored in (30, 300) or run.unanchored % 3000 == 0:  # said when it matters
@@ -317,12 +319,17 @@ class SlamNode:
         anchor = (
             self.slam.anchor if self.slam.anchor is not None else (self.resumed.anchor_tag_id if self.resumed else None)
         )
-        checkpoint = tag_map_from_poses(
-            {t: v for t, v in tag_map.items() if t not in bridged}, anchor_tag_id=anchor, sigmas=sigmas
-        )
+        world = {t: v for t, v in tag_map.items() if t not in bridged}
+        posed = tag_map_from_poses(world, anchor_tag_id=None, sigmas=sigmas)
         sizes_only |= {t: tag_map[t][0] for t in bridged}
-        checkpoint.tags = sorted(
-            [*checkpoint.tags, *(TagSpec(id=t, size_m=size) for t, size in sizes_only.items())], key=lambda t: t.id
+        # built whole, then checked once (each id once, the anchor among them) as a reader will check it
+        checkpoint = TagMapFile(
+            default_size_m=posed.default_size_m,
+            anchor_tag_id=anchor,
+            tags=sorted(
+                [*posed.tags, *(TagSpec(id=t, size_m=size) for t, size in sizes_only.items())],
+                key=lambda t: t.id,
+            ),
         )
         write_tag_map(run_dir / "map.json", checkpoint)
         out: dict[str, Any] = {

@@ -316,6 +316,7 @@ def run_fleet(
         configuration_error_line,
         discard_run_dir,
         forget_run_files,
+        link_current,
         new_run_dir,
         run_for,
         run_map_tables,
@@ -333,6 +334,7 @@ def run_fleet(
         raise ValueError(f"--only is 'edge' or one of the fleet's robots {plan.robots}, not {only!r}")
     for line in foreign_keys(plan, only):
         print(f"warning: {line}", flush=True)
+    made_root = not Path(runs_root).exists()
     run_dir = new_run_dir(runs_root)
     try:
         base = tomllib.loads(Path(config).read_text())
@@ -346,8 +348,9 @@ def run_fleet(
         ]
         run_tags = load_tag_map(run_map) if run_map is not None else None
     except Exception:
-        discard_run_dir(run_dir)  # refused before anything started
+        discard_run_dir(run_dir, made_root=made_root)  # refused before anything started
         raise
+    link_current(run_dir)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     supervisor = Supervisor()

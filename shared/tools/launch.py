@@ -59,31 +59,33 @@ def demo_tag_map() -> TagMapFile:
 
 
 def new_run_dir(root: Path = CURRENT_RUN.parent) -> Path:
-    """runs/<timestamp>-<pid>, with runs/current (services' default run_dir) pointing at it; absolute:
-    the services start in the repository, the launcher anywhere (a relative run folder made under
-    another directory was handed to them as is: 'config file runs/... does not exist')."""
+    """runs/<timestamp>-<pid>, absolute: the services start in the repository, the launcher anywhere (a
+    relative run folder made under another directory was handed to them as is: 'config file runs/...
+    does not exist'). `link_current` points runs/current at it once the run is accepted."""
     root = Path(root).resolve()
     run = root / time.strftime(f"%Y%m%d-%H%M%S-{os.getpid()}")
     run.mkdir(parents=True, exist_ok=True)
-    current = root / CURRENT_RUN.name
-    if current.is_symlink() or current.exists():
-        current.unlink()
-    current.symlink_to(run.name)
     return run
 
 
-def discard_run_dir(run: Path) -> None:
-    """A run refused before anything started: its folder, the `current` link to it, and the runs folder
-    itself when nothing else is in it, go (no stray runs/ for a mistyped tag map)."""
+def link_current(run: Path) -> None:
+    """runs/current (the services' default run_dir, what `splittag down` finds) -> this run."""
+    current = run.parent / CURRENT_RUN.name
+    if current.is_symlink() or current.exists():
+        current.unlink()
+    current.symlink_to(run.name)
+
+
+def discard_run_dir(run: Path, *, made_root: bool) -> None:
+    """A run refused before anything started: its folder goes, and the runs folder too when this run
+    made it and nothing else is in it (no stray runs/ for a mistyped tag map; runs/current still points
+    where it did)."""
     import shutil
 
-    root = run.parent
-    current = root / CURRENT_RUN.name
-    if current.is_symlink() and os.readlink(current) == run.name:
-        current.unlink()
     shutil.rmtree(run, ignore_errors=True)
-    with contextlib.suppress(OSError):
-        root.rmdir()  # only when empty
+    if made_root:
+        with contextlib.suppress(OSError):
+            run.parent.rmdir()  # only when empty
 
 
 @dataclass
@@ -317,7 +319,9 @@ class Monitor:
             # reaches this monitor, so the poses are what stopped (a monitor at the edge's router does not
             # see those the robot computes on board while the edge is down). Both stopped: the robot.
             silent = f"no TagPoses for {now - last['t']:.1f} s (the last: frame {last['seq']})"
-            if gt_at is not None and gt_seq <= last["seq"]:  # the poses caught up: the camera went quiet
+            # the poses caught up and the camera went quiet (a restarted camera counts from 0 again: only
+            # a second's silence of its own says so)
+            if gt_at is not None and gt_seq <= last["seq"] and now - gt_at > 1.0:
                 return (
                     f"{silent}: the camera has sent nothing newer for {now - gt_at:.1f} s (its source ended or "
                     "paused, or the robot's host is down?)"
@@ -724,14 +728,16 @@ def run_pipeline(
     if controller and "controller" not in services:
         services = (*services, "controller")
     topology, wrappers, emu = _placement(config, services, link)
+    made_root = not Path(runs_root).exists()
     run_dir = new_run_dir(runs_root)
     try:
         run_config = write_run_config(run_dir, config, topology=topology, extra=extra)
         robot_id, zs = monitor_settings(run_config)
         run_tags = run_tag_map(run_config)
     except Exception:
-        discard_run_dir(run_dir)  # refused before anything started
+        discard_run_dir(run_dir, made_root=made_root)  # refused before anything started
         raise
+    link_current(run_dir)
     if emu is not None:
         emu.log_dir = run_dir
         emu.up(profile(link or "5g"))
