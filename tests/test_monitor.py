@@ -233,16 +233,16 @@ def test_a_run_started_from_another_directory_gets_an_absolute_folder_and_a_refu
     import sys
     import time
 
-    from shared.tools.launch import discard_run_dir, link_current, new_run_dir
+    from shared.tools.launch import preparing_run_dir
 
     monkeypatch.chdir(tmp_path)
-    run = new_run_dir(Path("runs"))
-    assert run.is_absolute() and run.parent == tmp_path / "runs"
-    link_current(run)
+    with preparing_run_dir(Path("runs")) as run:
+        assert run.is_absolute() and run.parent == tmp_path / "runs"
+    assert (tmp_path / "runs" / "current").resolve() == run
     # a second run refused: the first stays, and runs/current still points at it (`splittag down` finds it)
     time.sleep(1.1)
-    refused = new_run_dir(Path("runs"))
-    discard_run_dir(refused, made_root=False)
+    with pytest.raises(RuntimeError), preparing_run_dir(Path("runs")) as refused:
+        raise RuntimeError("a refused configuration")
     assert run.is_dir() and not refused.exists() and (tmp_path / "runs" / "current").resolve() == run
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
+
 import pytest
+import zenoh
 
 from shared.transport.split_control import SplitRequestError, SplitState, parse_parameters
 from shared.wire.messages import SplitConfig, encode
@@ -10,6 +14,25 @@ from shared.wire.messages import SplitConfig, encode
 
 def _state() -> SplitState:
     return SplitState(SplitConfig(k=7, codec="fp16", pinned=False, source="default"))
+
+
+@contextlib.contextmanager
+def _served(state: SplitState) -> Iterator[zenoh.Session]:
+    """robot w1's split queryable over real Zenoh (a peer), and a client session to ask it."""
+    from shared.transport.session import ZenohSettings, free_tcp_port, open_session
+    from shared.transport.split_control import serve_split
+    from shared.wire import keys
+
+    port = free_tcp_port()
+    server = open_session(ZenohSettings(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
+    client = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
+    queryable = serve_split(server, keys.split("w1"), state)
+    try:
+        yield client
+    finally:
+        queryable.undeclare()
+        client.close()
+        server.close()
 
 
 def test_a_person_pins_and_the_controller_is_refused() -> None:
@@ -69,17 +92,11 @@ def test_parameters_are_parsed_strictly() -> None:
 
 def test_a_wildcard_set_is_refused_over_real_zenoh() -> None:
     """`splittag/*/split?k=5` used to set every robot's split at once; reading through a wildcard is fine."""
-    from shared.transport.session import ZenohSettings, free_tcp_port, open_session
-    from shared.transport.split_control import serve_split
     from shared.wire import keys
     from shared.wire.messages import decode
 
-    port = free_tcp_port()
-    server = open_session(ZenohSettings(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
-    client = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
     state = _state()
-    queryable = serve_split(server, keys.split("w1"), state)
-    try:
+    with _served(state) as client:
         errors = [r.err.payload.to_string() for r in client.get("splittag/*/split?k=5", timeout=5) if r.err]
         assert errors and "wildcard" in errors[0]
         assert state.get().k == 7
@@ -87,10 +104,6 @@ def test_a_wildcard_set_is_refused_over_real_zenoh() -> None:
         assert ok and decode(ok[0].payload.to_bytes(), SplitConfig).k == 7
         ok = [r.ok for r in client.get(keys.split("w1") + "?k=5", timeout=5) if r.ok is not None]
         assert ok and state.get().k == 5
-    finally:
-        queryable.undeclare()
-        client.close()
-        server.close()
 
 
 def test_the_controllers_key_sets_only_as_the_controller_over_real_zenoh() -> None:
@@ -98,18 +111,12 @@ def test_the_controllers_key_sets_only_as_the_controller_over_real_zenoh() -> No
     person's pin holds, never a pin, never a release (under access control a controller's identity
     steers only there: one that left `source` out on the person's key pinned over an operator, found by
     a fresh-clone trial). A read there answers on that key; another key beneath split sets nothing."""
-    from shared.transport.session import ZenohSettings, free_tcp_port, open_session
     from shared.transport.split_client import SplitQueryError, query_split
-    from shared.transport.split_control import serve_split
     from shared.wire import keys
     from shared.wire.messages import decode
 
-    port = free_tcp_port()
-    server = open_session(ZenohSettings(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
-    client = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
     state = _state()
-    queryable = serve_split(server, keys.split("w1"), state)
-    try:
+    with _served(state) as client:
         applied = query_split(client, "w1", params="k=4", auto=True)
         assert applied == SplitConfig(k=4, codec="fp16", pinned=False, source="controller")
         assert query_split(client, "w1", params="k=3").pinned  # a person pins
@@ -131,7 +138,25 @@ def test_the_controllers_key_sets_only_as_the_controller_over_real_zenoh() -> No
         assert errors and "is set on" in errors[0] and state.get().k == 3
         query_split(client, "w1", params="release=1")
         assert query_split(client, "w1", params="k=5", auto=True).k == 5
-    finally:
-        queryable.undeclare()
-        client.close()
-        server.close()
+
+
+def test_on_the_controllers_key_the_request_is_the_controllers() -> None:
+    """SplitState.apply(as_controller=True), what the controller's key (split/auto) applies: a set is
+    the controller's whatever it claims, never pins, is refused while a person's pin holds, and may not
+    release one (as parameters or as a payload)."""
+    state = _state()
+    assert state.apply({"k": "4"}, None, as_controller=True).source == "controller"
+    assert not state.apply(
+        {}, encode(SplitConfig(k=2, codec="fp16", pinned=True, source="user")), as_controller=True
+    ).pinned
+    state.apply({"k": "3"}, None)  # a person pins
+    for params, payload, why in (
+        ({"k": "5"}, None, "pinned"),
+        ({"k": "5", "source": "user"}, None, "not 'user'"),
+        ({"release": "true"}, None, "release"),
+        ({}, encode(SplitConfig(k=6, codec="fp16", pinned=False, source="user")), "release"),
+        ({}, encode(SplitConfig(k=6, codec="fp16", pinned=True, source="user")), "pinned"),
+    ):
+        with pytest.raises(SplitRequestError, match=why):
+            state.apply(params, payload, as_controller=True)
+    assert state.get() == SplitConfig(k=3, codec="fp16", pinned=True, source="user")

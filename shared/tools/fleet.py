@@ -314,10 +314,8 @@ def run_fleet(
         Started,
         attach_monitor,
         configuration_error_line,
-        discard_run_dir,
         forget_run_files,
-        link_current,
-        new_run_dir,
+        preparing_run_dir,
         run_for,
         run_map_tables,
         start_process,
@@ -334,9 +332,7 @@ def run_fleet(
         raise ValueError(f"--only is 'edge' or one of the fleet's robots {plan.robots}, not {only!r}")
     for line in foreign_keys(plan, only):
         print(f"warning: {line}", flush=True)
-    made_root = not Path(runs_root).exists()
-    run_dir = new_run_dir(runs_root)
-    try:
+    with preparing_run_dir(runs_root) as run_dir:
         base = tomllib.loads(Path(config).read_text())
         # One tag map for the run (launch.run_map_tables); the demo scene's goes to edge_infer and robot_infer
         # only: without a map of its own, slam builds the fleet's map from what the robots see.
@@ -347,10 +343,6 @@ def run_fleet(
             if only is None or (s.robot_id or "edge") == only
         ]
         run_tags = load_tag_map(run_map) if run_map is not None else None
-    except Exception:
-        discard_run_dir(run_dir, made_root=made_root)  # refused before anything started
-        raise
-    link_current(run_dir)
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     supervisor = Supervisor()

@@ -18,7 +18,7 @@ import threading
 import time
 import tomllib
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar, cast
@@ -74,6 +74,21 @@ def link_current(run: Path) -> None:
     if current.is_symlink() or current.exists():
         current.unlink()
     current.symlink_to(run.name)
+
+
+@contextlib.contextmanager
+def preparing_run_dir(root: Path) -> Iterator[Path]:
+    """A new run folder (`new_run_dir`) for the block that checks the run's configuration: refused
+    there, the folder is discarded (`discard_run_dir`) and runs/current still points where it did;
+    accepted, runs/current points at it."""
+    made_root = not Path(root).exists()
+    run = new_run_dir(root)
+    try:
+        yield run
+    except BaseException:
+        discard_run_dir(run, made_root=made_root)  # refused before anything started
+        raise
+    link_current(run)
 
 
 def discard_run_dir(run: Path, *, made_root: bool) -> None:
@@ -728,16 +743,10 @@ def run_pipeline(
     if controller and "controller" not in services:
         services = (*services, "controller")
     topology, wrappers, emu = _placement(config, services, link)
-    made_root = not Path(runs_root).exists()
-    run_dir = new_run_dir(runs_root)
-    try:
+    with preparing_run_dir(runs_root) as run_dir:
         run_config = write_run_config(run_dir, config, topology=topology, extra=extra)
         robot_id, zs = monitor_settings(run_config)
         run_tags = run_tag_map(run_config)
-    except Exception:
-        discard_run_dir(run_dir, made_root=made_root)  # refused before anything started
-        raise
-    link_current(run_dir)
     if emu is not None:
         emu.log_dir = run_dir
         emu.up(profile(link or "5g"))

@@ -51,15 +51,23 @@ class SplitState:
         with self._lock:
             return self._config
 
-    def apply(self, params: dict[str, str], payload: bytes | None) -> SplitConfig:
-        """Apply a request (see module docstring); raises SplitRequestError and changes nothing if invalid."""
+    def apply(self, params: dict[str, str], payload: bytes | None, *, as_controller: bool = False) -> SplitConfig:
+        """Apply a request (see module docstring); raises SplitRequestError and changes nothing if invalid.
+        `as_controller`: asked on the controller's key, so the request is the controller's whatever it
+        claims (a payload's source is overridden, `source=user` is an error) and may not release a pin."""
         unknown = set(params) - {"k", "codec", "release", "source"}
         if unknown:
             raise SplitRequestError(f"unknown parameters {sorted(unknown)}; use k, codec, release, source")
+        if as_controller and params.get("source", "controller") != "controller":
+            raise SplitRequestError(f"on the controller's key every set is the controller's, not {params['source']!r}")
         if payload:
             if params:
                 raise SplitRequestError("give the request as parameters or as a SplitConfig payload, not both")
             params = _params_from_payload(payload)
+        if as_controller:
+            if params.get("release", "0") in ("1", "true"):  # (a payload from a user with pinned false too)
+                raise SplitRequestError("a controller may not release a person's pin")
+            params = {**params, "source": "controller"} if params else params
         with self._lock:
             cur = self._config
             if not params:
@@ -134,12 +142,9 @@ def serve_split(session: zenoh.Session, key: str, state: SplitState) -> zenoh.Qu
             params = parse_parameters(str(query.parameters))
             if (params or payload) and any(c in asked for c in "*$"):
                 raise SplitRequestError(f"{asked} names robots by a wildcard: set one robot's split at a time")
-            if asked == auto:
-                params = _as_controller(params, payload)
-                payload = None
-            elif asked != key and (params or payload):
+            if asked not in (key, auto) and (params or payload):
                 raise SplitRequestError(f"{asked}: the split is set on {key} or {auto}")
-            applied = state.apply(params, payload)
+            applied = state.apply(params, payload, as_controller=asked == auto)
         except SplitRequestError as exc:
             log.warning("split request refused: %s", exc)
             query.reply_err(str(exc).encode())
@@ -155,19 +160,3 @@ def serve_split(session: zenoh.Session, key: str, state: SplitState) -> zenoh.Qu
         query.reply(on, encode(applied, framing=framing), encoding=enc)
 
     return session.declare_queryable(key + "/**", on_query)  # `/**` matches the key itself too
-
-
-def _as_controller(params: dict[str, str], payload: bytes | None) -> dict[str, str]:
-    """A request on the controller's key as parameters, its source the controller's."""
-    if payload:
-        if params:
-            raise SplitRequestError("give the request as parameters or as a SplitConfig payload, not both")
-        params = _params_from_payload(payload)
-        if params.get("release") == "1":  # a payload from a user with pinned false: a release
-            raise SplitRequestError("a controller may not release a person's pin")
-        params["source"] = "controller"
-    if params.get("source", "controller") != "controller":
-        raise SplitRequestError(f"on the controller's key every set is the controller's, not {params['source']!r}")
-    if params.get("release", "0") in ("1", "true"):
-        raise SplitRequestError("a controller may not release a person's pin")
-    return {**params, "source": "controller"} if params else params
