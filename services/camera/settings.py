@@ -17,23 +17,23 @@ class CameraSettings(ServiceSettings):
     SERVICE: ClassVar[str] = "camera"
     model_config = SettingsConfigDict(**{**ServiceSettings.model_config, "env_prefix": "SPLITTAG_CAMERA_"})
 
-    source: Literal["demo", "folder", "video", "v4l2"] = "demo"
+    source: Literal["demo", "folder", "video", "v4l2"] = "demo"  # demo scene, image folder, video file or V4L2 device
     path: str = ""  # folder, video file, or V4L2 device index/path
     camera_info: Path | None = None  # ROS camera_info YAML (required for folder, video, v4l2)
     groundtruth: Path | None = None  # optional TUM file for the folder source
-    fps: float = Field(default=15.0, gt=0)
+    fps: float = Field(default=15.0, gt=0)  # publishing rate (a folder or video is paced to it)
     # None (default): loop the demo scene, play any other source once (a data set replayed in a loop
     # would fold its trajectory onto itself). A looped source that has data-set stamps (rgb.txt) is
     # stamped forward on every new pass (pass n: + n x its span), so time never runs backwards.
     loop: bool | None = None
     max_frames: int = Field(default=0, ge=0)  # 0 = unlimited
     start_frame: int = Field(default=0, ge=0)  # skip this many frames of the source's first pass
-    demo_frames: int = Field(default=150, ge=2)
+    demo_frames: int = Field(default=150, ge=2)  # length of the demo scene's loop
 
     @property
     def loops(self) -> bool:
         """Whether the source restarts when it ends (`loop`, or its default for the source)."""
         return self.source == "demo" if self.loop is None else self.loop
 
-    cache_dir: Path = Path("runs/cache")
+    cache_dir: Path = Path("runs/cache")  # where the demo scene's renders are cached
     wait_for: list[str] = Field(default_factory=lambda: ["robot_infer"])  # services to await before streaming

@@ -18,7 +18,7 @@ class ControllerSettings(ServiceSettings, ControllerTuning):
     model_config = SettingsConfigDict(**{**ServiceSettings.model_config, "env_prefix": "SPLITTAG_CONTROLLER_"})
 
     enabled: bool = True  # False: estimate and publish state, never change k (an observer)
-    decide_period_secs: float = Field(default=0.1, gt=0)
+    decide_period_secs: float = Field(default=0.1, gt=0)  # one decision (and ControllerState) per period
     probe_period_secs: float = Field(default=0.15, gt=0)  # at most one routine probe per period ...
     probe_max_age_secs: float = Field(default=0.3, gt=0)  # ... at a size not seen for this long
     probe_busy_max_wait_secs: float = Field(default=2.0, gt=0)  # probe a link busy this long anyway

@@ -20,7 +20,7 @@ class EdgeInferSettings(ServiceSettings):
     SERVICE: ClassVar[str] = "edge_infer"
     model_config = SettingsConfigDict(**{**ServiceSettings.model_config, "env_prefix": "SPLITTAG_EDGE_INFER_"})
 
-    weights: Path = Path("models")
+    weights: Path = Path("models")  # model folder (config.json, weights, the int8 variant)
     # Which robots this edge tier serves: None = `robot_id` alone; a list = those robots; "*" = every
     # robot whose robot_infer is alive (its liveliness token). Several workers with the same setting
     # share the robots by rendezvous hashing over the workers' tokens (shared.transport.fleet): a
@@ -41,10 +41,10 @@ class EdgeInferSettings(ServiceSettings):
     # A tracked tag (robot_infer's tracking) whose 16 keypoints fit a plane worse than this (RMS px) gets no pose.
     tracked_max_reprojection_px: float = Field(default=1.0, gt=0)
     tag_map: Path | None = None  # YAML/JSON with per-tag sizes; unknown ids use default_tag_size_m
-    default_tag_size_m: float = Field(default=0.2, gt=0)
+    default_tag_size_m: float = Field(default=0.2, gt=0)  # black square's side for ids the tag map does not list
     # auto | fp32 | bf16 | int8: as robot_infer's (shared.model.precision says what auto picks)
     precision: PrecisionChoice = "auto"
-    threads: int = Field(default=1, ge=1)
+    threads: int = Field(default=1, ge=1)  # torch / OpenVINO threads for the network
     # Test-time views (shared/model/views.py): where this side runs the whole network (k = 0), each
     # ROI also goes through 1, 3 or 7 of its flips and turns and the keypoints are averaged (docs/network.md,
     # *Test-time views*: synth7 int8 e_px 0.419 -> 0.383 / 0.372 / 0.360 with 2 / 4 / 8 views) for
@@ -57,7 +57,7 @@ class EdgeInferSettings(ServiceSettings):
     # Emulating another edge CPU: a fixed per-tag tail time (PnP included) at every cut, ms. Frames are
     # padded by sleeping up to it and E(k) is published from it, independent of this CPU; a frame
     # whose real compute exceeds it takes the real time. None: calibrated and measured live.
-    emulated_ms_per_tag_by_k: PerCut | None = None
+    emulated_ms_per_tag_by_k: PerCut | None = None  # fixed per-tag tail time per cut (8 values, ms), padded by sleeping
 
     @model_validator(mode="after")
     def _tag_maps_of_served_robots(self) -> EdgeInferSettings:

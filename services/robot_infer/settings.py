@@ -26,12 +26,12 @@ class RobotInferSettings(ServiceSettings):
     SERVICE: ClassVar[str] = "robot_infer"
     model_config = SettingsConfigDict(**{**ServiceSettings.model_config, "env_prefix": "SPLITTAG_ROBOT_INFER_"})
 
-    weights: Path = Path("models")
+    weights: Path = Path("models")  # model folder (config.json, weights, the int8 variant)
     # Fit each tag's 16 points to the network's keypoints and stage 1's corners, weighted by the
     # sigmas calibrated into the weights' config.json (no calibration there: the network's points).
     fuse_corners: bool = True
-    split_k: int = Field(default=7, ge=0, le=7)
-    codec: CodecName = "fp16"
+    split_k: int = Field(default=7, ge=0, le=7)  # start-up cut: 0 = the edge runs the whole network, 7 = the robot does
+    codec: CodecName = "fp16"  # how the split tensor travels at cuts 1..6
     # Stage 1: AprilTag 3 (stage1.apriltag: quad_decimate, ...) and two proposers for the tags it misses
     # (stage1.aruco: OpenCV's ArUco on tag36h11, gated by a soft decode; stage1.lines: quads from
     # straight edges, for borders an occluder interrupts; .enabled = false drops either)
@@ -41,7 +41,7 @@ class RobotInferSettings(ServiceSettings):
     # auto (int8 if the folder has it, else bf16 where the CPU has it in hardware, else fp32) | fp32 | bf16
     # (PyTorch) | int8 (OpenVINO, the weights folder's int8 variant: splittag quantize)
     precision: PrecisionChoice = "auto"
-    threads: int = Field(default=1, ge=1)
+    threads: int = Field(default=1, ge=1)  # torch / OpenVINO threads for the network
     # Test-time views (shared/model/views.py): where this side runs the whole network (k = 7, and on
     # board without the edge), each ROI also goes through 1, 3 or 7 of its flips and turns and the
     # keypoints are averaged (docs/network.md, *Test-time views*: synth7 int8 e_px 0.419 -> 0.383 / 0.372 /
@@ -68,10 +68,10 @@ class RobotInferSettings(ServiceSettings):
     # (flow.credits_needed). Unset: 6, or max_in_flight when that is set alone (a window asked for stays
     # that window); = max_in_flight: a fixed window.
     in_flight_limit: int = Field(default=6, ge=1)
-    # Start each frame when it would reach the edge as the edge becomes free (shared.transport.flow.EdgePacer)
+    # Start each frame when it would reach the edge as the edge becomes free (shared.transport.flow.EdgePacer).
     pace_to_edge: bool = True
-    # ... and on the uplink as the frame ahead has crossed it: the pacer models the link as a queue
-    # (shared.transport.flow.UplinkQueue, from the answers' link stamps) instead of a delay.
+    # Start each frame when it would reach the uplink as the frame ahead has crossed it: the pacer models the
+    # link as a queue (shared.transport.flow.UplinkQueue, from the answers' link stamps) instead of a delay.
     pace_to_link: bool = True
     in_flight_timeout_secs: float = Field(default=2.0, gt=0)  # a frame never answered returns its credit
     profile_period_secs: float = Field(default=1.0, gt=0)  # ComputeProfile C(k) publication period
@@ -79,14 +79,14 @@ class RobotInferSettings(ServiceSettings):
     # chain on board (k = 7 + PnP) and publishes TagPoses itself; back to the split when the edge is.
     edge_answer_timeout_secs: float = Field(default=1.5, gt=0)
     tag_map: Path | None = None  # sizes for on-board PnP (as edge_infer's); unknown ids: default_tag_size_m
-    default_tag_size_m: float = Field(default=0.2, gt=0)
+    default_tag_size_m: float = Field(default=0.2, gt=0)  # black square's side for ids the tag map does not list
     # Emulating another robot CPU. The robot's compute is gamma times a reference: this CPU's own
     # (calibrated at start-up and measured live) or, when set, a fixed per-tag head time at every cut
     # (ms, cumulative up to k), which makes C(k) independent of the CPU the service runs on. Frames
     # are padded by sleeping up to the target; a CPU cannot be made faster, so gamma < 1 needs the
     # fixed reference, and a frame whose real compute exceeds its target takes the real time.
     gamma: float = Field(default=1.0, gt=0)
-    emulated_ms_per_tag_by_k: PerCut | None = None
+    emulated_ms_per_tag_by_k: PerCut | None = None  # fixed per-tag head time per cut (8 values, ms), see gamma
     # Where robot_infer's session is a router (every deploy config: the camera joins it), the camera's
     # frames stop there: its router forwards them to no other process, whoever subscribes (an edge-side
     # tool on `splittag/<robot>/**` once pulled every frame over the uplink and, the camera publishing

@@ -71,10 +71,12 @@ class ServiceSettings(BaseSettings):
     SERVICE: ClassVar[str] = "common"
     model_config = SettingsConfigDict(extra="forbid", env_nested_delimiter="__", env_prefix="SPLITTAG_")
 
-    robot_id: RobotId = "robot1"
+    robot_id: RobotId = "robot1"  # the robot whose keys (splittag/<robot_id>/...) this service uses
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
-    run_dir: Path = CURRENT_RUN
+    run_dir: Path = CURRENT_RUN  # logs, recordings and outputs (the launcher gives each run its folder)
+    # larger messages are refused unread (counted, logged)
     max_payload_bytes: int = Field(default=DEFAULT_MAX_BYTES, gt=0)
+    # start-up wait for the services this one needs (their liveliness tokens)
     liveliness_timeout_secs: float = Field(default=60.0, gt=0)
     rerun: RerunSettings = Field(default_factory=RerunSettings)
     # The CPUs this service runs on (all its threads; shared.runtime.cpus), None: wherever the OS puts

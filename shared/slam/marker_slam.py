@@ -56,19 +56,20 @@ class SlamSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     anchor_tag_id: int | None = None  # None: of the first clear view's tags, the best-determined one
-    localisation_only: bool = False
+    localisation_only: bool = False  # hold the tag map fixed and only place the camera (needs a tag map)
     focal_px: float = Field(default=1045.0, gt=0)  # only for observations whose message had no intrinsics (v1)
+    # floor of a view's pixel noise (its PnP reprojection error otherwise)
     min_pixel_sigma: float = Field(default=0.5, gt=0)
-    anchor_sigma: float = 1e-6
+    anchor_sigma: float = 1e-6  # prior sigma of the anchor tag, which defines the world (rad and m)
     # Tags whose world pose a tag map (or a resumed checkpoint) gives are priors with this sigma
     # (rad and m) when first seen, so the map is kept and any mapped tag in view localises the camera.
     known_tag_sigma: float = Field(default=1e-3, gt=0)
     ambiguity_ratio: float = Field(default=2.0, gt=1)  # alt / max(chosen, keypoint sigma) below this = ambiguous
-    keypoint_sigma_px: float = Field(
-        default=0.05, gt=0
-    )  # the fused keypoints' median error (bench/accuracy: p50 0.05 px)
+    # the fused keypoints' median error (bench/accuracy: p50 0.05 px)
+    keypoint_sigma_px: float = Field(default=0.05, gt=0)
+    # a view further than this from the other tags' camera is rejected
     disagreement_deg: float = Field(default=10.0, gt=0)
-    huber_k: float = 1.5
+    huber_k: float = 1.5  # Huber loss threshold in sigmas (views)
     # The robust kernel of a frame's views when every tag the frame fuses is surveyed (the tag map states it to
     # within soft_surveyed_sigma_m / _deg, or gives it without sigmas), and of the blind priors placed against such
     # tags (always: they exist only for surveyed tags). There a view that disagrees with the map and with the motion
@@ -89,15 +90,15 @@ class SlamSettings(BaseModel):
     # map gives its anchor so: fast 7.01 -> 6.97). A rough map given without sigmas is taken as surveyed and then
     # trusted over the views.
     map_view_kernel: Literal["cauchy", "huber"] = "cauchy"
-    map_view_kernel_k: float = Field(default=0.5, gt=0)
-    relinearize_threshold: float = 0.01
+    map_view_kernel_k: float = Field(default=0.5, gt=0)  # the Cauchy kernel's scale, whitened sigmas
+    relinearize_threshold: float = 0.01  # iSAM2's relinearisation threshold
     # Smooth-motion prior between consecutive frames (no odometry): sigma per frame of gap.
     # Constant-velocity prior between a frame and the last one with a pose: sigma per frame of gap
     # (velocity noise) plus per frame squared (acceleration); it also bridges frames with only new tags.
     motion_sigma_m: float = Field(default=0.002, gt=0)
-    motion_sigma_deg: float = Field(default=0.05, gt=0)
-    motion_accel_m: float = Field(default=0.002, ge=0)
-    motion_accel_deg: float = Field(default=0.1, ge=0)
+    motion_sigma_deg: float = Field(default=0.05, gt=0)  # (above) for rotation
+    motion_accel_m: float = Field(default=0.002, ge=0)  # (above) acceleration noise, per frame squared
+    motion_accel_deg: float = Field(default=0.1, ge=0)  # (above) for rotation
     # The constant-velocity prior bridges at most this many frames (0.5 s at 30 fps): extrapolated further
     # under a fast camera (25 deg/s) the guess is off by tens of cm, and a new tag mapped from it stays
     # wrong for good (bench.slam's held-out fast room: 28 frames bridged, the map 50 cm off, ATE 58 cm
@@ -129,9 +130,11 @@ class SlamSettings(BaseModel):
     # fragment; through the motion prior it still pulls the neighbouring frames a little. "ignore":
     # left out. "map": fused like any other view.
     soft_reads: Literal["ignore", "localise", "map"] = "localise"
+    # a localising soft or tracked read's covariance is scaled by its square
     soft_sigma_scale: float = Field(default=1.0, ge=1)
+    # a tag-map tag stated within this is surveyed (soft reads, the kernel)
     soft_surveyed_sigma_m: float = Field(default=0.01, gt=0)
-    soft_surveyed_sigma_deg: float = Field(default=1.0, gt=0)
+    soft_surveyed_sigma_deg: float = Field(default=1.0, gt=0)  # ... and within this
     # After a gap longer than motion_max_gap_frames, a frame whose tags are all new would be lost for
     # good (nothing ties them to the map). With this on, it continues the trajectory instead: its pose
     # starts where the robot was last seen, tied to it by a weak link (these sigmas), and the tags it
@@ -140,8 +143,9 @@ class SlamSettings(BaseModel):
     # The link's sigmas grow with the gap (a robot up to ~1.5 m/s and 60 deg/s at 30 fps; rotation
     # capped at 180 deg). A join removes the link: the fragment is then placed by the shared views alone.
     bridge_long_gaps: bool = True
+    # (above) the weak link's position sigma per frame of gap
     long_gap_sigma_m_per_frame: float = Field(default=0.05, gt=0)
-    long_gap_sigma_deg_per_frame: float = Field(default=2.0, gt=0)
+    long_gap_sigma_deg_per_frame: float = Field(default=2.0, gt=0)  # (above) its rotation sigma per frame of gap
     # Motion envelope: the constant-velocity prior (prediction and factor) extrapolates the last two
     # poses' motion only when a robot can have made it in their stamps' gap (max_speed_m_s,
     # max_turn_deg_s, plus one pose's own uncertainty: envelope_margin_m / _deg). Two poses from a
@@ -150,9 +154,9 @@ class SlamSettings(BaseModel):
     # (bench.slam's fast room offset 20 with tracking: ATE 399 cm; without extrapolating it, 32 cm).
     # The stamps are capture times: a recording replayed faster than it was made looks faster too.
     max_speed_m_s: float = Field(default=2.0, gt=0)
-    max_turn_deg_s: float = Field(default=180.0, gt=0)
-    envelope_margin_m: float = Field(default=0.15, ge=0)
-    envelope_margin_deg: float = Field(default=10.0, ge=0)
+    max_turn_deg_s: float = Field(default=180.0, gt=0)  # (above)
+    envelope_margin_m: float = Field(default=0.15, ge=0)  # (above)
+    envelope_margin_deg: float = Field(default=10.0, ge=0)  # (above)
     # A jump: the unambiguous views of the robot's own fragment's tags place the camera farther from its
     # last pose than the motion envelope allows, by more than these margins and by more than JUMP_SIGMAS
     # of a view's own uncertainty, and none agrees with the motion (a recording replayed from its start,
@@ -162,7 +166,7 @@ class SlamSettings(BaseModel):
     # do not tell a bad read from a jump (two blurred far reads put the default fast room's camera
     # 1.27 m off at frame 67): the sigma test does.
     jump_margin_m: float = Field(default=0.5, ge=0)
-    jump_margin_deg: float = Field(default=30.0, ge=0)
+    jump_margin_deg: float = Field(default=30.0, ge=0)  # (above)
 
     @model_validator(mode="before")
     @classmethod

@@ -12,6 +12,7 @@ from typing import Any
 from shared.model.precision import PRECISION_CHOICES, PRECISIONS, ModelFileError
 from shared.model.views import VIEW_COUNTS
 from shared.runtime.logs import setup_logging
+from shared.tools import settings_doc
 from shared.tools.options import add_model_options, model_from_args
 from shared.tools.topology import EDGE_PORT, Topology
 from shared.training.settings import QuantizeSettings, TrainSettings
@@ -697,6 +698,10 @@ def _add_model_commands(sub: Any) -> None:
     p.add_argument("--precision", choices=["fp32", "int8"], default="fp32", help="int8: --format openvino only")
     p.set_defaults(func=_cmd_export)
 
+    p = sub.add_parser("settings", help="every setting of the services with its default and meaning")
+    settings_doc.add_arguments(p)
+    p.set_defaults(func=settings_doc.run)
+
     p = sub.add_parser("eval", help="keypoint and pose errors of weights on a data set split")
     p.add_argument("--weights", type=Path, required=True, help="weights folder (model.safetensors + config.json)")
     p.add_argument("--data", type=Path, required=True)
@@ -791,6 +796,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         _load_link_profiles(args)
         code: int = args.func(args)
+    except BrokenPipeError:
+        # The reader went away (`splittag settings | head`): no traceback, and none at exit either.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except Exception as exc:
         usage, failed = _user_errors()  # imported only here: every command starts as fast as before
         from pydantic import ValidationError

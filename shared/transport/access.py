@@ -57,7 +57,7 @@ DATA_KEYS: Final[dict[str, str]] = {
 SPLIT_KEY: Final[str] = "splittag/*/split"  # a person's: a set there pins
 SPLIT_AUTO_KEY: Final[str] = "splittag/*/split/auto"  # a controller's: refused while a person's pin holds
 # Every version of a key (`/**` also matches the key itself): the map went v2 -> v3 while this said v2,
-# and every identity could query (and save) the map unchecked; tests/test_access.py now checks these
+# and every identity could query (and save) the map unchecked; tests/test_transport.py now checks these
 # against the keys the services use.
 MAP_KEY: Final[str] = "splittag/*/map/**"
 # The queryables the services declare; a role may declare only its own (MAY_SERVE).
@@ -112,16 +112,19 @@ class AccessControlSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    enabled: bool = False
+    enabled: bool = False  # a router enforces the roles below on the sessions it serves (docs/security.md)
+    # identities allowed everything but a person's split key (the routers)
     trusted: list[str] = Field(default_factory=lambda: ["edge", "robot"])
     # Trusted like `trusted` but may not steer (neither split key): processes, not routers, that serve
     # every robot, such as a fleet's edge workers (they never set a split; a router's identity may not
     # be here: the routers forward each other's queries, an operator's too).
     trusted_clients: list[str] = Field(default_factory=list)
+    # people: may set and pin the split (both split keys), read everything
     operators: list[str] = Field(default_factory=lambda: ["operator"])
+    # may steer only on the controller's key (split/auto)
     controllers: list[str] = Field(default_factory=lambda: ["controller"])
-    slam: list[str] = Field(default_factory=lambda: ["slam"])
-    cameras: list[str] = Field(default_factory=lambda: ["camera"])
+    slam: list[str] = Field(default_factory=lambda: ["slam"])  # reads TagPoses, publishes poses and the map
+    cameras: list[str] = Field(default_factory=lambda: ["camera"])  # publish frames (to their own robot's router only)
     # A fleet: certificate name -> the one robot it acts for. Such a name, listed in `trusted`,
     # `controllers` or `cameras`, gets that role's rules on that robot's keys only (a robot's router
     # may not publish, serve or read for another robot; a camera may not feed another robot).

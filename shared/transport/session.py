@@ -33,10 +33,10 @@ class TlsSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    root_ca_certificate: Path
-    certificate: Path
-    private_key: Path
-    mutual: bool = True
+    root_ca_certificate: Path  # PEM of the CA that signed every identity (deploy/make-certs.sh)
+    certificate: Path  # this process's PEM certificate (its common name is its identity)
+    private_key: Path  # this process's PEM private key
+    mutual: bool = True  # both ends show a certificate (the access control needs it)
 
     @classmethod
     def from_dir(cls, certs_dir: Path, identity: str) -> TlsSettings:
@@ -63,11 +63,12 @@ class ZenohSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    mode: Literal["peer", "client", "router"] = "peer"
+    mode: Literal["peer", "client", "router"] = "peer"  # a router forwards for the others, a client joins one
+    # endpoints this session accepts connections on (tcp/HOST:PORT, tls/HOST:PORT)
     listen: list[str] = Field(default_factory=list)
-    connect: list[str] = Field(default_factory=list)
-    multicast_scouting: bool = False
-    shared_memory: bool = False
+    connect: list[str] = Field(default_factory=list)  # endpoints this session connects to
+    multicast_scouting: bool = False  # find peers by UDP multicast (off: only the endpoints given)
+    shared_memory: bool = False  # same host only; it bypasses any link shaping (docs/wire.md)
     config_file: Path | None = None  # JSON5; the fields above are applied on top of it
     # A client or peer: open() fails after this long without a connection; a router starts without one
     # and keeps connecting in the background.

@@ -28,13 +28,14 @@ class DetectorSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    nthreads: int = Field(default=1, ge=1)
+    nthreads: int = Field(default=1, ge=1)  # AprilTag's own threads
+    # AprilTag finds quads on the image reduced by this (1 = full resolution)
     quad_decimate: float = Field(default=2.0, ge=1.0)
-    quad_sigma: float = Field(default=0.0, ge=0.0)
-    refine_edges: bool = True
-    decode_sharpening: float = Field(default=0.25, ge=0.0)
-    max_hamming: int = Field(default=1, ge=0, le=2)
-    min_decision_margin: float = Field(default=20.0, ge=0.0)
+    quad_sigma: float = Field(default=0.0, ge=0.0)  # Gaussian blur before the quad search (0 = none)
+    refine_edges: bool = True  # snap the quads' edges to the full-resolution image
+    decode_sharpening: float = Field(default=0.25, ge=0.0)  # sharpening of the decoded cells
+    max_hamming: int = Field(default=1, ge=0, le=2)  # bit errors a decode may correct
+    min_decision_margin: float = Field(default=20.0, ge=0.0)  # weaker decodes are dropped
 
 
 @dataclass(frozen=True)

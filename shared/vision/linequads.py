@@ -59,29 +59,30 @@ class LineQuadSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    enabled: bool = True
+    enabled: bool = True  # the line-quad proposer (LSD segments to quads, for tags the others miss)
     scale: float = Field(default=0.5, gt=0.0, le=1.0)  # LSD runs on the image reduced by this
-    min_segment_px: float = Field(default=6.0, gt=0.0)
+    min_segment_px: float = Field(default=6.0, gt=0.0)  # shorter LSD segments are ignored
     min_edge_contrast: float = Field(default=8.0, ge=0.0)  # grey levels between the two sides
-    merge_angle_deg: float = Field(default=3.0, gt=0.0, le=20.0)
-    merge_offset_px: float = Field(default=1.5, gt=0.0)
+    merge_angle_deg: float = Field(default=3.0, gt=0.0, le=20.0)  # collinear pieces within this angle are merged
+    merge_offset_px: float = Field(default=1.5, gt=0.0)  # ... and this distance between their lines
     merge_gap_fraction: float = Field(default=0.6, ge=0.0)  # of the longer piece
-    corner_min_angle_deg: float = Field(default=25.0, gt=0.0, lt=90.0)
+    corner_min_angle_deg: float = Field(default=25.0, gt=0.0, lt=90.0)  # two lines closer to parallel make no corner
     corner_end_px: float = Field(default=4.0, ge=0.0)  # an end is near a corner within this
     corner_end_fraction: float = Field(default=0.25, ge=0.0)  # ... plus this fraction of the line
-    corner_end_max_px: float = Field(default=15.0, gt=0.0)
+    corner_end_max_px: float = Field(default=15.0, gt=0.0)  # cap of the corner tolerance
     three_sided: bool = True  # also quads with one side covered over most of its length
-    min_area_px2: float = Field(default=100.0, ge=0.0)
-    max_hamming: int = Field(default=3, ge=0, le=4)
+    min_area_px2: float = Field(default=100.0, ge=0.0)  # smaller quads are dropped
+    max_hamming: int = Field(default=3, ge=0, le=4)  # bit errors the hard decode may correct
+    # of the black and white rings on their side of the threshold
     min_ring_fraction: float = Field(default=0.75, gt=0.5, le=1.0)
     min_ring_contrast: float = Field(default=20.0, ge=0.0)  # white ring median - black ring median
-    refine_corners: bool = True
-    # step 8: quads whose hard decode failed but whose rings stand out are read by a blind soft decode.
+    refine_corners: bool = True  # sub-pixel corners from the edges
+    # Quads whose hard decode failed but whose rings stand out are read by a blind soft decode.
     # Its tags (proposer "lines_soft") are right (no wrong id or ghost measured), but under 10-17 px of
     # blur their keypoints are off by several times a detected tag's: slam localises with them against
     # tags of a known map, and maps nothing from them (SlamSettings.soft_reads).
     soft_decode: bool = True
-    soft_min_ring_fraction: float = Field(default=0.6, gt=0.5, le=1.0)
+    soft_min_ring_fraction: float = Field(default=0.6, gt=0.5, le=1.0)  # the rings' test for a quad read blind
     soft_max_per_frame: int = Field(default=8, ge=0)  # bounds the cost (1.5-3 ms a quad) on cluttered frames
     soft_min_side_px: float = Field(default=24.0, ge=0.0)  # smaller quads have too few pixels a cell
     # the quad as found must read at least this well (data and all cells) before it is refitted and

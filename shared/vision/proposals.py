@@ -51,7 +51,7 @@ class ArucoSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    enabled: bool = True
+    enabled: bool = True  # the ArUco proposer, for the tags AprilTag missed
     # Bits the decoder may correct, as a fraction of the dictionary's capacity (OpenCV's default 0.6:
     # 3 of 36h11's 5 bits); the gate below then refuses what is not the tag.
     error_correction_rate: float = Field(default=0.6, ge=0.0, le=1.0)
@@ -65,8 +65,9 @@ class ArucoSettings(BaseModel):
     # tags): its own pattern must correlate this well with the rectified cells and beat every other
     # code word and rotation by this margin; a small shift search absorbs corner error.
     gate_min_correlation: float = Field(default=0.75, gt=0.0, le=1.0)
+    # (the gate above) own pattern's correlation minus the best other's
     gate_min_margin: float = Field(default=0.15, ge=0.0)
-    gate_search_px: float = Field(default=1.0, ge=0.0)
+    gate_search_px: float = Field(default=1.0, ge=0.0)  # (the gate above) shifts searched around the quad, image px
 
     @field_validator("threshold_window_px")
     @classmethod
@@ -84,7 +85,7 @@ class FullResSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    enabled: bool = True
+    enabled: bool = True  # full-resolution sweeps and windows around small tags
     # A whole frame at full resolution every this many frames (the first frame is one; 0: never): finds
     # the small tags decimation loses, at AprilTag's full-resolution cost on that frame only.
     sweep_every_frames: int = Field(default=30, ge=0)
@@ -92,9 +93,9 @@ class FullResSettings(BaseModel):
     # resolution in a window around their last quad (`margin_sides` of their side on each side, for the
     # motion) when the decimated pass misses them; at most `max_regions` windows a frame.
     small_side_px: float = Field(default=64.0, gt=0.0)
-    remember_frames: int = Field(default=30, ge=1)
-    margin_sides: float = Field(default=1.0, ge=0.0)
-    max_regions: int = Field(default=8, ge=0)
+    remember_frames: int = Field(default=30, ge=1)  # (above) how long a small tag is looked for again
+    margin_sides: float = Field(default=1.0, ge=0.0)  # (above) the window's margin, in tag sides
+    max_regions: int = Field(default=8, ge=0)  # (above) full-resolution windows per frame at most
 
 
 class Stage1Settings(BaseModel):

@@ -155,12 +155,12 @@ class BlindDecodeSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    max_blur_cells: float = Field(default=3.5, ge=0.0, le=8.0)
+    max_blur_cells: float = Field(default=3.5, ge=0.0, le=8.0)  # longest motion blur hypothesised, in tag cells
     step_cells: float = Field(default=0.5, ge=0.25)  # finer grids cost time and memory for nothing
-    angle_step_deg: float = Field(default=15.0, ge=1.0, le=90.0)
+    angle_step_deg: float = Field(default=15.0, ge=1.0, le=90.0)  # blur directions tried
     min_correlation: float = Field(default=0.8, gt=0.0, le=1.0)  # data cells
     min_full_correlation: float = Field(default=0.85, gt=0.0, le=1.0)  # all 100 cells
-    min_margin: float = Field(default=0.15, ge=0.0)
+    min_margin: float = Field(default=0.15, ge=0.0)  # own code word's correlation minus the best other's
 
 
 def prepare(settings: BlindDecodeSettings) -> None:

@@ -37,15 +37,15 @@ class RerunSettings(BaseModel):
     """Rerun logging of one service."""
 
     model_config = ConfigDict(extra="forbid")
-    enabled: bool = False
+    enabled: bool = False  # write a Rerun recording (runs/<run_id>/recording.rrd)
     recording_id: str = ""  # empty: the run folder's name, shared by every service of the run
-    image_every: int = Field(default=1, ge=1)
+    image_every: int = Field(default=1, ge=1)  # log every n-th camera image (JPEG encoding costs CPU)
     # A fleet's processes: the .rrd part's name (empty: the service's) and a prefix for the per-robot
     # entities (camera/, latency/, link/, split/, controller/), e.g. "robots/robot2/"; "{robot}" is
     # replaced by each message's robot id (an edge worker serving several robots). world/ is shared.
     part_name: str = ""
-    entity_prefix: str = ""
-    jpeg_quality: int = Field(default=80, ge=10, le=100)
+    entity_prefix: str = ""  # (above) the per-robot entities' prefix
+    jpeg_quality: int = Field(default=80, ge=10, le=100)  # of the logged camera images
 
 
 def sigma_ellipsoid(position_covariance: Array, *, sigmas: float) -> tuple[Array, Array, float]:
