@@ -1,10 +1,14 @@
 """The adaptive controller against an oracle on the emulated 5G uplink (root; run by hand).
 
-    sudo .venv/bin/python -m bench.controller --repetitions 3
+    sudo .venv/bin/python -m bench.controller --repetitions 3 [--compute reference|measured] [--gamma G]
 
 Robot side (camera, robot_infer with gamma, controller) and edge side (edge_infer) run in two network
 namespaces joined by the shaped veth (shared/tools/linkemu.py). The link goes 5g -> 5g-pre-tdd -> 5g while
-frames stream. Run A: the controller decides. Run B: an oracle that knows the schedule pins the best
+frames stream. Compute: `reference` (default) gives both sides a fixed per-tag profile per cut
+(shared.control.compute.REFERENCE_HEAD_MS_PER_TAG, padded by sleeping), so the scenario's optimum is the same
+on every CPU (k = 0 on 5g, a late cut on 5g-pre-tdd at gamma 1.6); `measured` uses this CPU's own compute
+(gamma 1.75 by default), where a fast CPU may find k = 7 best throughout and never need to switch.
+Run A: the controller decides. Run B: an oracle that knows the schedule pins the best
 k (computed from the C(k), E(k), S(k) measured in run A at the end of each phase and the profile's
 nominal link) at the instant of each change. Reported per repetition: how long after each change the
 controller's choice became optimal (or within its 5 % hysteresis margin of it), and the ratio of the
@@ -28,6 +32,7 @@ import numpy as np
 import zenoh
 
 from bench.machine import cpu_label
+from shared.control.compute import REFERENCE_HEAD_MS_PER_TAG
 from shared.control.linkmodel import split_costs
 from shared.tools import topology as topo
 from shared.tools.launch import Monitor, attach_monitor, start_service, stop_services
@@ -39,6 +44,8 @@ from shared.wire import keys
 from shared.wire.messages import ControllerState, decode
 
 ROBOT = "emu1"
+REFERENCE_GAMMA = 1.6  # with the reference profile: the optimum is k = 0 on 5g and a late cut on 5g-pre-tdd
+REFERENCE_FPS = 2.5
 # A robot CPU 1.75x slower than the edge. T(0) < T(7) iff beta * 64 kB < (gamma - 1) * c7, c7 being the
 # network's time per tag (~23-36 ms here): 11.5 ms on 5g, 36.9 ms on 5g-pre-tdd, so gamma = 1.75 puts
 # the optimum at k = 0 on 5g and at a late cut on 5g-pre-tdd, with a margin of ~15 % either way.
@@ -222,21 +229,21 @@ def reach_secs(run: Run) -> list[float | None]:
     return out
 
 
-def timeline(run: Run, before_secs: float = 0.5, after_secs: float = 2.0) -> list[list[list[float]]]:
-    """Per change: [t since change s, t0, beta, link changes, samples, chosen k, best k] of each state."""
+def timeline(run: Run, before_secs: float = 0.5, after_secs: float = 2.0) -> list[list[dict[str, float]]]:
+    """Per change: the controller's states around it (seconds since the change, its link estimate and choice)."""
     out = []
     for change in run.changes_nanos:
         out.append(
             [
-                [
-                    (stamp - change) / 1e9,
-                    st.t0_ms,
-                    st.beta_ms_per_kB,
-                    st.link_changes,
-                    st.link_samples,
-                    st.chosen_k,
-                    st.best_k,
-                ]
+                {
+                    "secs_since_change": (stamp - change) / 1e9,
+                    "t0_ms": st.t0_ms,
+                    "beta_ms_per_kB": st.beta_ms_per_kB,
+                    "link_changes": st.link_changes,
+                    "link_samples": st.link_samples,
+                    "chosen_k": st.chosen_k,
+                    "best_k": st.best_k,
+                }
                 for stamp, st in run.states
                 if -before_secs <= (stamp - change) / 1e9 <= after_secs
             ]
@@ -255,8 +262,22 @@ def main() -> int:
     ap.add_argument("--repetitions", type=int, default=3)
     ap.add_argument("--phase-secs", type=float, default=9.0)
     ap.add_argument("--json", type=Path)
+    ap.add_argument(
+        "--compute",
+        choices=("reference", "measured"),
+        default="reference",
+        help="reference: a fixed per-tag compute profile on both sides (the same scenario on every CPU); "
+        "measured: this CPU's own compute",
+    )
+    ap.add_argument(
+        "--gamma", type=float, default=None, help=f"robot slowdown (reference {REFERENCE_GAMMA}, measured {GAMMA})"
+    )
     args = ap.parse_args()
-    print(f"CPU: {cpu_label()}", flush=True)
+    reference = args.compute == "reference"
+    compute = EmulatedCompute.from_network(list(REFERENCE_HEAD_MS_PER_TAG)) if reference else None
+    gamma = args.gamma if args.gamma is not None else (REFERENCE_GAMMA if reference else GAMMA)
+    fps = REFERENCE_FPS if reference else FPS
+    print(f"CPU: {cpu_label()}; compute {args.compute}, gamma {gamma:g}, {fps:g} fps", flush=True)
     reason = unavailable_reason()
     if reason is not None:
         raise SystemExit(reason)
@@ -267,11 +288,15 @@ def main() -> int:
             a, b = Path(tmp) / f"ctl{rep}", Path(tmp) / f"oracle{rep}"
             a.mkdir()
             b.mkdir()
-            ctl = stream(a, emu, controller=True, phase_secs=args.phase_secs)
+            common: dict[str, Any] = {"phase_secs": args.phase_secs, "gamma": gamma, "fps": fps, "compute": compute}
+            ctl = stream(a, emu, controller=True, **common)
             ks = oracle_choice(ctl)
-            oracle = stream(b, emu, controller=False, oracle_k=ks, phase_secs=args.phase_secs)
+            oracle = stream(b, emu, controller=False, oracle_k=ks, **common)
             reached, m_ctl, m_oracle = reach_secs(ctl), mean_e2e_ms(ctl), mean_e2e_ms(oracle)
             row: dict[str, Any] = {
+                "compute": args.compute,
+                "gamma": gamma,
+                "fps": fps,
                 "oracle_k": ks,
                 "reach_secs": reached,
                 "mean_e2e_ms_controller": m_ctl,

@@ -120,3 +120,30 @@ def test_controller_service_rejects_bad_messages_and_keeps_running(
         ctl_session.close()
         hub.close()
     assert not worker.is_alive()
+
+
+def test_the_recording_gets_no_prediction_before_both_compute_profiles() -> None:
+    """A fresh-clone trial plotted T(k) = 0 for the first 12 s of a run: the controller sends zeros
+    while it waits for the compute profiles. The recording now gets T(k) only once it is a prediction,
+    and the link estimate only once there is a link sample."""
+    from services.controller.service import _log_state
+
+    class Scalars:
+        def __init__(self) -> None:
+            self.logged: list[dict[str, float]] = []
+
+        def scalars(self, capture_nanos: int, values: dict[str, float]) -> None:
+            self.logged.append(values)
+
+    core = SplitController(ControllerTuning(), clock=FakeClock())
+    viz = Scalars()
+    _log_state(viz, core.decide(robot_id="r1", current_k=7, pinned=False))  # type: ignore[arg-type]
+    assert not any(k.startswith(("controller/predicted_ms", "controller/t0_ms")) for k in viz.logged[-1])
+    assert viz.logged[-1]["controller/chosen_k"] == 7.0
+    core.add_compute(_profile("robot", [10.0 * k + 30 for k in range(8)]))
+    core.add_compute(_profile("edge", [10.0 * (7 - k) for k in range(8)]))
+    for i in range(40):
+        core.add_link_sample(16 * 1024 if i % 2 else 64 * 1024, 40.0 + 0.18 * (16 if i % 2 else 64))
+    _log_state(viz, core.decide(robot_id="r1", current_k=7, pinned=False))  # type: ignore[arg-type]
+    assert {f"controller/predicted_ms/k{k}" for k in range(8)} <= set(viz.logged[-1])
+    assert viz.logged[-1]["controller/t0_ms"] > 0

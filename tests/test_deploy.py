@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import signal
@@ -53,8 +54,9 @@ class Deployment:
 
 
 @contextmanager
-def deployment(tmp_path: Path, robot_id: str) -> Iterator[Deployment]:
-    """Start deploy/up.sh with deploy/local.toml on free ports; kill it if the test left it running."""
+def deployment(tmp_path: Path, robot_id: str, env: dict[str, str] | None = None) -> Iterator[Deployment]:
+    """Start deploy/up.sh with deploy/local.toml on free ports (`env`: more environment for it and its
+    services); kill it if the test left it running."""
     topology = Topology.loopback()
     cfg = write_config(
         tmp_path / "deploy.toml",
@@ -71,6 +73,7 @@ def deployment(tmp_path: Path, robot_id: str) -> Iterator[Deployment]:
             stdout=log,
             stderr=subprocess.STDOUT,
             start_new_session=True,
+            env={**os.environ, **(env or {})},
         )
         session = open_session(ZenohSettings(mode="client", connect=[topology.edge_router], connect_timeout_secs=60))
         try:
@@ -86,7 +89,9 @@ def deployment(tmp_path: Path, robot_id: str) -> Iterator[Deployment]:
 
 
 def test_up_then_down_stops_every_service(tmp_path: Path) -> None:
-    with deployment(tmp_path, "deploy1") as d:
+    # A setting given by the environment only: the run folder must still record it (a fresh-clone trial's
+    # run folder said fps 15 for a camera that ran at 30 through SPLITTAG_CAMERA_FPS).
+    with deployment(tmp_path, "deploy1", env={"SPLITTAG_SLAM_MAP_PUBLISH_EVERY": "7"}) as d:
         pids = d.pids()
         assert set(pids) == set(SERVICES)
         time.sleep(3.0)  # a few frames through the pipeline
@@ -107,6 +112,15 @@ def test_up_then_down_stops_every_service(tmp_path: Path) -> None:
         assert (d.runs / "current" / "trajectory.tum").is_file()
         for name in SERVICES:
             assert (d.runs / "current" / f"{name}.log").is_file()
+            who = "edge1" if name == "edge_infer" else "deploy1"  # an edge worker is named by its worker_id
+            resolved = json.loads((d.runs / "current" / "settings" / f"{name}-{who}.json").read_text())
+            assert resolved["robot_id"] == "deploy1"
+        slam = json.loads((d.runs / "current" / "settings" / "slam-deploy1.json").read_text())
+        assert slam["map_publish_every"] == 7
+        with (d.runs / "current" / "frames.csv").open() as f:
+            frames = list(csv.DictReader(f))
+        assert frames and all(float(r["e2e_ms"]) > 0 and r["k"] == "7" for r in frames)
+        assert summary["frames_csv"].endswith("frames.csv") and len(summary["settings"]) == len(SERVICES)
         # The run is over: its pid files are gone, so a later down cannot signal whatever reuses the pids.
         assert not (d.runs / "current" / "pids").exists() and not (d.runs / "current" / "launcher.pid").exists()
         again = d.down()

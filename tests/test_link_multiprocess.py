@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from bench.controller import ROBOT, SCHEDULE, EmulatedCompute, Run, stream
+from bench.controller import REFERENCE_FPS, REFERENCE_GAMMA, ROBOT, SCHEDULE, EmulatedCompute, Run, stream
 from shared.control.compute import REFERENCE_HEAD_MS_PER_TAG
 from shared.tools.linkemu import PROFILES, LinkEmulator, LinkEmulatorSettings, unavailable_reason
 from shared.transport.split_client import query_split
@@ -34,8 +34,8 @@ pytestmark = pytest.mark.multiprocess
 
 PHASE_SECS = 9.0
 PIN_AFTER_SECS, PIN_FOR_SECS = 2.0, 2.5
-FPS = 2.5
-GAMMA = 1.6
+FPS = REFERENCE_FPS
+GAMMA = REFERENCE_GAMMA
 COMPUTE = EmulatedCompute.from_network(list(REFERENCE_HEAD_MS_PER_TAG))
 
 

@@ -104,6 +104,16 @@ def test_demo_and_up_take_extra_link_profiles() -> None:
         PROFILES.update(saved)
 
 
+def test_demo_and_up_set_fps_gamma_and_the_first_cut() -> None:
+    """A researcher's knobs without editing a config or exporting SPLITTAG_* variables."""
+    from shared.tools.cli import _launch_extra, build_parser
+
+    for command in ("demo", "up"):
+        args = build_parser().parse_args([command, "--fps", "30", "--gamma", "3", "--split-k", "0"])
+        assert _launch_extra(args) == {"camera": {"fps": 30.0}, "robot_infer": {"gamma": 3.0, "split_k": 0}}
+        assert _launch_extra(build_parser().parse_args([command])) == {}
+
+
 def test_the_link_that_holds_an_address_is_found() -> None:
     """up() refuses a management address another link holds (a killed emulation's leftovers routed the
     next one's traffic into a dead namespace: a zenoh timeout instead of a reason)."""
@@ -117,3 +127,54 @@ def test_the_link_that_holds_an_address_is_found() -> None:
     assert address_owner(out, "10.78.0.2") is None
     assert address_owner(out, "10.78.0.10") is None
     assert address_owner("", "10.78.0.1") is None
+
+
+def test_a_bad_profile_file_or_name_is_one_line_not_a_traceback(tmp_path: Path) -> None:
+    """Found by a fresh-clone trial: a typo in a custom profile file, a negative rate, a missing file or an
+    unknown name ended `splittag link ...` / `demo --link` in a Python traceback."""
+    import subprocess
+    import sys
+
+    repo = Path(__file__).resolve().parent.parent
+    bad = tmp_path / "bad.toml"
+    cases = [
+        ("[typo]\nrate_mbits = 8.0\n", ["link", "--profiles", str(bad), "set", "typo"], "rate_mbits"),
+        ("[slow]\nrate_mbit = -3\n", ["link", "--profiles", str(bad), "set", "slow"], "rate_mbit"),
+        ("[lag]\ndelay_ms = -5\n", ["demo", "--link", "lag", "--link-profiles", str(bad)], "delay_ms"),
+        (None, ["link", "--profiles", str(tmp_path / "none.toml"), "set", "lte"], "cannot read link profiles"),
+        (None, ["link", "set", "6g"], "unknown link profile '6g'"),
+    ]
+    for text, argv, said in cases:
+        if text is not None:
+            bad.write_text(text)
+        out = subprocess.run(
+            [sys.executable, "-m", "shared.tools.cli", *argv], capture_output=True, text=True, timeout=120, cwd=repo
+        )
+        assert out.returncode == 2, (argv, out.stdout, out.stderr)
+        assert said in out.stderr and "Traceback" not in out.stderr, (argv, out.stderr)
+        assert len(out.stderr.strip().splitlines()) == 1, out.stderr
+
+
+def test_every_profile_applied_lands_in_the_run_folder_whoever_applies_it(tmp_path: Path) -> None:
+    """The launcher's emulator writes link_events.jsonl into its run folder; `splittag link set`, another
+    process with an emulator object of its own, finds that folder through the emulation's state file."""
+    from shared.tools.linkemu import EVENTS_FILE, LinkEmulator, LinkEmulatorSettings, describe, read_events
+
+    settings = LinkEmulatorSettings(prefix="tev")
+    owner = LinkEmulator(settings, log_dir=tmp_path)
+    owner._record(PROFILES["5g"])
+    settings.state_path.write_text(json.dumps({"log_dir": str(tmp_path)}))  # as up() writes it
+    try:
+        LinkEmulator(settings)._record(PROFILES["5g-pre-tdd"])  # as `splittag link set` does
+        with (tmp_path / EVENTS_FILE).open("a") as f:
+            f.write('{"unix_nanos": 1, "prof')  # a line cut by a crash is skipped
+    finally:
+        settings.state_path.unlink()
+    LinkEmulator(settings)._record(PROFILES["unshaped"])  # no emulation running: nowhere to write
+    events = read_events(tmp_path)
+    assert [e["profile"] for e in events] == ["5g", "5g-pre-tdd"]
+    assert events[1]["rate_mbit"] == 14.2 and events[1]["delay_ms"] == 39.9
+    assert events[0]["unix_nanos"] <= events[1]["unix_nanos"]
+    assert describe(events[1]) == "5g-pre-tdd (14.2 Mbit/s, +39.9 ms)"
+    assert describe({"profile": "unshaped", "rate_mbit": None, "delay_ms": 0.0}) == "unshaped (unshaped, +0 ms)"
+    assert read_events(tmp_path / "elsewhere") == []

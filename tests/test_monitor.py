@@ -257,3 +257,49 @@ def test_a_run_started_from_another_directory_gets_an_absolute_folder_and_a_refu
     )
     assert out.returncode == 2 and "listed more than once: [286]" in out.stderr, out.stderr
     assert len(out.stderr.strip().splitlines()) == 1 and not (elsewhere / "runs").exists(), out.stderr
+
+
+def test_frames_csv_joins_each_frame_with_the_controller_and_the_link_as_of_its_time(tmp_path: Path) -> None:
+    """frames.csv (a fresh-clone trial had to as-of join the recording's controller rows to frames by
+    hand): the controller's T(k) for the frame's k as it stood when the poses arrived, only once both
+    compute profiles are in (before, the state carries zeros), and the link profile at the capture."""
+    import csv
+
+    from shared.tools.launch import FRAME_COLUMNS, frame_rows, write_frames_csv
+    from shared.wire.messages import ControllerState
+
+    poses, state = EXAMPLES[TagPoses.SCHEMA], EXAMPLES[ControllerState.SCHEMA]
+    assert isinstance(poses, TagPoses) and isinstance(state, ControllerState)
+    monitor = Monitor(None)
+    waiting = state.model_copy(
+        update={
+            "robot_ms_by_k": [0.0] * 8,
+            "predicted_ms_by_k": [0.0] * 8,
+            "link_samples": 0,
+            "reason": "waiting for the compute profiles of both sides",
+        }
+    )
+    assert not waiting.has_prediction and state.has_prediction
+    t0 = poses.capture_nanos
+    monitor.on_poses(encode(poses.model_copy(update={"seq": 0, "capture_nanos": t0})))  # no controller yet
+    monitor.on_controller(encode(waiting))
+    assert monitor._controller_part() == "  | controller: waiting for the compute profiles of both sides"
+    monitor.on_poses(encode(poses.model_copy(update={"seq": 1, "capture_nanos": t0 + 10})))
+    monitor.on_controller(encode(state))
+    monitor.on_poses(encode(poses.model_copy(update={"seq": 2, "capture_nanos": t0 + 20})))
+    events = [
+        {"unix_nanos": t0 + 5, "profile": "5g", "rate_mbit": 45.51, "delay_ms": 39.9},
+        {"unix_nanos": t0 + 15, "profile": "5g-pre-tdd", "rate_mbit": 14.2, "delay_ms": 39.9},
+    ]
+    rows = frame_rows(monitor.records, events)
+    assert [r["predicted_ms"] for r in rows[:2]] == [None, None]
+    assert rows[2]["predicted_ms"] == state.predicted_ms_by_k[poses.split_k]
+    assert rows[2]["controller_best_k"] == state.best_k and rows[1]["controller_t0_ms"] is None
+    assert [r["link_profile"] for r in rows] == [None, "5g", "5g-pre-tdd"]
+    assert rows[2]["link_rate_mbit"] == 14.2
+    write_frames_csv(tmp_path / "frames.csv", rows)
+    with (tmp_path / "frames.csv").open() as f:
+        read = list(csv.DictReader(f))
+    assert tuple(read[0]) == FRAME_COLUMNS and len(read) == 3
+    assert read[0]["predicted_ms"] == "" and float(read[2]["predicted_ms"]) == rows[2]["predicted_ms"]
+    assert float(read[2]["e2e_ms"]) == pytest.approx(1e3 * poses.timings.capture_to_pose_secs)

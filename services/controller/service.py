@@ -106,15 +106,21 @@ def _decide(
 
 
 def _log_state(viz: Viz, state: ControllerState) -> None:
+    # Only what is known: no link estimate before the first sample, no T(k) before both compute
+    # profiles (the state carries zeros there, which a plot would show as T = 0).
+    link = (
+        {"controller/t0_ms": state.t0_ms, "controller/beta_ms_per_kB": state.beta_ms_per_kB}
+        if state.link_samples
+        else {}
+    )
+    predicted = (
+        {f"controller/predicted_ms/k{k}": v for k, v in enumerate(state.predicted_ms_by_k)}
+        if state.has_prediction
+        else {}
+    )
     viz.scalars(
         state.stamp_nanos,
-        {
-            "controller/t0_ms": state.t0_ms,
-            "controller/beta_ms_per_kB": state.beta_ms_per_kB,
-            "controller/chosen_k": float(state.chosen_k),
-            "controller/best_k": float(state.best_k),
-            **{f"controller/predicted_ms/k{k}": v for k, v in enumerate(state.predicted_ms_by_k)},
-        },
+        {**link, "controller/chosen_k": float(state.chosen_k), "controller/best_k": float(state.best_k), **predicted},
     )
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import faulthandler
 import logging
+import os
 import signal
 import threading
 import tomllib
@@ -25,6 +26,26 @@ from shared.vision.geometry import CameraFileError
 from shared.vision.tagmap import TagMapError
 
 S = TypeVar("S", bound=ServiceSettings)
+
+
+def write_resolved(settings: ServiceSettings, name: str) -> Path | None:
+    """The settings this process runs with (config file and environment resolved) as
+    `run_dir/settings/<service>-<robot or worker>.json`: the run's record of what each process really
+    ran with (the launcher's config.toml does not hold SPLITTAG_* overrides). None when run_dir is
+    not a folder (a service started by hand without a run)."""
+    if not settings.run_dir.is_dir():
+        return None
+    who = getattr(settings, "worker_id", None) or settings.robot_id
+    path = settings.run_dir / "settings" / f"{name}-{who}.json"
+    try:
+        path.parent.mkdir(exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_text(settings.model_dump_json(indent=2) + "\n")
+        tmp.replace(path)
+    except OSError as exc:
+        logging.getLogger(name).warning("%s: cannot write its settings to %s: %s", name, path, exc)
+        return None
+    return path
 
 
 def service_main(
@@ -53,6 +74,7 @@ def service_main(
         log.error("%s: configuration error: %s", name, one_line_error(exc))
         return CONFIG_EXIT
     settings.log_resolved()
+    write_resolved(settings, name)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

@@ -28,7 +28,13 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     from shared.tools.launch import run_pipeline
 
-    summary = run_pipeline(args.config, duration_secs=args.duration, controller=args.controller, link=args.link)
+    summary = run_pipeline(
+        args.config,
+        duration_secs=args.duration,
+        controller=args.controller,
+        link=args.link,
+        extra=_launch_extra(args),
+    )
     print(json.dumps({k: v for k, v in summary.items() if k != "exit_codes"}, indent=2))
     return 0 if summary.get("frames") else 1
 
@@ -39,7 +45,12 @@ def _cmd_up(args: argparse.Namespace) -> int:
     from shared.tools.launch import run_pipeline
 
     summary = run_pipeline(
-        args.config, duration_secs=args.duration, runs_root=args.runs, controller=args.controller, link=args.link
+        args.config,
+        duration_secs=args.duration,
+        runs_root=args.runs,
+        controller=args.controller,
+        link=args.link,
+        extra=_launch_extra(args),
     )
     print(json.dumps(summary, indent=2))
     return 0
@@ -370,10 +381,11 @@ def _cmd_link_up(args: argparse.Namespace) -> int:
 def _cmd_link_set(args: argparse.Namespace) -> int:
     from shared.tools.linkemu import LinkEmulationUnavailable, LinkEmulator, LinkEmulatorSettings, profile
 
+    chosen = profile(args.profile)  # an unknown name: LinkProfileError, one line (exit 2)
     try:
-        LinkEmulator(LinkEmulatorSettings(prefix=args.prefix)).set_profile(profile(args.profile))
-    except (LinkEmulationUnavailable, ValueError) as exc:
-        print(f"error: {exc}")
+        LinkEmulator(LinkEmulatorSettings(prefix=args.prefix)).set_profile(chosen)
+    except LinkEmulationUnavailable as exc:
+        print(f"splittag link set: {exc}", file=sys.stderr)
         return 1
     print(f"link profile {args.profile}")
     return 0
@@ -444,10 +456,21 @@ def _cmd_link_probe(args: argparse.Namespace) -> int:
     if args.samples_out:
         args.samples_out.write_text(json.dumps(samples))
         return 0
-    doc = report(samples, profile=args.profile)
+    config = None
+    if args.profile:
+        from shared.tools.linkemu import profile
+
+        link = profile(args.profile)
+        config = {"rate_mbit": link.rate_mbit, "delay_ms": link.delay_ms, "beta_ms_per_kB": link.beta_ms_per_kB}
+    doc = report(samples, profile=args.profile, profile_config=config, repetitions=args.repetitions, tags=args.tags)
     print(
         f"t0 {doc['t0_ms']:.2f} ms (fitted intercept), floor {doc['floor_ms']:.2f} ms (measured), "
-        f"beta {doc['beta_ms_per_kB']:.4f} ms/kB, rmse {doc['rmse_ms']:.2f} ms over {doc['n']} probes"
+        f"beta {doc['beta_ms_per_kB']:.4f} ms/kB (kB = 1024 bytes), rmse {doc['rmse_ms']:.2f} ms over {doc['n']} probes"
+        + (
+            f"; configured: floor {config['delay_ms']:g} ms, beta {config['beta_ms_per_kB']:.4f} ms/kB"
+            if config
+            else ""
+        )
     )
     for m in doc["per_size"]:
         print(f"  {m['payload_kB']:>9.2f} kB  median {m['rtt_ms_median']:8.2f} ms  p90 {m['rtt_ms_p90']:8.2f} ms")
@@ -470,12 +493,20 @@ def _cmd_link_cost(args: argparse.Namespace) -> int:
     net = load_split_net(args.weights, args.precision, threads=args.threads)
     cumulative = calibrate_cumulative_ms(net, repetitions=args.repetitions)
     pnp = calibrate_pnp_ms()
-    compute = [args.tags * c for c in cumulative]
+    compute = [args.stage1_ms + args.tags * c for c in cumulative]
     edge = [args.tags * (t + pnp) for t in calibrate_tail_ms(net, repetitions=args.repetitions)]
     payload = [args.tags * tensor_bytes(c.k, "fp16") / 1024 for c in CUTS]
     table = cost_table(compute_ms=compute, edge_ms=edge, payload_kB=payload, fit=fit, gammas=args.gamma)
+    table.update({"precision": net.precision, "tags": args.tags, "stage1_ms": args.stage1_ms})
     print(
-        f"link: t0 {fit.t0_ms:.2f} ms, beta {fit.beta_ms_per_kB:.4f} ms/kB; {args.tags} tag(s), edge as fast as gamma=1"
+        f"link: t0 {fit.t0_ms:.2f} ms, beta {fit.beta_ms_per_kB:.4f} ms/kB (kB = 1024 bytes); {args.tags} tag(s); "
+        f"network at {net.precision}, {args.threads} thread(s), this CPU; edge as fast as gamma=1"
+    )
+    print(
+        "T(k) = gamma x C(k) + t0 + beta x S(k) + E(k). C(k): stage 1 "
+        + (f"{args.stage1_ms:g} ms" if args.stage1_ms else "NOT included (--stage1-ms adds it)")
+        + " + the network's head up to k; robot_infer's ComputeProfile (what the controller uses) includes its "
+        "stage 1, which gamma slows as well"
     )
     print(
         f"{'k':>2} {'split point':<10} {'S kB':>8} {'C ms':>7} {'E ms':>7}"
@@ -499,8 +530,29 @@ def _write_outputs(args: argparse.Namespace, doc: dict[str, Any], plot: Callable
         print(f"figure: {args.plot}")
 
 
+def _launch_extra(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
+    """The config tables --fps, --gamma and --split-k set (over the config file's, into the run's config.toml)."""
+    extra: dict[str, dict[str, Any]] = {}
+    if args.fps is not None:
+        extra.setdefault("camera", {})["fps"] = args.fps
+    if args.gamma is not None:
+        extra.setdefault("robot_infer", {})["gamma"] = args.gamma
+    if args.split_k is not None:
+        extra.setdefault("robot_infer", {})["split_k"] = args.split_k
+    return extra
+
+
 def _add_launch_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--controller", action="store_true", help="also run the adaptive split controller")
+    p.add_argument("--fps", type=float, default=None, help="the camera's rate (camera.fps; the config's otherwise)")
+    p.add_argument(
+        "--gamma",
+        type=float,
+        default=None,
+        help="emulate a robot CPU this many times slower than this one: robot_infer's compute x gamma "
+        "(robot_infer.gamma, >= 1; the paper's gamma in T(k) = gamma C(k) + t0 + beta S(k))",
+    )
+    p.add_argument("--split-k", type=int, choices=range(8), default=None, help="the cut at start (robot_infer.split_k)")
     p.add_argument(
         "--link",
         metavar="PROFILE",
@@ -615,8 +667,21 @@ def _add_link_commands(sub: Any) -> None:
     p.set_defaults(func=_cmd_link_probe)
     p = link.add_parser("cost", help="T(k) per split point for several gamma from measured C, E and a fitted link")
     p.add_argument("--link", type=Path, required=True, help="JSON written by `splittag link probe`")
-    p.add_argument("--gamma", type=float, nargs="+", default=[1.0, 2.0, 4.0, 8.0])
-    p.add_argument("--tags", type=int, default=1)
+    p.add_argument(
+        "--gamma",
+        type=float,
+        nargs="+",
+        default=[1.0, 2.0, 4.0, 8.0],
+        help="robot CPUs this many times slower than this one (the edge stays this CPU)",
+    )
+    p.add_argument("--tags", type=int, default=1, help="tags per frame (payload and compute scale with it)")
+    p.add_argument(
+        "--stage1-ms",
+        type=float,
+        default=0.0,
+        help="the robot's stage 1 per frame on this CPU, added to C(k) at every k (robot_infer's log and "
+        "ComputeProfile say it; 0: the network alone)",
+    )
     p.add_argument("--weights", type=Path, default=Path("models"))
     p.add_argument(
         "--precision", choices=PRECISION_CHOICES, default="auto", help="the network's arithmetic (both sides)"
@@ -765,11 +830,13 @@ def _user_errors() -> tuple[tuple[type[BaseException], ...], tuple[type[BaseExce
 
     from shared.runtime.settings import ConfigurationError
     from shared.tools.launch import LaunchError
+    from shared.tools.linkemu import LinkProfileError
     from shared.transport.split_client import SplitQueryError
     from shared.vision.geometry import CameraFileError
     from shared.vision.tagmap import TagMapError
 
     usage = (
+        LinkProfileError,
         ModelFileError,
         ConfigurationError,
         FileNotFoundError,

@@ -315,12 +315,14 @@ def run_fleet(
         attach_monitor,
         configuration_error_line,
         forget_run_files,
+        frame_rows,
         preparing_run_dir,
         run_for,
         run_map_tables,
         start_process,
         stop_services,
         wait_for_run,
+        write_frames_csv,
     )
     from shared.tools.supervise import Supervisor
     from shared.vision.tagmap import load_tag_map
@@ -423,6 +425,10 @@ def run_fleet(
         "robots": {r: m.summary() for r, m in monitors.items()},
         "exit_codes": codes,
     }
+    for robot, monitor in monitors.items():  # every frame's timings, per robot (as `splittag up`'s frames.csv)
+        with monitor._lock:
+            records = list(monitor.records)
+        write_frames_csv(run_dir / f"frames_{robot}.csv", frame_rows(records, []))
     slam_json = run_dir / "slam.json"
     if slam_json.is_file():
         summary["slam"] = json.loads(slam_json.read_text())

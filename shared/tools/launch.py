@@ -241,6 +241,7 @@ class Monitor:
         msg = self._decode(payload, TagPoses)
         if msg is None:
             return
+        c = self.controller  # the controller's belief when this frame's poses arrived (as of)
         rec: dict[str, Any] = {
             "seq": msg.seq,
             "capture_nanos": msg.capture_nanos,
@@ -254,6 +255,10 @@ class Monitor:
             **_waits_ms(msg),
             "t": self.clock(),
             "errors_cm": self._errors(msg),
+            "predicted_ms": c.predicted_ms_by_k[msg.split_k] if c is not None and c.has_prediction else None,
+            "controller_best_k": c.best_k if c is not None and c.has_prediction else None,
+            "controller_t0_ms": c.t0_ms if c is not None and c.link_samples else None,
+            "controller_beta_ms_per_kB": c.beta_ms_per_kB if c is not None and c.link_samples else None,
         }
         with self._lock:
             self.records.append(rec)
@@ -384,6 +389,8 @@ class Monitor:
         c = self.controller
         if c is None:
             return ""
+        if not c.has_prediction:
+            return f"  | controller: {c.reason}"
         t = c.predicted_ms_by_k
         pin = " pinned" if c.pinned else ""
         return (
@@ -707,9 +714,133 @@ def _placement(
     return topology, {name: in_netns(side.get(name, s.edge_ns), []) for name in services}, emu
 
 
+FRAME_COLUMNS: tuple[str, ...] = (
+    "seq",
+    "capture_unix_nanos",
+    "k",
+    "payload_bytes",
+    "tags",
+    "robot_ms",
+    "transport_ms",
+    "edge_ms",
+    "e2e_ms",
+    "frame_age_ms",
+    "edge_queue_ms",
+    "predicted_ms",
+    "controller_best_k",
+    "controller_t0_ms",
+    "controller_beta_ms_per_kB",
+    "link_profile",
+    "link_rate_mbit",
+    "link_delay_ms",
+    "tag_error_cm_median",
+)
+
+
+def frame_rows(records: list[dict[str, Any]], link_events: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per frame with poses (FRAME_COLUMNS): the monitor's record, the controller's prediction for
+    the frame's k as it stood when the poses arrived, and the link profile applied at the frame's capture
+    (from the run's link_events.jsonl). None where a value is not known (no controller, no emulated link,
+    a frame computed on board: no link stamps, no ground truth)."""
+    import bisect
+
+    stamps = [e["unix_nanos"] for e in link_events]
+    out = []
+    for r in records:
+        i = bisect.bisect_right(stamps, r["capture_nanos"]) - 1
+        event = link_events[i] if i >= 0 else None
+        nan_to_none = {k: (None if np.isnan(r[k]) else r[k]) for k in ("before_robot_ms", "at_edge_ms")}
+        out.append(
+            {
+                "seq": r["seq"],
+                "capture_unix_nanos": r["capture_nanos"],
+                "k": r["k"],
+                "payload_bytes": r["payload_bytes"],
+                "tags": r["tags"],
+                "robot_ms": r["robot_ms"],
+                "transport_ms": r["transport_ms"],
+                "edge_ms": r["edge_ms"],
+                "e2e_ms": r["e2e_ms"],
+                "frame_age_ms": nan_to_none["before_robot_ms"],
+                "edge_queue_ms": nan_to_none["at_edge_ms"],
+                "predicted_ms": r.get("predicted_ms"),
+                "controller_best_k": r.get("controller_best_k"),
+                "controller_t0_ms": r.get("controller_t0_ms"),
+                "controller_beta_ms_per_kB": r.get("controller_beta_ms_per_kB"),
+                "link_profile": event["profile"] if event else None,
+                "link_rate_mbit": event.get("rate_mbit") if event else None,
+                "link_delay_ms": event.get("delay_ms") if event else None,
+                "tag_error_cm_median": float(np.median(r["errors_cm"])) if r["errors_cm"] else None,
+            }
+        )
+    return out
+
+
+def write_frames_csv(path: Path, rows: list[dict[str, Any]]) -> None:
+    """frames.csv: FRAME_COLUMNS, an empty cell where a value is not known."""
+    import csv
+
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=FRAME_COLUMNS)
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: ("" if v is None else v) for k, v in row.items()})
+
+
+class LinkEventsTail:
+    """The link profiles applied since the last call (the run's link_events.jsonl), as live lines."""
+
+    def __init__(self, run_dir: Path) -> None:
+        self.run_dir = run_dir
+        self.seen = 0
+
+    def new_lines(self) -> list[str]:
+        """A line per profile applied since the last call."""
+        from shared.tools.linkemu import describe, read_events
+
+        events = read_events(self.run_dir)
+        fresh, self.seen = events[self.seen :], len(events)
+        return [f"link profile -> {describe(e)}" for e in fresh]
+
+
+def _record_link_events(run_dir: Path, events: list[dict[str, Any]]) -> None:
+    """The link profiles into the run's recording (a part merged with the services'): `link/profile` (a
+    text entry per change), `link/rate_mbit` and `link/floor_ms`, on the frames' capture_time timeline.
+    Only when the run records (some service wrote a part)."""
+    if not events or not any(p.name != "recording.rrd" for p in run_dir.glob("*.rrd")):
+        return
+    from shared.tools.linkemu import describe
+    from shared.viz.recording import RerunSettings, RerunViz
+
+    viz = RerunViz(RerunSettings(enabled=True, part_name="link"), service="link", run_dir=run_dir)
+    try:
+        for e in events:
+            viz.text(e["unix_nanos"], "link/profile", describe(e))
+            values = {"link/floor_ms": float(e.get("delay_ms") or 0.0)}
+            if e.get("rate_mbit"):
+                values["link/rate_mbit"] = float(e["rate_mbit"])
+            viz.scalars(e["unix_nanos"], values)
+    finally:
+        viz.close()
+
+
 def _summarise_run(run_dir: Path, monitor: Monitor, codes: dict[str, int | None]) -> dict[str, Any]:
-    """summary.json: the monitor's figures, exit codes, the merged recording and slam's ATE."""
+    """summary.json: the monitor's figures, exit codes, the link profiles applied, the merged recording
+    and slam's ATE; frames.csv: every frame's timings, the controller's prediction and the link profile."""
+    from shared.tools.linkemu import read_events
+
     summary = {**monitor.summary(), "exit_codes": codes, "run_dir": str(run_dir)}
+    events = read_events(run_dir)
+    if events:
+        summary["link_profiles"] = events
+    with monitor._lock:
+        records = list(monitor.records)
+    write_frames_csv(run_dir / "frames.csv", frame_rows(records, events))
+    summary["frames_csv"] = str(run_dir / "frames.csv")
+    settings_dir = run_dir / "settings"
+    if settings_dir.is_dir():
+        summary["settings"] = sorted(str(p) for p in settings_dir.glob("*.json"))
+    _record_link_events(run_dir, events)
     recording = merge_recordings(run_dir)
     if recording is not None:
         summary["recording"] = str(recording)
@@ -777,7 +908,15 @@ def run_pipeline(
         )
         if started.up:
             print(f"run {run_dir}: {', '.join(services)} alive; Ctrl-C stops", flush=True)
-            run_for(stop, duration_secs, lines=lambda: [monitor.line()], quiet=quiet, supervise=running.supervise)
+            link_lines = LinkEventsTail(run_dir)
+            link_lines.new_lines()  # the initial profile was printed above
+            run_for(
+                stop,
+                duration_secs,
+                lines=lambda: [*link_lines.new_lines(), monitor.line()],
+                quiet=quiet,
+                supervise=running.supervise,
+            )
         for sub in started.subscriptions:
             sub.undeclare()
     finally:

@@ -16,6 +16,7 @@ Shared memory never crosses a namespace (and is off in every splittag session an
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import shutil
@@ -25,6 +26,7 @@ import tempfile
 import time
 from pathlib import Path
 from types import TracebackType
+from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -33,6 +35,11 @@ from shared.tools.delayline import control_request
 log = logging.getLogger(__name__)
 
 BITS_PER_KB = 8 * 1024
+EVENTS_FILE = "link_events.jsonl"  # in the emulator's log folder (a run's folder): every profile applied
+
+
+class LinkProfileError(ValueError):
+    """A link profile that does not exist or a profile file that cannot be used: said in one line."""
 
 
 class LinkProfile(BaseModel):
@@ -75,6 +82,28 @@ PROFILES: dict[str, LinkProfile] = {
 }
 
 
+def read_events(folder: Path) -> list[dict[str, Any]]:
+    """The link profiles applied during a run (folder's link_events.jsonl), oldest first; [] without."""
+    path = folder / EVENTS_FILE
+    if not path.is_file():
+        return []
+    events = []
+    for line in path.read_text().splitlines():
+        try:
+            event = json.loads(line)
+        except ValueError:
+            continue  # a line cut by a crash
+        if isinstance(event, dict) and isinstance(event.get("unix_nanos"), int):
+            events.append(event)
+    return sorted(events, key=lambda e: e["unix_nanos"])
+
+
+def describe(event: dict[str, Any]) -> str:
+    """One line for a person: `5g-pre-tdd (14.2 Mbit/s, +39.9 ms)`."""
+    rate = f"{event['rate_mbit']:g} Mbit/s" if event.get("rate_mbit") else "unshaped"
+    return f"{event['profile']} ({rate}, +{event.get('delay_ms', 0.0):g} ms)"
+
+
 def load_profiles(path: Path) -> dict[str, LinkProfile]:
     """Profiles from a TOML file, one table per profile, e.g.
 
@@ -83,32 +112,41 @@ def load_profiles(path: Path) -> dict[str, LinkProfile]:
         delay_ms = 25.0
         description = "a congested LTE uplink"
 
-    They add to (or replace) the built-in ones in PROFILES; a bad entry raises a ValueError naming it.
+    They add to (or replace) the built-in ones in PROFILES; a bad entry raises a LinkProfileError naming it.
     """
     import tomllib
+
+    from pydantic import ValidationError
 
     try:
         doc = tomllib.loads(path.read_text())
     except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise ValueError(f"cannot read link profiles from {path}: {exc}") from exc
+        raise LinkProfileError(f"cannot read link profiles from {path}: {exc}") from exc
     out = {}
     for name, values in doc.items():
         if not isinstance(values, dict):
-            raise ValueError(f"{path}: [{name}] must be a table of rate_mbit / delay_ms / description")
+            raise LinkProfileError(f"{path}: [{name}] must be a table of rate_mbit / delay_ms / description")
         try:
             out[name] = LinkProfile(name=name, **values)
-        except ValueError as exc:
-            raise ValueError(f"{path}: profile [{name}]: {exc}") from exc
+        except ValidationError as exc:
+            fields = "; ".join(
+                f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']} (got {e.get('input')!r})"
+                for e in exc.errors(include_url=False)
+            )
+            raise LinkProfileError(
+                f"{path}: profile [{name}]: {fields} (a profile takes rate_mbit > 0 or none, delay_ms 0-10000, "
+                "description)"
+            ) from None
     PROFILES.update(out)
     return out
 
 
 def profile(name: str) -> LinkProfile:
-    """A named profile (built in, or added by load_profiles), or a ValueError listing the names."""
+    """A named profile (built in, or added by load_profiles), or a LinkProfileError listing the names."""
     try:
         return PROFILES[name]
     except KeyError:
-        raise ValueError(f"unknown link profile {name!r}; known: {', '.join(PROFILES)}") from None
+        raise LinkProfileError(f"unknown link profile {name!r}; known: {', '.join(PROFILES)}") from None
 
 
 class LinkEmulatorSettings(BaseModel):
@@ -145,6 +183,11 @@ class LinkEmulatorSettings(BaseModel):
     @property
     def control_path(self) -> Path:
         return Path(tempfile.gettempdir()) / f"splittag-{self.prefix}-delay.sock"
+
+    @property
+    def state_path(self) -> Path:
+        """Where a running emulation says which folder its events go to (read by `splittag link set`)."""
+        return Path(tempfile.gettempdir()) / f"splittag-{self.prefix}-link.json"
 
 
 class LinkEmulationUnavailable(RuntimeError):
@@ -283,6 +326,8 @@ class LinkEmulator:
             ):
                 _run(argv)
             self._start_delay_line(initial.delay_ms)
+            if self.log_dir is not None:
+                s.state_path.write_text(json.dumps({"log_dir": str(Path(self.log_dir).resolve())}))
             self.set_profile(initial)
         except BaseException:
             self.down()
@@ -353,6 +398,28 @@ class LinkEmulator:
         control_request(s.control_path, {"delay_ms": p.delay_ms})
         rate = f"{p.rate_mbit} Mbit/s" if p.rate_mbit else "unshaped"
         log.info("link profile %s: rate %s, delay %.1f ms", p.name, rate, p.delay_ms)
+        self._record(p)
+
+    def _record(self, p: LinkProfile) -> None:
+        """Append the profile just applied to the run's link_events.jsonl (wall clock, as the frames'
+        capture stamps), whichever process applied it: the launcher, or `splittag link set`."""
+        folder = self.log_dir
+        if folder is None and self.settings.state_path.is_file():
+            try:
+                folder = Path(json.loads(self.settings.state_path.read_text())["log_dir"])
+            except (OSError, ValueError, KeyError, TypeError):
+                folder = None
+        if folder is None or not Path(folder).is_dir():
+            return
+        event = {
+            "unix_nanos": time.time_ns(),
+            "profile": p.name,
+            "rate_mbit": p.rate_mbit,
+            "delay_ms": p.delay_ms,
+            "beta_ms_per_kB": p.beta_ms_per_kB,
+        }
+        with (Path(folder) / EVENTS_FILE).open("a") as f:
+            f.write(json.dumps(event) + "\n")
 
     def down(self) -> None:
         """Remove everything (idempotent)."""
@@ -369,6 +436,7 @@ class LinkEmulator:
             _run(["ip", "netns", "del", ns], check=False)
         _run(["ip", "link", "del", f"{s.prefix}-mr"], check=False)
         s.control_path.unlink(missing_ok=True)
+        s.state_path.unlink(missing_ok=True)
 
     def __enter__(self) -> LinkEmulator:
         return self

@@ -47,13 +47,25 @@ def run_probes(prober: Prober, payloads: Sequence[bytes], *, repetitions: int, w
     return samples
 
 
-def report(samples: Sequence[Sequence[float]], *, profile: str | None) -> dict[str, Any]:
-    """JSON-ready result: the fit, the floor and the per-size medians."""
+def report(
+    samples: Sequence[Sequence[float]],
+    *,
+    profile: str | None,
+    profile_config: dict[str, Any] | None = None,
+    repetitions: int | None = None,
+    tags: int | None = None,
+) -> dict[str, Any]:
+    """JSON-ready result: the fit, the floor and the per-size medians; `profile_config`: the emulated
+    link's configured rate and floor (what the fit should find)."""
     s = np.asarray(samples, np.float64)
     fit = fit_link((s[:, 0] / KB).tolist(), s[:, 1].tolist())
     sizes = sorted(set(s[:, 0].tolist()))
     return {
+        "units": "kB = 1024 bytes; ms; samples are [payload bytes, round-trip ms]",
         "profile": profile,
+        "profile_config": profile_config,
+        "repetitions": repetitions,
+        "tags": tags,
         "t0_ms": fit.t0_ms,
         "floor_ms": fit.floor_ms,
         "beta_ms_per_kB": fit.beta_ms_per_kB,

@@ -37,8 +37,9 @@ class TrackingSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
     enabled: bool = False  # off by default: on bench/slam's fast sequence it adds frames but costs accuracy
     max_age_frames: int = Field(default=8, ge=1)  # predict a tag this many frames after its last sighting
-    # Predict a tag at most this many frames after stage 1 last decoded it: under heavy blur the refined quads drift in scale
-    # (a few % in 10-20 frames, measured on bench/slam's fast sequence), so a track must be re-anchored.
+    # Predict a tag at most this many frames after stage 1 last decoded it: under heavy blur the refined
+    # quads drift in scale (a few % in 10-20 frames, measured on bench/slam's fast sequence), so a track
+    # must be re-anchored.
     max_coasting_frames: int = Field(default=12, ge=1)
     max_tracked_per_frame: int = Field(default=8, ge=0)  # bounds the cost on a frame
     search_px: float = Field(default=6.0, ge=0)  # shifts searched around the predicted quad (+-, image px)

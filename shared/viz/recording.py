@@ -285,6 +285,11 @@ class RerunViz:
         for path, value in values.items():
             self._log(path, self._rr.Scalars([value]))
 
+    def text(self, capture_nanos: int, path: str, text: str) -> None:
+        """A text entry (an event: a link profile applied)."""
+        self._at(capture_nanos)
+        self._log(path, self._rr.TextLog(text))
+
     def close(self) -> None:
         """Flush and close the .rrd file."""
         self.rec.flush()

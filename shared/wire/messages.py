@@ -631,6 +631,12 @@ class ControllerState(Message):
     applied: bool  # True when this decision changed the split through the split query
     reason: str
 
+    @property
+    def has_prediction(self) -> bool:
+        """predicted_ms_by_k is a prediction: both sides' compute profiles had arrived (before that the
+        controller sends zeros there and waits)."""
+        return any(self.robot_ms_by_k) and any(self.edge_ms_by_k)
+
 
 MESSAGE_TYPES: Final[tuple[type[Message], ...]] = (
     Frame,
