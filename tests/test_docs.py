@@ -4,6 +4,8 @@ default (docs/services.md's generated reference), every current schema (docs/wir
 
 from __future__ import annotations
 
+import json
+import os
 import re
 import subprocess
 import sys
@@ -13,6 +15,11 @@ from shared.tools import settings_doc
 from shared.wire.messages import MESSAGE_TYPES
 
 REPO = Path(__file__).resolve().parent.parent
+
+
+def _without_splittag_variables() -> dict[str, str]:
+    """This environment without SPLITTAG_* (a developer's exported override must not change a test)."""
+    return {k: v for k, v in os.environ.items() if not k.startswith("SPLITTAG_")}
 
 
 def test_the_settings_reference_matches_the_settings_models() -> None:
@@ -27,14 +34,16 @@ def test_the_reference_lists_every_leaf_setting_with_its_default() -> None:
     # Independent of the generator's walk: a few settings looked up by hand in the models.
     from services.controller.settings import ControllerSettings
     from services.robot_infer.settings import RobotInferSettings
+    from shared.vision.detector import DetectorSettings
 
     text = settings_doc.DOC.read_text()
-    assert f"| `dwell` | `{ControllerSettings().dwell}` |" in text
-    assert f"| `split_k` | `{RobotInferSettings().split_k}` |" in text
-    quad_decimate = RobotInferSettings().stage1.apriltag.quad_decimate
+    # The models' declared defaults (not an instance: an exported SPLITTAG_* variable would change that).
+    assert f"| `dwell` | `{ControllerSettings.model_fields['dwell'].default}` |" in text
+    assert f"| `split_k` | `{RobotInferSettings.model_fields['split_k'].default}` |" in text
+    quad_decimate = DetectorSettings.model_fields["quad_decimate"].default
     assert f"| `stage1.apriltag.quad_decimate` | `{quad_decimate!r}` |" in text
     assert "| `zenoh.tls.certificate` | `none` |" in text  # a field of an unset optional group
-    for service in settings_doc.SERVICES:
+    for service in (settings_doc.COMMON, *settings_doc.SERVICES):
         for row in settings_doc.service_rows(service):
             assert row.meaning, f"{service}.{row.name} has no comment in its settings class"
 
@@ -55,6 +64,7 @@ def test_settings_command_shows_what_a_config_file_changes(tmp_path: Path) -> No
         text=True,
         timeout=120,
         cwd=REPO,
+        env=_without_splittag_variables(),
     )
     assert out.returncode == 0, out.stderr
     lines = {line.split("=")[0].strip(" *"): line for line in out.stdout.splitlines() if "=" in line}
@@ -73,6 +83,7 @@ def test_settings_command_refuses_an_unknown_service_and_a_bad_file(tmp_path: Pa
             text=True,
             timeout=120,
             cwd=REPO,
+            env=_without_splittag_variables(),
         )
 
     out = run("robot")
@@ -82,3 +93,31 @@ def test_settings_command_refuses_an_unknown_service_and_a_bad_file(tmp_path: Pa
     out = run("slam", "--config", str(bad))
     assert out.returncode == 2 and "window_frame" in out.stderr and "Traceback" not in out.stderr
     assert out.stdout == ""
+
+
+def test_a_process_records_its_settings_only_in_the_run_of_the_launcher_that_started_it(tmp_path: Path) -> None:
+    """settings/<service>-<who>.json is a run's record: a service started by hand beside a run (or later,
+    with runs/current's config) must not overwrite it (review); the fleet's one slam is `slam-fleet`."""
+    from services.edge_infer.settings import EdgeInferSettings
+    from services.slam.settings import SlamServiceSettings
+    from shared.runtime.service_main import write_resolved
+
+    run = tmp_path / "run"
+    run.mkdir()
+    slam = SlamServiceSettings(run_dir=run, robot_id="r9")
+    assert write_resolved(slam, "slam") is None  # no launcher.pid: not a launcher's run
+    (run / "launcher.pid").write_text("1\n")  # another process's run
+    assert write_resolved(slam, "slam") is None and not (run / "settings").exists()
+    (run / "launcher.pid").write_text(f"{os.getppid()}\n")  # this process's parent started it
+    written = write_resolved(slam, "slam")
+    assert written == run / "settings" / "slam-r9.json"
+    assert json.loads(written.read_text())["slam"]["window_frames"] == slam.slam.window_frames
+    fleet = write_resolved(SlamServiceSettings(run_dir=run, robots=["a", "b"]), "slam")
+    assert fleet is not None and fleet.name == "slam-fleet.json"
+    worker = write_resolved(EdgeInferSettings(run_dir=run, worker_id="edge7"), "edge_infer")
+    assert worker is not None and worker.name == "edge_infer-edge7.json"
+    assert sorted(p.name for p in (run / "settings").iterdir()) == [
+        "edge_infer-edge7.json",
+        "slam-fleet.json",
+        "slam-r9.json",
+    ]  # no temporary file left

@@ -120,3 +120,13 @@ def test_controller_follows_the_link_and_respects_pinning(emulator: LinkEmulator
     after = [(stamp, st) for stamp, st in run.states if stamp >= pin["to"]]
     left = next((stamp for stamp, st in after if st.chosen_k != 5), None)
     assert left is not None and (left - pin["to"]) / 1e9 <= 3.0, "the controller did not take over again"
+
+    # Every profile the run applied is in the emulation's run folder, recorded by the delay line in order
+    # (the fixture's up(), then stream()'s first phase and its changes), each stamped before the change.
+    from shared.tools.linkemu import read_events
+
+    assert emulator.log_dir is not None
+    applied = [e for e in read_events(emulator.log_dir) if e["unix_nanos"] >= run.start_nanos - int(60e9)]
+    assert [e["profile"] for e in applied][-len(SCHEDULE) :] == list(SCHEDULE), applied
+    stamps = [e["unix_nanos"] for e in applied[-len(SCHEDULE) + 1 :]]
+    assert all(abs(s - c) < 2e9 for s, c in zip(stamps, run.changes_nanos, strict=True)), (stamps, run.changes_nanos)

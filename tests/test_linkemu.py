@@ -155,26 +155,52 @@ def test_a_bad_profile_file_or_name_is_one_line_not_a_traceback(tmp_path: Path) 
         assert len(out.stderr.strip().splitlines()) == 1, out.stderr
 
 
-def test_every_profile_applied_lands_in_the_run_folder_whoever_applies_it(tmp_path: Path) -> None:
-    """The launcher's emulator writes link_events.jsonl into its run folder; `splittag link set`, another
-    process with an emulator object of its own, finds that folder through the emulation's state file."""
-    from shared.tools.linkemu import EVENTS_FILE, LinkEmulator, LinkEmulatorSettings, describe, read_events
+def test_the_delay_line_records_each_profile_applied_in_its_run_folder_only(tmp_path: Path) -> None:
+    """Whoever applies a profile (the launcher, or `splittag link set` from another shell), the request
+    goes to the delay line, which appends the event to the events file of the run it was started for:
+    no file in a shared folder names that run folder (a first version's /tmp state file let any local
+    user point root's appends elsewhere: review). A checked event only, and never through a symlink."""
+    import socket
 
-    settings = LinkEmulatorSettings(prefix="tev")
-    owner = LinkEmulator(settings, log_dir=tmp_path)
-    owner._record(PROFILES["5g"])
-    settings.state_path.write_text(json.dumps({"log_dir": str(tmp_path)}))  # as up() writes it
-    try:
-        LinkEmulator(settings)._record(PROFILES["5g-pre-tdd"])  # as `splittag link set` does
-        with (tmp_path / EVENTS_FILE).open("a") as f:
-            f.write('{"unix_nanos": 1, "prof')  # a line cut by a crash is skipped
-    finally:
-        settings.state_path.unlink()
-    LinkEmulator(settings)._record(PROFILES["unshaped"])  # no emulation running: nowhere to write
-    events = read_events(tmp_path)
-    assert [e["profile"] for e in events] == ["5g", "5g-pre-tdd"]
-    assert events[1]["rate_mbit"] == 14.2 and events[1]["delay_ms"] == 39.9
-    assert events[0]["unix_nanos"] <= events[1]["unix_nanos"]
-    assert describe(events[1]) == "5g-pre-tdd (14.2 Mbit/s, +39.9 ms)"
+    from shared.tools.delayline import DelayLine, _handle_control
+    from shared.tools.linkemu import EVENTS_FILE, describe, read_events
+
+    events = tmp_path / EVENTS_FILE
+
+    def request(body: dict[str, object], path: Path | None = events) -> dict[str, object]:
+        ours, theirs = socket.socketpair()
+        with ours:
+            ours.sendall(json.dumps(body).encode())
+            _handle_control(theirs, DelayLine(39.9), path)
+            answer: dict[str, object] = json.loads(ours.recv(4096))
+        return answer
+
+    def event(name: str, nanos: int) -> dict[str, object]:
+        p = PROFILES[name]
+        return {
+            "unix_nanos": nanos,
+            "profile": p.name,
+            "rate_mbit": p.rate_mbit,
+            "delay_ms": p.delay_ms,
+            "beta_ms_per_kB": p.beta_ms_per_kB,
+        }
+
+    assert request({"delay_ms": 39.9, "event": event("5g-pre-tdd", 20)})["recorded"] is True
+    assert request({"delay_ms": 39.9, "event": event("5g", 10)})["recorded"] is True
+    assert request({"delay_ms": 0.0, "event": event("unshaped", 30)}, path=None)["recorded"] is False
+    bad = request({"delay_ms": 39.9, "event": {**event("5g", 40), "log_dir": "/etc"}})
+    assert bad["ok"] is False and "fields" in str(bad["error"])
+    assert request({"delay_ms": 39.9, "event": {**event("5g", 50), "unix_nanos": "soon"}})["ok"] is False
+    with events.open("a") as f:
+        f.write('{"unix_nanos": 1, "prof')  # a line cut by a crash is skipped
+    assert [e["profile"] for e in read_events(tmp_path)] == ["5g", "5g-pre-tdd"]  # by time, not by arrival
+    assert describe(read_events(tmp_path)[1]) == "5g-pre-tdd (14.2 Mbit/s, +39.9 ms)"
     assert describe({"profile": "unshaped", "rate_mbit": None, "delay_ms": 0.0}) == "unshaped (unshaped, +0 ms)"
     assert read_events(tmp_path / "elsewhere") == []
+    target = tmp_path / "precious"
+    target.write_text("keep\n")
+    linked = tmp_path / "linked.jsonl"
+    linked.symlink_to(target)
+    answer = request({"delay_ms": 39.9, "event": event("5g", 60)}, path=linked)
+    assert answer["ok"] is True and answer["recorded"] is False  # the change holds, nothing written through
+    assert target.read_text() == "keep\n"

@@ -259,47 +259,58 @@ def test_a_run_started_from_another_directory_gets_an_absolute_folder_and_a_refu
     assert len(out.stderr.strip().splitlines()) == 1 and not (elsewhere / "runs").exists(), out.stderr
 
 
-def test_frames_csv_joins_each_frame_with_the_controller_and_the_link_as_of_its_time(tmp_path: Path) -> None:
+def test_frames_csv_joins_each_frame_with_the_controller_and_the_link_as_of_its_send(tmp_path: Path) -> None:
     """frames.csv (a fresh-clone trial had to as-of join the recording's controller rows to frames by
-    hand): the controller's T(k) for the frame's k as it stood when the poses arrived, only once both
-    compute profiles are in (before, the state carries zeros), and the link profile at the capture."""
+    hand): T(k) for the frame's k from the controller's last decision before the frame was sent, even
+    when that state arrives after the frame's poses (it crosses the uplink behind the frames: review),
+    only decisions that are predictions (before both compute profiles the state carries zeros), and the
+    link profile applied before the send; a frame computed on board crossed no link."""
     import csv
 
     from shared.tools.launch import FRAME_COLUMNS, frame_rows, write_frames_csv
-    from shared.wire.messages import ControllerState
+    from shared.wire.messages import CONTROLLER_WAITING, ControllerState, LinkStamps
 
     poses, state = EXAMPLES[TagPoses.SCHEMA], EXAMPLES[ControllerState.SCHEMA]
-    assert isinstance(poses, TagPoses) and isinstance(state, ControllerState)
+    assert isinstance(poses, TagPoses) and isinstance(state, ControllerState) and poses.link is not None
+    t = poses.link.sent_nanos
     monitor = Monitor(None)
+
+    def frame(seq: int, sent: int | None) -> None:
+        link = None
+        if sent is not None:
+            link = LinkStamps(sent_nanos=sent, received_nanos=sent + 40_000_000, previous_received_nanos=0)
+        monitor.on_poses(encode(poses.model_copy(update={"seq": seq, "link": link})))
+
+    zeros = [0.0] * 8
     waiting = state.model_copy(
-        update={
-            "robot_ms_by_k": [0.0] * 8,
-            "predicted_ms_by_k": [0.0] * 8,
-            "link_samples": 0,
-            "reason": "waiting for the compute profiles of both sides",
-        }
+        update={"stamp_nanos": t, "robot_ms_by_k": zeros, "predicted_ms_by_k": zeros, "reason": CONTROLLER_WAITING}
     )
-    assert not waiting.has_prediction and state.has_prediction
-    t0 = poses.capture_nanos
-    monitor.on_poses(encode(poses.model_copy(update={"seq": 0, "capture_nanos": t0})))  # no controller yet
+    first = state.model_copy(update={"stamp_nanos": t + 10, "predicted_ms_by_k": [100.0 + k for k in range(8)]})
+    second = state.model_copy(update={"stamp_nanos": t + 30, "predicted_ms_by_k": [200.0 + k for k in range(8)]})
+    assert not waiting.has_prediction and first.has_prediction
     monitor.on_controller(encode(waiting))
-    assert monitor._controller_part() == "  | controller: waiting for the compute profiles of both sides"
-    monitor.on_poses(encode(poses.model_copy(update={"seq": 1, "capture_nanos": t0 + 10})))
-    monitor.on_controller(encode(state))
-    monitor.on_poses(encode(poses.model_copy(update={"seq": 2, "capture_nanos": t0 + 20})))
+    assert monitor._controller_part() == f"  | controller: {CONTROLLER_WAITING}"
+    frame(0, t + 5)  # sent while the controller waited
+    frame(1, t + 20)  # sent after the first prediction ...
+    monitor.on_controller(encode(second))  # ... whose state arrives late, after a newer one
+    monitor.on_controller(encode(first))
+    frame(2, t + 40)
+    frame(3, None)  # computed on board
     events = [
-        {"unix_nanos": t0 + 5, "profile": "5g", "rate_mbit": 45.51, "delay_ms": 39.9},
-        {"unix_nanos": t0 + 15, "profile": "5g-pre-tdd", "rate_mbit": 14.2, "delay_ms": 39.9},
+        {"unix_nanos": t + 1, "profile": "5g", "rate_mbit": 45.51, "delay_ms": 39.9},
+        {"unix_nanos": t + 25, "profile": "5g-pre-tdd", "rate_mbit": 14.2, "delay_ms": 39.9},
     ]
-    rows = frame_rows(monitor.records, events)
-    assert [r["predicted_ms"] for r in rows[:2]] == [None, None]
-    assert rows[2]["predicted_ms"] == state.predicted_ms_by_k[poses.split_k]
-    assert rows[2]["controller_best_k"] == state.best_k and rows[1]["controller_t0_ms"] is None
-    assert [r["link_profile"] for r in rows] == [None, "5g", "5g-pre-tdd"]
-    assert rows[2]["link_rate_mbit"] == 14.2
+    records, predictions = monitor.snapshot()
+    rows = frame_rows(records, events, predictions)
+    k = poses.split_k
+    assert [r["predicted_ms"] for r in rows] == [None, 100.0 + k, 200.0 + k, None]
+    assert rows[1]["controller_best_k"] == state.best_k and rows[0]["controller_t0_ms"] is None
+    assert [r["link_profile"] for r in rows] == ["5g", "5g", "5g-pre-tdd", None]
+    assert rows[2]["link_rate_mbit"] == 14.2 and rows[3]["frame_age_ms"] is None
     write_frames_csv(tmp_path / "frames.csv", rows)
     with (tmp_path / "frames.csv").open() as f:
         read = list(csv.DictReader(f))
-    assert tuple(read[0]) == FRAME_COLUMNS and len(read) == 3
-    assert read[0]["predicted_ms"] == "" and float(read[2]["predicted_ms"]) == rows[2]["predicted_ms"]
+    assert tuple(read[0]) == FRAME_COLUMNS and len(read) == 4
+    assert read[0]["predicted_ms"] == "" and float(read[2]["predicted_ms"]) == 200.0 + k
+    assert int(read[1]["sent_unix_nanos"]) == t + 20 and read[3]["sent_unix_nanos"] == ""
     assert float(read[2]["e2e_ms"]) == pytest.approx(1e3 * poses.timings.capture_to_pose_secs)

@@ -110,7 +110,7 @@ def _log_state(viz: Viz, state: ControllerState) -> None:
     # profiles (the state carries zeros there, which a plot would show as T = 0).
     link = (
         {"controller/t0_ms": state.t0_ms, "controller/beta_ms_per_kB": state.beta_ms_per_kB}
-        if state.link_samples
+        if state.link_samples or state.has_prediction
         else {}
     )
     predicted = (

@@ -19,7 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from shared.control.linkmodel import HysteresisChooser, LinkOccupancy, OnlineLinkEstimator, split_costs
 from shared.wire.cuts import N_CUTS, CodecName
-from shared.wire.messages import ComputeProfile, ControllerState, FrameSent, LinkStamps
+from shared.wire.messages import CONTROLLER_WAITING, ComputeProfile, ControllerState, FrameSent, LinkStamps
 from shared.wire.sizing import features_payload_bytes
 
 
@@ -131,7 +131,7 @@ class SplitController:
         t = self.predict()
         zeros = [0.0] * N_CUTS
         if t is None:
-            chosen, best, reason, pred = current_k, current_k, "waiting for the compute profiles of both sides", zeros
+            chosen, best, reason, pred = current_k, current_k, CONTROLLER_WAITING, zeros
         elif pinned:
             best = int(np.argmin(t))
             chosen, reason, pred = current_k, f"pinned at k={current_k} by a user (best would be k={best})", list(t)

@@ -30,12 +30,18 @@ S = TypeVar("S", bound=ServiceSettings)
 
 def write_resolved(settings: ServiceSettings, name: str) -> Path | None:
     """The settings this process runs with (config file and environment resolved) as
-    `run_dir/settings/<service>-<robot or worker>.json`: the run's record of what each process really
-    ran with (the launcher's config.toml does not hold SPLITTAG_* overrides). None when run_dir is
-    not a folder (a service started by hand without a run)."""
-    if not settings.run_dir.is_dir():
+    `run_dir/settings/<service>-<worker, "fleet" or robot>.json`: the run's record of what each process
+    really ran with (the launcher's config.toml does not hold SPLITTAG_* overrides). Only for a process
+    the run's launcher started (its pid in run_dir/launcher.pid is this process's parent): a service
+    started by hand beside a run, or with runs/current's config after it, leaves that run's record alone."""
+    launcher = settings.run_dir / "launcher.pid"
+    try:
+        if int(launcher.read_text().strip()) != os.getppid():
+            return None
+    except (OSError, ValueError):
         return None
-    who = getattr(settings, "worker_id", None) or settings.robot_id
+    worker = getattr(settings, "worker_id", None)
+    who = worker or ("fleet" if getattr(settings, "robots", None) else settings.robot_id)
     path = settings.run_dir / "settings" / f"{name}-{who}.json"
     try:
         path.parent.mkdir(exist_ok=True)

@@ -384,7 +384,8 @@ def _cmd_link_set(args: argparse.Namespace) -> int:
     chosen = profile(args.profile)  # an unknown name: LinkProfileError, one line (exit 2)
     try:
         LinkEmulator(LinkEmulatorSettings(prefix=args.prefix)).set_profile(chosen)
-    except LinkEmulationUnavailable as exc:
+    except (LinkEmulationUnavailable, RuntimeError, OSError, ValueError) as exc:
+        # not up, a tc call refused, the delay line gone or answering nonsense: one line
         print(f"splittag link set: {exc}", file=sys.stderr)
         return 1
     print(f"link profile {args.profile}")
@@ -864,9 +865,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         _load_link_profiles(args)
         code: int = args.func(args)
     except BrokenPipeError:
-        # The reader went away (`splittag settings | head`): no traceback, and none at exit either.
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        return 0
+        try:
+            sys.stdout.flush()
+        except BrokenPipeError:
+            # Our reader went away (`splittag settings | head`): no traceback, none at exit either, and the
+            # exit code a shell gives a command killed by SIGPIPE. Any other broken pipe is an error.
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return 141
+        raise
     except Exception as exc:
         usage, failed = _user_errors()  # imported only here: every command starts as fast as before
         from pydantic import ValidationError

@@ -7,7 +7,10 @@ Run inside the robot's network namespace (it attaches to an existing persistent 
     ip netns exec st-robot python -m shared.tools.delayline --tun sttun --delay-ms 39.9 --control /run/x.sock
 The control socket (a Unix stream socket; path names cross network namespaces) takes one line of
 JSON per connection, {"delay_ms": 12.5}, applies it to packets arriving from then on, and answers
-with the state as JSON.
+with the state as JSON. With `--events FILE` (the launcher gives its run folder's link_events.jsonl) a
+request's `event` (the link profile being applied, stamped by the applier) is appended to that file:
+whoever applies a profile, the launcher or `splittag link set` from another shell, it is recorded by the
+one process that owns the emulation, in the run folder it was started for.
 """
 
 from __future__ import annotations
@@ -98,7 +101,29 @@ class DelayLine:
         }
 
 
-def _handle_control(conn: socket.socket, line: DelayLine) -> None:
+EVENT_FIELDS: dict[str, tuple[type, ...]] = {
+    "unix_nanos": (int,),
+    "profile": (str,),
+    "rate_mbit": (int, float, type(None)),
+    "delay_ms": (int, float),
+    "beta_ms_per_kB": (int, float),
+}
+
+
+def record_event(events: Path, event: object) -> None:
+    """Append one link event (checked: exactly EVENT_FIELDS, each of its type) to `events`; never through
+    a symbolic link (the file is the run folder's, opened without following one)."""
+    if not isinstance(event, dict) or set(event) != set(EVENT_FIELDS):
+        raise ValueError(f"an event has exactly the fields {sorted(EVENT_FIELDS)}")
+    for name, types in EVENT_FIELDS.items():
+        if not isinstance(event[name], types) or isinstance(event[name], bool):
+            raise ValueError(f"event field {name} has the wrong type")
+    fd = os.open(events, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+    with os.fdopen(fd, "a") as f:
+        f.write(json.dumps(event) + "\n")
+
+
+def _handle_control(conn: socket.socket, line: DelayLine, events: Path | None = None) -> None:
     with conn:
         conn.settimeout(2.0)
         try:
@@ -107,15 +132,22 @@ def _handle_control(conn: socket.socket, line: DelayLine) -> None:
             if "delay_ms" in request:
                 line.set_delay_ms(float(request["delay_ms"]))
                 log.info("delay set to %.2f ms", line.delay_secs * 1e3)
-            conn.sendall(json.dumps({"ok": True, **line.state()}).encode())
+            recorded = False
+            if "event" in request and events is not None:
+                try:
+                    record_event(events, request["event"])
+                    recorded = True
+                except OSError as exc:  # the run folder is gone or full: the link change still holds
+                    log.warning("link event not recorded in %s: %s", events, exc)
+            conn.sendall(json.dumps({"ok": True, "recorded": recorded, **line.state()}).encode())
         except (OSError, ValueError, TypeError) as exc:
             log.warning("control request rejected: %s", exc)
             with contextlib.suppress(OSError):
                 conn.sendall(json.dumps({"ok": False, "error": str(exc)}).encode())
 
 
-def serve(tun: str, delay_ms: float, control: Path) -> int:
-    """Run the delay line until SIGINT/SIGTERM."""
+def serve(tun: str, delay_ms: float, control: Path, events: Path | None = None) -> int:
+    """Run the delay line until SIGINT/SIGTERM (`events`: where the link events of requests go)."""
     fd = open_tun(tun)
     line = DelayLine(delay_ms)
     control.unlink(missing_ok=True)
@@ -147,7 +179,7 @@ def serve(tun: str, delay_ms: float, control: Path) -> int:
                         break
             if ctl.fileno() in readable:
                 conn, _ = ctl.accept()
-                _handle_control(conn, line)
+                _handle_control(conn, line, events)
             for packet in line.pop_due(time.monotonic()):
                 try:
                     os.write(fd, packet)
@@ -162,7 +194,7 @@ def serve(tun: str, delay_ms: float, control: Path) -> int:
     return 0
 
 
-def control_request(control: Path, request: dict[str, float], timeout_secs: float = 5.0) -> dict[str, object]:
+def control_request(control: Path, request: dict[str, object], timeout_secs: float = 5.0) -> dict[str, object]:
     """Send one request to a running delay line and return its JSON answer."""
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
         s.settimeout(timeout_secs)
@@ -180,9 +212,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--tun", required=True)
     ap.add_argument("--delay-ms", type=float, required=True)
     ap.add_argument("--control", type=Path, required=True)
+    ap.add_argument("--events", type=Path, default=None, help="append the requests' link events to this file")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s delayline %(levelname)s %(message)s")
-    return serve(args.tun, args.delay_ms, args.control)
+    return serve(args.tun, args.delay_ms, args.control, args.events)
 
 
 if __name__ == "__main__":

@@ -426,9 +426,11 @@ def run_fleet(
         "exit_codes": codes,
     }
     for robot, monitor in monitors.items():  # every frame's timings, per robot (as `splittag up`'s frames.csv)
-        with monitor._lock:
-            records = list(monitor.records)
-        write_frames_csv(run_dir / f"frames_{robot}.csv", frame_rows(records, []))
+        records, predictions = monitor.snapshot()
+        write_frames_csv(run_dir / f"frames_{robot}.csv", frame_rows(records, [], predictions))
+        summary["robots"][robot]["frames_csv"] = str(run_dir / f"frames_{robot}.csv")
+    if (run_dir / "settings").is_dir():
+        summary["settings"] = sorted(str(p) for p in (run_dir / "settings").glob("*.json"))
     slam_json = run_dir / "slam.json"
     if slam_json.is_file():
         summary["slam"] = json.loads(slam_json.read_text())

@@ -179,6 +179,10 @@ def stop_services(services: list[Service], timeout_secs: float = 15.0) -> dict[s
     return {s.name: codes[s.name] for s in services}
 
 
+# A controller decision in a run's history: (stamp nanos, T(k) per k, best k, t0 ms, beta ms/kB).
+Prediction = tuple[int, tuple[float, ...], int, float, float]
+
+
 def _waits_ms(msg: TagPoses) -> dict[str, float]:
     """Where a frame waited outside the critical path (robot + link + edge compute), from its stamps:
     `before_robot_ms` = capture -> sent minus the robot's compute (the frame's age when the robot took it,
@@ -212,6 +216,9 @@ class Monitor:
     max_ground_truth: int = 3000
     frames_total: int = 0
     controller: ControllerState | None = None
+    # The controller's predictions by decision time (stamp, T(k) per k, best k, t0, beta): a bounded
+    # history (10 decisions a second: 2.8 hours), joined to the frames at the end of the run.
+    predictions: deque[Prediction] = field(default_factory=lambda: deque(maxlen=100_000))
     slam_status: dict[str, int] = field(default_factory=dict)  # CameraPose status -> frames
     _recent: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=400))
     _slam_recent: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=400))
@@ -241,7 +248,6 @@ class Monitor:
         msg = self._decode(payload, TagPoses)
         if msg is None:
             return
-        c = self.controller  # the controller's belief when this frame's poses arrived (as of)
         rec: dict[str, Any] = {
             "seq": msg.seq,
             "capture_nanos": msg.capture_nanos,
@@ -255,10 +261,7 @@ class Monitor:
             **_waits_ms(msg),
             "t": self.clock(),
             "errors_cm": self._errors(msg),
-            "predicted_ms": c.predicted_ms_by_k[msg.split_k] if c is not None and c.has_prediction else None,
-            "controller_best_k": c.best_k if c is not None and c.has_prediction else None,
-            "controller_t0_ms": c.t0_ms if c is not None and c.link_samples else None,
-            "controller_beta_ms_per_kB": c.beta_ms_per_kB if c is not None and c.link_samples else None,
+            "sent_nanos": msg.link.sent_nanos if msg.link is not None else None,  # None: computed on board
         }
         with self._lock:
             self.records.append(rec)
@@ -268,10 +271,23 @@ class Monitor:
                 del self.records[: len(self.records) // 2]
 
     def on_controller(self, payload: bytes) -> None:
-        """Keep the latest controller state for the live line."""
+        """Keep the latest controller state for the live line, and its predictions (when it has them) by
+        the time it decided, for frames.csv (joined there by each frame's send time: a state crosses the
+        uplink behind the frames and may arrive after the poses of the frame it concerns)."""
         state = self._decode(payload, ControllerState)
-        if state is not None:
-            self.controller = state
+        if state is None:
+            return
+        self.controller = state
+        if state.has_prediction:
+            with self._lock:
+                self.predictions.append(
+                    (state.stamp_nanos, tuple(state.predicted_ms_by_k), state.best_k, state.t0_ms, state.beta_ms_per_kB)
+                )
+
+    def snapshot(self) -> tuple[list[dict[str, Any]], list[Prediction]]:
+        """Copies of the frame records and the controller's predictions, for a run's files."""
+        with self._lock:
+            return list(self.records), sorted(self.predictions)
 
     def on_camera(self, payload: bytes) -> None:
         """Record one SLAM CameraPose: its status, its position sigma (sqrt of the covariance's position
@@ -717,6 +733,7 @@ def _placement(
 FRAME_COLUMNS: tuple[str, ...] = (
     "seq",
     "capture_unix_nanos",
+    "sent_unix_nanos",
     "k",
     "payload_bytes",
     "tags",
@@ -737,23 +754,35 @@ FRAME_COLUMNS: tuple[str, ...] = (
 )
 
 
-def frame_rows(records: list[dict[str, Any]], link_events: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """One row per frame with poses (FRAME_COLUMNS): the monitor's record, the controller's prediction for
-    the frame's k as it stood when the poses arrived, and the link profile applied at the frame's capture
-    (from the run's link_events.jsonl). None where a value is not known (no controller, no emulated link,
-    a frame computed on board: no link stamps, no ground truth)."""
+def frame_rows(
+    records: list[dict[str, Any]], link_events: list[dict[str, Any]], predictions: list[Prediction] | None = None
+) -> list[dict[str, Any]]:
+    """One row per frame with poses (FRAME_COLUMNS): the monitor's record; the controller's last
+    prediction decided before the frame was sent (`predictions` sorted by stamp; both stamps are the
+    robot's clock), T(k) for the frame's k; and the link profile applied before the frame was sent, as
+    it crossed the uplink after that (link_events.jsonl, stamped when each change began). None where a
+    value is not known (no controller or no prediction yet, no emulated link, no ground truth); a frame
+    computed on board (no link stamps) crossed no link: no link, prediction or wait columns."""
     import bisect
 
-    stamps = [e["unix_nanos"] for e in link_events]
+    link_stamps = [e["unix_nanos"] for e in link_events]
+    predictions = predictions or []
+    decided = [p[0] for p in predictions]
     out = []
     for r in records:
-        i = bisect.bisect_right(stamps, r["capture_nanos"]) - 1
-        event = link_events[i] if i >= 0 else None
+        sent = r.get("sent_nanos")
+        event = prediction = None
+        if sent is not None:
+            i = bisect.bisect_right(link_stamps, sent) - 1
+            event = link_events[i] if i >= 0 else None
+            j = bisect.bisect_right(decided, sent) - 1
+            prediction = predictions[j] if j >= 0 else None
         nan_to_none = {k: (None if np.isnan(r[k]) else r[k]) for k in ("before_robot_ms", "at_edge_ms")}
         out.append(
             {
                 "seq": r["seq"],
                 "capture_unix_nanos": r["capture_nanos"],
+                "sent_unix_nanos": sent,
                 "k": r["k"],
                 "payload_bytes": r["payload_bytes"],
                 "tags": r["tags"],
@@ -763,10 +792,10 @@ def frame_rows(records: list[dict[str, Any]], link_events: list[dict[str, Any]])
                 "e2e_ms": r["e2e_ms"],
                 "frame_age_ms": nan_to_none["before_robot_ms"],
                 "edge_queue_ms": nan_to_none["at_edge_ms"],
-                "predicted_ms": r.get("predicted_ms"),
-                "controller_best_k": r.get("controller_best_k"),
-                "controller_t0_ms": r.get("controller_t0_ms"),
-                "controller_beta_ms_per_kB": r.get("controller_beta_ms_per_kB"),
+                "predicted_ms": prediction[1][r["k"]] if prediction else None,
+                "controller_best_k": prediction[2] if prediction else None,
+                "controller_t0_ms": prediction[3] if prediction else None,
+                "controller_beta_ms_per_kB": prediction[4] if prediction else None,
                 "link_profile": event["profile"] if event else None,
                 "link_rate_mbit": event.get("rate_mbit") if event else None,
                 "link_delay_ms": event.get("delay_ms") if event else None,
@@ -803,7 +832,7 @@ class LinkEventsTail:
         return [f"link profile -> {describe(e)}" for e in fresh]
 
 
-def _record_link_events(run_dir: Path, events: list[dict[str, Any]]) -> None:
+def _record_link_events(run_dir: Path, events: list[dict[str, Any]], recording_id: str = "") -> None:
     """The link profiles into the run's recording (a part merged with the services'): `link/profile` (a
     text entry per change), `link/rate_mbit` and `link/floor_ms`, on the frames' capture_time timeline.
     Only when the run records (some service wrote a part)."""
@@ -812,16 +841,24 @@ def _record_link_events(run_dir: Path, events: list[dict[str, Any]]) -> None:
     from shared.tools.linkemu import describe
     from shared.viz.recording import RerunSettings, RerunViz
 
-    viz = RerunViz(RerunSettings(enabled=True, part_name="link"), service="link", run_dir=run_dir)
+    settings = RerunSettings(enabled=True, part_name="link", recording_id=recording_id)  # the services' recording
+    viz = RerunViz(settings, service="link", run_dir=run_dir)
     try:
         for e in events:
             viz.text(e["unix_nanos"], "link/profile", describe(e))
-            values = {"link/floor_ms": float(e.get("delay_ms") or 0.0)}
-            if e.get("rate_mbit"):
-                values["link/rate_mbit"] = float(e["rate_mbit"])
-            viz.scalars(e["unix_nanos"], values)
+            rate = float(e["rate_mbit"]) if e.get("rate_mbit") else float("nan")  # unshaped: a gap, not 0
+            viz.scalars(e["unix_nanos"], {"link/floor_ms": float(e.get("delay_ms") or 0.0), "link/rate_mbit": rate})
     finally:
         viz.close()
+
+
+def _recording_id(run_config: Path) -> str:
+    """The run's Rerun recording id as its config sets it ("" = the run folder's name, the default)."""
+    try:
+        rerun = tomllib.loads(run_config.read_text()).get("common", {}).get("rerun", {})
+    except (OSError, tomllib.TOMLDecodeError):
+        return ""
+    return str(rerun.get("recording_id", "")) if isinstance(rerun, dict) else ""
 
 
 def _summarise_run(run_dir: Path, monitor: Monitor, codes: dict[str, int | None]) -> dict[str, Any]:
@@ -833,14 +870,14 @@ def _summarise_run(run_dir: Path, monitor: Monitor, codes: dict[str, int | None]
     events = read_events(run_dir)
     if events:
         summary["link_profiles"] = events
-    with monitor._lock:
-        records = list(monitor.records)
-    write_frames_csv(run_dir / "frames.csv", frame_rows(records, events))
+    records, predictions = monitor.snapshot()
+    write_frames_csv(run_dir / "frames.csv", frame_rows(records, events, predictions))
     summary["frames_csv"] = str(run_dir / "frames.csv")
+    summary["frames_csv_rows"] = len(records)  # the newest frames when a long run outgrew the monitor's cap
     settings_dir = run_dir / "settings"
     if settings_dir.is_dir():
         summary["settings"] = sorted(str(p) for p in settings_dir.glob("*.json"))
-    _record_link_events(run_dir, events)
+    _record_link_events(run_dir, events, _recording_id(run_dir / "config.toml"))
     recording = merge_recordings(run_dir)
     if recording is not None:
         summary["recording"] = str(recording)
@@ -909,7 +946,7 @@ def run_pipeline(
         if started.up:
             print(f"run {run_dir}: {', '.join(services)} alive; Ctrl-C stops", flush=True)
             link_lines = LinkEventsTail(run_dir)
-            link_lines.new_lines()  # the initial profile was printed above
+            link_lines.seen = 1 if emu is not None else 0  # the initial profile was printed above
             run_for(
                 stop,
                 duration_secs,

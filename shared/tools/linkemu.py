@@ -184,11 +184,6 @@ class LinkEmulatorSettings(BaseModel):
     def control_path(self) -> Path:
         return Path(tempfile.gettempdir()) / f"splittag-{self.prefix}-delay.sock"
 
-    @property
-    def state_path(self) -> Path:
-        """Where a running emulation says which folder its events go to (read by `splittag link set`)."""
-        return Path(tempfile.gettempdir()) / f"splittag-{self.prefix}-link.json"
-
 
 class LinkEmulationUnavailable(RuntimeError):
     """Namespaces, veth, TUN or tc cannot be used here (not root, no iproute2, ...)."""
@@ -326,8 +321,6 @@ class LinkEmulator:
             ):
                 _run(argv)
             self._start_delay_line(initial.delay_ms)
-            if self.log_dir is not None:
-                s.state_path.write_text(json.dumps({"log_dir": str(Path(self.log_dir).resolve())}))
             self.set_profile(initial)
         except BaseException:
             self.down()
@@ -351,6 +344,7 @@ class LinkEmulator:
                     str(delay_ms),
                     "--control",
                     str(s.control_path),
+                    *(["--events", str(Path(self.log_dir).resolve() / EVENTS_FILE)] if self.log_dir else []),
                 ],
             ),
             stdout=out,
@@ -367,6 +361,7 @@ class LinkEmulator:
     def set_profile(self, p: LinkProfile) -> None:
         """Switch the link live: tbf rate on the uplink veth, floor delay in the delay line."""
         s = self.settings
+        applied_nanos = time.time_ns()  # the change starts now: a frame sent from here may meet it
         if not s.control_path.exists():
             raise LinkEmulationUnavailable(
                 f"no emulated link with prefix {s.prefix!r} is up (start one with `splittag link up`)"
@@ -395,31 +390,18 @@ class LinkEmulator:
                     ],
                 )
             )
-        control_request(s.control_path, {"delay_ms": p.delay_ms})
-        rate = f"{p.rate_mbit} Mbit/s" if p.rate_mbit else "unshaped"
-        log.info("link profile %s: rate %s, delay %.1f ms", p.name, rate, p.delay_ms)
-        self._record(p)
-
-    def _record(self, p: LinkProfile) -> None:
-        """Append the profile just applied to the run's link_events.jsonl (wall clock, as the frames'
-        capture stamps), whichever process applied it: the launcher, or `splittag link set`."""
-        folder = self.log_dir
-        if folder is None and self.settings.state_path.is_file():
-            try:
-                folder = Path(json.loads(self.settings.state_path.read_text())["log_dir"])
-            except (OSError, ValueError, KeyError, TypeError):
-                folder = None
-        if folder is None or not Path(folder).is_dir():
-            return
         event = {
-            "unix_nanos": time.time_ns(),
+            "unix_nanos": applied_nanos,
             "profile": p.name,
             "rate_mbit": p.rate_mbit,
             "delay_ms": p.delay_ms,
             "beta_ms_per_kB": p.beta_ms_per_kB,
         }
-        with (Path(folder) / EVENTS_FILE).open("a") as f:
-            f.write(json.dumps(event) + "\n")
+        # The delay line records the event in the run folder it was started for (the launcher's), whoever
+        # applies the profile: no file outside the run names that folder.
+        control_request(s.control_path, {"delay_ms": p.delay_ms, "event": event})
+        rate = f"{p.rate_mbit} Mbit/s" if p.rate_mbit else "unshaped"
+        log.info("link profile %s: rate %s, delay %.1f ms", p.name, rate, p.delay_ms)
 
     def down(self) -> None:
         """Remove everything (idempotent)."""
@@ -436,7 +418,6 @@ class LinkEmulator:
             _run(["ip", "netns", "del", ns], check=False)
         _run(["ip", "link", "del", f"{s.prefix}-mr"], check=False)
         s.control_path.unlink(missing_ok=True)
-        s.state_path.unlink(missing_ok=True)
 
     def __enter__(self) -> LinkEmulator:
         return self

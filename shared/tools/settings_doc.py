@@ -231,7 +231,7 @@ def print_rows(services: list[str], *, config_file: Path | None = None, resolve:
     """Plain text for a terminal: one block per service; `resolve`: the values `config_file` (and the
     environment) give, each changed one with its default."""
     for service in services:
-        if resolve and service == COMMON:
+        if resolve and service == COMMON and len(services) > 1:
             continue  # every service's block holds them, resolved with its own table
         table = resolved_rows(service, config_file) if resolve else service_rows(service)
         print(f"[{service}]" + (f"  ({config_file or 'defaults and environment'})" if resolve else ""))
@@ -249,8 +249,8 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
         "--config",
         type=Path,
         default=None,
-        help="show the values this TOML file (and SPLITTAG_* variables) give, changed ones marked * with their default "
-        "(a run's runs/current/config.toml: what the launcher started the services with)",
+        help="show the values this TOML file and this shell's SPLITTAG_* variables give, changed ones marked * with "
+        "their default (what a run's processes really ran with is in its settings/*.json)",
     )
 
 

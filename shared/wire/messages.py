@@ -610,6 +610,10 @@ class ComputeProfile(Message):
     ms_by_k: PerCut
 
 
+# ControllerState.reason while the controller waits for both sides' ComputeProfiles (its T(k) are zeros then).
+CONTROLLER_WAITING: Final[str] = "waiting for the compute profiles of both sides"
+
+
 class ControllerState(Message):
     """What the adaptive split controller believes, predicts and did (one per decision)."""
 
@@ -634,8 +638,8 @@ class ControllerState(Message):
     @property
     def has_prediction(self) -> bool:
         """predicted_ms_by_k is a prediction: both sides' compute profiles had arrived (before that the
-        controller sends zeros there and waits)."""
-        return any(self.robot_ms_by_k) and any(self.edge_ms_by_k)
+        controller sends zeros there, with the reason CONTROLLER_WAITING)."""
+        return not self.reason.startswith(CONTROLLER_WAITING)
 
 
 MESSAGE_TYPES: Final[tuple[type[Message], ...]] = (
