@@ -18,6 +18,7 @@ import zenoh
 
 from shared.tools.topology import Topology, write_config
 from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
+from shared.transport.split_client import query_split
 from shared.wire import keys
 from tests.procs import REPO
 
@@ -239,6 +240,18 @@ def test_up_restarts_a_killed_service(tmp_path: Path) -> None:
         )
         wait_for_liveliness(d.session, [keys.alive("sup1", "edge_infer")], timeout_secs=90)
         assert d.up.poll() is None, "the deployment ended with the service"
+        # A person's pin survives robot_infer's restart (it was lost, silently: a fresh-clone trial). The
+        # robot's router reconnects to the new edge router first (this session is the edge's).
+        wait_for_liveliness(d.session, [keys.alive("sup1", "robot_infer")], timeout_secs=90)
+        assert query_split(d.session, "sup1", params="k=3", timeout_secs=20).pinned
+        os.kill(first["robot_infer"], signal.SIGKILL)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and d.pids()["robot_infer"] == first["robot_infer"]:
+            time.sleep(0.2)
+        assert d.pids()["robot_infer"] != first["robot_infer"], "robot_infer was not restarted"
+        wait_for_liveliness(d.session, [keys.alive("sup1", "robot_infer")], timeout_secs=90)
+        resumed = query_split(d.session, "sup1")
+        assert (resumed.k, resumed.pinned, resumed.source) == (3, True, "user"), resumed
         down = d.down()
         assert down.returncode == 0, down.stdout + down.stderr
         assert d.up.wait(timeout=60) == 0

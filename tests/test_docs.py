@@ -48,6 +48,24 @@ def test_the_reference_lists_every_leaf_setting_with_its_default() -> None:
             assert row.meaning, f"{service}.{row.name} has no comment in its settings class"
 
 
+def test_the_wire_document_gives_every_schemas_field_order() -> None:
+    """A client of its own (another language) needs each header's fields in order (a fresh-clone trial
+    had to read them from the source): docs/wire.md's section is generated from the models."""
+    from shared.wire import layout
+
+    text = layout.DOC.read_text()
+    assert layout.replace_section(text, layout.markdown()) == text, (
+        "docs/wire.md's schema layouts are out of date: python -m shared.wire.layout --write"
+    )
+    # Independent of the generator: TagPoses' fields as the model declares them, in order.
+    from shared.wire.messages import TagPoses
+
+    section = text[text.index("**`splittag/TagPoses/v4`**") :]
+    section = section[: section.index("\n\n**`")]
+    top = [line.split("`")[1] for line in section.splitlines() if line[:1].isdigit()]
+    assert top == list(TagPoses.model_fields)
+
+
 def test_every_current_schema_is_in_the_wire_document() -> None:
     wire = (REPO / "docs" / "wire.md").read_text()
     listed = set(re.findall(r"^\| `(splittag/[A-Za-z]+/v\d+)` \|", wire, flags=re.MULTILINE))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import time
 from pathlib import Path
 from typing import cast
@@ -491,9 +492,18 @@ def test_a_restarted_slam_resumes_its_map_and_trajectory(tmp_path: Path) -> None
         first.on_poses(_tag_poses(i, 1_000 + i, poses[i]))
     first.write_outputs(tmp_path)  # the last checkpoint before the kill
     before = load_tag_map(tmp_path / "map.json")
+    revision_before = first.revision
+    assert revision_before > 0
     second = SlamNode(settings)  # the restarted process
     assert second.resumed is not None and set(second.slam.known) == {t.id for t in before.tags}
     assert second.slam.surveyed == set()  # soft reads never place the camera by this SLAM's own estimates
+    # Before it sees anything the restarted slam publishes (and answers) the map it resumed, under a
+    # revision that goes on from the first process's, never one the first already gave another map (a
+    # trial's map went from 9 tags at revision 6 to 3 tags at revision 1 after a restart).
+    resumed_map = second.current_map("r1")
+    assert resumed_map.revision == revision_before
+    assert {t.tag_id for t in resumed_map.tags} == {t.id for t in before.tags}
+    assert resumed_map.anchor_tag_id == before.anchor_tag_id
     for i in range(15, 30):
         res = second.on_poses(_tag_poses(i, 1_000 + i, poses[i]))[0]
         assert res.status == "tracking"
@@ -516,7 +526,25 @@ def test_a_restarted_slam_resumes_its_map_and_trajectory(tmp_path: Path) -> None
     assert before.anchor_tag_id is not None and stated[before.anchor_tag_id] == (None, None)
     assert all(rot is not None and pos is not None for i, (rot, pos) in stated.items() if i != before.anchor_tag_id)
     assert second.slam.known_sigmas == stated
+    assert second.revision >= revision_before and second.current_map("r1").revision == second.revision
     assert SlamNode(SlamServiceSettings(run_dir=tmp_path, resume=False)).resumed is None
+
+
+def test_a_map_query_takes_a_save_or_nothing() -> None:
+    """The split queryable refuses what it does not know; the map's got the map back for `?foo=1`,
+    `?save=abc` or a payload (a fresh-clone trial), saving nothing and saying nothing."""
+    from services.slam.service import SlamQueryError, map_request
+
+    assert map_request("", False) is False and map_request("save=0", False) is False
+    assert map_request("save=1", False) is True and map_request("save=true", False) is True
+    for params, payload, said in (
+        ("foo=1", False, "unknown parameters ['foo']"),
+        ("save=abc", False, "save must be"),
+        ("save=1;save=1", False, "given twice"),
+        ("", True, "no payload"),
+    ):
+        with pytest.raises(SlamQueryError, match=re.escape(said)):
+            map_request(params, payload)
 
 
 def test_a_tag_maps_stated_uncertainty_is_how_far_slam_believes_it() -> None:

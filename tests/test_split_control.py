@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 import zenoh
@@ -160,3 +161,38 @@ def test_on_the_controllers_key_the_request_is_the_controllers() -> None:
         with pytest.raises(SplitRequestError, match=why):
             state.apply(params, payload, as_controller=True)
     assert state.get() == SplitConfig(k=3, codec="fp16", pinned=True, source="user")
+
+
+def test_a_wildcard_that_only_overlaps_the_split_gets_no_error_from_it_over_real_zenoh() -> None:
+    """`splittag/<r>/*/stats` reaches the split's queryable (`split/**` holds `split/stats`): the services'
+    stats came with an error reply beside them (a fresh-clone trial). Such a query gets nothing from the
+    split; a key of its own under split/ that names no split is still told where to ask."""
+    state = _state()
+    with _served(state) as client:
+        replies = list(client.get("splittag/w1/*/stats", timeout=3))
+        assert replies == [], [r.err.payload.to_string() for r in replies if r.err]
+        errors = [r.err.payload.to_string() for r in client.get("splittag/w1/split/foo", timeout=5) if r.err]
+        assert errors and "the split is read on" in errors[0]
+
+
+def test_the_split_survives_a_restart_of_its_process(tmp_path: Path) -> None:
+    """A person's pin was lost, silently, when the launcher restarted robot_infer (a fresh-clone trial):
+    every change is remembered in the run's split.json and a restarted process starts from it."""
+    from shared.transport.split_control import remember_split, remembered_split
+
+    memory = tmp_path / "split.json"
+    first = SplitState(
+        SplitConfig(k=7, codec="fp16", pinned=False, source="default"), on_change=lambda c: remember_split(memory, c)
+    )
+    assert remembered_split(memory) is None
+    first.apply({"k": "3"}, None)
+    assert remembered_split(memory) == SplitConfig(k=3, codec="fp16", pinned=True, source="user")
+    restarted = SplitState(remembered_split(memory) or SplitConfig(k=7, codec="fp16", pinned=False, source="default"))
+    assert restarted.get().pinned and restarted.get().k == 3
+    with pytest.raises(SplitRequestError, match="pinned"):
+        restarted.apply({"k": "0"}, None, as_controller=True)
+    first.apply({"release": "1"}, None)
+    assert remembered_split(memory) == SplitConfig(k=3, codec="fp16", pinned=False, source="user")
+    memory.write_text('{"k": 11}')  # damaged: said, and the configured split is used
+    assert remembered_split(memory) is None
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["split.json"]  # no temporary file left

@@ -19,6 +19,7 @@ from shared.model.views import with_views
 from shared.model.weights import load_keypoint_fusion
 from shared.perception.split import RobotTimings, Stage1Output, edge_step, robot_head, robot_stage1
 from shared.runtime.guard import InputGuard, serve_stats
+from shared.runtime.service_main import started_by_run_launcher
 from shared.transport.flow import (
     EdgePacer,
     EdgeWatch,
@@ -29,7 +30,7 @@ from shared.transport.flow import (
 )
 from shared.transport.latest import LatestValid, declare_latest_valid
 from shared.transport.session import declare_tensor_publisher, encoding_for
-from shared.transport.split_control import SplitState, serve_split
+from shared.transport.split_control import SplitState, remember_split, remembered_split, serve_split
 from shared.vision.proposals import Stage1Detector
 from shared.vision.tagmap import TagMapFile, load_tag_map
 from shared.vision.tracking import TagTracker
@@ -95,7 +96,16 @@ class RobotInfer:
         self.detector = Stage1Detector(s.stage1)
         self.tracker = TagTracker(s.tracking) if s.tracking.enabled else None
         self.tag_map = load_tag_map(s.tag_map) if s.tag_map else TagMapFile(default_size_m=s.default_tag_size_m)
-        self.state = SplitState(SplitConfig(k=s.split_k, codec=s.codec, pinned=False, source="default"))
+        # The split, a person's pin included, survives a restart of this service within its run (the launcher
+        # restarts a service that dies: a fresh-clone trial's pin was lost that way, silently).
+        memory = s.run_dir / "split.json" if started_by_run_launcher(s.run_dir) else None
+        initial = SplitConfig(k=s.split_k, codec=s.codec, pinned=False, source="default")
+        resumed = remembered_split(memory) if memory is not None else None
+        if resumed is not None:
+            log.info("split resumed from %s: k=%d pinned=%s (%s)", memory, resumed.k, resumed.pinned, resumed.source)
+        self.state = SplitState(
+            resumed or initial, on_change=None if memory is None else lambda c: remember_split(memory, c)
+        )
         # Each frame in flight keeps its Features: if its edge vanishes, the robot computes it on board.
         self.window: InFlightWindow[Features] = InFlightWindow(s.max_in_flight, timeout_secs=s.in_flight_timeout_secs)
         uplink = UplinkQueue() if s.pace_to_link else None  # the uplink as a queue, not a delay

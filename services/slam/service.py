@@ -122,7 +122,11 @@ class SlamNode:
             self.run_of(robot)
         if self.resumed is not None:
             log.info("resuming from %s: %d tags, robots %s", checkpoint, len(known), sorted(self.runs))
-        self.revision = 0
+        # The map's revision counts its changes over the run, across restarts (a resumed slam continues
+        # from the last one written: a fresh-clone trial saw revision 6 before a restart and 1, then 6
+        # again with other content, after it): ordered, never reused for another map.
+        self.revision_path = settings.run_dir / "map_revision"
+        self.revision = _read_revision(self.revision_path) if self.resumed is not None else 0
         self.lock = threading.Lock()
 
     def _sized(self, o: Observation) -> Observation:
@@ -233,6 +237,7 @@ class SlamNode:
                     )
             if res.map_changed:  # one shared map: every robot's map key carries the change
                 self.revision += 1
+                _write_revision(self.revision_path, self.revision)
                 for other in self.runs.values():
                     other.map_due = True
             publish_map = run.map_due or run.frames % self.settings.map_publish_every == 0
@@ -261,9 +266,10 @@ class SlamNode:
         return out
 
     def _map(self, robot_id: str) -> TagMap:
-        sigmas = self._tag_sigmas(self.slam.tag_map())
+        mapped = self.slam.tag_map()
+        sigmas = self._tag_sigmas(mapped)
         tags = []
-        for t, (size, pose) in sorted(self.slam.tag_map().items()):
+        for t, (size, pose) in sorted(mapped.items()):
             bridged = self.slam.tag_bridged(t)
             rot, pos = sigmas[t] if t in sigmas and not bridged else (None, None)  # the anchor has none
             tags.append(
@@ -277,7 +283,26 @@ class SlamNode:
                     rotation_sigma_deg=None if rot is None else math.degrees(rot),
                 )
             )
-        return TagMap(robot_id=robot_id, revision=self.revision, anchor_tag_id=self.slam.anchor or 0, tags=tags)
+        if self.resumed is not None:  # the checkpoint's tags not seen again since the restart, as they were
+            for spec in self.resumed.tags:
+                if spec.id not in mapped and (resumed_pose := spec.pose()) is not None:
+                    rot, pos = spec.stated_sigmas()
+                    tags.append(
+                        MapTag(
+                            tag_id=spec.id,
+                            size_m=spec.size_m,
+                            world_from_tag=resumed_pose,
+                            observations=0,
+                            bridged=False,
+                            position_sigma_m=pos,
+                            rotation_sigma_deg=None if rot is None else math.degrees(rot),
+                        )
+                    )
+            tags.sort(key=lambda m: m.tag_id)
+        anchor = self.slam.anchor
+        if anchor is None and self.resumed is not None:
+            anchor = self.resumed.anchor_tag_id
+        return TagMap(robot_id=robot_id, revision=self.revision, anchor_tag_id=anchor or 0, tags=tags)
 
     def current_map(self, robot_id: str) -> TagMap:
         """Thread-safe map snapshot (the one shared map, addressed to `robot_id`)."""
@@ -425,6 +450,44 @@ class SlamQueryError(ValueError):
     """A map query slam refuses (a save through a wildcard key)."""
 
 
+def _read_revision(path: Path) -> int:
+    """The map revision a previous slam of this run reached (0: none written, or unreadable)."""
+    try:
+        return max(0, int(path.read_text().strip()))
+    except (OSError, ValueError):
+        return 0
+
+
+def _write_revision(path: Path, revision: int) -> None:
+    if not path.parent.is_dir():
+        return  # no run folder (a slam run without one): nothing to resume from either
+    try:
+        atomic_write_text(path, f"{revision}\n")
+    except OSError as exc:
+        log.warning("map revision not written to %s: %s", path, exc)
+
+
+def map_request(parameters: str, has_payload: bool) -> bool:
+    """Whether a map query asks for a save (`save=1` / `true`; `0` / `false` or nothing: a plain get).
+    Anything else is refused, as the split's queryable refuses what it does not know (a fresh-clone
+    trial's `?foo=1`, `?save=abc` and a payload all got the map back, nothing saved and nothing said)."""
+    if has_payload:
+        raise SlamQueryError("a map query takes no payload (a get, or ?save=1)")
+    params: dict[str, str] = {}
+    for item in filter(None, parameters.split(";")):
+        name, _, value = item.partition("=")
+        if name in params:
+            raise SlamQueryError(f"parameter {name} given twice")
+        params[name] = value
+    unknown = sorted(set(params) - {"save"})
+    if unknown:
+        raise SlamQueryError(f"unknown parameters {unknown} (a map query takes only save=1)")
+    save = params.get("save", "0")
+    if save not in ("1", "true", "0", "false"):
+        raise SlamQueryError(f"save must be 1, true, 0 or false, got {save!r}")
+    return save in ("1", "true")
+
+
 def _refuse_busy(query: zenoh.Query) -> None:
     with query:
         query.reply_err(b"slam is busy: too many map queries pending")
@@ -486,7 +549,12 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
 
     def answer(query: zenoh.Query) -> None:
         with query:  # the query is finalised (its asker told "no more replies") on exit
-            if query.parameters.get("save") in ("1", "true"):
+            try:
+                save = map_request(str(query.parameters), query.payload is not None)
+            except SlamQueryError as exc:
+                query.reply_err(str(exc).encode())
+                raise
+            if save:
                 if any(c in str(query.key_expr) for c in "*$"):
                     # A wildcard reaches every queryable under it, past access control's deny rule on the
                     # map key (which sees only the query's own key): a save names the map it saves.

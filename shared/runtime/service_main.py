@@ -28,17 +28,23 @@ from shared.vision.tagmap import TagMapError
 S = TypeVar("S", bound=ServiceSettings)
 
 
+def started_by_run_launcher(run_dir: Path) -> bool:
+    """This process was started by the launcher of the run in `run_dir` (its pid in run_dir/launcher.pid
+    is this process's parent): what it leaves there (its settings, robot_infer's split) belongs to that
+    run, and a restart of it by that launcher continues the same run."""
+    try:
+        return int((run_dir / "launcher.pid").read_text().strip()) == os.getppid()
+    except (OSError, ValueError):
+        return False
+
+
 def write_resolved(settings: ServiceSettings, name: str) -> Path | None:
     """The settings this process runs with (config file and environment resolved) as
     `run_dir/settings/<service>-<worker, "fleet" or robot>.json`: the run's record of what each process
     really ran with (the launcher's config.toml does not hold SPLITTAG_* overrides). Only for a process
     the run's launcher started (its pid in run_dir/launcher.pid is this process's parent): a service
     started by hand beside a run, or with runs/current's config after it, leaves that run's record alone."""
-    launcher = settings.run_dir / "launcher.pid"
-    try:
-        if int(launcher.read_text().strip()) != os.getppid():
-            return None
-    except (OSError, ValueError):
+    if not started_by_run_launcher(settings.run_dir):
         return None
     worker = getattr(settings, "worker_id", None)
     who = worker or ("fleet" if getattr(settings, "robots", None) else settings.robot_id)

@@ -22,10 +22,15 @@ fresh-clone trial of the TLS fleet).
 
 from __future__ import annotations
 
+import json
 import logging
+import os
 import threading
+from collections.abc import Callable
+from pathlib import Path
 
 import zenoh
+from pydantic import ValidationError
 
 from shared.transport.session import encoding_for
 from shared.wire.codec import WireError
@@ -42,9 +47,10 @@ class SplitRequestError(ValueError):
 class SplitState:
     """Thread-safe current SplitConfig."""
 
-    def __init__(self, initial: SplitConfig) -> None:
+    def __init__(self, initial: SplitConfig, *, on_change: Callable[[SplitConfig], None] | None = None) -> None:
         self._lock = threading.Lock()
         self._config = initial
+        self._on_change = on_change  # told every applied change (robot_infer remembers it across a restart)
 
     def get(self) -> SplitConfig:
         """The current config."""
@@ -100,7 +106,31 @@ class SplitState:
             if new != cur:
                 self._config = new
                 log.info("split set to k=%d codec=%s pinned=%s (%s)", new.k, new.codec, new.pinned, new.source)
+                if self._on_change is not None:
+                    self._on_change(new)
             return new
+
+
+def remember_split(path: Path, config: SplitConfig) -> None:
+    """Write the split (k, codec, pin, source) to `path` atomically; a failure is logged, never raised
+    (the split itself has changed)."""
+    try:
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(config.model_dump()))
+        tmp.replace(path)
+    except OSError as exc:
+        log.warning("split not remembered in %s: %s", path, exc)
+
+
+def remembered_split(path: Path) -> SplitConfig | None:
+    """The split a previous process of the same run left in `path`, or None (none, or unreadable: said)."""
+    if not path.is_file():
+        return None
+    try:
+        return SplitConfig(**json.loads(path.read_text()))
+    except (OSError, ValueError, TypeError, ValidationError) as exc:
+        log.warning("ignoring the remembered split in %s: %s", path, exc)
+        return None
 
 
 def parse_parameters(text: str) -> dict[str, str]:
@@ -155,7 +185,11 @@ def serve_split(session: zenoh.Session, key: str, state: SplitState) -> zenoh.Qu
         asked_key = zenoh.KeyExpr(asked)
         on = key if asked_key.intersects(zenoh.KeyExpr(key)) else auto
         if not asked_key.intersects(zenoh.KeyExpr(on)):
-            query.reply_err(f"{asked}: the split is read on {key} or {auto}".encode())
+            if not any(c in asked for c in "*$"):  # a key of its own that names no split: a mistake
+                query.reply_err(f"{asked}: the split is read on {key} or {auto}".encode())
+            # A wildcard that only overlaps `split/**` (`splittag/<robot>/*/stats` reaches `split/stats`)
+            # asks for something else: this queryable has no answer for it, not an error (found by a
+            # fresh-clone trial: the services' stats came with an error reply beside them).
             return
         query.reply(on, encode(applied, framing=framing), encoding=enc)
 

@@ -153,6 +153,20 @@ def _meta_of(metadata: Iterable[Any], where: str) -> tuple[dict[str, Any], Any, 
     return kw, spec, allow_inf_nan
 
 
+def inline_array(spec: Any) -> bool:
+    """An array field that travels inline in the header (a flat number array): fixed shape, one float
+    dtype, finite, at most MAX_INLINE elements; every other array is a reference into the data section."""
+    shape = spec.shape
+    fixed = shape is not None and all(d is not None for d in shape)
+    return bool(
+        fixed
+        and spec.finite
+        and len(spec.dtypes) == 1
+        and spec.dtypes[0] in _FINITE_MAX
+        and math.prod(shape) <= MAX_INLINE
+    )
+
+
 def _meta(tp: Any, kw: dict[str, Any]) -> Any:
     return Annotated[tp, msgspec.Meta(**kw)] if kw else tp
 
@@ -191,9 +205,8 @@ class PositionalCodec:
 
     def _array(self, spec: Any, where: str) -> Compiled:
         shape = spec.shape
-        fixed = shape is not None and all(d is not None for d in shape)
-        count = math.prod(shape) if fixed else 0
-        if fixed and spec.finite and len(spec.dtypes) == 1 and spec.dtypes[0] in _FINITE_MAX and count <= MAX_INLINE:
+        count = math.prod(shape) if inline_array(spec) else 0
+        if inline_array(spec):
             name = spec.dtypes[0]
             dtype = WIRE_DTYPES[name]
             bound = _FINITE_MAX[name]
