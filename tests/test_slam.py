@@ -501,7 +501,7 @@ def test_a_restarted_slam_resumes_its_map_and_trajectory(tmp_path: Path) -> None
     # revision that goes on from the first process's, never one the first already gave another map (a
     # trial's map went from 9 tags at revision 6 to 3 tags at revision 1 after a restart).
     resumed_map = second.current_map("r1")
-    assert resumed_map.revision == revision_before
+    assert resumed_map.revision > revision_before
     assert {t.tag_id for t in resumed_map.tags} == {t.id for t in before.tags}
     assert resumed_map.anchor_tag_id == before.anchor_tag_id
     for i in range(15, 30):
@@ -526,8 +526,11 @@ def test_a_restarted_slam_resumes_its_map_and_trajectory(tmp_path: Path) -> None
     assert before.anchor_tag_id is not None and stated[before.anchor_tag_id] == (None, None)
     assert all(rot is not None and pos is not None for i, (rot, pos) in stated.items() if i != before.anchor_tag_id)
     assert second.slam.known_sigmas == stated
-    assert second.revision >= revision_before and second.current_map("r1").revision == second.revision
-    assert SlamNode(SlamServiceSettings(run_dir=tmp_path, resume=False)).resumed is None
+    assert second.revision > revision_before and second.current_map("r1").revision == second.revision
+    # A third process after a checkpoint older than the last revision, or without resuming: still later.
+    (tmp_path / "map.json").unlink()
+    third = SlamNode(SlamServiceSettings(run_dir=tmp_path, resume=False))
+    assert third.resumed is None and third.revision > second.revision
 
 
 def test_a_map_query_takes_a_save_or_nothing() -> None:

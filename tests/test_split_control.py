@@ -178,21 +178,25 @@ def test_a_wildcard_that_only_overlaps_the_split_gets_no_error_from_it_over_real
 def test_the_split_survives_a_restart_of_its_process(tmp_path: Path) -> None:
     """A person's pin was lost, silently, when the launcher restarted robot_infer (a fresh-clone trial):
     every change is remembered in the run's split.json and a restarted process starts from it."""
-    from shared.transport.split_control import remember_split, remembered_split
+    from shared.transport.split_control import remember_split, remembered_split, resumed_pin, split_memory
 
-    memory = tmp_path / "split.json"
+    memory = split_memory(tmp_path, "r1")
+    assert memory != split_memory(tmp_path, "r2")  # a fleet's robots share the run folder, not the file
     first = SplitState(
         SplitConfig(k=7, codec="fp16", pinned=False, source="default"), on_change=lambda c: remember_split(memory, c)
     )
     assert remembered_split(memory) is None
     first.apply({"k": "3"}, None)
     assert remembered_split(memory) == SplitConfig(k=3, codec="fp16", pinned=True, source="user")
-    restarted = SplitState(remembered_split(memory) or SplitConfig(k=7, codec="fp16", pinned=False, source="default"))
+    restarted = SplitState(resumed_pin(memory) or SplitConfig(k=7, codec="fp16", pinned=False, source="default"))
     assert restarted.get().pinned and restarted.get().k == 3
     with pytest.raises(SplitRequestError, match="pinned"):
         restarted.apply({"k": "0"}, None, as_controller=True)
     first.apply({"release": "1"}, None)
     assert remembered_split(memory) == SplitConfig(k=3, codec="fp16", pinned=False, source="user")
+    assert resumed_pin(memory) is None  # released: a restart starts from the configured split
+    first.apply({"k": "0", "source": "controller"}, None)
+    assert remembered_split(memory) is not None and resumed_pin(memory) is None  # the controller's: not forced
     memory.write_text('{"k": 11}')  # damaged: said, and the configured split is used
-    assert remembered_split(memory) is None
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["split.json"]  # no temporary file left
+    assert remembered_split(memory) is None and resumed_pin(memory) is None
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["split_r1.json"]  # no temporary file left

@@ -30,7 +30,7 @@ from shared.transport.flow import (
 )
 from shared.transport.latest import LatestValid, declare_latest_valid
 from shared.transport.session import declare_tensor_publisher, encoding_for
-from shared.transport.split_control import SplitState, remember_split, remembered_split, serve_split
+from shared.transport.split_control import SplitState, remember_split, resumed_pin, serve_split, split_memory
 from shared.vision.proposals import Stage1Detector
 from shared.vision.tagmap import TagMapFile, load_tag_map
 from shared.vision.tracking import TagTracker
@@ -66,8 +66,8 @@ def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading
     node = RobotInfer(settings, session)
     log.info(
         "robot_infer ready: k=%d codec=%s precision=%s (configured %s) views=%d gamma=%.2f",
-        settings.split_k,
-        settings.codec,
+        node.state.get().k,
+        node.state.get().codec,
         node.net.precision,
         settings.precision,
         getattr(node.net, "views", 1),  # what runs, not only what was asked
@@ -87,7 +87,20 @@ class RobotInfer:
         one_view = load_split_net(s.weights, s.precision, threads=s.threads)
         self.net = with_views(one_view, s.views)
         self.fusion = load_keypoint_fusion(s.weights) if s.fuse_corners else None
-        self.net.warm_up(s.split_k, max_batch=6)
+        # The split, a person's pin, survives a restart of this service within its run (the launcher restarts
+        # a service that dies: a fresh-clone trial's pin was lost that way, silently). One file per robot
+        # (a fleet's robot_infer processes share the run folder); only a pin resumes: the controller, which
+        # reads the split before every decision, sets its own k again, and a k that made this process die
+        # is not forced on the next one unless a person pinned it.
+        memory = split_memory(s.run_dir, s.robot_id) if started_by_run_launcher(s.run_dir) else None
+        initial = SplitConfig(k=s.split_k, codec=s.codec, pinned=False, source="default")
+        resumed = resumed_pin(memory) if memory is not None else None
+        if resumed is not None:
+            log.info("split resumed from %s: k=%d, pinned by a person", memory, resumed.k)
+        self.state = SplitState(
+            resumed or initial, on_change=None if memory is None else lambda c: remember_split(memory, c)
+        )
+        self.net.warm_up(self.state.get().k, max_batch=6)
         # an emulated robot CPU's fixed profile is one view's: its whole-network pass runs once per view too
         emulated = s.emulated_ms_per_tag_by_k
         self.emulated = head_per_tag_ms(emulated, views=s.views) if emulated else None
@@ -96,16 +109,6 @@ class RobotInfer:
         self.detector = Stage1Detector(s.stage1)
         self.tracker = TagTracker(s.tracking) if s.tracking.enabled else None
         self.tag_map = load_tag_map(s.tag_map) if s.tag_map else TagMapFile(default_size_m=s.default_tag_size_m)
-        # The split, a person's pin included, survives a restart of this service within its run (the launcher
-        # restarts a service that dies: a fresh-clone trial's pin was lost that way, silently).
-        memory = s.run_dir / "split.json" if started_by_run_launcher(s.run_dir) else None
-        initial = SplitConfig(k=s.split_k, codec=s.codec, pinned=False, source="default")
-        resumed = remembered_split(memory) if memory is not None else None
-        if resumed is not None:
-            log.info("split resumed from %s: k=%d pinned=%s (%s)", memory, resumed.k, resumed.pinned, resumed.source)
-        self.state = SplitState(
-            resumed or initial, on_change=None if memory is None else lambda c: remember_split(memory, c)
-        )
         # Each frame in flight keeps its Features: if its edge vanishes, the robot computes it on board.
         self.window: InFlightWindow[Features] = InFlightWindow(s.max_in_flight, timeout_secs=s.in_flight_timeout_secs)
         uplink = UplinkQueue() if s.pace_to_link else None  # the uplink as a queue, not a delay

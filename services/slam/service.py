@@ -125,8 +125,13 @@ class SlamNode:
         # The map's revision counts its changes over the run, across restarts (a resumed slam continues
         # from the last one written: a fresh-clone trial saw revision 6 before a restart and 1, then 6
         # again with other content, after it): ordered, never reused for another map.
+        # A new process's map is a new map: one past the last revision this run published, written at once
+        # (the checkpoint may be older than the last revision, or missing).
         self.revision_path = settings.run_dir / "map_revision"
-        self.revision = _read_revision(self.revision_path) if self.resumed is not None else 0
+        previous = _read_revision(self.revision_path)
+        self.revision = previous + 1 if self.revision_path.is_file() else 0
+        if previous or self.revision:
+            _write_revision(self.revision_path, self.revision)
         self.lock = threading.Lock()
 
     def _sized(self, o: Observation) -> Observation:
@@ -283,15 +288,16 @@ class SlamNode:
                     rotation_sigma_deg=None if rot is None else math.degrees(rot),
                 )
             )
-        if self.resumed is not None:  # the checkpoint's tags not seen again since the restart, as they were
-            for spec in self.resumed.tags:
-                if spec.id not in mapped and (resumed_pose := spec.pose()) is not None:
-                    rot, pos = spec.stated_sigmas()
+        if self.resumed is not None:  # the checkpoint's tags not seen again since the restart, as slam holds
+            for spec in self.resumed.tags:  # them: its prior (a configured map's wins over the checkpoint's)
+                if spec.id not in mapped and spec.id in self.slam.known:
+                    size, prior_pose = self.slam.known[spec.id]
+                    rot, pos = self.slam.known_sigmas.get(spec.id, (None, None))
                     tags.append(
                         MapTag(
                             tag_id=spec.id,
-                            size_m=spec.size_m,
-                            world_from_tag=resumed_pose,
+                            size_m=size,
+                            world_from_tag=prior_pose,
                             observations=0,
                             bridged=False,
                             position_sigma_m=pos,

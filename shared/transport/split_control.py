@@ -118,8 +118,21 @@ def remember_split(path: Path, config: SplitConfig) -> None:
         tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
         tmp.write_text(json.dumps(config.model_dump()))
         tmp.replace(path)
-    except OSError as exc:
+    except Exception as exc:
         log.warning("split not remembered in %s: %s", path, exc)
+
+
+def split_memory(run_dir: Path, robot_id: str) -> Path:
+    """Where a robot's split is remembered in its run (one file per robot: a fleet shares the folder)."""
+    return run_dir / f"split_{robot_id}.json"
+
+
+def resumed_pin(path: Path) -> SplitConfig | None:
+    """A person's pin that a previous process of the same robot and run left in `path`, else None: the
+    controller sets its own k again, and a k that made the process die is forced on the next one only
+    when a person pinned it."""
+    config = remembered_split(path)
+    return config if config is not None and config.pinned and config.source == "user" else None
 
 
 def remembered_split(path: Path) -> SplitConfig | None:

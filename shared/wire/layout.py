@@ -16,6 +16,7 @@ from typing import Annotated, Any, Final, Literal, Union
 import annotated_types as at
 from pydantic import BaseModel
 from pydantic.fields import FieldInfo
+from pydantic.types import AllowInfNan
 
 from shared.wire.codec import DTYPE_CODES
 from shared.wire.messages import MESSAGE_TYPES, ArraySpec
@@ -47,13 +48,15 @@ def _constraints(metadata: list[Any]) -> tuple[list[str], ArraySpec | None]:
             more, inner = _constraints(list(m.metadata))
             out += more
             spec = inner or spec
+        elif isinstance(m, AllowInfNan) and not m.allow_inf_nan:
+            out.append("finite")
         elif hasattr(m, "pattern") and getattr(m, "pattern", None):
             out.append(f"matches {m.pattern}")
     return out, spec
 
 
 def _array(spec: ArraySpec) -> str:
-    shape = "x".join("n" if d is None else str(d) for d in spec.shape) if spec.shape else None
+    shape = " x ".join("any" if d is None else str(d) for d in spec.shape) if spec.shape else None
     if inline_array(spec):
         count = 1
         for d in spec.shape or ():
@@ -117,6 +120,11 @@ def markdown() -> str:
         "payload ends with the last one. dtype codes: "
         + ", ".join(f"{d} = {c}" for d, c in DTYPE_CODES.items())
         + ". The two bytes after the version are zero.",
+        "",
+        "Checks beyond each field's type (a message failing one is refused whole): `distortion` has 0, 4, 5,",
+        "8, 12 or 14 coefficients (OpenCV's); a Frame's `image` is (height, width) of its intrinsics;",
+        "`roi_to_image` is invertible; `tracked` is true exactly when `proposer` is `tracker`;",
+        "`covariance_world` is symmetric with no negative variance.",
         "",
     ]
     for model in MESSAGE_TYPES:
