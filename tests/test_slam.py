@@ -533,6 +533,33 @@ def test_a_restarted_slam_resumes_its_map_and_trajectory(tmp_path: Path) -> None
     assert third.resumed is None and third.revision > second.revision
 
 
+def test_a_restarted_slam_publishes_and_saves_unseen_tags_as_the_priors_it_holds(tmp_path: Path) -> None:
+    """A tag the checkpoint and a configured tag map both give: slam holds the configured map's pose as
+    its prior (it wins over the checkpoint's), and the published map and the next map.json say the same
+    (review: the publication and the checkpoint writer disagreed), until the tag is seen again."""
+    settings = SlamServiceSettings(run_dir=tmp_path)
+    first = SlamNode(settings)
+    poses = _constant_velocity(15)
+    for i in range(15):
+        first.on_poses(_tag_poses(i, 1_000 + i, poses[i]))
+    first.write_outputs(tmp_path)
+    before = load_tag_map(tmp_path / "map.json")
+    other = next(t for t in before.tags if t.id != before.anchor_tag_id)
+    moved = np.asarray(other.world_from_tag).copy()
+    moved[0, 3] += 0.01
+    anchor = next(t for t in before.tags if t.id == before.anchor_tag_id)
+    assert anchor.world_from_tag is not None
+    known = {anchor.id: (anchor.size_m, np.asarray(anchor.world_from_tag)), other.id: (other.size_m, moved)}
+    configured = tag_map_from_poses(known, anchor_tag_id=before.anchor_tag_id)
+    write_tag_map(tmp_path / "configured.json", configured)
+    second = SlamNode(SlamServiceSettings(run_dir=tmp_path, tag_map=tmp_path / "configured.json"))
+    published = {t.tag_id: np.asarray(t.world_from_tag) for t in second.current_map("r1").tags}
+    np.testing.assert_allclose(published[other.id], moved)
+    second.write_outputs(tmp_path)
+    saved = {t.id: np.asarray(t.world_from_tag) for t in load_tag_map(tmp_path / "map.json").tags if t.world_from_tag}
+    np.testing.assert_allclose(saved[other.id], moved)
+
+
 def test_a_map_query_takes_a_save_or_nothing() -> None:
     """The split queryable refuses what it does not know; the map's got the map back for `?foo=1`,
     `?save=abc` or a payload (a fresh-clone trial), saving nothing and saying nothing."""

@@ -177,7 +177,7 @@ def test_a_wildcard_that_only_overlaps_the_split_gets_no_error_from_it_over_real
 
 def test_the_split_survives_a_restart_of_its_process(tmp_path: Path) -> None:
     """A person's pin was lost, silently, when the launcher restarted robot_infer (a fresh-clone trial):
-    every change is remembered in the run's split.json and a restarted process starts from it."""
+    every change is remembered in the run's split_<robot>.json and a restarted process resumes a pin."""
     from shared.transport.split_control import remember_split, remembered_split, resumed_pin, split_memory
 
     memory = split_memory(tmp_path, "r1")

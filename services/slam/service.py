@@ -129,9 +129,8 @@ class SlamNode:
         # (the checkpoint may be older than the last revision, or missing).
         self.revision_path = settings.run_dir / "map_revision"
         previous = _read_revision(self.revision_path)
-        self.revision = previous + 1 if self.revision_path.is_file() else 0
-        if previous or self.revision:
-            _write_revision(self.revision_path, self.revision)
+        self.revision = 0 if previous is None else previous + 1
+        _write_revision(self.revision_path, self.revision)
         self.lock = threading.Lock()
 
     def _sized(self, o: Observation) -> Observation:
@@ -334,12 +333,12 @@ class SlamNode:
         # How well each tag is known goes with it (the graph's marginals), so a resumed slam, or a run fed
         # this map as its tag_map, believes each pose only as far as this run could place it.
         sigmas = dict(marginals)
-        if self.resumed is not None:  # tags of the checkpoint not seen again are kept as they were
-            for t in self.resumed.tags:
+        if self.resumed is not None:  # tags of the checkpoint not seen again: the priors slam holds for them
+            for t in self.resumed.tags:  # (a configured map's over the checkpoint's), as the map publishes them
                 if t.id not in tag_map:
-                    if (pose := t.pose()) is not None:
-                        tag_map[t.id] = (t.size_m, pose)
-                        rot, pos = t.stated_sigmas()
+                    if t.id in self.slam.known:
+                        tag_map[t.id] = self.slam.known[t.id]
+                        rot, pos = self.slam.known_sigmas.get(t.id, (None, None))
                         if rot is not None and pos is not None:
                             sigmas[t.id] = (rot, pos)
                     else:
@@ -456,12 +455,16 @@ class SlamQueryError(ValueError):
     """A map query slam refuses (a save through a wildcard key)."""
 
 
-def _read_revision(path: Path) -> int:
-    """The map revision a previous slam of this run reached (0: none written, or unreadable)."""
+def _read_revision(path: Path) -> int | None:
+    """The map revision a previous slam of this run reached (None: none written; unreadable: said, and
+    taken as far ahead as a run could have got, so no revision is given twice)."""
+    if not path.is_file():
+        return None
     try:
         return max(0, int(path.read_text().strip()))
-    except (OSError, ValueError):
-        return 0
+    except (OSError, ValueError) as exc:
+        log.warning("map revision file %s unreadable (%s): revisions go on from 1000000", path, exc)
+        return 1_000_000
 
 
 def _write_revision(path: Path, revision: int) -> None:

@@ -123,7 +123,7 @@ def markdown() -> str:
         "",
         "Checks beyond each field's type (a message failing one is refused whole): `distortion` has 0, 4, 5,",
         "8, 12 or 14 coefficients (OpenCV's); a Frame's `image` is (height, width) of its intrinsics;",
-        "`roi_to_image` is invertible; `tracked` is true exactly when `proposer` is `tracker`;",
+        "`roi_to_image` is invertible; where `proposer` is given, `tracked` is true exactly when it is `tracker`;",
         "`covariance_world` is symmetric with no negative variance.",
         "",
     ]
