@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import os
@@ -77,14 +78,26 @@ def deployment(tmp_path: Path, robot_id: str, env: dict[str, str] | None = None)
             env={**os.environ, **(env or {})},
         )
         session = open_session(ZenohSettings(mode="client", connect=[topology.edge_router], connect_timeout_secs=60))
+        seen: set[int] = set()  # every service pid the run listed: each runs in a session of its own
+        deployment = Deployment(up, runs, session, log_path)
         try:
             wait_for_liveliness(session, [keys.alive(robot_id, s) for s in SERVICES], timeout_secs=120)
-            yield Deployment(up, runs, session, log_path)
+            seen |= set(deployment.pids().values())
+            yield deployment
         finally:
             session.close()
+            with contextlib.suppress(OSError, ValueError, IndexError):
+                seen |= set(deployment.pids().values())  # restarted ones too (the file is gone after a down)
             if up.poll() is None:
+                # A test that failed midway: stop the launcher, then whatever service it left (a service
+                # is in a session of its own, out of the launcher's process group: a failed run left them).
                 os.killpg(up.pid, signal.SIGKILL)
                 up.wait()
+            for pid in seen:  # only a process that is still one of this run's services (a pid may be reused)
+                with contextlib.suppress(OSError):
+                    cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+                    if b"services." in cmdline and str(runs).encode() in cmdline:
+                        os.kill(pid, signal.SIGKILL)
             if up.returncode not in (0, None, -signal.SIGKILL):
                 print(log_path.read_text(errors="replace"))
 
