@@ -38,6 +38,7 @@ from shared.slam.marker_slam import (
     truth_in_estimate_frame,
 )
 from shared.transport.session import declare_fifo_subscriber, encoding_for
+from shared.transport.split_control import SplitRequestError, parse_parameters
 from shared.vision.camera import CameraIntrinsics
 from shared.vision.files import atomic_write_text
 from shared.vision.geometry import check_rigid
@@ -122,11 +123,10 @@ class SlamNode:
             self.run_of(robot)
         if self.resumed is not None:
             log.info("resuming from %s: %d tags, robots %s", checkpoint, len(known), sorted(self.runs))
-        # The map's revision counts its changes over the run, across restarts (a resumed slam continues
-        # from the last one written: a fresh-clone trial saw revision 6 before a restart and 1, then 6
-        # again with other content, after it): ordered, never reused for another map.
-        # A new process's map is a new map: one past the last revision this run published, written at once
-        # (the checkpoint may be older than the last revision, or missing).
+        # The map's revision increases over the run, across restarts (a fresh-clone trial saw revision 6
+        # before a restart and 1, then 6 again with other content, after it): a new process's map is a
+        # new map, one past the last revision this run wrote (the checkpoint may be older, or missing),
+        # written at once.
         self.revision_path = settings.run_dir / "map_revision"
         previous = _read_revision(self.revision_path)
         self.revision = 0 if previous is None else previous + 1
@@ -482,12 +482,10 @@ def map_request(parameters: str, has_payload: bool) -> bool:
     trial's `?foo=1`, `?save=abc` and a payload all got the map back, nothing saved and nothing said)."""
     if has_payload:
         raise SlamQueryError("a map query takes no payload (a get, or ?save=1)")
-    params: dict[str, str] = {}
-    for item in filter(None, parameters.split(";")):
-        name, _, value = item.partition("=")
-        if name in params:
-            raise SlamQueryError(f"parameter {name} given twice")
-        params[name] = value
+    try:
+        params = parse_parameters(parameters)  # the split query's parser: the same rules
+    except SplitRequestError as exc:
+        raise SlamQueryError(str(exc)) from None
     unknown = sorted(set(params) - {"save"})
     if unknown:
         raise SlamQueryError(f"unknown parameters {unknown} (a map query takes only save=1)")

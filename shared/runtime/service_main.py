@@ -22,6 +22,7 @@ from shared.runtime.cpus import CpuPlacementError, pin_cpus
 from shared.runtime.logs import setup_logging
 from shared.runtime.settings import CONFIG_EXIT, ConfigurationError, ServiceSettings, one_line_error
 from shared.transport.session import open_session
+from shared.vision.files import atomic_write_text
 from shared.vision.geometry import CameraFileError
 from shared.vision.tagmap import TagMapError
 
@@ -51,9 +52,7 @@ def write_resolved(settings: ServiceSettings, name: str) -> Path | None:
     path = settings.run_dir / "settings" / f"{name}-{who}.json"
     try:
         path.parent.mkdir(exist_ok=True)
-        tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(settings.model_dump_json(indent=2) + "\n")
-        tmp.replace(path)
+        atomic_write_text(path, settings.model_dump_json(indent=2) + "\n")
     except OSError as exc:
         logging.getLogger(name).warning("%s: cannot write its settings to %s: %s", name, path, exc)
         return None

@@ -379,12 +379,12 @@ def _cmd_link_up(args: argparse.Namespace) -> int:
 
 
 def _cmd_link_set(args: argparse.Namespace) -> int:
-    from shared.tools.linkemu import LinkEmulationUnavailable, LinkEmulator, LinkEmulatorSettings, profile
+    from shared.tools.linkemu import LinkEmulator, LinkEmulatorSettings, profile
 
     chosen = profile(args.profile)  # an unknown name: LinkProfileError, one line (exit 2)
     try:
         LinkEmulator(LinkEmulatorSettings(prefix=args.prefix)).set_profile(chosen)
-    except (LinkEmulationUnavailable, RuntimeError, OSError, ValueError) as exc:
+    except (RuntimeError, OSError, ValueError) as exc:  # LinkEmulationUnavailable is a RuntimeError
         # not up, a tc call refused, the delay line gone or answering nonsense: one line
         print(f"splittag link set: {exc}", file=sys.stderr)
         return 1

@@ -118,6 +118,8 @@ def load_profiles(path: Path) -> dict[str, LinkProfile]:
 
     from pydantic import ValidationError
 
+    from shared.runtime.settings import one_line_error
+
     try:
         doc = tomllib.loads(path.read_text())
     except (OSError, tomllib.TOMLDecodeError) as exc:
@@ -129,13 +131,9 @@ def load_profiles(path: Path) -> dict[str, LinkProfile]:
         try:
             out[name] = LinkProfile(name=name, **values)
         except ValidationError as exc:
-            fields = "; ".join(
-                f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']} (got {e.get('input')!r})"
-                for e in exc.errors(include_url=False)
-            )
             raise LinkProfileError(
-                f"{path}: profile [{name}]: {fields} (a profile takes rate_mbit > 0 or none, delay_ms 0-10000, "
-                "description)"
+                f"{path}: profile [{name}]: {one_line_error(exc)} "
+                "(a profile takes rate_mbit > 0 or none, delay_ms 0-10000, description)"
             ) from None
     PROFILES.update(out)
     return out

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -33,6 +32,7 @@ import zenoh
 from pydantic import ValidationError
 
 from shared.transport.session import encoding_for
+from shared.vision.files import atomic_write_text
 from shared.wire.codec import WireError
 from shared.wire.cuts import N_CUTS
 from shared.wire.messages import SplitConfig, decode, encode, framing_of
@@ -115,10 +115,8 @@ def remember_split(path: Path, config: SplitConfig) -> None:
     """Write the split (k, codec, pin, source) to `path` atomically; a failure is logged, never raised
     (the split itself has changed)."""
     try:
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(config.model_dump()))
-        tmp.replace(path)
-    except Exception as exc:
+        atomic_write_text(path, json.dumps(config.model_dump()))
+    except OSError as exc:  # the change is applied: its asker gets the reply either way
         log.warning("split not remembered in %s: %s", path, exc)
 
 
