@@ -19,8 +19,9 @@ from pydantic_settings import SettingsError
 
 from shared.model.precision import ModelFileError  # no torch: the weights folder's errors only
 from shared.runtime.cpus import CpuPlacementError, pin_cpus
+from shared.runtime.errors import one_line_error
 from shared.runtime.logs import setup_logging
-from shared.runtime.settings import CONFIG_EXIT, ConfigurationError, ServiceSettings, one_line_error
+from shared.runtime.settings import CONFIG_EXIT, ConfigurationError, ServiceSettings
 from shared.transport.session import open_session
 from shared.vision.files import atomic_write_text
 from shared.vision.geometry import CameraFileError

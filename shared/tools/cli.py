@@ -7,7 +7,7 @@ import shlex
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
 from shared.model.precision import PRECISION_CHOICES, PRECISIONS, ModelFileError
 from shared.model.views import VIEW_COUNTS
@@ -138,6 +138,76 @@ def split_endpoint(connect: str | None, *, tls: bool) -> str:
         return connect
     default = Topology().edge_router
     return "tls/" + default.split("/", 1)[1] if tls else default
+
+
+def _reader_settings(args: argparse.Namespace, command: str) -> Any:
+    """The client session of a command that reads a running deployment (watch, map, stats): the
+    endpoint and TLS identity checked as `splittag split` checks them; None after saying what is wrong."""
+    from shared.transport.session import TlsSettings, ZenohSettings
+
+    tls = TlsSettings.from_dir(args.certs, args.identity) if args.certs else None
+    connect = split_endpoint(args.connect, tls=tls is not None)
+    if connect.startswith("tls/") and tls is None:
+        print(f"splittag {command}: {connect} is a TLS endpoint: give --certs (and --identity)", file=sys.stderr)
+        return None
+    if tls is not None and not connect.startswith("tls/"):
+        print(
+            f"splittag {command}: --certs with {connect}: a TLS deployment listens on a tls/ endpoint", file=sys.stderr
+        )
+        return None
+    if args.robot_id != "*":
+        from shared.wire import keys
+
+        try:
+            keys.camera_pose(args.robot_id)
+        except ValueError as exc:
+            print(f"splittag {command}: {exc} (or '*' for every robot)", file=sys.stderr)
+            return None
+    return ZenohSettings(mode="client", connect=[connect], tls=tls, connect_timeout_secs=5.0)
+
+
+def _cmd_watch(args: argparse.Namespace) -> int:
+    from shared.tools.watch import key_for, watch
+
+    if args.format == "tum" and args.topic != "poses":
+        print("splittag watch: --format tum is for poses", file=sys.stderr)
+        return 2
+    if (args.count is not None and args.count < 1) or (args.duration is not None and not args.duration > 0):
+        print("splittag watch: --count and --duration must be positive", file=sys.stderr)
+        return 2
+    settings = _reader_settings(args, "watch")
+    if settings is None:
+        return 2
+    result = watch(args.topic, args.robot_id, settings, fmt=args.format, count=args.count, duration_secs=args.duration)
+    print(result.summary(key_for(args.topic, args.robot_id)), file=sys.stderr)
+    return 0 if result.messages else 1
+
+
+def _cmd_map(args: argparse.Namespace) -> int:
+    from shared.tools.watch import get_map, json_line, map_text
+
+    settings = _reader_settings(args, "map")
+    if settings is None:
+        return 2
+    if args.robot_id == "*" and args.save:
+        print("splittag map: --save names one robot (slam refuses a save through a wildcard)", file=sys.stderr)
+        return 2
+    for tag_map in get_map(args.robot_id, settings, save=args.save):
+        print(json_line(tag_map) if args.json else "\n".join(map_text(tag_map)))
+    return 0
+
+
+def _cmd_stats(args: argparse.Namespace) -> int:
+    import json
+
+    from shared.tools.watch import get_stats, stats_text
+
+    settings = _reader_settings(args, "stats")
+    if settings is None:
+        return 2
+    stats = get_stats(args.robot_id, settings)
+    print(json.dumps(stats, indent=2) if args.json else "\n".join(stats_text(stats)))
+    return 0
 
 
 def _cmd_split(args: argparse.Namespace) -> int:
@@ -627,6 +697,30 @@ def _add_control_commands(sub: Any) -> None:
     p.add_argument("--identity", default="operator", help="TLS deployments: whose certificate to present")
     p.set_defaults(func=_cmd_split)
 
+    p = sub.add_parser("watch", help="print what a running deployment publishes: poses, tags, controller, map")
+    p.add_argument("topic", choices=["poses", "tags", "controller", "map"])
+    p.add_argument(
+        "--format",
+        choices=["text", "json", "tum"],
+        default="text",
+        help="json: one object per line; tum: poses as TUM trajectory lines (capture time, tracking poses only)",
+    )
+    p.add_argument("--count", type=int, default=None, help="stop after this many messages")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    _add_reader_options(p)
+    p.set_defaults(func=_cmd_watch)
+
+    p = sub.add_parser("map", help="the tag map slam holds now (a get on its map queryable)")
+    p.add_argument("--json", action="store_true", help="the TagMap as one JSON object")
+    p.add_argument("--save", action="store_true", help="also have slam write map.json and the trajectory now")
+    _add_reader_options(p)
+    p.set_defaults(func=_cmd_map)
+
+    p = sub.add_parser("stats", help="every running service's input counters (accepted, refused by reason)")
+    p.add_argument("--json", action="store_true")
+    _add_reader_options(p)
+    p.set_defaults(func=_cmd_stats)
+
     p = sub.add_parser("echo", help="run the edge echo queryable for link probes")
     p.add_argument("--robot-id", default="robot1")
     p.add_argument("--listen", action="append", default=[], help="zenoh endpoint, repeatable")
@@ -634,6 +728,18 @@ def _add_control_commands(sub: Any) -> None:
     p.add_argument("--shared-memory", action="store_true", help="zenoh shared memory on (same host, no shaping)")
     p.add_argument("--cpus", type=int, nargs="+", help="run on these CPUs only (an edge sharing the robot's host)")
     p.set_defaults(func=_cmd_echo)
+
+
+def _add_reader_options(p: argparse.ArgumentParser) -> None:
+    """Where a command that reads a running deployment connects, and as whom."""
+    p.add_argument("--robot-id", default="robot1", help="the robot's id, or '*' for every robot")
+    p.add_argument(
+        "--connect",
+        default=None,
+        help=f"zenoh endpoint to connect to (default {Topology().edge_router}, tls/ with --certs)",
+    )
+    p.add_argument("--certs", type=Path, help="TLS deployments: the certificates folder (deploy/make-certs.sh)")
+    p.add_argument("--identity", default="operator", help="TLS deployments: whose certificate to present")
 
 
 def _add_link_commands(sub: Any) -> None:
@@ -821,7 +927,12 @@ def _load_link_profiles(args: argparse.Namespace) -> None:
         load_profiles(path)
 
 
-def _user_errors() -> tuple[tuple[type[BaseException], ...], tuple[type[BaseException], ...]]:
+# The commands a light client runs (README *Reading poses from your own process*): they, their errors
+# included, import only zenoh, msgspec, msgpack, pydantic(-settings) and numpy (tests/test_watch.py).
+LIGHT_COMMANDS: Final[tuple[str, ...]] = ("split", "watch", "map", "stats")
+
+
+def _user_errors(command: str) -> tuple[tuple[type[BaseException], ...], tuple[type[BaseException], ...]]:
     """(what a user got wrong: exit 2, what the running system said: exit 1), each said in one line
     instead of a traceback (SPLITTAG_TRACEBACK=1 shows the traceback too). Anything else is a bug
     and keeps its traceback."""
@@ -829,10 +940,14 @@ def _user_errors() -> tuple[tuple[type[BaseException], ...], tuple[type[BaseExce
 
     import zenoh
 
+    from shared.tools.watch import ReaderError
+    from shared.transport.split_client import SplitQueryError
+
+    if command in LIGHT_COMMANDS:
+        return (FileNotFoundError,), (SplitQueryError, ReaderError, zenoh.ZError)
     from shared.runtime.settings import ConfigurationError
     from shared.tools.launch import LaunchError
     from shared.tools.linkemu import LinkProfileError
-    from shared.transport.split_client import SplitQueryError
     from shared.vision.geometry import CameraFileError
     from shared.vision.tagmap import TagMapError
 
@@ -845,7 +960,7 @@ def _user_errors() -> tuple[tuple[type[BaseException], ...], tuple[type[BaseExce
         CameraFileError,
         TagMapError,
     )
-    return usage, (SplitQueryError, LaunchError, zenoh.ZError)
+    return usage, (SplitQueryError, ReaderError, LaunchError, zenoh.ZError)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -853,11 +968,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     import logging
     import os
 
-    from shared.runtime.settings import one_line_error
+    from shared.runtime.errors import one_line_error
 
     args = build_parser().parse_args(argv)
     setup_logging(f"splittag-{args.command}")
-    if "SPLITTAG_LOG_LEVEL" not in os.environ and args.command == "split":
+    if "SPLITTAG_LOG_LEVEL" not in os.environ and args.command in LIGHT_COMMANDS:
         # A one-shot command at the prompt: its answer, not the session's start-up news.
         for name in ("zenoh", "shared.transport.session"):
             logging.getLogger(name).setLevel(logging.WARNING)
@@ -874,7 +989,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 141
         raise
     except Exception as exc:
-        usage, failed = _user_errors()  # imported only here: every command starts as fast as before
+        usage, failed = _user_errors(args.command)  # imported only here: every command starts as fast as before
         from pydantic import ValidationError
 
         # Settings a user wrote (a *Settings model refused them), not a message a bug built wrongly.

@@ -118,7 +118,7 @@ def load_profiles(path: Path) -> dict[str, LinkProfile]:
 
     from pydantic import ValidationError
 
-    from shared.runtime.settings import one_line_error
+    from shared.runtime.errors import one_line_error
 
     try:
         doc = tomllib.loads(path.read_text())

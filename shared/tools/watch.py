@@ -1,0 +1,388 @@
+"""`splittag watch`, `splittag map` and `splittag stats`: what a running deployment publishes, read from
+any shell or process, decoded and checked like the services check it.
+
+- `watch poses|tags|controller|map`: subscribe to one robot's (or, with robot id `*`, every robot's)
+  CameraPose, TagPoses, ControllerState or TagMap and print each message as a line (`text`), as a JSON
+  object per line (`json`: every field, arrays as nested lists, plus derived fields) or, for poses, as
+  TUM trajectory lines (`tum`: `t tx ty tz qx qy qz qw` with the frame's capture time, exact; lost and
+  bridged poses left out), until `count` messages or `duration_secs`.
+- `map`: one get on the map queryable (the map as slam holds it now; `save` also writes its files).
+- `stats`: one get of every service's input counters (`splittag/<robot>/*/stats`).
+
+A message that does not decode, or that claims another robot than its key, is refused, counted and said
+on stderr (rate-limited) and the watch goes on; messages arriving faster than they can be printed are
+dropped (counted) instead of queued without bound. Pure formatting below, Zenoh at the edges; nothing
+here imports torch, OpenCV, GTSAM or Rerun, so an integrator's process can use it with only zenoh,
+msgspec, msgpack, pydantic and numpy installed (README *Reading poses from your own process*).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import queue
+import sys
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Any, Final, TextIO
+
+import numpy as np
+import zenoh
+from pydantic import BaseModel
+
+from shared.runtime.guard import InputGuard
+from shared.transport.session import ZenohSettings, open_session
+from shared.wire import keys
+from shared.wire.messages import CameraPose, ControllerState, Message, TagMap, TagPoses, decode
+
+TOPICS: Final[dict[str, tuple[Callable[[str], str], type[Message]]]] = {
+    "poses": (keys.camera_pose, CameraPose),
+    "tags": (keys.tag_poses, TagPoses),
+    "controller": (keys.controller, ControllerState),
+    "map": (keys.tag_map, TagMap),
+}
+FORMATS: Final[tuple[str, ...]] = ("text", "json", "tum")
+QUEUE_MESSAGES: Final[int] = 1000  # received but not yet printed; beyond it a message is dropped (counted)
+QUIET_HINT_SECS: Final[float] = 5.0  # nothing by then: say on stderr what is being waited for
+
+
+class ReaderError(RuntimeError):
+    """Nothing answered a get, or what answered was refused."""
+
+
+def key_for(topic: str, robot_id: str) -> str:
+    """The key `watch` subscribes to: the topic's key of one robot, or of every robot for `*`."""
+    make, _ = TOPICS[topic]
+    if robot_id == "*":
+        return keys.for_every_robot(make("robot"))
+    return make(robot_id)
+
+
+def quaternion_xyzw(rotation: Any) -> tuple[float, float, float, float]:
+    """Unit quaternion (x, y, z, w), w >= 0, of a 3x3 rotation matrix (Shepperd's method: the largest
+    of the four squared components is taken first, so no division by a small number)."""
+    r = np.asarray(rotation, np.float64).reshape(3, 3)
+    trace = float(r[0, 0] + r[1, 1] + r[2, 2])
+    diag = (trace, float(r[0, 0]), float(r[1, 1]), float(r[2, 2]))
+    i = int(np.argmax(diag))
+    if i == 0:
+        s = 2.0 * math.sqrt(max(1.0 + trace, 0.0))
+        q = ((r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4)
+    elif i == 1:
+        s = 2.0 * math.sqrt(max(1.0 + r[0, 0] - r[1, 1] - r[2, 2], 0.0))
+        q = (s / 4, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s)
+    elif i == 2:
+        s = 2.0 * math.sqrt(max(1.0 + r[1, 1] - r[0, 0] - r[2, 2], 0.0))
+        q = ((r[0, 1] + r[1, 0]) / s, s / 4, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s)
+    else:
+        s = 2.0 * math.sqrt(max(1.0 + r[2, 2] - r[0, 0] - r[1, 1], 0.0))
+        q = ((r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4, (r[1, 0] - r[0, 1]) / s)
+    v = np.array(q, np.float64)
+    v /= np.linalg.norm(v)
+    if v[3] < 0:
+        v = -v
+    return float(v[0]), float(v[1]), float(v[2]), float(v[3])
+
+
+def position_sigma_m(pose: CameraPose) -> float | None:
+    """sqrt of the trace of the pose's position covariance (m): one number for how sure slam is."""
+    if pose.covariance_world is None:
+        return None
+    c = np.asarray(pose.covariance_world, np.float64).reshape(6, 6)
+    return float(math.sqrt(max(0.0, float(np.trace(c[:3, :3])))))
+
+
+def jsonable(value: Any) -> Any:
+    """A message (or any part of one) as JSON values: models as objects, arrays as nested lists."""
+    if isinstance(value, BaseModel | dict):
+        items = value.items() if isinstance(value, dict) else ((k, getattr(value, k)) for k in type(value).model_fields)
+        return {str(k): jsonable(v) for k, v in items}
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, list | tuple):
+        return [jsonable(v) for v in value]
+    if isinstance(value, bytes | bytearray | memoryview):
+        return bytes(value).hex()
+    return value
+
+
+def json_line(message: Message) -> str:
+    """One JSON object: the schema, every field, and for a pose its position, quaternion and sigma."""
+    body: dict[str, Any] = {"schema": message.SCHEMA, **jsonable(message)}
+    if isinstance(message, CameraPose):
+        m = np.asarray(message.world_from_camera, np.float64)
+        body["position_m"] = m[:3, 3].tolist()
+        body["quaternion_xyzw"] = list(quaternion_xyzw(m[:3, :3]))
+        body["position_sigma_m"] = position_sigma_m(message)
+    return json.dumps(body, allow_nan=False)
+
+
+def tum_line(pose: CameraPose) -> str | None:
+    """`t tx ty tz qx qy qz qw` at the frame's capture time (exact decimal seconds); None for a pose
+    that is not in the world frame (lost: the last one repeated; bridged: placed by a guess)."""
+    if pose.status not in ("tracking", "ground_truth"):
+        return None
+    m = np.asarray(pose.world_from_camera, np.float64)
+    secs, frac = divmod(pose.capture_nanos, 1_000_000_000)
+    numbers = " ".join(f"{v:.9f}" for v in (*m[:3, 3], *quaternion_xyzw(m[:3, :3])))
+    return f"{secs}.{frac:09d} {numbers}"
+
+
+def _age(capture_nanos: int, now_nanos: int) -> str:
+    """Capture -> now on this host's clock (meaningful when the robot's clock agrees with it)."""
+    return f"age {(now_nanos - capture_nanos) / 1e6:.0f} ms"
+
+
+def pose_text(pose: CameraPose, now_nanos: int) -> str:
+    m = np.asarray(pose.world_from_camera, np.float64)
+    x, y, z = m[:3, 3]
+    qx, qy, qz, qw = quaternion_xyzw(m[:3, :3])
+    sigma = position_sigma_m(pose)
+    parts = [
+        f"{pose.robot_id} #{pose.seq} {pose.status:<8}",
+        f"xyz {x:+.3f} {y:+.3f} {z:+.3f} m",
+        f"q {qx:+.4f} {qy:+.4f} {qz:+.4f} {qw:+.4f}",
+        f"sigma {sigma * 100:.1f} cm" if sigma is not None else "sigma -",
+        f"tags {pose.tags_used}",
+        _age(pose.capture_nanos, now_nanos),
+    ]
+    return "  ".join(parts)
+
+
+def tag_poses_text(msg: TagPoses, now_nanos: int) -> str:
+    t = msg.timings
+    head = (
+        f"{msg.robot_id} #{msg.seq} k={msg.split_k} {msg.payload_bytes} B  "
+        f"robot {t.robot_compute_secs * 1e3:.1f} + link {t.transport_secs * 1e3:.1f} + edge "
+        f"{t.edge_compute_secs * 1e3:.1f} ms, capture->pose {t.capture_to_pose_secs * 1e3:.1f} ms  "
+        f"{_age(msg.capture_nanos, now_nanos)}"
+    )
+    tags = []
+    for tag in msg.tags:
+        distance = float(np.linalg.norm(np.asarray(tag.camera_from_tag, np.float64)[:3, 3]))
+        how = "tracked" if tag.tracked else (tag.proposer or "detected")
+        tags.append(f"{tag.tag_id} ({how}, {distance:.2f} m, {tag.reprojection_error_px:.2f} px)")
+    return f"{head}  tags: {', '.join(tags) if tags else 'none'}"
+
+
+def controller_text(state: ControllerState) -> str:
+    if state.has_prediction:
+        predicted = " ".join(f"{k}:{ms:.1f}" for k, ms in enumerate(state.predicted_ms_by_k))
+        model = f"t0 {state.t0_ms:.1f} ms, beta {state.beta_ms_per_kB:.4f} ms/kB ({state.link_samples} samples)"
+    else:
+        predicted, model = "-", "no prediction yet"
+    pin = "  pinned" if state.pinned else ""
+    applied = "  applied" if state.applied else ""
+    return (
+        f"{state.robot_id} k={state.current_k} best={state.best_k} chosen={state.chosen_k}{pin}{applied}  "
+        f"T(k) ms {predicted}  {model}  ({state.reason})"
+    )
+
+
+def map_text(tag_map: TagMap) -> list[str]:
+    """A header line and one line per tag: position, size, observations, how well it is known."""
+    lines = [
+        f"{tag_map.robot_id} map revision {tag_map.revision}, anchor {tag_map.anchor_tag_id}, {len(tag_map.tags)} tags"
+    ]
+    for tag in sorted(tag_map.tags, key=lambda t: t.tag_id):
+        p = np.asarray(tag.world_from_tag, np.float64)[:3, 3]
+        sigma = ""
+        if tag.position_sigma_m is not None:
+            sigma = f"  sigma {tag.position_sigma_m * 100:.2f} cm / {tag.rotation_sigma_deg or 0.0:.2f} deg"
+        bridged = "  bridged" if tag.bridged else ""
+        lines.append(
+            f"  tag {tag.tag_id:>5}  xyz {p[0]:+.3f} {p[1]:+.3f} {p[2]:+.3f} m  size {tag.size_m:.3f} m  "
+            f"{tag.observations} obs{sigma}{bridged}"
+        )
+    return lines
+
+
+def render(message: Message, fmt: str, now_nanos: int) -> list[str]:
+    """The lines one message prints as (none for a pose `tum` leaves out)."""
+    if fmt == "json":
+        return [json_line(message)]
+    if fmt == "tum":
+        if not isinstance(message, CameraPose):
+            raise ValueError("the tum format is for poses only")
+        line = tum_line(message)
+        return [line] if line is not None else []
+    if isinstance(message, CameraPose):
+        return [pose_text(message, now_nanos)]
+    if isinstance(message, TagPoses):
+        return [tag_poses_text(message, now_nanos)]
+    if isinstance(message, ControllerState):
+        return [controller_text(message)]
+    if isinstance(message, TagMap):
+        return map_text(message)
+    raise TypeError(f"no text form for {type(message).__name__}")
+
+
+def check_robot(message: Message, key: str) -> Message:
+    """A message whose robot id is not its key's is refused: someone published under another's key."""
+    robot = keys.robot_of(key)
+    claimed = getattr(message, "robot_id", robot)
+    if claimed != robot:
+        raise ValueError(f"a message of robot {claimed!r} on {key}")
+    return message
+
+
+def _decode_checked(payload: bytes, model: type[Message], key: str) -> Message:
+    return check_robot(decode(payload, model), key)
+
+
+@dataclass
+class WatchResult:
+    """What a watch saw: messages printed, refused (by reason) and dropped because printing fell behind."""
+
+    messages: int = 0
+    lines: int = 0
+    dropped: int = 0
+    rejected: dict[str, int] = field(default_factory=dict)
+    by_robot: Counter[str] = field(default_factory=Counter)
+
+    def summary(self, key: str) -> str:
+        refused = sum(self.rejected.values())
+        detail = f" ({', '.join(f'{r}: {n}' for r, n in sorted(self.rejected.items()))})" if refused else ""
+        robots = f" from {', '.join(sorted(self.by_robot))}" if len(self.by_robot) > 1 else ""
+        return (
+            f"{key}: {self.messages} messages{robots}, {refused} refused{detail}, "
+            f"{self.dropped} dropped (printing fell behind)"
+        )
+
+
+def watch(
+    topic: str,
+    robot_id: str,
+    settings: ZenohSettings,
+    *,
+    fmt: str = "text",
+    count: int | None = None,
+    duration_secs: float | None = None,
+    out: TextIO = sys.stdout,
+    err: TextIO = sys.stderr,
+) -> WatchResult:
+    """Subscribe and print until `count` messages, `duration_secs` or Ctrl-C; the callback only enqueues."""
+    if topic not in TOPICS:
+        raise ValueError(f"unknown topic {topic!r}: one of {', '.join(TOPICS)}")
+    if fmt not in FORMATS or (fmt == "tum" and topic != "poses"):
+        raise ValueError(f"format {fmt!r} is not one of {', '.join(FORMATS)} ('tum' is for poses)")
+    key = key_for(topic, robot_id)
+    model = TOPICS[topic][1]
+    inbox: queue.Queue[tuple[str, bytes]] = queue.Queue(maxsize=QUEUE_MESSAGES)
+    result = WatchResult()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        try:
+            inbox.put_nowait((str(sample.key_expr), sample.payload.to_bytes()))
+        except queue.Full:
+            result.dropped += 1
+
+    guard = InputGuard(f"splittag watch {topic}")
+    session = open_session(settings)
+    start = time.monotonic()
+    hinted = False
+    try:
+        subscriber = session.declare_subscriber(key, on_sample)
+        while count is None or result.messages < count:
+            now = time.monotonic()
+            if duration_secs is not None and now - start >= duration_secs:
+                break
+            if not hinted and result.messages == 0 and now - start >= QUIET_HINT_SECS:
+                print(f"nothing on {key} yet: is its publisher running, and reachable from here?", file=err, flush=True)
+                hinted = True
+            try:
+                sample_key, payload = inbox.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            message = guard.run(topic, len(payload), partial(_decode_checked, payload, model, sample_key))
+            if message is None:
+                continue
+            result.messages += 1
+            result.by_robot[getattr(message, "robot_id", "")] += 1
+            for line in render(message, fmt, time.time_ns()):
+                print(line, file=out, flush=True)
+                result.lines += 1
+        subscriber.undeclare()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        session.close()
+    result.rejected = dict(guard.rejected)
+    return result
+
+
+def get_map(robot_id: str, settings: ZenohSettings, *, save: bool = False, timeout_secs: float = 5.0) -> list[TagMap]:
+    """One get on the map queryable: the map of each slam that answers (`save`: it also writes its files)."""
+    selector = keys.tag_map(robot_id) + ("?save=1" if save else "")
+    session = open_session(settings)
+    try:
+        maps: list[TagMap] = []
+        for reply in session.get(selector, timeout=timeout_secs):
+            if reply.ok is not None:
+                try:
+                    tag_map = _decode_checked(reply.ok.payload.to_bytes(), TagMap, str(reply.ok.key_expr))
+                    assert isinstance(tag_map, TagMap)
+                    maps.append(tag_map)
+                except Exception as exc:  # a reply we cannot trust is said, not shown
+                    raise ReaderError(f"{selector}: refused a reply from {reply.ok.key_expr}: {exc}") from None
+            elif reply.err is not None:
+                raise ReaderError(f"{selector}: {reply.err.payload.to_string()}")
+    finally:
+        session.close()
+    if not maps:
+        raise ReaderError(f"no reply on {selector} within {timeout_secs:g} s (is slam running?)")
+    return maps
+
+
+def get_stats(robot_id: str, settings: ZenohSettings, *, timeout_secs: float = 5.0) -> dict[str, dict[str, Any]]:
+    """Every service's input counters, by the key that answered (`splittag/<robot>/<service>/stats`)."""
+    robot = "*" if robot_id == "*" else keys.robot_of(keys.stats(robot_id, "any"))  # checks the id
+    selector = f"{keys.ROOT}/{robot}/*/stats"
+    session = open_session(settings)
+    try:
+        found: dict[str, dict[str, Any]] = {}
+        for reply in session.get(selector, timeout=timeout_secs):
+            if reply.ok is not None:
+                try:
+                    body = json.loads(reply.ok.payload.to_bytes())
+                except ValueError as exc:
+                    raise ReaderError(f"{selector}: {reply.ok.key_expr} answered no JSON: {exc}") from None
+                found[str(reply.ok.key_expr)] = body if isinstance(body, dict) else {"reply": body}
+    finally:
+        session.close()
+    if not found:
+        raise ReaderError(f"no reply on {selector} within {timeout_secs:g} s (are the services running?)")
+    return dict(sorted(found.items()))
+
+
+_GUARD_FIELDS: Final[frozenset[str]] = frozenset(
+    {"service", "accepted", "accepted_by_input", "rejected", "rejected_by_reason"}
+)
+
+
+def stats_text(stats: dict[str, dict[str, Any]]) -> list[str]:
+    """One line per service: accepted (by input) and refused (by reason)."""
+    lines = []
+    for key, body in stats.items():
+        name = key.removeprefix(f"{keys.ROOT}/").removesuffix("/stats")
+        inputs = ", ".join(f"{k} {v}" for k, v in sorted(body.get("accepted_by_input", {}).items()))
+        reasons = ", ".join(f"{k}: {v}" for k, v in sorted(body.get("rejected_by_reason", {}).items()))
+        extra = {
+            k: v
+            for k, v in body.items()
+            if k not in ("service", "accepted", "accepted_by_input", "rejected", "rejected_by_reason")
+        }
+        more = "  " + " ".join(f"{k}={v}" for k, v in sorted(extra.items())) if extra else ""
+        lines.append(
+            f"{name:<24} accepted {body.get('accepted', 0)}"
+            + (f" ({inputs})" if inputs else "")
+            + f"  refused {body.get('rejected', 0)}"
+            + (f" ({reasons})" if reasons else "")
+            + more
+        )
+    return lines
