@@ -268,4 +268,15 @@ def test_up_restarts_a_killed_service(tmp_path: Path) -> None:
         down = d.down()
         assert down.returncode == 0, down.stdout + down.stderr
         assert d.up.wait(timeout=60) == 0
-        assert "edge_infer exited (-9); restart #1" in d.log_path.read_text()
+        assert "edge_infer exited (-9) (it is the edge's router" in d.log_path.read_text()
+        # The run keeps what happened (a fleet trial's summary said every exit code was 0, the restarted
+        # processes', and nothing in the run folder told of the kills).
+        summary = json.loads((d.runs / "current" / "summary.json").read_text())
+        assert summary["restarts"] == {"edge_infer": 1, "robot_infer": 1} and summary["exits"] == 2, summary
+        incidents = [json.loads(line) for line in Path(summary["incidents"]).read_text().splitlines()]
+        assert [(i["event"], i["name"], i.get("code")) for i in incidents] == [
+            ("exited", "edge_infer", -9),
+            ("restarted", "edge_infer", None),
+            ("exited", "robot_infer", -9),
+            ("restarted", "robot_infer", None),
+        ]

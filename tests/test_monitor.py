@@ -314,3 +314,47 @@ def test_frames_csv_joins_each_frame_with_the_controller_and_the_link_as_of_its_
     assert read[0]["predicted_ms"] == "" and float(read[2]["predicted_ms"]) == 200.0 + k
     assert int(read[1]["sent_unix_nanos"]) == t + 20 and read[3]["sent_unix_nanos"] == ""
     assert float(read[2]["e2e_ms"]) == pytest.approx(1e3 * poses.timings.capture_to_pose_secs)
+
+
+def test_frames_csv_is_written_as_the_run_goes_every_frame_once(tmp_path: Path) -> None:
+    """frames.csv used to be written at the run's end from the monitor's newest 200,000 records: a long
+    run lost its first frames, and a launcher that died left none. Now each frame is written `lag_secs`
+    after its poses arrived (the controller's decision and the link profile are known by then), once."""
+    import csv
+
+    from shared.tools.launch import FramesCsv
+
+    poses = EXAMPLES[TagPoses.SCHEMA]
+    assert isinstance(poses, TagPoses)
+    now = [0.0]
+    monitor = Monitor(None, max_records=4, clock=lambda: now[0])
+    path = tmp_path / "frames.csv"
+    frames_csv = FramesCsv(path, monitor, lambda: [], lag_secs=10.0)
+
+    def seqs() -> list[int]:
+        with path.open() as f:
+            return [int(row["seq"]) for row in csv.DictReader(f)]
+
+    assert seqs() == []  # the header is there from the start
+    for seq in range(3):  # arrive at t = 0, 1, 2
+        now[0] = float(seq)
+        monitor.on_poses(encode(poses.model_copy(update={"seq": seq})))
+    now[0] = 11.5
+    frames_csv.flush()
+    assert seqs() == [0, 1] and frames_csv.rows == 2
+    frames_csv.flush()
+    assert seqs() == [0, 1]  # nothing twice
+    for seq in range(3, 9):  # the monitor keeps at most 4 records
+        now[0] = 12.0 + seq
+        monitor.on_poses(encode(poses.model_copy(update={"seq": seq})))
+    # The monitor halved its records twice meanwhile; frames it dropped before they were written are counted.
+    now[0] = 100.0
+    frames_csv.flush()
+    kept = [r["seq"] for r in monitor.records]
+    assert seqs() == [0, 1, *kept] and frames_csv.missed == 9 - 2 - len(kept)
+    now[0] = 101.0
+    monitor.on_poses(encode(poses.model_copy(update={"seq": 9})))
+    frames_csv.flush()
+    assert seqs()[-1] != 9  # not yet: it arrived a second ago
+    frames_csv.flush(final=True)
+    assert seqs() == [0, 1, *kept, 9] and frames_csv.rows == 3 + len(kept)

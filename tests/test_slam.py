@@ -489,6 +489,7 @@ def test_a_restarted_slam_resumes_its_map_and_trajectory(tmp_path: Path) -> None
     first = SlamNode(settings)
     poses = _constant_velocity(30)
     for i in range(15):
+        first.on_ground_truth(1_000 + i, poses[i])
         first.on_poses(_tag_poses(i, 1_000 + i, poses[i]))
     first.write_outputs(tmp_path)  # the last checkpoint before the kill
     before = load_tag_map(tmp_path / "map.json")
@@ -505,11 +506,16 @@ def test_a_restarted_slam_resumes_its_map_and_trajectory(tmp_path: Path) -> None
     assert {t.tag_id for t in resumed_map.tags} == {t.id for t in before.tags}
     assert resumed_map.anchor_tag_id == before.anchor_tag_id
     for i in range(15, 30):
+        second.on_ground_truth(1_000 + i, poses[i])
         res = second.on_poses(_tag_poses(i, 1_000 + i, poses[i]))[0]
         assert res.status == "tracking"
     stats = second.write_outputs(tmp_path)
     # slam.json says which poses came from before the restart (a trial read 'frames' 1877 < 'poses' 2315)
     assert stats["poses"] == 30 and stats["resumed_poses"] == 15 and stats["frames"] == 15, stats
+    # Ground truth is kept across the restart too, and the ATE covers the whole run (a fleet trial's
+    # covered only the frames since slam's restart: 859 of 1511, nothing said so).
+    assert stats["ate_frames"] == 30 and stats["ate_m"] < 1e-3, stats
+    assert len(read_tum(tmp_path / "groundtruth.tum")) == 30
     after = load_tag_map(tmp_path / "map.json")
     assert after.anchor_tag_id == before.anchor_tag_id
     assert {t.id for t in after.tags} >= {t.id for t in before.tags}
@@ -1021,6 +1027,22 @@ def test_rerun_draws_bridged_poses_apart_from_the_worlds(tmp_path: Path) -> None
     viz.close()
     entities = recording_entities(tmp_path / "slam.rrd")
     assert {"/world/camera", "/world/camera_bridged", "/world/camera_sigma", "/camera/image/tag_quads"} <= entities
+
+
+def test_a_restarted_process_keeps_the_dead_ones_recording(tmp_path: Path) -> None:
+    """A restarted service re-created its .rrd part and the merged recording lost everything before the
+    restart (a fleet trial: slam's poses before its kill were gone); each process now writes a part of its own."""
+    from shared.viz.recording import RerunSettings, RerunViz, merge_recordings, recording_entities
+
+    first = RerunViz(RerunSettings(enabled=True), service="slam", run_dir=tmp_path)
+    first.camera_pose(1_000, np.eye(4), CAM)
+    first.close()  # a SIGKILL leaves what was flushed; close() is the clean case of it
+    second = RerunViz(RerunSettings(enabled=True), service="slam", run_dir=tmp_path)
+    second.camera_pose(2_000, np.eye(4), CAM, bridged=True)
+    second.close()
+    assert (first.path.name, second.path.name) == ("slam.rrd", "slam.2.rrd")
+    merged = merge_recordings(tmp_path)
+    assert merged is not None and {"/world/camera", "/world/camera_bridged"} <= recording_entities(merged)
 
 
 def test_the_anchor_is_the_tag_whose_pose_the_first_view_pins_best() -> None:

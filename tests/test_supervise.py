@@ -3,7 +3,10 @@ finished camera ends the deployment."""
 
 from __future__ import annotations
 
-from shared.tools.supervise import RestartPolicy, Supervisor
+import json
+from pathlib import Path
+
+from shared.tools.supervise import RestartPolicy, Supervisor, incidents_file
 from tests.fakes import FakeClock
 
 
@@ -30,3 +33,37 @@ def test_a_finished_camera_ends_the_run_and_a_crashed_one_restarts() -> None:
     # a fleet names its cameras per robot: the kind decides, not the name
     assert sup.exited("robot2_camera", 0, service="camera") is None
     assert sup.exited("robot2_robot_infer", 0, service="robot_infer") == 1.0
+
+
+def test_every_exit_and_restart_is_an_incident_the_run_keeps(tmp_path: Path) -> None:
+    """A fleet trial SIGKILLed four processes and the run folder said nothing of it (every exit code 0:
+    the restarted processes'); each exit and restart is now recorded as it happens."""
+    clock = FakeClock()
+    path = tmp_path / "incidents.jsonl"
+    hosts = {"slam": "it is the edge tier's router"}
+    sup = Supervisor(clock=clock, record=incidents_file(path), wall_clock=lambda: 7, hosts=hosts)
+    sup.started("slam", pid=100)
+    sup.started("robot1_camera", pid=101)
+    assert sup.incidents == []  # a first start is not an incident
+    clock.now += 5.0
+    delay = sup.exited("slam", -9)
+    assert sup.exit_line("slam", -9, delay or 0) == "slam exited (-9) (it is the edge tier's router); restart #1 in 1 s"
+    sup.started("slam", pid=102)
+    assert sup.exited("robot1_camera", 0, service="camera") is None
+    lines = [json.loads(line) for line in path.read_text().splitlines()]
+    assert lines == sup.incidents
+    assert lines == [
+        {
+            "unix_nanos": 7,
+            "event": "exited",
+            "name": "slam",
+            "code": -9,
+            "up_secs": 5.0,
+            "restart": 1,
+            "restart_in_secs": 1.0,
+            "takes_down": "it is the edge tier's router",
+        },
+        {"unix_nanos": 7, "event": "restarted", "name": "slam", "restart": 1, "pid": 102},
+        {"unix_nanos": 7, "event": "exited", "name": "robot1_camera", "code": 0, "up_secs": 5.0, "source_ended": True},
+    ]
+    assert sup.summary() == {"restarts": {"slam": 1}, "exits": 2}

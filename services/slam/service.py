@@ -72,6 +72,9 @@ class RobotRun:
     # the resumed run's trajectory, as arrays (nanoseconds, poses): written first, never shortened
     previous_stamps_nanos: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     previous_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4), np.float64))
+    # and its ground truth (the ATE covers the whole run, not only what this process placed)
+    previous_gt_stamps_nanos: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    previous_gt_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4), np.float64))
     last_pose: np.ndarray | None = None
     frames: int = 0  # TagPoses fused for this robot (the periodic map publication and drawing count them)
     map_due: bool = False  # the shared map changed since this robot's map key last carried it
@@ -170,6 +173,9 @@ class SlamNode:
             path = self.settings.run_dir / self._trajectory_file(robot)
             if self.resumed is not None and path.is_file():
                 run.previous_stamps_nanos, run.previous_poses = read_tum_nanos(path)
+                gt_path = self.settings.run_dir / self._trajectory_file(robot, "groundtruth")
+                if gt_path.is_file():
+                    run.previous_gt_stamps_nanos, run.previous_gt_poses = read_tum_nanos(gt_path)
         return run
 
     @property
@@ -404,40 +410,53 @@ class SlamNode:
                 len(traj_found),
             )
         # stamps in integer nanoseconds throughout: written exactly (a data set's stamps come back as given)
-        stamps, poses = np.asarray(source_traj if in_source_time else traj_stamps, np.int64), traj_poses
-        if len(run.previous_stamps_nanos):  # a resumed run: the earlier trajectory first, never less
-            newer = stamps > run.previous_stamps_nanos[-1]
-            stamps = np.concatenate([run.previous_stamps_nanos, stamps[newer]])
-            poses = np.concatenate([run.previous_poses, poses[newer]])
+        stamps, poses = _after(
+            run.previous_stamps_nanos,
+            run.previous_poses,
+            np.asarray(source_traj if in_source_time else traj_stamps, np.int64),
+            traj_poses,
+        )
         write_tum_arrays(run_dir / self._trajectory_file(robot), stamps, poses)
         # `poses` counts the trajectory as written, a resumed run's earlier poses first (`resumed_poses` of
-        # them); `frames` (slam.json) and the ATE count what this process placed since it started.
+        # them); `frames` (slam.json) counts what this process placed since it started. Ground truth is
+        # kept the same way, so the ATE covers the whole run (a restarted slam's used to cover only the
+        # frames since its restart: a fleet trial read 859 of 1511 frames, nothing said so).
         out: dict[str, Any] = {
             "poses": len(stamps),
             "resumed_poses": len(run.previous_stamps_nanos),
             "time": "data set (rgb.txt)" if in_source_time else "capture",
         }
+        gt_stamps, gt_poses = _after(
+            run.previous_gt_stamps_nanos,
+            run.previous_gt_poses,
+            np.asarray(source_gt if in_source_time else gt_stamps, np.int64),
+            gt_poses,
+        )
         if len(gt_stamps):
-            write_tum_arrays(
-                run_dir / self._trajectory_file(robot, "groundtruth"),
-                np.asarray(source_gt if in_source_time else gt_stamps, np.int64),
-                gt_poses,
-            )
+            write_tum_arrays(run_dir / self._trajectory_file(robot, "groundtruth"), gt_stamps, gt_poses)
             try:
                 # TUM's ATE (after SE(3) alignment); and, when a tag map gives slam's world (its anchor's
                 # pose), the error in that world as it is, which counts the map's placement too
-                ate, n = absolute_trajectory_error_arrays(
-                    traj_stamps, traj_poses[:, :3, 3], gt_stamps, gt_poses[:, :3, 3]
-                )
+                ate, n = absolute_trajectory_error_arrays(stamps, poses[:, :3, 3], gt_stamps, gt_poses[:, :3, 3])
                 out.update({"ate_m": ate, "ate_frames": n, "ate_aligned": True})
                 if self.slam.anchor is not None and self.slam.anchor in self.world_tags:
                     raw, _ = absolute_trajectory_error_arrays(
-                        traj_stamps, traj_poses[:, :3, 3], gt_stamps, gt_poses[:, :3, 3], align=False
+                        stamps, poses[:, :3, 3], gt_stamps, gt_poses[:, :3, 3], align=False
                     )
                     out["ate_unaligned_m"] = raw
             except ValueError as exc:
                 out["ate_error"] = str(exc)
         return out
+
+
+def _after(
+    earlier_stamps: np.ndarray, earlier_poses: np.ndarray, stamps: np.ndarray, poses: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """A resumed run's earlier poses first, then this process's newer ones: never less than was written."""
+    if not len(earlier_stamps):
+        return stamps, poses
+    newer = stamps > earlier_stamps[-1]
+    return np.concatenate([earlier_stamps, stamps[newer]]), np.concatenate([earlier_poses, poses[newer]])
 
 
 def _clip_sigmas(sigmas: tuple[float, float]) -> tuple[float, float]:

@@ -308,6 +308,7 @@ def run_fleet(
 
     from shared.runtime.settings import CONFIG_EXIT
     from shared.tools.launch import (
+        FramesCsv,
         LaunchError,
         Monitor,
         Service,
@@ -315,16 +316,15 @@ def run_fleet(
         attach_monitor,
         configuration_error_line,
         forget_run_files,
-        frame_rows,
+        incidents_summary,
         preparing_run_dir,
         run_for,
         run_map_tables,
         start_process,
         stop_services,
         wait_for_run,
-        write_frames_csv,
     )
-    from shared.tools.supervise import Supervisor
+    from shared.tools.supervise import Supervisor, incidents_file
     from shared.vision.tagmap import load_tag_map
     from shared.viz.recording import merge_recordings
     from shared.wire import keys
@@ -347,14 +347,17 @@ def run_fleet(
         run_tags = load_tag_map(run_map) if run_map is not None else None
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
-    supervisor = Supervisor()
+    hosts = {"slam": "it is the edge tier's router: every robot and worker is cut off from the edge until it is back"}
+    hosts |= {f"{r}_robot_infer": f"it is {r}'s router: {r}'s camera frames wait until it is back" for r in plan.robots}
+    supervisor = Supervisor(record=incidents_file(run_dir / "incidents.jsonl"), hosts=hosts)
     running: list[tuple[FleetProcess, Service]] = []
     restart_at: dict[str, float] = {}
 
     def start(spec: FleetProcess) -> Service:
-        supervisor.started(spec.name)
         argv = ["-m", f"services.{spec.service}", "--config", str(spec.config)]
-        return start_process(spec.name, argv, run_dir)
+        process = start_process(spec.name, argv, run_dir)
+        supervisor.started(spec.name, pid=process.popen.pid)
+        return process
 
     def write_pids() -> None:  # what `splittag down` signals when the launcher itself is gone
         (run_dir / "pids").write_text("".join(f"{s.name} {p.popen.pid}\n" for s, p in running))
@@ -370,7 +373,7 @@ def run_fleet(
                 delay = supervisor.exited(spec.name, code, service=spec.service)
                 if delay is None:  # a camera whose source ended
                     continue
-                print(f"{spec.name} exited ({code}); restart in {delay:.0f} s", flush=True)
+                print(supervisor.exit_line(spec.name, code, delay), flush=True)
                 restart_at[spec.name] = time.monotonic() + delay
             elif time.monotonic() >= restart_at[spec.name]:
                 del restart_at[spec.name]
@@ -385,6 +388,13 @@ def run_fleet(
         for r in plan.robots
         if only in (None, "edge", r)
     }
+    # Every frame's timings, per robot, written as the run goes (as `splittag up`'s frames.csv).
+    frames_csvs = {r: FramesCsv(run_dir / f"frames_{r}.csv", m) for r, m in monitors.items()}
+
+    def write_frames() -> None:
+        for frames_csv in frames_csvs.values():
+            frames_csv.flush()
+
     started = Started()
     try:
         (run_dir / "launcher.pid").write_text(f"{os.getpid()}\n")
@@ -410,6 +420,7 @@ def run_fleet(
                 lines=lambda: [f"{robot:>10} {monitor.line()}" for robot, monitor in monitors.items()],
                 quiet=quiet,
                 supervise=restart_dead,
+                every_second=write_frames,
             )
         for sub in started.subscriptions:
             sub.undeclare()
@@ -423,12 +434,14 @@ def run_fleet(
     summary: dict[str, Any] = {
         "run_dir": str(run_dir),
         "robots": {r: m.summary() for r, m in monitors.items()},
-        "exit_codes": codes,
+        **incidents_summary(run_dir, codes, supervisor),
     }
-    for robot, monitor in monitors.items():  # every frame's timings, per robot (as `splittag up`'s frames.csv)
-        records, predictions = monitor.snapshot()
-        write_frames_csv(run_dir / f"frames_{robot}.csv", frame_rows(records, [], predictions))
-        summary["robots"][robot]["frames_csv"] = str(run_dir / f"frames_{robot}.csv")
+    for robot, frames_csv in frames_csvs.items():
+        frames_csv.flush(final=True)
+        summary["robots"][robot]["frames_csv"] = str(frames_csv.path)
+        summary["robots"][robot]["frames_csv_rows"] = frames_csv.rows
+        if frames_csv.missed:
+            summary["robots"][robot]["frames_csv_missed"] = frames_csv.missed
     if (run_dir / "settings").is_dir():
         summary["settings"] = sorted(str(p) for p in (run_dir / "settings").glob("*.json"))
     slam_json = run_dir / "slam.json"

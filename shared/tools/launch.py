@@ -29,7 +29,7 @@ import zenoh
 
 from shared.runtime.settings import CONFIG_EXIT, CURRENT_RUN
 from shared.runtime.sources import demo_scene
-from shared.tools.supervise import Supervisor
+from shared.tools.supervise import Supervisor, incidents_file
 from shared.tools.topology import Topology, merge, write_config
 from shared.transport.session import TlsSettings, ZenohSettings, open_session, wait_for_liveliness
 from shared.vision.metrics import translation_error_cm
@@ -283,6 +283,21 @@ class Monitor:
                 self.predictions.append(
                     (state.stamp_nanos, tuple(state.predicted_ms_by_k), state.best_k, state.t0_ms, state.beta_ms_per_kB)
                 )
+
+    def records_since(self, first: int, arrived_by: float | None) -> tuple[int, list[dict[str, Any]], list[Prediction]]:
+        """The records of the run's `first`-th frame on (counting every frame, as `frames_total`) that
+        arrived by `arrived_by` on this monitor's clock (None: all), and the controller's predictions;
+        returned with the index of the first record returned, which is past `first` when the monitor had
+        already dropped those frames (a run that outgrew `max_records` before they were asked for)."""
+        with self._lock:
+            start = self.frames_total - len(self.records)
+            i = max(first, start) - start
+            out = []
+            for rec in self.records[i:]:
+                if arrived_by is not None and rec["t"] > arrived_by:
+                    break
+                out.append(rec)
+            return start + i, out, sorted(self.predictions)
 
     def snapshot(self) -> tuple[list[dict[str, Any]], list[Prediction]]:
         """Copies of the frame records and the controller's predictions, for a run's files."""
@@ -611,11 +626,15 @@ def run_for(
     lines: Callable[[], list[str]],
     quiet: bool,
     supervise: Callable[[], object],
+    every_second: Callable[[], None] | None = None,
 ) -> None:
-    """A started run, once a second: print the live `lines` (unless `quiet`) and `supervise` (restart
-    the dead; a False return ends the run: its camera's source ended); until `stop`, `duration_secs`."""
+    """A started run, once a second: print the live `lines` (unless `quiet`), `every_second` (writing
+    the run's files as it goes) and `supervise` (restart the dead; a False return ends the run: its
+    camera's source ended); until `stop`, `duration_secs`."""
     t_end = None if duration_secs is None else time.monotonic() + duration_secs
     while not stop.wait(1.0):
+        if every_second is not None:
+            every_second()
         if not quiet:
             for line in lines():
                 print(line, flush=True)
@@ -672,12 +691,18 @@ class _Services:
     def __init__(self, run_config: Path, run_dir: Path, wrappers: dict[str, list[str]]) -> None:
         self.run_config, self.run_dir, self.wrappers = run_config, run_dir, wrappers
         self.started: list[Service] = []
-        self.supervisor = Supervisor()
+        self.supervisor = Supervisor(
+            record=incidents_file(run_dir / "incidents.jsonl"),
+            hosts={
+                "edge_infer": "it is the edge's router: robot, slam and monitor are cut off until it is back",
+                "robot_infer": "it is the robot's router: the camera's frames wait until it is back",
+            },
+        )
         self.restart_at: dict[str, float] = {}
 
     def _start(self, name: str) -> Service:
         service = start_service(name, self.run_config, self.run_dir, wrapper=self.wrappers.get(name))
-        self.supervisor.started(name)
+        self.supervisor.started(name, pid=service.popen.pid)
         return service
 
     def _write_pids(self) -> None:
@@ -704,9 +729,8 @@ class _Services:
                     print("the camera's source ended; stopping", flush=True)
                     time.sleep(1.0)  # let the last frames arrive
                     return False
-                n = self.supervisor.restarts[service.name]
                 # Printed once (it was also logged, and a terminal showed every restart twice).
-                print(f"{service.name} exited ({code}); restart #{n} in {delay:.0f} s", flush=True)
+                print(self.supervisor.exit_line(service.name, code, delay), flush=True)
                 self.restart_at[service.name] = time.monotonic() + delay
             elif time.monotonic() >= self.restart_at[service.name]:
                 del self.restart_at[service.name]
@@ -805,15 +829,48 @@ def frame_rows(
     return out
 
 
-def write_frames_csv(path: Path, rows: list[dict[str, Any]]) -> None:
-    """frames.csv: FRAME_COLUMNS, an empty cell where a value is not known."""
+def write_frames_csv(path: Path, rows: list[dict[str, Any]], *, append: bool = False) -> None:
+    """frames.csv: FRAME_COLUMNS, an empty cell where a value is not known (`append`: rows only)."""
     import csv
 
-    with path.open("w", newline="") as f:
+    with path.open("a" if append else "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=FRAME_COLUMNS)
-        writer.writeheader()
+        if not append:
+            writer.writeheader()
         for row in rows:
             writer.writerow({k: ("" if v is None else v) for k, v in row.items()})
+
+
+class FramesCsv:
+    """A run's frames.csv, written as the run goes: a long run's file holds every frame (not only the
+    newest the monitor keeps) and a launcher that dies leaves the rows written until then. Each frame is
+    written once, `lag_secs` after its poses arrived, when the controller's last decision before its
+    send (a state crosses the uplink behind the frames) and the link profile it crossed are known;
+    the rest at the end (`flush(final=True)`)."""
+
+    def __init__(
+        self,
+        path: Path,
+        monitor: Monitor,
+        events: Callable[[], list[dict[str, Any]]] = list,
+        *,
+        lag_secs: float = 10.0,
+    ) -> None:
+        self.path, self.monitor, self.events, self.lag_secs = path, monitor, events, lag_secs
+        self.next_frame = 0  # the run's first frame not yet written (Monitor.frames_total counts them)
+        self.rows = 0
+        self.missed = 0  # frames the monitor dropped before they were written (none unless it outgrew its cap)
+        write_frames_csv(path, [])
+
+    def flush(self, *, final: bool = False) -> None:
+        """Write the frames whose poses arrived `lag_secs` ago or earlier (every frame when `final`)."""
+        arrived_by = None if final else self.monitor.clock() - self.lag_secs
+        first, records, predictions = self.monitor.records_since(self.next_frame, arrived_by)
+        if records:
+            write_frames_csv(self.path, frame_rows(records, self.events(), predictions), append=True)
+        self.missed += first - self.next_frame
+        self.next_frame = first + len(records)
+        self.rows += len(records)
 
 
 class LinkEventsTail:
@@ -861,19 +918,31 @@ def _recording_id(run_config: Path) -> str:
     return str(rerun.get("recording_id", "")) if isinstance(rerun, dict) else ""
 
 
-def _summarise_run(run_dir: Path, monitor: Monitor, codes: dict[str, int | None]) -> dict[str, Any]:
-    """summary.json: the monitor's figures, exit codes, the link profiles applied, the merged recording
-    and slam's ATE; frames.csv: every frame's timings, the controller's prediction and the link profile."""
+def incidents_summary(run_dir: Path, codes: dict[str, int | None], supervisor: Supervisor) -> dict[str, Any]:
+    """summary.json's account of the processes: each one's exit code when the run stopped (the last
+    process of each name), restarts per name and how many exits the run had, each in incidents.jsonl."""
+    out: dict[str, Any] = {"exit_codes": codes, **supervisor.summary()}
+    if supervisor.incidents:
+        out["incidents"] = str(run_dir / "incidents.jsonl")
+    return out
+
+
+def _summarise_run(
+    run_dir: Path, monitor: Monitor, codes: dict[str, int | None], frames_csv: FramesCsv, supervisor: Supervisor
+) -> dict[str, Any]:
+    """summary.json: the monitor's figures, the services' exits and restarts, the link profiles applied,
+    the merged recording and slam's ATE; frames.csv (written as the run went): the frames not yet written."""
     from shared.tools.linkemu import read_events
 
-    summary = {**monitor.summary(), "exit_codes": codes, "run_dir": str(run_dir)}
+    summary = {**monitor.summary(), **incidents_summary(run_dir, codes, supervisor), "run_dir": str(run_dir)}
     events = read_events(run_dir)
     if events:
         summary["link_profiles"] = events
-    records, predictions = monitor.snapshot()
-    write_frames_csv(run_dir / "frames.csv", frame_rows(records, events, predictions))
-    summary["frames_csv"] = str(run_dir / "frames.csv")
-    summary["frames_csv_rows"] = len(records)  # the newest frames when a long run outgrew the monitor's cap
+    frames_csv.flush(final=True)
+    summary["frames_csv"] = str(frames_csv.path)
+    summary["frames_csv_rows"] = frames_csv.rows
+    if frames_csv.missed:
+        summary["frames_csv_missed"] = frames_csv.missed
     settings_dir = run_dir / "settings"
     if settings_dir.is_dir():
         summary["settings"] = sorted(str(p) for p in settings_dir.glob("*.json"))
@@ -926,7 +995,10 @@ def run_pipeline(
         )
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    from shared.tools.linkemu import read_events
+
     monitor = Monitor(run_tags, max_records=200_000)  # a deployment may run for days
+    frames_csv = FramesCsv(run_dir / "frames.csv", monitor, lambda: read_events(run_dir))
     running = _Services(run_config, run_dir, wrappers)
     started = Started()
     try:
@@ -953,6 +1025,7 @@ def run_pipeline(
                 lines=lambda: [*link_lines.new_lines(), monitor.line()],
                 quiet=quiet,
                 supervise=running.supervise,
+                every_second=frames_csv.flush,
             )
         for sub in started.subscriptions:
             sub.undeclare()
@@ -965,4 +1038,4 @@ def run_pipeline(
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         forget_run_files(run_dir)
-    return _summarise_run(run_dir, monitor, codes)
+    return _summarise_run(run_dir, monitor, codes, frames_csv, running.supervisor)

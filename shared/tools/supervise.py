@@ -1,12 +1,16 @@
 """The launcher's restart policy (pure): a service that dies is restarted after a backoff that doubles
 with each quick death and resets once it has stayed up; only a person's stop, or a camera whose
-source ended (exit code 0, `loop = false`), ends a deployment."""
+source ended (exit code 0, `loop = false`), ends a deployment. Every exit and restart is an incident
+the run keeps (`incidents.jsonl` in the run folder, counted in summary.json), not only a printed line."""
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 
 @dataclass(frozen=True)
@@ -25,23 +29,63 @@ class Supervisor:
     policy: RestartPolicy = field(default_factory=RestartPolicy)
     clock: Callable[[], float] = time.monotonic
     restarts: dict[str, int] = field(default_factory=dict)
+    # Each exit and restart, as it happened (`record` also gets each one: the run's incidents.jsonl).
+    incidents: list[dict[str, Any]] = field(default_factory=list)
+    record: Callable[[dict[str, Any]], None] | None = None
+    wall_clock: Callable[[], int] = time.time_ns
+    # What a process's death takes down beside itself (its router's clients), said when it dies.
+    hosts: dict[str, str] = field(default_factory=dict)
     _started_at: dict[str, float] = field(default_factory=dict)
     _backoff: dict[str, float] = field(default_factory=dict)
 
-    def started(self, name: str) -> None:
-        """A service (re)started now."""
+    def started(self, name: str, *, pid: int | None = None) -> None:
+        """A service (re)started now (a restart is an incident: `pid` is its new process)."""
         self._started_at[name] = self.clock()
+        if self.restarts.get(name):
+            self._note({"event": "restarted", "name": name, "restart": self.restarts[name], "pid": pid})
+
+    def _note(self, incident: dict[str, Any]) -> None:
+        incident = {"unix_nanos": self.wall_clock(), **incident}
+        self.incidents.append(incident)
+        if self.record is not None:
+            self.record(incident)
+
+    def exit_line(self, name: str, code: int | None, delay_secs: float) -> str:
+        """What the launcher prints when `name` died (after `exited`)."""
+        hosted = f" ({self.hosts[name]})" if name in self.hosts else ""
+        return f"{name} exited ({code}){hosted}; restart #{self.restarts.get(name, 0)} in {delay_secs:.0f} s"
+
+    def summary(self) -> dict[str, Any]:
+        """For summary.json: restarts per process, and how many exits (each in incidents.jsonl)."""
+        exits = [i for i in self.incidents if i["event"] == "exited"]
+        return {"restarts": dict(self.restarts), "exits": len(exits)}
 
     def exited(self, name: str, code: int | None, *, service: str | None = None) -> float | None:
         """Seconds to wait before restarting `name` (a process of kind `service`: by default its name),
         or None when its exit ends the deployment."""
-        if (service or name) == "camera" and code == 0:
-            return None  # the source ended (a file without loop, max_frames): the run is complete
         up_secs = self.clock() - self._started_at.get(name, self.clock())
+        said = {"event": "exited", "name": name, "code": code, "up_secs": round(up_secs, 1)}
+        if (service or name) == "camera" and code == 0:
+            self._note({**said, "source_ended": True})
+            return None  # the source ended (a file without loop, max_frames): the run is complete
         if up_secs >= self.policy.healthy_after_secs or name not in self._backoff:
             backoff = self.policy.initial_backoff_secs
         else:
             backoff = min(2 * self._backoff[name], self.policy.max_backoff_secs)
         self._backoff[name] = backoff
         self.restarts[name] = self.restarts.get(name, 0) + 1
+        self._note(
+            {**said, "restart": self.restarts[name], "restart_in_secs": backoff, "takes_down": self.hosts.get(name)}
+        )
         return backoff
+
+
+def incidents_file(path: Path) -> Callable[[dict[str, Any]], None]:
+    """A `Supervisor.record` appending each incident to `path` as a JSON line, as it happens (a launcher
+    that dies leaves the incidents until then)."""
+
+    def append(incident: dict[str, Any]) -> None:
+        with path.open("a") as f:
+            f.write(json.dumps(incident) + "\n")
+
+    return append

@@ -131,7 +131,8 @@ class RerunViz:
         self.settings = settings
         run_dir.mkdir(parents=True, exist_ok=True)
         self.rec = rr.RecordingStream("splittag", recording_id=settings.recording_id or run_dir.name)
-        self.rec.save(run_dir / f"{settings.part_name or service}.rrd")
+        self.path = part_path(run_dir, settings.part_name or service)
+        self.rec.save(self.path)
         self._prefix = settings.entity_prefix
         self._robot = ""
         self._time_set = False
@@ -310,6 +311,17 @@ def make_viz(settings: RerunSettings, *, service: str, run_dir: Path) -> Viz:
     if not settings.enabled:
         return NullViz()
     return RerunViz(settings, service=service, run_dir=run_dir)
+
+
+def part_path(run_dir: Path, name: str) -> Path:
+    """A process's own .rrd part: `<name>.rrd`, or `<name>.<n>.rrd` for the n-th process of that name in
+    the run (a restarted service used to re-create the dead one's part, and the merged recording lost
+    everything before the restart: found by a fleet trial)."""
+    path, n = run_dir / f"{name}.rrd", 1
+    while path.exists():
+        n += 1
+        path = run_dir / f"{name}.{n}.rrd"
+    return path
 
 
 def merge_recordings(run_dir: Path) -> Path | None:
