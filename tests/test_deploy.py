@@ -141,6 +141,30 @@ def test_up_then_down_stops_every_service(tmp_path: Path) -> None:
         assert again.returncode == 1 and "no running deployment" in again.stdout
 
 
+def test_down_finishes_a_run_whose_launcher_died(tmp_path: Path) -> None:
+    """A fleet trial SIGKILLed the launcher: its services ran on unsupervised (down stopped them), but the
+    run never got its summary or merged recording, and stale pid files stayed. down now finishes it."""
+    with deployment(tmp_path, "orphan1") as d:
+        pids = d.pids()
+        time.sleep(2.0)
+        os.killpg(d.up.pid, signal.SIGKILL)  # the launcher (and up.sh), not the services: own sessions
+        d.up.wait()
+        assert all(_alive(p) for p in pids.values())
+        down = d.down()
+        assert down.returncode == 0 and "the run's launcher had died: wrote" in down.stdout, down.stdout + down.stderr
+        deadline = time.monotonic() + 30
+        while any(_alive(p) for p in pids.values()) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not any(_alive(p) for p in pids.values())
+        run = (d.runs / "current").resolve()
+        summary = json.loads((run / "summary.json").read_text())
+        assert summary["launcher"].startswith("died") and sorted(summary["stopped_by_down"]) == sorted(SERVICES)
+        assert summary["frames_csv_rows"] >= 0 and "slam" in summary  # slam wrote its outputs as it stopped
+        assert not (run / "pids").exists() and not (run / "launcher.pid").exists()
+        again = d.down()
+        assert again.returncode == 1 and "no running deployment" in again.stdout
+
+
 def test_down_without_a_deployment_says_so(tmp_path: Path) -> None:
     down = subprocess.run(
         ["bash", "deploy/down.sh", "--runs", str(tmp_path)], cwd=REPO, capture_output=True, text=True, timeout=60

@@ -156,8 +156,20 @@ def test_fleet_configs_give_each_process_its_identity_and_endpoints(tmp_path: Pa
     assert docs["robot2_robot_infer"]["robot_infer"]["zenoh"]["listen"] == ["tcp/127.0.0.1:7449"]
     assert docs["robot2_camera"]["camera"]["zenoh"]["connect"] == ["tcp/127.0.0.1:7449"]
     assert "fleet" not in docs["slam"]
+    # One robot's own settings ([robots.robot2.camera]): the shipped fleet's robots see different views
+    # (a fleet trial found two copies of one robot, and no place to configure them apart).
+    assert docs["robot2_camera"]["camera"]["start_frame"] == 30 and docs["robot2_camera"]["camera"]["fps"] == 10.0
+    assert "start_frame" not in docs["robot1_camera"]["camera"] and all("robots" not in d for d in docs.values())
     with pytest.raises(ValueError, match="repeat"):
         FleetPlan(robots=["a", "a"], edge_workers=["w"])
+    for extra, said in (
+        ("[robots.robot3.camera]\nfps = 5\n", r"names \['robot3'\], not robots of the fleet"),
+        ("[robots.robot1.slam]\nx = 1\n", r"may hold only common, robot_infer, camera, controller"),
+    ):
+        bad = tmp_path / "bad.toml"
+        bad.write_text((REPO / "deploy" / "fleet.toml").read_text() + extra)
+        with pytest.raises(ValueError, match=said):
+            fleet_configs(plan, tmp_path / "bad", bad)
 
 
 def test_fleet_settings_refuse_an_empty_robot_list_and_maps_of_robots_not_served(tmp_path: Path) -> None:

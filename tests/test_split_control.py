@@ -177,8 +177,9 @@ def test_a_wildcard_that_only_overlaps_the_split_gets_no_error_from_it_over_real
 
 def test_the_split_survives_a_restart_of_its_process(tmp_path: Path) -> None:
     """A person's pin was lost, silently, when the launcher restarted robot_infer (a fresh-clone trial):
-    every change is remembered in the run's split_<robot>.json and a restarted process resumes a pin."""
-    from shared.transport.split_control import remember_split, remembered_split, resumed_pin, split_memory
+    every change is remembered in the run's split_<robot>.json and a restarted process resumes a person's
+    setting, pinned or released."""
+    from shared.transport.split_control import remember_split, remembered_split, resumed_split, split_memory
 
     memory = split_memory(tmp_path, "r1")
     assert memory != split_memory(tmp_path, "r2")  # a fleet's robots share the run folder, not the file
@@ -188,15 +189,17 @@ def test_the_split_survives_a_restart_of_its_process(tmp_path: Path) -> None:
     assert remembered_split(memory) is None
     first.apply({"k": "3"}, None)
     assert remembered_split(memory) == SplitConfig(k=3, codec="fp16", pinned=True, source="user")
-    restarted = SplitState(resumed_pin(memory) or SplitConfig(k=7, codec="fp16", pinned=False, source="default"))
+    restarted = SplitState(resumed_split(memory) or SplitConfig(k=7, codec="fp16", pinned=False, source="default"))
     assert restarted.get().pinned and restarted.get().k == 3
     with pytest.raises(SplitRequestError, match="pinned"):
         restarted.apply({"k": "0"}, None, as_controller=True)
     first.apply({"release": "1"}, None)
     assert remembered_split(memory) == SplitConfig(k=3, codec="fp16", pinned=False, source="user")
-    assert resumed_pin(memory) is None  # released: a restart starts from the configured split
+    # Released, it is still the person's k: it stays until a controller changes it, restart or not (a
+    # fleet trial's released k=3 came back as the configured 7).
+    assert resumed_split(memory) == SplitConfig(k=3, codec="fp16", pinned=False, source="user")
     first.apply({"k": "0", "source": "controller"}, None)
-    assert remembered_split(memory) is not None and resumed_pin(memory) is None  # the controller's: not forced
+    assert remembered_split(memory) is not None and resumed_split(memory) is None  # the controller's: not forced
     memory.write_text('{"k": 11}')  # damaged: said, and the configured split is used
-    assert remembered_split(memory) is None and resumed_pin(memory) is None
+    assert remembered_split(memory) is None and resumed_split(memory) is None
     assert sorted(p.name for p in tmp_path.iterdir()) == ["split_r1.json"]  # no temporary file left

@@ -287,7 +287,13 @@ def test_split_map_and_stats_as_a_light_client() -> None:
             assert proc.returncode == 1 and "splittag stats: no reply on splittag/nobody/*/stats" in err
             proc = _light_cli("split", "set", "3", "--connect", endpoint)
             out, err = _finish(proc)
-            assert proc.returncode == 0 and out.strip() == "k=3 codec=fp16 pinned=True source=user", err
+            assert proc.returncode == 0 and out.strip() == "robot1 k=3 codec=fp16 pinned=True source=user", err
+            proc = _light_cli("split", "get", "--robot-id", "*", "--connect", endpoint)
+            out, err = _finish(proc)
+            assert proc.returncode == 0 and out.strip() == "robot1 k=3 codec=fp16 pinned=True source=user", err
+            proc = _light_cli("split", "set", "4", "--robot-id", "*", "--connect", endpoint)
+            out, err = _finish(proc)
+            assert proc.returncode == 1 and "names one robot" in err, err
             proc = _light_cli("split", "set", "9", "--connect", endpoint)
             out, err = _finish(proc)
             assert proc.returncode == 2 and "Traceback" not in err, err

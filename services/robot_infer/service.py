@@ -30,7 +30,7 @@ from shared.transport.flow import (
 )
 from shared.transport.latest import LatestValid, declare_latest_valid
 from shared.transport.session import declare_tensor_publisher, encoding_for
-from shared.transport.split_control import SplitState, remember_split, resumed_pin, serve_split, split_memory
+from shared.transport.split_control import SplitState, remember_split, resumed_split, serve_split, split_memory
 from shared.vision.proposals import Stage1Detector
 from shared.vision.tagmap import TagMapFile, load_tag_map
 from shared.vision.tracking import TagTracker
@@ -87,16 +87,17 @@ class RobotInfer:
         one_view = load_split_net(s.weights, s.precision, threads=s.threads)
         self.net = with_views(one_view, s.views)
         self.fusion = load_keypoint_fusion(s.weights) if s.fuse_corners else None
-        # The split, a person's pin, survives a restart of this service within its run (the launcher restarts
-        # a service that dies: a fresh-clone trial's pin was lost that way, silently). One file per robot
-        # (a fleet's robot_infer processes share the run folder); only a pin resumes: the controller, which
-        # reads the split before every decision, sets its own k again, and a k that made this process die
-        # is not forced on the next one unless a person pinned it.
+        # The split a person set (pinned or released) survives a restart of this service within its run (the
+        # launcher restarts a service that dies: a fresh-clone trial's pin was lost that way, silently). One
+        # file per robot (a fleet's robot_infer processes share the run folder); only a person's setting
+        # resumes: the controller, which reads the split before every decision, sets its own k again, and a
+        # k that made this process die is not forced on the next one unless a person chose it.
         memory = split_memory(s.run_dir, s.robot_id) if started_by_run_launcher(s.run_dir) else None
         initial = SplitConfig(k=s.split_k, codec=s.codec, pinned=False, source="default")
-        resumed = resumed_pin(memory) if memory is not None else None
+        resumed = resumed_split(memory) if memory is not None else None
         if resumed is not None:
-            log.info("split resumed from %s: k=%d, pinned by a person", memory, resumed.k)
+            how = "pinned" if resumed.pinned else "released"
+            log.info("split resumed from %s: k=%d, set by a person (%s)", memory, resumed.k, how)
         self.state = SplitState(
             resumed or initial, on_change=None if memory is None else lambda c: remember_split(memory, c)
         )

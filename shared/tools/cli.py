@@ -95,6 +95,7 @@ def _cmd_down(args: argparse.Namespace) -> int:
         pid = None
     if pid is None and not services:
         print(f"no running deployment in {run.resolve()} (its processes have ended)")
+        _finish_orphaned(run, [])
         return 1
     if pid is not None:
         # The launcher supervises (it would restart a service stopped behind its back): stop it, and
@@ -111,7 +112,19 @@ def _cmd_down(args: argparse.Namespace) -> int:
     deadline = time.monotonic() + 90
     while any(_running(p) for p in waiting) and time.monotonic() < deadline:
         time.sleep(0.2)
+    if pid is None:  # the launcher had died: finish the run as it would have
+        _finish_orphaned(run, [name for name, _ in services])
     return 0
+
+
+def _finish_orphaned(run: Path, stopped: list[str]) -> None:
+    """A run whose launcher died: its summary, merged recording and no stale pid files."""
+    from shared.tools.launch import finish_orphaned_run
+
+    summary = finish_orphaned_run(run.resolve(), stopped)
+    print(f"the run's launcher had died: wrote {run.resolve() / 'summary.json'}", flush=True)
+    if "recording" in summary:
+        print(f"merged the recording into {summary['recording']}", flush=True)
 
 
 def _cmdline(pid: int) -> str:
@@ -223,6 +236,14 @@ def _cmd_split(args: argparse.Namespace) -> int:
         print(f"splittag split: --certs with {connect}: a TLS deployment listens on a tls/ endpoint", file=sys.stderr)
         return 2
     k, codec, release = args.k, args.codec, args.action == "release"
+    if args.robot_id != "*":
+        from shared.wire import keys
+
+        try:
+            keys.split(args.robot_id)
+        except ValueError as exc:
+            print(f"splittag split: {exc}", file=sys.stderr)
+            return 2
     if args.action == "set" and k is None and codec is None:
         print("splittag split set: give k (0..7) and/or --codec", file=sys.stderr)
         return 2
@@ -687,7 +708,7 @@ def _add_control_commands(sub: Any) -> None:
     p.add_argument("action", choices=["get", "set", "release"])
     p.add_argument("k", type=int, nargs="?", help="split index 0..7 (for set)")
     p.add_argument("--codec", choices=["fp16", "fp32"], help="set: how cuts 1..6 travel (with or without k)")
-    p.add_argument("--robot-id", default="robot1")
+    p.add_argument("--robot-id", default="robot1", help="the robot's id (get: '*' reads every robot's)")
     p.add_argument(
         "--connect",
         default=None,
@@ -946,12 +967,14 @@ def _user_errors(command: str) -> tuple[tuple[type[BaseException], ...], tuple[t
     if command in LIGHT_COMMANDS:
         return (FileNotFoundError,), (SplitQueryError, ReaderError, zenoh.ZError)
     from shared.runtime.settings import ConfigurationError
+    from shared.tools.fleet import FleetConfigError
     from shared.tools.launch import LaunchError
     from shared.tools.linkemu import LinkProfileError
     from shared.vision.geometry import CameraFileError
     from shared.vision.tagmap import TagMapError
 
     usage = (
+        FleetConfigError,
         LinkProfileError,
         ModelFileError,
         ConfigurationError,

@@ -17,13 +17,17 @@ import os
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from shared.tools.topology import merge, write_config
 from shared.transport.session import TlsSettings, ZenohSettings, free_tcp_port
 from shared.wire.messages import RobotId
+
+
+class FleetConfigError(ValueError):
+    """A deploy TOML's fleet tables that cannot make a fleet (said in one line, exit 2)."""
 
 
 class FleetPlan(BaseModel):
@@ -81,8 +85,13 @@ class FleetPlan(BaseModel):
         """The `[fleet]` table of a deploy TOML (deploy/fleet.toml)."""
         table = tomllib.loads(Path(config).read_text()).get("fleet")
         if not isinstance(table, dict):
-            raise ValueError(f"{config} has no [fleet] table (see deploy/fleet.toml)")
-        return cls.model_validate(table)
+            raise FleetConfigError(f"{config} has no [fleet] table (see deploy/fleet.toml)")
+        try:
+            return cls.model_validate(table)
+        except ValidationError as exc:
+            from shared.runtime.errors import one_line_error
+
+            raise FleetConfigError(f"{config} [fleet]: {one_line_error(exc)}") from None
 
     def robot_port(self, robot: str) -> int:
         """The port robot's own router listens on."""
@@ -168,6 +177,7 @@ def fleet_configs(
     edge tier (slam first: its router), then each robot (robot_infer before its camera)."""
     doc = tomllib.loads(base.read_text())
     doc.pop("fleet", None)
+    per_robot = robot_tables(doc.pop("robots", {}), plan, base)
     doc = merge(doc, {"common": {"run_dir": str(run_dir)}})
     doc = merge(doc, extra or {})
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -177,7 +187,8 @@ def fleet_configs(
         # Rerun: a part file per process, per-robot entities under robots/<robot>/ (the workers' by message).
         prefix = "robots/{robot}/" if service == "edge_infer" else (f"robots/{robot}/" if robot else "")
         rerun = {"common": {"rerun": {"part_name": name, "entity_prefix": prefix}}}
-        path = write_config(run_dir / f"config_{name}.toml", extra=merge(merge(doc, rerun), tables))
+        own = merge(doc, per_robot.get(robot, {})) if robot else doc  # [robots.<robot>.<service>] over the rest
+        path = write_config(run_dir / f"config_{name}.toml", extra=merge(merge(own, rerun), tables))
         out.append(FleetProcess(name, service, path, robot))
 
     edge = plan.edge_router
@@ -215,6 +226,27 @@ def fleet_configs(
         camera = z(f"{robot}-camera", {"mode": "client", "connect": [own]})
         add(f"{robot}_camera", "camera", robot, {"common": common, "camera": {"zenoh": camera}})
     return out
+
+
+ROBOT_SERVICES: Final[tuple[str, ...]] = ("common", "robot_infer", "camera", "controller")
+
+
+def robot_tables(tables: Any, plan: FleetPlan, base: Path) -> dict[str, dict[str, Any]]:
+    """The deploy TOML's `[robots.<robot>.<service>]` tables: one robot's settings over every robot's
+    (its camera's source, calibration or start frame, its split...); ValueError naming what is wrong."""
+    if not isinstance(tables, dict):
+        raise FleetConfigError(f"{base}: robots must be a table of robot ids ([robots.robot2.camera])")
+    unknown = sorted(set(tables) - set(plan.robots))
+    if unknown:
+        raise FleetConfigError(f"{base}: [robots] names {unknown}, not robots of the fleet ({plan.robots})")
+    for robot, services in tables.items():
+        if not isinstance(services, dict) or not set(services) <= set(ROBOT_SERVICES):
+            got = sorted(services) if isinstance(services, dict) else services
+            raise FleetConfigError(
+                f"{base}: [robots.{robot}] may hold only {', '.join(ROBOT_SERVICES)} tables (a robot's own "
+                f"processes), got {got}"
+            )
+    return tables
 
 
 def operator_settings(plan: FleetPlan) -> ZenohSettings:

@@ -685,6 +685,37 @@ def forget_run_files(run_dir: Path) -> None:
         (run_dir / name).unlink(missing_ok=True)
 
 
+def finish_orphaned_run(run_dir: Path, stopped: list[str]) -> dict[str, Any]:
+    """What the launcher would have done at the end, for a run whose launcher died (`splittag down`
+    stopped its services): pid files gone, the recording parts merged, and a summary.json that says so,
+    with what the run folder still tells (frames.csv's rows, incidents, slam's outputs). The monitor's
+    figures died with the launcher."""
+    import csv
+
+    forget_run_files(run_dir)
+    summary: dict[str, Any] = {
+        "run_dir": str(run_dir),
+        "launcher": "died before the run ended; `splittag down` stopped the services and wrote this summary",
+        "stopped_by_down": stopped,
+    }
+    for name in ("frames.csv", *sorted(p.name for p in run_dir.glob("frames_*.csv"))):
+        if (run_dir / name).is_file():
+            with (run_dir / name).open() as f:
+                summary[f"{name.removesuffix('.csv')}_csv_rows"] = sum(1 for _ in csv.DictReader(f))
+    incidents = run_dir / "incidents.jsonl"
+    if incidents.is_file():
+        summary["incidents"] = str(incidents)
+        summary["exits"] = sum(1 for line in incidents.read_text().splitlines() if '"event": "exited"' in line)
+    for name in ("slam.json", "ate.json"):
+        if (run_dir / name).is_file():
+            summary["slam"] = json.loads((run_dir / name).read_text())
+    recording = merge_recordings(run_dir)
+    if recording is not None:
+        summary["recording"] = str(recording)
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
 class _Services:
     """The services of one run: started, their pids written, restarted by the supervisor's policy."""
 

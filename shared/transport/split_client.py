@@ -40,6 +40,23 @@ def query_split(
     raise SplitQueryError(f"no reply on {selector} (is robot_infer running?)")
 
 
+def every_split(session: zenoh.Session, *, timeout_secs: float = 5.0) -> dict[str, SplitConfig]:
+    """Every robot's split (a get on splittag/*/split: each robot_infer answers on its own key)."""
+    selector = keys.for_every_robot(keys.split("any"))
+    found: dict[str, SplitConfig] = {}
+    for reply in session.get(selector, timeout=timeout_secs):
+        if reply.ok is not None:
+            found[keys.robot_of(str(reply.ok.key_expr))] = decode(reply.ok.payload.to_bytes(), SplitConfig)
+    if not found:
+        raise SplitQueryError(f"no reply on {selector} (is any robot_infer running?)")
+    return dict(sorted(found.items()))
+
+
+def split_line(robot_id: str, cfg: SplitConfig) -> str:
+    """What `splittag split` prints for one robot."""
+    return f"{robot_id} k={cfg.k} codec={cfg.codec} pinned={cfg.pinned} source={cfg.source}"
+
+
 def split_query(
     robot_id: str,
     connect: str,
@@ -57,7 +74,11 @@ def split_query(
         sets = [f"k={k}"] if k is not None else []
         sets += [f"codec={codec}"] if codec is not None else []
         params = "release=1" if release else ";".join(sets)  # Zenoh separates selector parameters by ';'
+        if robot_id == "*":  # reading every robot's (robot_infer refuses a set through a wildcard)
+            if params:
+                raise SplitQueryError("a set or release names one robot (--robot-id), not '*'")
+            return "\n".join(split_line(r, cfg) for r, cfg in every_split(session).items())
         cfg = query_split(session, robot_id, params=params, identity=tls.certificate.stem if tls else None)
-        return f"k={cfg.k} codec={cfg.codec} pinned={cfg.pinned} source={cfg.source}"
+        return split_line(robot_id, cfg)
     finally:
         session.close()

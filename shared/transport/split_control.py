@@ -125,12 +125,13 @@ def split_memory(run_dir: Path, robot_id: str) -> Path:
     return run_dir / f"split_{robot_id}.json"
 
 
-def resumed_pin(path: Path) -> SplitConfig | None:
-    """A person's pin that a previous process of the same robot and run left in `path`, else None: the
-    controller sets its own k again, and a k that made the process die is forced on the next one only
-    when a person pinned it."""
+def resumed_split(path: Path) -> SplitConfig | None:
+    """A person's setting that a previous process of the same robot and run left in `path`, pinned or
+    released (a released k stays until a controller changes it; a fleet trial's released k=3 came back
+    as the configured 7), else None: the controller sets its own k again, so its k is not forced on
+    the next process (nor one that made this process die, unless a person chose it)."""
     config = remembered_split(path)
-    return config if config is not None and config.pinned and config.source == "user" else None
+    return config if config is not None and config.source == "user" else None
 
 
 def remembered_split(path: Path) -> SplitConfig | None:
