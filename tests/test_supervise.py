@@ -4,6 +4,7 @@ finished camera ends the deployment."""
 from __future__ import annotations
 
 import json
+from functools import partial
 from pathlib import Path
 
 from shared.tools.supervise import RestartPolicy, Supervisor, incidents_file
@@ -67,3 +68,57 @@ def test_every_exit_and_restart_is_an_incident_the_run_keeps(tmp_path: Path) -> 
         {"unix_nanos": 7, "event": "exited", "name": "robot1_camera", "code": 0, "up_secs": 5.0, "source_ended": True},
     ]
     assert sup.summary() == {"restarts": {"slam": 1}, "exits": 2}
+
+
+def test_comings_and_goings_say_who_is_back_and_which_robots_move() -> None:
+    """A fleet trial saw hand-overs only in the workers' logs and no word when a restarted process was
+    ready again: the launcher now says both, from the liveliness tokens."""
+    from types import SimpleNamespace
+
+    import zenoh
+
+    from shared.tools.fleet import FleetPlan, fleet_process_of_token
+    from shared.tools.launch import ComingsAndGoings
+    from shared.transport.fleet import assign
+    from shared.wire import keys
+
+    plan = FleetPlan(robots=["robot1", "robot2"], edge_workers=["edge1", "edge2"])
+    names = {"slam", "edge1", "edge2", "robot1_robot_infer", "robot1_camera", "robot2_robot_infer", "robot2_camera"}
+    name_of = partial(fleet_process_of_token, plan, names)
+    assert name_of(keys.fleet_service("slam")) == "slam"
+    assert name_of(keys.edge_worker("fleet", "edge2")) == "edge2"
+    assert name_of(keys.alive("robot1", "robot_infer")) == "robot1_robot_infer"
+    assert name_of(keys.alive("robot1", "edge_infer")) is None  # a lane's token, not a process
+    assert name_of(keys.alive("robot9", "camera")) is None and name_of(keys.edge_worker("other", "edge1")) is None
+
+    clock = FakeClock()
+    sup = Supervisor(clock=clock, wall_clock=lambda: 0)
+    comings = ComingsAndGoings(sup, name_of, robots=plan.robots, workers=plan.edge_workers)
+
+    def token(key: str, up: bool) -> None:
+        kind = zenoh.SampleKind.PUT if up else zenoh.SampleKind.DELETE
+        comings.on_token(SimpleNamespace(key_expr=key, kind=kind))  # type: ignore[arg-type]
+
+    token(keys.edge_worker("fleet", "edge1"), True)  # the run coming up: not news
+    assert comings.lines() == []
+    comings.arm()
+    served = assign(plan.robots, plan.edge_workers)
+    victim = served["robot1"]
+    other = next(w for w in plan.edge_workers if w != victim)
+    sup.started(victim)
+    clock.now += 10.0
+    sup.exited(victim, -9)
+    token(keys.edge_worker("fleet", victim), False)
+    assert comings.lines() == [f"edge worker {victim} gone: robot1 -> {other}"]
+    clock.now += 7.5
+    token(keys.edge_worker("fleet", victim), True)
+    assert comings.lines() == [
+        f"{victim} is back: ready 7.5 s after it exited",
+        f"edge worker {victim} up: robot1 -> {victim}",
+    ]
+    assert sup.incidents[-1] == {"unix_nanos": 0, "event": "ready", "name": victim, "down_secs": 7.5}
+    token(keys.alive("robot2", "camera"), True)  # a token that comes back without an exit (the network)
+    assert comings.lines() == []
+    token(keys.edge_worker("fleet", "edge1"), False)
+    token(keys.edge_worker("fleet", "edge2"), False)
+    assert comings.lines()[-1] == "edge worker edge2 gone: no edge worker left, every robot computes on board"

@@ -16,6 +16,7 @@ from __future__ import annotations
 import os
 import tomllib
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any, Final
 
@@ -23,6 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from shared.tools.topology import merge, write_config
 from shared.transport.session import TlsSettings, ZenohSettings, free_tcp_port
+from shared.wire import keys
 from shared.wire.messages import RobotId
 
 
@@ -249,6 +251,20 @@ def robot_tables(tables: Any, plan: FleetPlan, base: Path) -> dict[str, dict[str
     return tables
 
 
+def fleet_process_of_token(plan: FleetPlan, names: set[str], key: str) -> str | None:
+    """A liveliness token's process name in a fleet run (slam, a worker, `<robot>_<service>`), or None
+    (an edge lane's `alive/edge_infer`, another run's)."""
+    parts = key.split("/")
+    name = None
+    if key == keys.fleet_service("slam"):
+        name = "slam"
+    elif key.startswith(f"{keys.FLEET}/{plan.tier}/edge_worker/"):
+        name = parts[-1]
+    elif len(parts) == 4 and parts[0] == keys.ROOT and parts[2] == "alive" and parts[3] != "edge_infer":
+        name = f"{parts[1]}_{parts[3]}"
+    return name if name in names else None
+
+
 def operator_settings(plan: FleetPlan) -> ZenohSettings:
     """The ZenohSettings of a person's (or the launcher's monitor's) session to the edge tier."""
     tls = TlsSettings.from_dir(plan.certs, "operator") if plan.certs is not None else None
@@ -338,8 +354,11 @@ def run_fleet(
     import threading
     import time
 
+    import zenoh
+
     from shared.runtime.settings import CONFIG_EXIT
     from shared.tools.launch import (
+        ComingsAndGoings,
         FramesCsv,
         LaunchError,
         Monitor,
@@ -359,7 +378,6 @@ def run_fleet(
     from shared.tools.supervise import Supervisor, incidents_file
     from shared.vision.tagmap import load_tag_map
     from shared.viz.recording import merge_recordings
-    from shared.wire import keys
 
     plan = FleetPlan.from_config(config)
     if only is not None and only != "edge" and only not in plan.robots:
@@ -384,6 +402,13 @@ def run_fleet(
     supervisor = Supervisor(record=incidents_file(run_dir / "incidents.jsonl"), hosts=hosts)
     running: list[tuple[FleetProcess, Service]] = []
     restart_at: dict[str, float] = {}
+    names = {s.name for s in specs}
+    comings = ComingsAndGoings(
+        supervisor,
+        partial(fleet_process_of_token, plan, names),
+        robots=list(plan.robots) if only in (None, "edge") else None,
+        workers=list(plan.edge_workers),
+    )
 
     def start(spec: FleetProcess) -> Service:
         argv = ["-m", f"services.{spec.service}", "--config", str(spec.config)]
@@ -435,10 +460,17 @@ def run_fleet(
         write_pids()
         wanted = [keys.edge_worker(plan.tier, w) for w in plan.edge_workers if only in (None, "edge")]
         wanted += [keys.alive(r, "robot_infer") for r in monitors if only != "edge"]
+
+        def attach(session: zenoh.Session) -> list[Any]:
+            subs = [sub for r, m in monitors.items() for sub in attach_monitor(session, r, m)]
+            for key in (f"{keys.ROOT}/*/alive/*", f"{keys.FLEET}/**"):
+                subs.append(session.liveliness().declare_subscriber(key, comings.on_token))
+            return subs
+
         started = wait_for_run(
             launcher_monitor_settings(plan, only),
             wanted,
-            attach=lambda session: [sub for r, m in monitors.items() for sub in attach_monitor(session, r, m)],
+            attach=attach,
             supervise=restart_dead,
             stop=stop,
             timeout_secs=180,
@@ -446,10 +478,11 @@ def run_fleet(
         )
         if started.up:
             print(f"fleet run {run_dir}: {', '.join(s.name for s in specs)} up; Ctrl-C stops", flush=True)
+            comings.arm()
             run_for(
                 stop,
                 duration_secs,
-                lines=lambda: [f"{robot:>10} {monitor.line()}" for robot, monitor in monitors.items()],
+                lines=lambda: [*comings.lines(), *(f"{robot:>10} {m.line()}" for robot, m in monitors.items())],
                 quiet=quiet,
                 supervise=restart_dead,
                 every_second=write_frames,

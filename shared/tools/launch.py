@@ -20,6 +20,7 @@ import tomllib
 from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar, cast
 
@@ -685,6 +686,78 @@ def forget_run_files(run_dir: Path) -> None:
         (run_dir / name).unlink(missing_ok=True)
 
 
+class ComingsAndGoings:
+    """The run's liveliness tokens as live lines (Zenoh's callback only enqueues): a process that had
+    exited is back when its token returns (said with how long it was out, and kept as an incident),
+    and a fleet's edge worker that goes or comes hands robots on (`robots`: the fleet's, whose
+    assignment every worker computes the same way). `name_of` maps a token's key to the launcher's
+    process name (None: not a process of this run). Events before `arm()` (the run coming up) are
+    dropped."""
+
+    def __init__(
+        self,
+        supervisor: Supervisor,
+        name_of: Callable[[str], str | None],
+        *,
+        robots: list[str] | None = None,
+        workers: list[str] | None = None,
+    ) -> None:
+        self.supervisor, self.name_of, self.robots = supervisor, name_of, robots or []
+        self.workers = set(workers or [])
+        self._events: deque[tuple[str, bool]] = deque(maxlen=10_000)
+        self._armed = False
+
+    def on_token(self, sample: zenoh.Sample) -> None:
+        """Liveliness subscriber callback: a token appeared (PUT) or went (DELETE)."""
+        self._events.append((str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT))
+
+    def arm(self) -> None:
+        """The run is up: from now on every coming and going is news."""
+        self._events.clear()
+        self._armed = True
+
+    def lines(self) -> list[str]:
+        """What came and went since the last call."""
+        out: list[str] = []
+        while self._events:
+            key, up = self._events.popleft()
+            if not self._armed:
+                continue
+            name = self.name_of(key)
+            if name is None:
+                continue
+            if up:
+                down = self.supervisor.ready(name)
+                if down is not None:
+                    out.append(f"{name} is back: ready {down:.1f} s after it exited")
+            if self.robots and name in self._worker_names(key):
+                out += self._handover(name, up)
+        return out
+
+    def _worker_names(self, key: str) -> set[str]:
+        return {key.rsplit("/", 1)[1]} if "/edge_worker/" in key else set()
+
+    def _handover(self, worker: str, up: bool) -> list[str]:
+        from shared.transport.fleet import assign
+
+        before = assign(self.robots, self.workers)
+        self.workers = self.workers | {worker} if up else self.workers - {worker}
+        after = assign(self.robots, self.workers)
+        what = "up" if up else "gone"
+        if not after:
+            return [f"edge worker {worker} {what}: no edge worker left, every robot computes on board"]
+        moves = [f"{r} -> {after[r]}" for r in self.robots if before.get(r) != after.get(r)]
+        return [f"edge worker {worker} {what}: " + (", ".join(moves) if moves else "no robot moves")]
+
+
+def _service_of_token(robot_id: str, services: tuple[str, ...], key: str) -> str | None:
+    """`splittag/<robot_id>/alive/<service>` -> the service, for a service of this run."""
+    parts = key.split("/")
+    if len(parts) == 4 and parts[:3] == [keys.ROOT, robot_id, "alive"] and parts[3] in services:
+        return parts[3]
+    return None
+
+
 def finish_orphaned_run(run_dir: Path, stopped: list[str]) -> dict[str, Any]:
     """What the launcher would have done at the end, for a run whose launcher died (`splittag down`
     stopped its services): pid files gone, the recording parts merged, and a summary.json that says so,
@@ -1031,6 +1104,12 @@ def run_pipeline(
     monitor = Monitor(run_tags, max_records=200_000)  # a deployment may run for days
     frames_csv = FramesCsv(run_dir / "frames.csv", monitor, lambda: read_events(run_dir))
     running = _Services(run_config, run_dir, wrappers)
+    comings = ComingsAndGoings(running.supervisor, partial(_service_of_token, robot_id, services))
+
+    def attach(session: zenoh.Session) -> list[Any]:
+        tokens = session.liveliness().declare_subscriber(f"{keys.ROOT}/{robot_id}/alive/*", comings.on_token)
+        return [*attach_monitor(session, robot_id, monitor), tokens]
+
     started = Started()
     try:
         (run_dir / "launcher.pid").write_text(f"{os.getpid()}\n")  # `splittag down` stops the run through it
@@ -1040,7 +1119,7 @@ def run_pipeline(
         started = wait_for_run(
             zs,  # the edge router is a service's
             [keys.alive(robot_id, s) for s in services],
-            attach=lambda session: attach_monitor(session, robot_id, monitor),
+            attach=attach,
             supervise=running.supervise,
             stop=stop,
             timeout_secs=120,
@@ -1050,10 +1129,11 @@ def run_pipeline(
             print(f"run {run_dir}: {', '.join(services)} alive; Ctrl-C stops", flush=True)
             link_lines = LinkEventsTail(run_dir)
             link_lines.seen = 1 if emu is not None else 0  # the initial profile was printed above
+            comings.arm()
             run_for(
                 stop,
                 duration_secs,
-                lines=lambda: [*link_lines.new_lines(), monitor.line()],
+                lines=lambda: [*link_lines.new_lines(), *comings.lines(), monitor.line()],
                 quiet=quiet,
                 supervise=running.supervise,
                 every_second=frames_csv.flush,

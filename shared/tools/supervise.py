@@ -37,12 +37,23 @@ class Supervisor:
     hosts: dict[str, str] = field(default_factory=dict)
     _started_at: dict[str, float] = field(default_factory=dict)
     _backoff: dict[str, float] = field(default_factory=dict)
+    _down_since: dict[str, float] = field(default_factory=dict)  # exited, not ready again yet
 
     def started(self, name: str, *, pid: int | None = None) -> None:
         """A service (re)started now (a restart is an incident: `pid` is its new process)."""
         self._started_at[name] = self.clock()
         if self.restarts.get(name):
             self._note({"event": "restarted", "name": name, "restart": self.restarts[name], "pid": pid})
+
+    def ready(self, name: str) -> float | None:
+        """`name`'s liveliness token is back: seconds since it exited (an incident), or None when it
+        had not exited (its first start, or a token that came and went with the network)."""
+        since = self._down_since.pop(name, None)
+        if since is None:
+            return None
+        down_secs = round(self.clock() - since, 1)
+        self._note({"event": "ready", "name": name, "down_secs": down_secs})
+        return down_secs
 
     def _note(self, incident: dict[str, Any]) -> None:
         incident = {"unix_nanos": self.wall_clock(), **incident}
@@ -65,6 +76,7 @@ class Supervisor:
         or None when its exit ends the deployment."""
         up_secs = self.clock() - self._started_at.get(name, self.clock())
         said = {"event": "exited", "name": name, "code": code, "up_secs": round(up_secs, 1)}
+        self._down_since.setdefault(name, self.clock())
         if (service or name) == "camera" and code == 0:
             self._note({**said, "source_ended": True})
             return None  # the source ended (a file without loop, max_frames): the run is complete
