@@ -165,6 +165,7 @@ def test_fleet_configs_give_each_process_its_identity_and_endpoints(tmp_path: Pa
     for extra, said in (
         ("[robots.robot3.camera]\nfps = 5\n", r"names \['robot3'\], not robots of the fleet"),
         ("[robots.robot1.slam]\nx = 1\n", r"may hold only common, robot_infer, camera, controller"),
+        ("[robots.robot1]\ncamera = 5\n", r"holds tables .* not values: \['camera'\]"),
     ):
         bad = tmp_path / "bad.toml"
         bad.write_text((REPO / "deploy" / "fleet.toml").read_text() + extra)

@@ -358,3 +358,25 @@ def test_frames_csv_is_written_as_the_run_goes_every_frame_once(tmp_path: Path) 
     assert seqs()[-1] != 9  # not yet: it arrived a second ago
     frames_csv.flush(final=True)
     assert seqs() == [0, 1, *kept, 9] and frames_csv.rows == 3 + len(kept)
+
+
+def test_a_frames_csv_that_cannot_be_written_does_not_stop_the_run(tmp_path: Path) -> None:
+    """A failed write (disk full, the run folder removed) used to raise out of the launcher's loop, stop
+    every service and lose the summary (review): it is said, and the rows are counted as missed."""
+    from shared.tools.launch import FramesCsv
+
+    poses = EXAMPLES[TagPoses.SCHEMA]
+    assert isinstance(poses, TagPoses)
+    now = [0.0]
+    monitor = Monitor(None, clock=lambda: now[0])
+    (tmp_path / "run").mkdir()
+    frames_csv = FramesCsv(tmp_path / "run" / "frames.csv", monitor, lag_secs=0.0)
+    monitor.on_poses(encode(poses.model_copy(update={"seq": 1})))
+    (tmp_path / "run" / "frames.csv").unlink()
+    (tmp_path / "run").rmdir()  # the folder is gone: the append fails
+    frames_csv.flush()
+    assert (frames_csv.rows, frames_csv.missed, frames_csv.failed) == (0, 1, 1)
+    (tmp_path / "run").mkdir()  # back: later frames are written, the failed one is not retried
+    monitor.on_poses(encode(poses.model_copy(update={"seq": 2})))
+    frames_csv.flush(final=True)
+    assert (frames_csv.rows, frames_csv.missed) == (1, 1)

@@ -1160,6 +1160,33 @@ def test_trajectory_is_written_in_the_data_sets_time_when_every_frame_has_it(tmp
     assert json.loads((tmp_path / "slam.json").read_text())["time"] == "capture"
 
 
+def test_a_restarted_slam_keeps_the_time_its_files_are_in(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A resumed trajectory in the data set's time, continued by a process with a frame that has no
+    data-set stamp, used to switch the run to capture time: the new stamps never passed the old file's
+    last, and nothing was appended again, silently (review). The resumed time base is kept."""
+    poses = _constant_velocity(20)
+    source_ns = [1_305_031_102_175_304_000 + i * 33_333_333 for i in range(20)]
+    first = SlamNode(SlamServiceSettings(run_dir=tmp_path))
+    for i in range(10):
+        first.on_frame_stamp(1_000 + i, source_ns[i])
+        first.on_ground_truth(1_000 + i, poses[i])
+        first.on_poses(_tag_poses(i, 1_000 + i, poses[i]))
+    first.write_outputs(tmp_path)
+    second = SlamNode(SlamServiceSettings(run_dir=tmp_path))
+    for i in range(10, 20):
+        if i != 15:  # frame 15's stamp never came
+            second.on_frame_stamp(1_000 + i, source_ns[i])
+        second.on_ground_truth(1_000 + i, poses[i])
+        second.on_poses(_tag_poses(i, 1_000 + i, poses[i]))
+    with caplog.at_level("WARNING", logger="services.slam.service"):
+        stats = second.write_outputs(tmp_path)
+    expected = [f"{t // 10**9}.{t % 10**9:09d}" for i, t in enumerate(source_ns) if i != 15]
+    for name in ("trajectory.tum", "groundtruth.tum"):
+        assert [line.split()[0] for line in (tmp_path / name).read_text().splitlines()] == expected, name
+    assert stats["time"] == "data set (rgb.txt)" and stats["ate_frames"] == 19 and stats["poses"] == 19
+    assert "1 of this process's poses have no data-set stamp and are left out" in caplog.text
+
+
 def test_stamp_map_looks_up_capture_times() -> None:
     m = StampMap()
     for i in range(300):  # past the first growth

@@ -7,7 +7,13 @@ import json
 from functools import partial
 from pathlib import Path
 
-from shared.tools.supervise import RestartPolicy, Supervisor, incidents_file
+from shared.tools.supervise import (
+    RestartPolicy,
+    Supervisor,
+    incidents_file,
+    read_incidents,
+    summarise_incidents,
+)
 from tests.fakes import FakeClock
 
 
@@ -30,7 +36,7 @@ def test_a_finished_camera_ends_the_run_and_a_crashed_one_restarts() -> None:
     sup = Supervisor(clock=FakeClock())
     sup.started("camera")
     assert sup.exited("camera", 0) is None
-    assert sup.exited("camera", 1) == 1.0
+    assert Supervisor(clock=FakeClock()).exited("camera", 1) == 1.0
     # a fleet names its cameras per robot: the kind decides, not the name
     assert sup.exited("robot2_camera", 0, service="camera") is None
     assert sup.exited("robot2_robot_infer", 0, service="robot_infer") == 1.0
@@ -51,6 +57,7 @@ def test_every_exit_and_restart_is_an_incident_the_run_keeps(tmp_path: Path) -> 
     assert sup.exit_line("slam", -9, delay or 0) == "slam exited (-9) (it is the edge tier's router); restart #1 in 1 s"
     sup.started("slam", pid=102)
     assert sup.exited("robot1_camera", 0, service="camera") is None
+    assert sup.exited("robot1_camera", 0, service="camera") is None  # a fleet asks every second: said once
     lines = [json.loads(line) for line in path.read_text().splitlines()]
     assert lines == sup.incidents
     assert lines == [
@@ -122,3 +129,13 @@ def test_comings_and_goings_say_who_is_back_and_which_robots_move() -> None:
     token(keys.edge_worker("fleet", "edge1"), False)
     token(keys.edge_worker("fleet", "edge2"), False)
     assert comings.lines()[-1] == "edge worker edge2 gone: no edge worker left, every robot computes on board"
+
+
+def test_an_incidents_file_that_cannot_be_written_does_not_stop_the_run(tmp_path: Path) -> None:
+    sup = Supervisor(clock=FakeClock(), record=incidents_file(tmp_path / "gone" / "incidents.jsonl"))
+    sup.started("slam")
+    assert sup.exited("slam", -9) == 1.0  # said once in the log; the supervisor goes on
+    assert sup.summary() == {"restarts": {"slam": 1}, "exits": 1}
+    written = tmp_path / "incidents.jsonl"
+    written.write_text('{"event": "exited", "name": "slam", "restart": 1}\n{"event": "exi')  # cut short
+    assert summarise_incidents(read_incidents(written)) == {"restarts": {"slam": 1}, "exits": 1}

@@ -221,23 +221,31 @@ def test_watch_poses_as_a_light_client_refuses_bad_input_and_goes_on() -> None:
 
 
 @pytest.mark.multiprocess
-def test_watch_every_robot_as_a_tum_trajectory() -> None:
+def test_watch_every_robot_and_one_robots_tum_trajectory() -> None:
     with _router() as (endpoint, session):
         pubs = {r: session.declare_publisher(keys.camera_pose(r)) for r in ("r1", "r2")}
-        proc = _light_cli("watch", "poses", "--robot-id", "*", "--connect", endpoint, "--count", "3", "--format", "tum")
+        every = _light_cli("watch", "poses", "--robot-id", "*", "--connect", endpoint, "--count", "3")
+        tum = _light_cli("watch", "poses", "--robot-id", "r2", "--connect", endpoint, "--count", "2", "--format", "tum")
         try:
             for pub in pubs.values():
-                _wait_subscribed(pub, proc)
+                _wait_subscribed(pub, every)
+            _wait_subscribed(pubs["r2"], tum)
             pubs["r1"].put(encode(_pose("tracking", 1, "r1")))
             pubs["r2"].put(encode(_pose("lost", 1, "r2")))
             pubs["r2"].put(encode(_pose("tracking", 2, "r2")))
-            out, err = _finish(proc)
+            out, err = _finish(every)
+            tum_out, tum_err = _finish(tum)
         finally:
             for pub in pubs.values():
                 pub.undeclare()
-    assert proc.returncode == 0, err
-    assert out.splitlines() == [tum_line(_pose("tracking", 1, "r1"))] * 2  # same pose and stamp; lost skipped
+    assert every.returncode == 0 and tum.returncode == 0, err + tum_err
+    assert [line.split()[:3] for line in out.splitlines()] == [
+        ["r1", "#1", "tracking"],
+        ["r2", "#1", "lost"],
+        ["r2", "#2", "tracking"],
+    ]
     assert "3 messages from r1, r2" in err
+    assert tum_out.splitlines() == [tum_line(_pose("tracking", 2, "r2"))]  # the lost pose is left out
 
 
 @pytest.mark.multiprocess
@@ -291,9 +299,9 @@ def test_split_map_and_stats_as_a_light_client() -> None:
             proc = _light_cli("split", "get", "--robot-id", "*", "--connect", endpoint)
             out, err = _finish(proc)
             assert proc.returncode == 0 and out.strip() == "robot1 k=3 codec=fp16 pinned=True source=user", err
-            proc = _light_cli("split", "set", "4", "--robot-id", "*", "--connect", endpoint)
+            proc = _light_cli("map", "--robot-id", "*", "--connect", endpoint)  # every robot's slam
             out, err = _finish(proc)
-            assert proc.returncode == 1 and "names one robot" in err, err
+            assert proc.returncode == 0 and out.splitlines() == map_text(tag_map), err  # type: ignore[arg-type]
             proc = _light_cli("split", "set", "9", "--connect", endpoint)
             out, err = _finish(proc)
             assert proc.returncode == 2 and "Traceback" not in err, err
@@ -361,6 +369,9 @@ def test_bad_arguments_are_one_line_before_any_connection() -> None:
         (["watch", "poses", "--robot-id", "a/b"], "robot id 'a/b'"),
         (["map", "--robot-id", "*", "--save"], "--save names one robot"),
         (["stats", "--connect", "tls/127.0.0.1:7447"], "give --certs"),
+        (["watch", "poses", "--robot-id", "*", "--format", "tum"], "one robot's trajectory"),
+        (["split", "set", "4", "--robot-id", "*"], "names one robot"),
+        (["split", "get", "--robot-id", "a b"], "robot id 'a b'"),
     ):
         proc = _light_cli(*args)
         _out, err = _finish(proc)

@@ -72,6 +72,7 @@ class RobotRun:
     # the resumed run's trajectory, as arrays (nanoseconds, poses): written first, never shortened
     previous_stamps_nanos: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     previous_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4), np.float64))
+    previous_time: str | None = None  # the time the resumed files are in (slam.json's `time`)
     # and its ground truth (the ATE covers the whole run, not only what this process placed)
     previous_gt_stamps_nanos: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     previous_gt_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4), np.float64))
@@ -119,6 +120,7 @@ class SlamNode:
         # the tags whose world the configured map gives (a checkpoint's poses are in slam's own world)
         self.world_tags = {t.id for t in configured.tags if t.world_from_tag is not None} if configured else set()
         self._resized: set[int] = set()
+        self._time_warned: set[str] = set()  # robots whose resumed time base left poses out (said once)
         self.runs: dict[str, RobotRun] = {}
         for robot in (
             settings.robots if isinstance(settings.robots, list) else [] if self.fleet else [settings.robot_id]
@@ -176,7 +178,22 @@ class SlamNode:
                 gt_path = self.settings.run_dir / self._trajectory_file(robot, "groundtruth")
                 if gt_path.is_file():
                     run.previous_gt_stamps_nanos, run.previous_gt_poses = read_tum_nanos(gt_path)
+                run.previous_time = self._resumed_time(robot)
         return run
+
+    def _resumed_time(self, robot: str) -> str:
+        """The time base a previous process wrote `robot`'s files in (slam.json; capture if it says none)."""
+        try:
+            stats = json.loads((self.settings.run_dir / "slam.json").read_text())
+            entry = stats.get("robots", {}).get(robot, {}) if self.fleet else stats
+            return str(entry.get("time", "capture"))
+        except (OSError, ValueError, AttributeError):
+            return "capture"
+
+    def _warn_once(self, robot: str, text: str) -> None:
+        if robot not in self._time_warned:
+            self._time_warned.add(robot)
+            log.warning("%s", text)
 
     @property
     def indexer(self) -> FrameIndexer:
@@ -400,9 +417,21 @@ class SlamNode:
             source_traj, traj_found = run.source_stamps.lookup(traj_stamps)
             source_gt, gt_found = run.source_stamps.lookup(gt_stamps)
         # The data set's time when every pose has one (a TUM tool compares trajectory.tum with the data
-        # set's ground truth as it is); else the live capture time.
+        # set's ground truth as it is); else the live capture time. A resumed run keeps the time its files
+        # are in (poses in two time bases in one file would never be appended to again, silently: review):
+        # in the data set's, this process's poses without a data-set stamp are left out (said).
         in_source_time = len(run.source_stamps) > 0 and bool(traj_found.all()) and bool(gt_found.all())
-        if len(run.source_stamps) and not in_source_time:
+        if run.previous_time is not None:
+            in_source_time = run.previous_time != "capture"
+            if in_source_time and not (traj_found.all() and gt_found.all()):
+                self._warn_once(
+                    robot,
+                    f"{self._trajectory_file(robot)}: resumed in the data set's time; {int((~traj_found).sum())} "
+                    "of this process's poses have no data-set stamp and are left out",
+                )
+                traj_poses, source_traj = traj_poses[traj_found], source_traj[traj_found]
+                gt_poses, source_gt = gt_poses[gt_found], source_gt[gt_found]
+        elif len(run.source_stamps) and not in_source_time:
             log.warning(
                 "%s in capture time: %d of %d poses have no data-set stamp",
                 self._trajectory_file(robot),

@@ -7,7 +7,7 @@ import shlex
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, Final
+from typing import TYPE_CHECKING, Any, Final
 
 from shared.model.precision import PRECISION_CHOICES, PRECISIONS, ModelFileError
 from shared.model.views import VIEW_COUNTS
@@ -16,6 +16,9 @@ from shared.tools import settings_doc
 from shared.tools.options import add_model_options, model_from_args
 from shared.tools.topology import EDGE_PORT, Topology
 from shared.training.settings import QuantizeSettings, TrainSettings
+
+if TYPE_CHECKING:
+    from shared.transport.session import ZenohSettings
 
 VIEWS_HELP = (
     "test-time views: the network on each ROI and 1, 3 or 7 of its flips and turns, keypoints averaged "
@@ -113,18 +116,21 @@ def _cmd_down(args: argparse.Namespace) -> int:
     while any(_running(p) for p in waiting) and time.monotonic() < deadline:
         time.sleep(0.2)
     if pid is None:  # the launcher had died: finish the run as it would have
-        _finish_orphaned(run, [name for name, _ in services])
+        alive = [name for name, p in services if _running(p)]
+        _finish_orphaned(run, [name for name, _ in services], alive)
     return 0
 
 
-def _finish_orphaned(run: Path, stopped: list[str]) -> None:
+def _finish_orphaned(run: Path, stopped: list[str], still_running: list[str] | None = None) -> None:
     """A run whose launcher died: its summary, merged recording and no stale pid files."""
     from shared.tools.launch import finish_orphaned_run
 
-    summary = finish_orphaned_run(run.resolve(), stopped)
+    summary = finish_orphaned_run(run.resolve(), stopped, still_running=still_running or [])
     print(f"the run's launcher had died: wrote {run.resolve() / 'summary.json'}", flush=True)
     if "recording" in summary:
         print(f"merged the recording into {summary['recording']}", flush=True)
+    if still_running:
+        print(f"still running after 90 s: {', '.join(still_running)} (their recording parts are left as they are)")
 
 
 def _cmdline(pid: int) -> str:
@@ -153,9 +159,9 @@ def split_endpoint(connect: str | None, *, tls: bool) -> str:
     return "tls/" + default.split("/", 1)[1] if tls else default
 
 
-def _reader_settings(args: argparse.Namespace, command: str) -> Any:
-    """The client session of a command that reads a running deployment (watch, map, stats): the
-    endpoint and TLS identity checked as `splittag split` checks them; None after saying what is wrong."""
+def _reader_settings(args: argparse.Namespace, command: str) -> ZenohSettings | None:
+    """The client session of a command that reads or steers a running deployment (split, watch, map,
+    stats): the endpoint, TLS identity and robot id checked; None after saying what is wrong."""
     from shared.transport.session import TlsSettings, ZenohSettings
 
     tls = TlsSettings.from_dir(args.certs, args.identity) if args.certs else None
@@ -184,6 +190,9 @@ def _cmd_watch(args: argparse.Namespace) -> int:
 
     if args.format == "tum" and args.topic != "poses":
         print("splittag watch: --format tum is for poses", file=sys.stderr)
+        return 2
+    if args.format == "tum" and args.robot_id == "*":
+        print("splittag watch: --format tum is one robot's trajectory: name it (--robot-id)", file=sys.stderr)
         return 2
     if (args.count is not None and args.count < 1) or (args.duration is not None and not args.duration > 0):
         print("splittag watch: --count and --duration must be positive", file=sys.stderr)
@@ -224,31 +233,17 @@ def _cmd_stats(args: argparse.Namespace) -> int:
 
 
 def _cmd_split(args: argparse.Namespace) -> int:
-    from shared.transport.session import TlsSettings
     from shared.transport.split_client import split_query
 
-    tls = TlsSettings.from_dir(args.certs, args.identity) if args.certs else None
-    connect = split_endpoint(args.connect, tls=tls is not None)
-    if connect.startswith("tls/") and tls is None:
-        print(f"splittag split: {connect} is a TLS endpoint: give --certs (and --identity)", file=sys.stderr)
-        return 2
-    if tls is not None and not connect.startswith("tls/"):
-        print(f"splittag split: --certs with {connect}: a TLS deployment listens on a tls/ endpoint", file=sys.stderr)
-        return 2
     k, codec, release = args.k, args.codec, args.action == "release"
-    if args.robot_id != "*":
-        from shared.wire import keys
-
-        try:
-            keys.split(args.robot_id)
-        except ValueError as exc:
-            print(f"splittag split: {exc}", file=sys.stderr)
-            return 2
     if args.action == "set" and k is None and codec is None:
         print("splittag split set: give k (0..7) and/or --codec", file=sys.stderr)
         return 2
     if args.action != "set" and (k is not None or codec is not None):
         print(f"splittag split {args.action}: k and --codec are for set", file=sys.stderr)
+        return 2
+    if args.action != "get" and args.robot_id == "*":  # robot_infer refuses a set through a wildcard
+        print(f"splittag split {args.action}: names one robot (--robot-id), not '*'", file=sys.stderr)
         return 2
     if k is not None:  # said before reaching for the router: a bad k is the user's, not the network's
         from shared.wire.cuts import check_cut
@@ -258,7 +253,10 @@ def _cmd_split(args: argparse.Namespace) -> int:
         except ValueError as exc:
             print(f"splittag split set: {exc}", file=sys.stderr)
             return 2
-    print(split_query(args.robot_id, connect, k=k, codec=codec, release=release, tls=tls))
+    settings = _reader_settings(args, "split")
+    if settings is None:
+        return 2
+    print(split_query(args.robot_id, settings.connect[0], k=k, codec=codec, release=release, tls=settings.tls))
     return 0
 
 

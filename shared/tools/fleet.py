@@ -242,6 +242,11 @@ def robot_tables(tables: Any, plan: FleetPlan, base: Path) -> dict[str, dict[str
     if unknown:
         raise FleetConfigError(f"{base}: [robots] names {unknown}, not robots of the fleet ({plan.robots})")
     for robot, services in tables.items():
+        if isinstance(services, dict) and not all(isinstance(v, dict) for v in services.values()):
+            raise FleetConfigError(
+                f"{base}: [robots.{robot}] holds tables ([robots.{robot}.camera] fps = 5), not values: "
+                f"{sorted(k for k, v in services.items() if not isinstance(v, dict))}"
+            )
         if not isinstance(services, dict) or not set(services) <= set(ROBOT_SERVICES):
             got = sorted(services) if isinstance(services, dict) else services
             raise FleetConfigError(
@@ -419,16 +424,20 @@ def run_fleet(
     def write_pids() -> None:  # what `splittag down` signals when the launcher itself is gone
         (run_dir / "pids").write_text("".join(f"{s.name} {p.popen.pid}\n" for s, p in running))
 
+    ended: set[str] = set()  # cameras whose source ended: said once, never restarted
+
     def restart_dead() -> None:  # what died, after its backoff (also while the fleet comes up)
         for i, (spec, proc) in enumerate(running):
             code = proc.popen.poll()
-            if code is None:
+            if code is None or spec.name in ended:
                 continue
             if code == CONFIG_EXIT:  # it refused its settings: a restart would only refuse them again
                 raise LaunchError(configuration_error_line(proc), exit_code=CONFIG_EXIT)
             if spec.name not in restart_at:
                 delay = supervisor.exited(spec.name, code, service=spec.service)
-                if delay is None:  # a camera whose source ended
+                if delay is None:  # a camera whose source ended (its robot's other processes run on)
+                    ended.add(spec.name)
+                    print(f"{spec.name}: its source ended", flush=True)
                     continue
                 print(supervisor.exit_line(spec.name, code, delay), flush=True)
                 restart_at[spec.name] = time.monotonic() + delay

@@ -298,7 +298,7 @@ class Monitor:
                 if arrived_by is not None and rec["t"] > arrived_by:
                     break
                 out.append(rec)
-            return start + i, out, sorted(self.predictions)
+            return start + i, out, sorted(self.predictions) if out else []
 
     def snapshot(self) -> tuple[list[dict[str, Any]], list[Prediction]]:
         """Copies of the frame records and the controller's predictions, for a run's files."""
@@ -758,12 +758,15 @@ def _service_of_token(robot_id: str, services: tuple[str, ...], key: str) -> str
     return None
 
 
-def finish_orphaned_run(run_dir: Path, stopped: list[str]) -> dict[str, Any]:
+def finish_orphaned_run(run_dir: Path, stopped: list[str], *, still_running: list[str] | None = None) -> dict[str, Any]:
     """What the launcher would have done at the end, for a run whose launcher died (`splittag down`
     stopped its services): pid files gone, the recording parts merged, and a summary.json that says so,
     with what the run folder still tells (frames.csv's rows, incidents, slam's outputs). The monitor's
-    figures died with the launcher."""
+    figures died with the launcher. Services `still_running` (they did not stop in time) keep their
+    recording parts unmerged: they are still being written."""
     import csv
+
+    from shared.tools.supervise import read_incidents, summarise_incidents
 
     forget_run_files(run_dir)
     summary: dict[str, Any] = {
@@ -777,14 +780,16 @@ def finish_orphaned_run(run_dir: Path, stopped: list[str]) -> dict[str, Any]:
                 summary[f"{name.removesuffix('.csv')}_csv_rows"] = sum(1 for _ in csv.DictReader(f))
     incidents = run_dir / "incidents.jsonl"
     if incidents.is_file():
-        summary["incidents"] = str(incidents)
-        summary["exits"] = sum(1 for line in incidents.read_text().splitlines() if '"event": "exited"' in line)
+        summary |= {**summarise_incidents(read_incidents(incidents)), "incidents": str(incidents)}
     for name in ("slam.json", "ate.json"):
-        if (run_dir / name).is_file():
+        with contextlib.suppress(OSError, ValueError):  # a file cut short by the crash is left out
             summary["slam"] = json.loads((run_dir / name).read_text())
-    recording = merge_recordings(run_dir)
-    if recording is not None:
-        summary["recording"] = str(recording)
+    if still_running:
+        summary["still_running"] = still_running
+    else:
+        recording = merge_recordings(run_dir)
+        if recording is not None:
+            summary["recording"] = str(recording)
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
 
@@ -963,18 +968,28 @@ class FramesCsv:
         self.path, self.monitor, self.events, self.lag_secs = path, monitor, events, lag_secs
         self.next_frame = 0  # the run's first frame not yet written (Monitor.frames_total counts them)
         self.rows = 0
-        self.missed = 0  # frames the monitor dropped before they were written (none unless it outgrew its cap)
+        self.missed = 0  # frames never written: the monitor dropped them first (it outgrew its cap), or a write failed
+        self.failed = 0  # of those, the ones whose write failed
         write_frames_csv(path, [])
 
     def flush(self, *, final: bool = False) -> None:
-        """Write the frames whose poses arrived `lag_secs` ago or earlier (every frame when `final`)."""
+        """Write the frames whose poses arrived `lag_secs` ago or earlier (every frame when `final`). A
+        write that fails (disk full, the folder gone) is said once and those rows are counted missed:
+        the file is a side record, not a reason to stop the run."""
         arrived_by = None if final else self.monitor.clock() - self.lag_secs
         first, records, predictions = self.monitor.records_since(self.next_frame, arrived_by)
+        written = 0
         if records:
-            write_frames_csv(self.path, frame_rows(records, self.events(), predictions), append=True)
-        self.missed += first - self.next_frame
+            try:
+                write_frames_csv(self.path, frame_rows(records, self.events(), predictions), append=True)
+                written = len(records)
+            except OSError as exc:
+                if not self.failed:
+                    log.warning("cannot write %s (%s): its rows are counted as missed", self.path, exc)
+                self.failed += len(records)
+        self.missed += (first - self.next_frame) + (len(records) - written)
         self.next_frame = first + len(records)
-        self.rows += len(records)
+        self.rows += written
 
 
 class LinkEventsTail:

@@ -6,11 +6,14 @@ the run keeps (`incidents.jsonl` in the run folder, counted in summary.json), no
 from __future__ import annotations
 
 import json
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -38,6 +41,7 @@ class Supervisor:
     _started_at: dict[str, float] = field(default_factory=dict)
     _backoff: dict[str, float] = field(default_factory=dict)
     _down_since: dict[str, float] = field(default_factory=dict)  # exited, not ready again yet
+    _ended: set[str] = field(default_factory=set)  # cameras whose source ended (said once)
 
     def started(self, name: str, *, pid: int | None = None) -> None:
         """A service (re)started now (a restart is an incident: `pid` is its new process)."""
@@ -68,18 +72,20 @@ class Supervisor:
 
     def summary(self) -> dict[str, Any]:
         """For summary.json: restarts per process, and how many exits (each in incidents.jsonl)."""
-        exits = [i for i in self.incidents if i["event"] == "exited"]
-        return {"restarts": dict(self.restarts), "exits": len(exits)}
+        return summarise_incidents(self.incidents)
 
     def exited(self, name: str, code: int | None, *, service: str | None = None) -> float | None:
         """Seconds to wait before restarting `name` (a process of kind `service`: by default its name),
         or None when its exit ends the deployment."""
+        if name in self._ended:  # asked again about a camera whose source ended: already said
+            return None
         up_secs = self.clock() - self._started_at.get(name, self.clock())
         said = {"event": "exited", "name": name, "code": code, "up_secs": round(up_secs, 1)}
-        self._down_since.setdefault(name, self.clock())
         if (service or name) == "camera" and code == 0:
+            self._ended.add(name)
             self._note({**said, "source_ended": True})
             return None  # the source ended (a file without loop, max_frames): the run is complete
+        self._down_since.setdefault(name, self.clock())
         if up_secs >= self.policy.healthy_after_secs or name not in self._backoff:
             backoff = self.policy.initial_backoff_secs
         else:
@@ -92,12 +98,43 @@ class Supervisor:
         return backoff
 
 
+def summarise_incidents(incidents: list[dict[str, Any]]) -> dict[str, Any]:
+    """Restarts per process and how many exits, from the incidents (a live supervisor's, or a run's
+    incidents.jsonl read back)."""
+    exits = [i for i in incidents if i.get("event") == "exited"]
+    restarts: dict[str, int] = {}
+    for i in exits:
+        if "restart" in i:
+            restarts[str(i.get("name"))] = restarts.get(str(i.get("name")), 0) + 1
+    return {"restarts": restarts, "exits": len(exits)}
+
+
+def read_incidents(path: Path) -> list[dict[str, Any]]:
+    """A run's incidents.jsonl (a line that is not a JSON object, e.g. cut short by a crash, is skipped)."""
+    out = []
+    for line in path.read_text().splitlines():
+        try:
+            incident = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(incident, dict):
+            out.append(incident)
+    return out
+
+
 def incidents_file(path: Path) -> Callable[[dict[str, Any]], None]:
     """A `Supervisor.record` appending each incident to `path` as a JSON line, as it happens (a launcher
-    that dies leaves the incidents until then)."""
+    that dies leaves the incidents until then). A write that fails (disk full, the folder gone) is said
+    once and the run goes on: the record is a side file, not a reason to stop the robots."""
+    failed: list[dict[str, Any]] = []
 
     def append(incident: dict[str, Any]) -> None:
-        with path.open("a") as f:
-            f.write(json.dumps(incident) + "\n")
+        try:
+            with path.open("a") as f:
+                f.write(json.dumps(incident) + "\n")
+        except OSError as exc:
+            if not failed:
+                log.warning("cannot record incidents in %s (%s): the run goes on without them", path, exc)
+            failed.append(incident)
 
     return append

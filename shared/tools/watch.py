@@ -35,6 +35,7 @@ from pydantic import BaseModel
 
 from shared.runtime.guard import InputGuard
 from shared.transport.session import ZenohSettings, open_session
+from shared.vision.stamps import format_stamp_nanos
 from shared.wire import keys
 from shared.wire.messages import CameraPose, ControllerState, Message, TagMap, TagPoses, decode
 
@@ -128,9 +129,8 @@ def tum_line(pose: CameraPose) -> str | None:
     if pose.status not in ("tracking", "ground_truth"):
         return None
     m = np.asarray(pose.world_from_camera, np.float64)
-    secs, frac = divmod(pose.capture_nanos, 1_000_000_000)
     numbers = " ".join(f"{v:.9f}" for v in (*m[:3, 3], *quaternion_xyzw(m[:3, :3])))
-    return f"{secs}.{frac:09d} {numbers}"
+    return f"{format_stamp_nanos(pose.capture_nanos)} {numbers}"
 
 
 def _age(capture_nanos: int, now_nanos: int) -> str:
@@ -275,15 +275,20 @@ def watch(
     model = TOPICS[topic][1]
     inbox: queue.Queue[tuple[str, bytes]] = queue.Queue(maxsize=QUEUE_MESSAGES)
     result = WatchResult()
+    dropped = Counter[str]()  # on Zenoh's thread; Counter's update under the GIL, read at the end
+    received = 0
 
     def on_sample(sample: zenoh.Sample) -> None:
         try:
             inbox.put_nowait((str(sample.key_expr), sample.payload.to_bytes()))
         except queue.Full:
-            result.dropped += 1
+            dropped["full"] += 1
 
     guard = InputGuard(f"splittag watch {topic}")
-    session = open_session(settings)
+    try:
+        session = open_session(settings)
+    except KeyboardInterrupt:
+        return result
     start = time.monotonic()
     hinted = False
     try:
@@ -292,13 +297,14 @@ def watch(
             now = time.monotonic()
             if duration_secs is not None and now - start >= duration_secs:
                 break
-            if not hinted and result.messages == 0 and now - start >= QUIET_HINT_SECS:
+            if not hinted and received == 0 and now - start >= QUIET_HINT_SECS:
                 print(f"nothing on {key} yet: is its publisher running, and reachable from here?", file=err, flush=True)
                 hinted = True
             try:
                 sample_key, payload = inbox.get(timeout=0.2)
             except queue.Empty:
                 continue
+            received += 1
             message = guard.run(topic, len(payload), partial(_decode_checked, payload, model, sample_key))
             if message is None:
                 continue
@@ -313,12 +319,13 @@ def watch(
     finally:
         session.close()
     result.rejected = dict(guard.rejected)
+    result.dropped = dropped["full"]
     return result
 
 
 def get_map(robot_id: str, settings: ZenohSettings, *, save: bool = False, timeout_secs: float = 5.0) -> list[TagMap]:
     """One get on the map queryable: the map of each slam that answers (`save`: it also writes its files)."""
-    selector = keys.tag_map(robot_id) + ("?save=1" if save else "")
+    selector = key_for("map", robot_id) + ("?save=1" if save else "")
     session = open_session(settings)
     try:
         maps: list[TagMap] = []
@@ -365,18 +372,19 @@ _GUARD_FIELDS: Final[frozenset[str]] = frozenset(
 )
 
 
+def _counts(value: Any) -> dict[str, Any]:
+    """A stats reply's counter table, or nothing when a reply has something else there."""
+    return {str(k): v for k, v in value.items()} if isinstance(value, dict) else {}
+
+
 def stats_text(stats: dict[str, dict[str, Any]]) -> list[str]:
     """One line per service: accepted (by input) and refused (by reason)."""
     lines = []
     for key, body in stats.items():
         name = key.removeprefix(f"{keys.ROOT}/").removesuffix("/stats")
-        inputs = ", ".join(f"{k} {v}" for k, v in sorted(body.get("accepted_by_input", {}).items()))
-        reasons = ", ".join(f"{k}: {v}" for k, v in sorted(body.get("rejected_by_reason", {}).items()))
-        extra = {
-            k: v
-            for k, v in body.items()
-            if k not in ("service", "accepted", "accepted_by_input", "rejected", "rejected_by_reason")
-        }
+        inputs = ", ".join(f"{k} {v}" for k, v in sorted(_counts(body.get("accepted_by_input")).items()))
+        reasons = ", ".join(f"{k}: {v}" for k, v in sorted(_counts(body.get("rejected_by_reason")).items()))
+        extra = {k: v for k, v in body.items() if k not in _GUARD_FIELDS}
         more = "  " + " ".join(f"{k}={v}" for k, v in sorted(extra.items())) if extra else ""
         lines.append(
             f"{name:<24} accepted {body.get('accepted', 0)}"

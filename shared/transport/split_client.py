@@ -40,15 +40,25 @@ def query_split(
     raise SplitQueryError(f"no reply on {selector} (is robot_infer running?)")
 
 
-def every_split(session: zenoh.Session, *, timeout_secs: float = 5.0) -> dict[str, SplitConfig]:
-    """Every robot's split (a get on splittag/*/split: each robot_infer answers on its own key)."""
+def every_split(
+    session: zenoh.Session, *, timeout_secs: float = 5.0, identity: str | None = None
+) -> dict[str, SplitConfig | str]:
+    """Every robot's split (a get on splittag/*/split: each robot_infer answers on its own key); a robot
+    whose answer is an error or cannot be read gets the reason instead, so one does not hide the others."""
     selector = keys.for_every_robot(keys.split("any"))
-    found: dict[str, SplitConfig] = {}
+    found: dict[str, SplitConfig | str] = {}
     for reply in session.get(selector, timeout=timeout_secs):
         if reply.ok is not None:
-            found[keys.robot_of(str(reply.ok.key_expr))] = decode(reply.ok.payload.to_bytes(), SplitConfig)
+            where = str(reply.ok.key_expr)
+            try:
+                found[keys.robot_of(where)] = decode(reply.ok.payload.to_bytes(), SplitConfig)
+            except ValueError as exc:  # WireError, or a reply on a key that names no robot
+                found[where] = f"refused its reply: {exc}"
+        elif reply.err is not None:
+            found[f"(error {len(found)})"] = reply.err.payload.to_string()
     if not found:
-        raise SplitQueryError(f"no reply on {selector} (is any robot_infer running?)")
+        hint = f"; or access control does not let {identity!r} ask it" if identity else ""
+        raise SplitQueryError(f"no reply on {selector} (is any robot_infer running?{hint})")
     return dict(sorted(found.items()))
 
 
@@ -77,7 +87,8 @@ def split_query(
         if robot_id == "*":  # reading every robot's (robot_infer refuses a set through a wildcard)
             if params:
                 raise SplitQueryError("a set or release names one robot (--robot-id), not '*'")
-            return "\n".join(split_line(r, cfg) for r, cfg in every_split(session).items())
+            found = every_split(session, identity=tls.certificate.stem if tls else None)
+            return "\n".join(split_line(r, c) if isinstance(c, SplitConfig) else f"{r} {c}" for r, c in found.items())
         cfg = query_split(session, robot_id, params=params, identity=tls.certificate.stem if tls else None)
         return split_line(robot_id, cfg)
     finally:

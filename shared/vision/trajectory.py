@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 
 from shared.vision.files import atomic_write_text
 from shared.vision.geometry import Array, GeometryError, make_pose
+from shared.vision.stamps import format_stamp_nanos
 
 
 def _tum_rows(path: Path) -> list[list[str]]:
@@ -67,12 +68,6 @@ def write_tum_arrays(path: Path, stamps: Array, poses: Array) -> None:
         np.savetxt(buf, np.column_stack([stamps, poses[:, :3, 3], quats]), fmt="%.9f")
         text = buf.getvalue()
     atomic_write_text(Path(path), text)
-
-
-def format_stamp_nanos(nanos: int) -> str:
-    """A stamp in nanoseconds (>= 0, as parse_stamp_nanos reads them) as exact decimal seconds."""
-    secs, frac = divmod(nanos, 1_000_000_000)
-    return f"{secs}.{frac:09d}"
 
 
 _MAX_STAMP_S: Final[Decimal] = Decimal(2**63).scaleb(-9)  # stamps travel as int64 nanoseconds
