@@ -3,6 +3,7 @@ and the camera service streaming them over a real Zenoh session, looping or stop
 
 from __future__ import annotations
 
+import itertools
 import threading
 from pathlib import Path
 
@@ -173,7 +174,10 @@ def test_camera_service_streams_a_folder_and_loops(tmp_path: Path) -> None:
     settings = _looping_folder(tmp_path, "src1", max_frames=7)
     frames, gts, published = _stream(settings, "src1", 7, expect_gts=7)
     assert published == 7
-    assert [f.seq for f in frames] == list(range(7))
+    # each pass is a camera session of its own: seq starts again (slam does not carry its motion prior
+    # across the wrap, which a data-set trial found bending the poses around every wrap)
+    assert [f.seq for f in frames] == [0, 1, 2, 0, 1, 2, 0]
+    assert all(a.capture_nanos < b.capture_nanos for a, b in itertools.pairwise(frames))
     assert np.array_equal(frames[4].image, _tag_image(1))  # 0 1 2 0 1 2 0: looped
     assert [g.world_from_camera[0, 3] for g in gts] == [0, 1, 2, 0, 1, 2, 0]
     assert frames[0].intrinsics == CAM
@@ -184,7 +188,7 @@ def test_camera_service_starts_later_in_the_source_and_refuses_a_start_past_its_
     frames only; a start past the source's end is an error, not a camera that loops publishing nothing."""
     settings = _looping_folder(tmp_path, "src3", max_frames=4, start_frame=2)
     frames, gts, published = _stream(settings, "src3", 4, expect_gts=4)
-    assert published == 4 and [f.seq for f in frames] == list(range(4))
+    assert published == 4 and [f.seq for f in frames] == [0, 0, 1, 2]
     assert [g.world_from_camera[0, 3] for g in gts] == [2, 0, 1, 2]  # 2, then the whole source again
     session = open_session(ZenohSettings(mode="peer", listen=[], multicast_scouting=False))
     try:
@@ -341,7 +345,7 @@ def test_a_folder_plays_once_by_default_and_a_looped_one_keeps_its_time_going_fo
     _, _, published = _stream(looped, "src4", 7, stamps)
     assert published == 7
     span = 300_000_000  # 0.2 s of stamps + one 0.1 s period
-    assert [s.source_stamp_nanos for s in sorted(stamps, key=lambda s: s.seq)] == [
+    assert [s.source_stamp_nanos for s in sorted(stamps, key=lambda s: s.capture_nanos)] == [
         *listed,
         *(t + span for t in listed),
         listed[0] + 2 * span,

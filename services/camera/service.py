@@ -92,7 +92,12 @@ def run(
     viz = make_viz(settings.rerun, service="camera", run_dir=settings.run_dir)
     gt_keypoints = source.gt_keypoints if isinstance(source, DemoSource) else None
     period = 1.0 / settings.fps
+    # `seq` numbers the frames of one pass over the source: a looped source's next pass starts at 0 again,
+    # as a restarted camera does, so slam takes the wrap as a new camera session and does not carry its
+    # motion prior across it (a data-set trial's 1 m wrap at 10 fps was within the motion envelope, not a
+    # jump: poses 10-50 cm off for a dozen frames around each wrap, with a 2 cm sigma).
     seq = 0
+    published = 0  # frames over all passes (max_frames, the return value)
     passes = 0  # completed passes over the source
     span = source.span_nanos if isinstance(source, FolderSource) else None
     next_t = time.monotonic()
@@ -102,11 +107,11 @@ def run(
             shift = passes * span if span is not None else 0
             for index, item in enumerate(source.frames()):
                 produced = True
-                if index < settings.start_frame and not seq:
+                if index < settings.start_frame and not published:
                     continue  # the first pass starts later in the source (a fleet's robots at different places)
                 now = time.monotonic()
                 if now < next_t and stop.wait(next_t - now):
-                    return seq
+                    return published
                 next_t = max(next_t + period, time.monotonic() - period)
                 capture = time.time_ns()
                 pub.put(
@@ -148,19 +153,21 @@ def run(
                 if gt_keypoints is not None and item.world_from_camera is not None:
                     viz.keypoints_gt(capture, gt_keypoints(item.world_from_camera))
                 seq += 1
-                if settings.max_frames and seq >= settings.max_frames:
-                    log.info("published %d frames (max_frames)", seq)
-                    return seq
+                published += 1
+                if settings.max_frames and published >= settings.max_frames:
+                    log.info("published %d frames (max_frames)", published)
+                    return published
                 if stop.is_set():
-                    return seq
+                    return published
             if not produced:
                 raise RuntimeError("the source produced no frames")
-            if not seq:  # the whole first pass was skipped: looping again would skip it again, forever
+            if not published:  # the whole first pass was skipped: looping again would skip it again, forever
                 raise ValueError(f"start_frame {settings.start_frame} is past the source's last frame")
             if not settings.loops:
-                log.info("source ended after %d frames", seq)
-                return seq
+                log.info("source ended after %d frames", published)
+                return published
             passes += 1
+            seq = 0  # a new pass: a new camera session for whoever reads the frames
             if span is not None:
                 log.info(
                     "pass %d: data-set stamps shifted by %.3f s so time keeps going forward",
@@ -170,4 +177,4 @@ def run(
     finally:
         token.undeclare()
         viz.close()
-    return seq
+    return published
