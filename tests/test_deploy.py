@@ -175,6 +175,31 @@ def test_down_finishes_a_run_whose_launcher_died(tmp_path: Path) -> None:
         assert again.returncode == 1 and "no running deployment" in again.stdout
 
 
+def test_up_refuses_ports_another_deployment_holds(tmp_path: Path) -> None:
+    """A data-set trial's run started beside someone else's demo on the same ports: its routers could not
+    listen, it joined the other run's, counted their liveliness tokens as its own and mixed both runs'
+    data (14 tags, ATE 44 cm, exit 0). The launcher now refuses, before starting anything."""
+    import socket
+
+    topology = Topology.loopback()
+    cfg = write_config(tmp_path / "deploy.toml", base=REPO / "deploy" / "local.toml", topology=topology)
+    runs = tmp_path / "runs"
+    with socket.socket() as other:  # another deployment's edge router
+        other.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        other.bind(("127.0.0.1", topology.edge_port))
+        other.listen()
+        up = subprocess.run(
+            ["bash", "deploy/up.sh", "--config", str(cfg), "--runs", str(runs)],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+    assert up.returncode == 2, up.stdout + up.stderr
+    assert f"tcp/127.0.0.1:{topology.edge_port} already in use on this host" in up.stderr, up.stderr
+    assert "Traceback" not in up.stderr and not runs.exists()  # nothing started, no run folder
+
+
 def test_down_without_a_deployment_says_so(tmp_path: Path) -> None:
     down = subprocess.run(
         ["bash", "deploy/down.sh", "--runs", str(tmp_path)], cwd=REPO, capture_output=True, text=True, timeout=60

@@ -27,6 +27,25 @@ def test_records_and_ground_truth_are_bounded() -> None:
     assert sorted(monitor.gt) == [20, 21, 22, 23, 24]
     summary = monitor.summary()
     assert summary["frames_total"] == 25 and summary["frames"] == len(monitor.records)
+    assert summary["frames_captured"] == 25 and summary["frames_skipped"] == 0
+
+
+def test_the_summary_says_how_many_captured_frames_the_robot_skipped() -> None:
+    """robot_infer takes the newest frame; a camera faster than the robot skips frames, which a data-set
+    trial found said nowhere (144 of 150 posed). The camera's ground truth and data-set stamps count
+    what it captured."""
+    from shared.wire.messages import FrameStamp
+
+    poses, stamp = EXAMPLES[TagPoses.SCHEMA], EXAMPLES[FrameStamp.SCHEMA]
+    assert isinstance(poses, TagPoses) and isinstance(stamp, FrameStamp)
+    monitor = Monitor(None)
+    assert "frames_captured" not in monitor.summary()  # a source that says neither: unknown
+    for seq in range(10):
+        monitor.on_stamp(encode(stamp.model_copy(update={"seq": seq})))
+        if seq % 3:
+            monitor.on_poses(encode(poses.model_copy(update={"seq": seq})))
+    summary = monitor.summary()
+    assert (summary["frames_captured"], summary["frames_total"], summary["frames_skipped"]) == (10, 6, 4)
 
 
 def test_unbounded_by_default_for_benchmarks() -> None:

@@ -249,6 +249,50 @@ def test_watch_every_robot_and_one_robots_tum_trajectory() -> None:
 
 
 @pytest.mark.multiprocess
+def test_watch_into_a_reader_that_goes_away_exits_quietly() -> None:
+    """`splittag watch poses | head -3` ended with a BrokenPipeError traceback, exit 1 (a trial): it
+    exits as a command killed by SIGPIPE does (141), without a traceback."""
+    with _router() as (endpoint, session):
+        publisher = session.declare_publisher(keys.camera_pose("robot1"))
+        proc = _light_cli("watch", "poses", "--connect", endpoint)
+        try:
+            _wait_subscribed(publisher, proc)
+            publisher.put(encode(_pose("tracking", 1)))
+            assert proc.stdout is not None and proc.stdout.readline().startswith("robot1 #1 tracking")
+            proc.stdout.close()  # the reader goes away, as head does
+            for seq in range(2, 6):
+                publisher.put(encode(_pose("tracking", seq)))
+                time.sleep(0.1)
+            assert proc.wait(timeout=20) == 141
+            assert proc.stderr is not None and "Traceback" not in proc.stderr.read()
+        finally:
+            publisher.undeclare()
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+
+
+@pytest.mark.multiprocess
+def test_watch_says_when_the_messages_stop() -> None:
+    """A watch whose deployment stopped waited in silence (a trial): it says so once, and SIGTERM ends it
+    with its summary, as Ctrl-C does."""
+    with _router() as (endpoint, session):
+        publisher = session.declare_publisher(keys.controller("robot1"))
+        proc = _light_cli("watch", "controller", "--connect", endpoint)
+        try:
+            _wait_subscribed(publisher, proc)
+            publisher.put(encode(_messages()["ControllerState"]))  # type: ignore[arg-type]
+            time.sleep(QUIET_HINT_SECS + 1.5)
+            proc.terminate()
+            out, err = _finish(proc)
+        finally:
+            publisher.undeclare()
+    assert proc.returncode == 0 and out.startswith("robot1 k=7"), err
+    assert "nothing more on splittag/robot1/controller/v1 for 5 s: has the deployment stopped?" in err
+    assert "1 messages, 0 refused" in err  # the summary, after SIGTERM
+
+
+@pytest.mark.multiprocess
 def test_watch_says_when_nothing_comes_and_exits_nonzero() -> None:
     with _router() as (endpoint, _session):
         proc = _light_cli("watch", "controller", "--connect", endpoint, "--duration", str(QUIET_HINT_SECS + 1))
@@ -282,7 +326,7 @@ def test_split_map_and_stats_as_a_light_client() -> None:
             proc = _light_cli("map", "--connect", endpoint, "--json", "--save")
             out, err = _finish(proc)
             assert proc.returncode == 0, err
-            assert json.loads(out)["revision"] == 2 and asked[-1].endswith("?save=1")
+            assert json.loads(out)["revision"] == 2 and asked[-1].endswith("?save=1") and "saved: slam wrote" in err
             proc = _light_cli("map", "--connect", endpoint)
             out, err = _finish(proc)
             assert proc.returncode == 0 and out.splitlines() == map_text(tag_map), err  # type: ignore[arg-type]
@@ -360,6 +404,13 @@ def test_no_router_is_one_line_in_a_light_client() -> None:
         proc = _light_cli(*args, "--connect", f"tcp/127.0.0.1:{port}")
         _out, err = _finish(proc, 30.0)
         assert proc.returncode == 1 and "Unable to connect" in err and "Traceback" not in err, (args, err)
+
+
+def test_a_command_a_light_install_cannot_run_says_so_in_one_line() -> None:
+    proc = _light_cli("settings", "camera")
+    _out, err = _finish(proc)
+    assert proc.returncode == 2 and "Traceback" not in err, err
+    assert "this command needs the full install" in err and "a light install runs only split, watch" in err
 
 
 def test_bad_arguments_are_one_line_before_any_connection() -> None:

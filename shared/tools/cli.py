@@ -200,6 +200,12 @@ def _cmd_watch(args: argparse.Namespace) -> int:
     settings = _reader_settings(args, "watch")
     if settings is None:
         return 2
+    import signal
+
+    def on_term(*_: object) -> None:  # `timeout`, a supervisor: end as Ctrl-C does, with the summary
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, on_term)
     result = watch(args.topic, args.robot_id, settings, fmt=args.format, count=args.count, duration_secs=args.duration)
     print(result.summary(key_for(args.topic, args.robot_id)), file=sys.stderr)
     return 0 if result.messages else 1
@@ -216,6 +222,8 @@ def _cmd_map(args: argparse.Namespace) -> int:
         return 2
     for tag_map in get_map(args.robot_id, settings, save=args.save):
         print(json_line(tag_map) if args.json else "\n".join(map_text(tag_map)))
+    if args.save:  # slam answers a save only once its files are written
+        print("saved: slam wrote map.json, slam.json and the trajectory into its run folder", file=sys.stderr)
     return 0
 
 
@@ -730,7 +738,11 @@ def _add_control_commands(sub: Any) -> None:
     p.set_defaults(func=_cmd_watch)
 
     p = sub.add_parser("map", help="the tag map slam holds now (a get on its map queryable)")
-    p.add_argument("--json", action="store_true", help="the TagMap as one JSON object")
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="the TagMap message as one JSON object (map.json in the run folder is the tag-map file slam loads)",
+    )
     p.add_argument("--save", action="store_true", help="also have slam write map.json and the trajectory now")
     _add_reader_options(p)
     p.set_defaults(func=_cmd_map)
@@ -984,6 +996,26 @@ def _user_errors(command: str) -> tuple[tuple[type[BaseException], ...], tuple[t
     return usage, (SplitQueryError, ReaderError, LaunchError, zenoh.ZError)
 
 
+def _stdout_closed() -> bool:
+    """Whether stdout's reader has gone (a pipe whose read end is closed): what a BrokenPipeError then
+    means. Flushing says so when output was still buffered; a pipe polled for writing says so when the
+    write that failed was already flushed (`splittag watch ... | head`: a trial's traceback)."""
+    import select
+
+    try:
+        sys.stdout.flush()
+    except BrokenPipeError:
+        return True
+    except (OSError, ValueError):
+        return False
+    try:
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(events & select.POLLERR for _, events in poller.poll(0))
+    except (OSError, ValueError):
+        return False
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Parse arguments and run the chosen subcommand."""
     import logging
@@ -1001,14 +1033,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         _load_link_profiles(args)
         code: int = args.func(args)
     except BrokenPipeError:
-        try:
-            sys.stdout.flush()
-        except BrokenPipeError:
+        if _stdout_closed():
             # Our reader went away (`splittag settings | head`): no traceback, none at exit either, and the
             # exit code a shell gives a command killed by SIGPIPE. Any other broken pipe is an error.
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
             return 141
         raise
+    except ModuleNotFoundError as exc:
+        if os.environ.get("SPLITTAG_TRACEBACK"):
+            raise
+        # A light install (README *Reading poses from your own process*) has what split, watch, map and
+        # stats need; any other command needs the full one (a trial got two chained tracebacks).
+        print(
+            f"splittag {args.command}: {exc}: this command needs the full install (`make setup`, README Quick "
+            f"start); a light install runs only {', '.join(LIGHT_COMMANDS)}",
+            file=sys.stderr,
+        )
+        return 2
     except Exception as exc:
         usage, failed = _user_errors(args.command)  # imported only here: every command starts as fast as before
         from pydantic import ValidationError

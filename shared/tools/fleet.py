@@ -374,6 +374,7 @@ def run_fleet(
         forget_run_files,
         incidents_summary,
         preparing_run_dir,
+        refuse_busy_endpoints,
         run_for,
         run_map_tables,
         start_process,
@@ -400,6 +401,7 @@ def run_fleet(
             if only is None or (s.robot_id or "edge") == only
         ]
         run_tags = load_tag_map(run_map) if run_map is not None else None
+        refuse_busy_endpoints([s.config for s in specs])
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     hosts = {"slam": "it is the edge tier's router: every robot and worker is cut off from the edge until it is back"}

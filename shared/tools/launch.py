@@ -38,7 +38,7 @@ from shared.vision.tagmap import TagMapFile, TagSpec, load_tag_map
 from shared.viz.recording import merge_recordings
 from shared.wire import keys
 from shared.wire.codec import WireError
-from shared.wire.messages import CameraPose, ControllerState, Message, TagPoses, decode
+from shared.wire.messages import CameraPose, ControllerState, FrameStamp, Message, TagPoses, decode
 
 if TYPE_CHECKING:
     from shared.tools.linkemu import LinkEmulator
@@ -90,6 +90,50 @@ def preparing_run_dir(root: Path) -> Iterator[Path]:
         discard_run_dir(run, made_root=made_root)  # refused before anything started
         raise
     link_current(run)
+
+
+def listen_endpoints(config: Path) -> list[str]:
+    """Every endpoint a run config's processes listen on (each table's `zenoh.listen`)."""
+    found: list[str] = []
+    for table in tomllib.loads(Path(config).read_text()).values():
+        zenoh_table = table.get("zenoh") if isinstance(table, dict) else None
+        if isinstance(zenoh_table, dict):
+            found += [e for e in zenoh_table.get("listen", []) if isinstance(e, str) and e not in found]
+    return found
+
+
+def busy_endpoints(endpoints: list[str]) -> list[str]:
+    """The tcp/ and tls/ endpoints of this host that something already listens on (another deployment's
+    routers: a run started beside it joined them, counted their liveliness tokens as its own and mixed
+    both runs' data, found by a trial). Endpoints of other hosts or namespaces are not judged here."""
+    import errno
+    import socket
+
+    busy = []
+    for endpoint in endpoints:
+        proto, _, rest = endpoint.partition("/")
+        host, _, port = rest.rpartition(":")
+        if proto not in ("tcp", "tls") or not port.isdigit():
+            continue
+        with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as a listener binds: TIME_WAIT is no use
+            try:
+                probe.bind((host.strip("[]"), int(port)))
+            except OSError as exc:
+                if exc.errno == errno.EADDRINUSE:
+                    busy.append(endpoint)
+    return busy
+
+
+def refuse_busy_endpoints(configs: list[Path]) -> None:
+    """LaunchError (exit 2) naming the endpoints of the run that something already listens on."""
+    busy = busy_endpoints([e for c in configs for e in listen_endpoints(c)])
+    if busy:
+        raise LaunchError(
+            f"{', '.join(busy)} already in use on this host: another deployment (`splittag down` stops the one in "
+            "runs/current) or another program; give this run other ports (its config's zenoh listen endpoints)",
+            exit_code=2,
+        )
 
 
 def discard_run_dir(run: Path, *, made_root: bool) -> None:
@@ -230,7 +274,10 @@ class Monitor:
     # slam was given `tag_map` (its world is the map's): only then is its pose comparable with ground truth
     slam_has_map: bool = True
     _last_gt_at: float | None = None  # when the camera's ground truth last arrived (this monitor's clock)
-    _last_gt_seq: int = -1  # the newest frame the camera sent ground truth for
+    _last_gt_seq: int = -1  # the frame the camera last sent ground truth for
+    # frames the camera captured, as far as this monitor sees them (ground truth or data-set stamps)
+    gt_total: int = 0
+    stamps_total: int = 0
     # listening at the robot's own router (a fleet's robot host), which sees the poses computed on board
     at_robot: bool = False
 
@@ -336,11 +383,18 @@ class Monitor:
         if msg is None:
             return
         with self._lock:
+            self.gt_total += 1
             self._last_gt_at = self.clock()
-            self._last_gt_seq = max(self._last_gt_seq, msg.seq)
+            self._last_gt_seq = msg.seq  # the latest (seq starts again with each camera session or pass)
             self.gt[msg.seq] = msg.world_from_camera
             while len(self.gt) > self.max_ground_truth:
                 del self.gt[next(iter(self.gt))]  # the oldest (insertion order)
+
+    def on_stamp(self, payload: bytes) -> None:
+        """Count one data-set stamp (FrameStamp): the camera captured that frame."""
+        if self._decode(payload, FrameStamp) is not None:
+            with self._lock:
+                self.stamps_total += 1
 
     def _errors(self, msg: TagPoses) -> list[float]:
         if self.tag_map is None:
@@ -436,6 +490,10 @@ class Monitor:
             recs = list(self.records)
         errs = [e for r in recs for e in r["errors_cm"]]
         out: dict[str, Any] = {"frames": len(recs), "frames_total": self.frames_total, "bad_messages": self.bad}
+        captured = max(self.gt_total, self.stamps_total)
+        if captured:  # robot_infer takes the newest frame: a camera faster than the robot skips frames
+            out["frames_captured"] = captured
+            out["frames_skipped"] = max(0, captured - self.frames_total)
         if recs:
             e2e = [r["e2e_ms"] for r in recs]
             out.update({"e2e_ms_p50": float(np.percentile(e2e, 50)), "e2e_ms_p99": float(np.percentile(e2e, 99))})
@@ -468,6 +526,7 @@ def attach_monitor(session: zenoh.Session, robot_id: str, monitor: Monitor) -> l
         session.declare_subscriber(keys.camera_pose(robot_id), lambda s: monitor.on_camera(s.payload.to_bytes())),
         session.declare_subscriber(keys.tag_poses(robot_id), lambda s: monitor.on_poses(s.payload.to_bytes())),
         session.declare_subscriber(keys.controller(robot_id), lambda s: monitor.on_controller(s.payload.to_bytes())),
+        session.declare_subscriber(keys.frame_stamp(robot_id), lambda s: monitor.on_stamp(s.payload.to_bytes())),
     ]
 
 
@@ -1103,6 +1162,8 @@ def run_pipeline(
         run_config = write_run_config(run_dir, config, topology=topology, extra=extra)
         robot_id, zs = monitor_settings(run_config)
         run_tags = run_tag_map(run_config)
+        if link is None:  # under --link the routers listen in namespaces of the run's own
+            refuse_busy_endpoints([run_config])
     if emu is not None:
         emu.log_dir = run_dir
         emu.up(profile(link or "5g"))

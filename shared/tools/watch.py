@@ -289,22 +289,35 @@ def watch(
         session = open_session(settings)
     except KeyboardInterrupt:
         return result
-    start = time.monotonic()
-    hinted = False
+    start = last_at = time.monotonic()
+    hinted = False  # said that nothing came (yet, or since the last message)
     try:
         subscriber = session.declare_subscriber(key, on_sample)
         while count is None or result.messages < count:
             now = time.monotonic()
             if duration_secs is not None and now - start >= duration_secs:
                 break
-            if not hinted and received == 0 and now - start >= QUIET_HINT_SECS:
-                print(f"nothing on {key} yet: is its publisher running, and reachable from here?", file=err, flush=True)
+            if not hinted and now - last_at >= QUIET_HINT_SECS:
+                if received == 0:
+                    print(
+                        f"nothing on {key} yet: is its publisher running, and reachable from here?",
+                        file=err,
+                        flush=True,
+                    )
+                else:  # a deployment that stopped: say so once instead of waiting in silence
+                    print(
+                        f"nothing more on {key} for {now - last_at:.0f} s: has the deployment stopped? (Ctrl-C ends "
+                        "the watch)",
+                        file=err,
+                        flush=True,
+                    )
                 hinted = True
             try:
                 sample_key, payload = inbox.get(timeout=0.2)
             except queue.Empty:
                 continue
             received += 1
+            last_at, hinted = time.monotonic(), False
             message = guard.run(topic, len(payload), partial(_decode_checked, payload, model, sample_key))
             if message is None:
                 continue
