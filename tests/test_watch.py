@@ -36,7 +36,7 @@ from shared.tools.watch import (
 from shared.transport.session import ZenohSettings, free_tcp_port, open_session
 from shared.transport.split_control import SplitState, serve_split
 from shared.wire import keys
-from shared.wire.messages import CameraPose, ControllerState, SplitConfig, TagMap, TagPoses, encode
+from shared.wire.messages import CameraPose, ControllerState, FrameStamp, SplitConfig, TagMap, TagPoses, encode
 from tests.examples import example_messages
 from tests.procs import REPO
 
@@ -222,21 +222,33 @@ def test_watch_poses_as_a_light_client_refuses_bad_input_and_goes_on() -> None:
 
 @pytest.mark.multiprocess
 def test_watch_every_robot_and_one_robots_tum_trajectory() -> None:
+    """`*` reads every robot; `--format tum` is one robot's trajectory, in the data set's time when the
+    camera sends it (as trajectory.tum is written: a trial had to join live lines through frames.csv)."""
+    later = _pose("tracking", 3, "r2").model_copy(update={"capture_nanos": _pose().capture_nanos + 10**8})
+    data_set_nanos = 1_305_031_102_175_304_000
     with _router() as (endpoint, session):
         pubs = {r: session.declare_publisher(keys.camera_pose(r)) for r in ("r1", "r2")}
+        stamp_pub = session.declare_publisher(keys.frame_stamp("r2"))
         every = _light_cli("watch", "poses", "--robot-id", "*", "--connect", endpoint, "--count", "3")
-        tum = _light_cli("watch", "poses", "--robot-id", "r2", "--connect", endpoint, "--count", "2", "--format", "tum")
+        tum = _light_cli("watch", "poses", "--robot-id", "r2", "--connect", endpoint, "--count", "3", "--format", "tum")
         try:
             for pub in pubs.values():
                 _wait_subscribed(pub, every)
             _wait_subscribed(pubs["r2"], tum)
+            _wait_subscribed(stamp_pub, tum)
+            stamp = FrameStamp(
+                robot_id="r2", seq=2, capture_nanos=_pose().capture_nanos, source_stamp_nanos=data_set_nanos
+            )
+            stamp_pub.put(encode(stamp))
+            time.sleep(0.2)
             pubs["r1"].put(encode(_pose("tracking", 1, "r1")))
             pubs["r2"].put(encode(_pose("lost", 1, "r2")))
             pubs["r2"].put(encode(_pose("tracking", 2, "r2")))
+            pubs["r2"].put(encode(later))  # its frame's stamp never came: left out, not mixed in capture time
             out, err = _finish(every)
             tum_out, tum_err = _finish(tum)
         finally:
-            for pub in pubs.values():
+            for pub in [*pubs.values(), stamp_pub]:
                 pub.undeclare()
     assert every.returncode == 0 and tum.returncode == 0, err + tum_err
     assert [line.split()[:3] for line in out.splitlines()] == [
@@ -245,7 +257,8 @@ def test_watch_every_robot_and_one_robots_tum_trajectory() -> None:
         ["r2", "#2", "tracking"],
     ]
     assert "3 messages from r1, r2" in err
-    assert tum_out.splitlines() == [tum_line(_pose("tracking", 2, "r2"))]  # the lost pose is left out
+    assert tum_out.splitlines() == [tum_line(_pose("tracking", 2, "r2"), data_set_nanos)]  # lost left out too
+    assert tum_out.startswith("1305031102.175304000 ") and "1 left out (no data-set stamp)" in tum_err
 
 
 @pytest.mark.multiprocess

@@ -37,7 +37,7 @@ from shared.runtime.guard import InputGuard
 from shared.transport.session import ZenohSettings, open_session
 from shared.vision.stamps import format_stamp_nanos
 from shared.wire import keys
-from shared.wire.messages import CameraPose, ControllerState, Message, TagMap, TagPoses, decode
+from shared.wire.messages import CameraPose, ControllerState, FrameStamp, Message, TagMap, TagPoses, decode
 
 TOPICS: Final[dict[str, tuple[Callable[[str], str], type[Message]]]] = {
     "poses": (keys.camera_pose, CameraPose),
@@ -123,14 +123,41 @@ def json_line(message: Message) -> str:
     return json.dumps(body, allow_nan=False)
 
 
-def tum_line(pose: CameraPose) -> str | None:
-    """`t tx ty tz qx qy qz qw` at the frame's capture time (exact decimal seconds); None for a pose
-    that is not in the world frame (lost: the last one repeated; bridged: placed by a guess)."""
+def tum_line(pose: CameraPose, stamp_nanos: int | None = None) -> str | None:
+    """`t tx ty tz qx qy qz qw` at `stamp_nanos` (the frame's data-set time), else its capture time
+    (exact decimal seconds); None for a pose that is not in the world frame (lost: the last one
+    repeated; bridged: placed by a guess)."""
     if pose.status not in ("tracking", "ground_truth"):
         return None
     m = np.asarray(pose.world_from_camera, np.float64)
     numbers = " ".join(f"{v:.9f}" for v in (*m[:3, 3], *quaternion_xyzw(m[:3, :3])))
-    return f"{format_stamp_nanos(pose.capture_nanos)} {numbers}"
+    return f"{format_stamp_nanos(pose.capture_nanos if stamp_nanos is None else stamp_nanos)} {numbers}"
+
+
+class DataSetTime:
+    """A data set's time of each frame (the camera's FrameStamps, by capture time), for TUM lines in the
+    time trajectory.tum is written in (a trial had to join its live lines through frames.csv). Once
+    the camera sends stamps, a pose without one is left out (counted) rather than mixed in capture time."""
+
+    def __init__(self, keep: int = 4096) -> None:
+        self._by_capture: dict[int, int] = {}
+        self.keep = keep
+        self.unstamped = 0
+
+    def add(self, stamp: FrameStamp) -> None:
+        self._by_capture[stamp.capture_nanos] = stamp.source_stamp_nanos
+        while len(self._by_capture) > self.keep:
+            del self._by_capture[next(iter(self._by_capture))]  # the oldest
+
+    def line(self, pose: CameraPose) -> str | None:
+        """The pose's TUM line in data-set time when the camera sends stamps, else in capture time."""
+        if not self._by_capture:
+            return tum_line(pose)
+        stamp = self._by_capture.get(pose.capture_nanos)
+        if stamp is None:
+            self.unstamped += tum_line(pose) is not None
+            return None
+        return tum_line(pose, stamp)
 
 
 def _age(capture_nanos: int, now_nanos: int) -> str:
@@ -202,14 +229,14 @@ def map_text(tag_map: TagMap) -> list[str]:
     return lines
 
 
-def render(message: Message, fmt: str, now_nanos: int) -> list[str]:
+def render(message: Message, fmt: str, now_nanos: int, data_set_time: DataSetTime | None = None) -> list[str]:
     """The lines one message prints as (none for a pose `tum` leaves out)."""
     if fmt == "json":
         return [json_line(message)]
     if fmt == "tum":
         if not isinstance(message, CameraPose):
             raise ValueError("the tum format is for poses only")
-        line = tum_line(message)
+        line = data_set_time.line(message) if data_set_time is not None else tum_line(message)
         return [line] if line is not None else []
     if isinstance(message, CameraPose):
         return [pose_text(message, now_nanos)]
@@ -242,6 +269,7 @@ class WatchResult:
     messages: int = 0
     lines: int = 0
     dropped: int = 0
+    unstamped: int = 0  # tum: tracking poses left out for want of their frame's data-set stamp
     rejected: dict[str, int] = field(default_factory=dict)
     by_robot: Counter[str] = field(default_factory=Counter)
 
@@ -249,9 +277,10 @@ class WatchResult:
         refused = sum(self.rejected.values())
         detail = f" ({', '.join(f'{r}: {n}' for r, n in sorted(self.rejected.items()))})" if refused else ""
         robots = f" from {', '.join(sorted(self.by_robot))}" if len(self.by_robot) > 1 else ""
+        unstamped = f", {self.unstamped} left out (no data-set stamp)" if self.unstamped else ""
         return (
             f"{key}: {self.messages} messages{robots}, {refused} refused{detail}, "
-            f"{self.dropped} dropped (printing fell behind)"
+            f"{self.dropped} dropped (printing fell behind){unstamped}"
         )
 
 
@@ -293,6 +322,17 @@ def watch(
     hinted = False  # said that nothing came (yet, or since the last message)
     try:
         subscriber = session.declare_subscriber(key, on_sample)
+        stamps: queue.Queue[bytes] = queue.Queue(maxsize=QUEUE_MESSAGES)
+
+        def on_stamp(sample: zenoh.Sample) -> None:
+            try:
+                stamps.put_nowait(sample.payload.to_bytes())
+            except queue.Full:
+                dropped["stamps"] += 1
+
+        data_set_time = DataSetTime() if fmt == "tum" else None
+        # the frames' data-set time, when the camera sends it (rgb.txt); kept: a dropped subscriber undeclares
+        stamp_subscriber = session.declare_subscriber(keys.frame_stamp(robot_id), on_stamp) if data_set_time else None
         while count is None or result.messages < count:
             now = time.monotonic()
             if duration_secs is not None and now - start >= duration_secs:
@@ -318,21 +358,28 @@ def watch(
                 continue
             received += 1
             last_at, hinted = time.monotonic(), False
+            while data_set_time is not None and not stamps.empty():  # stamps leave the camera long before poses
+                stamp = guard.run("frame_stamp", 0, partial(decode, stamps.get_nowait(), FrameStamp))
+                if stamp is not None:
+                    data_set_time.add(stamp)
             message = guard.run(topic, len(payload), partial(_decode_checked, payload, model, sample_key))
             if message is None:
                 continue
             result.messages += 1
             result.by_robot[getattr(message, "robot_id", "")] += 1
-            for line in render(message, fmt, time.time_ns()):
+            for line in render(message, fmt, time.time_ns(), data_set_time):
                 print(line, file=out, flush=True)
                 result.lines += 1
         subscriber.undeclare()
+        if stamp_subscriber is not None:
+            stamp_subscriber.undeclare()
     except KeyboardInterrupt:
         pass
     finally:
         session.close()
     result.rejected = dict(guard.rejected)
     result.dropped = dropped["full"]
+    result.unstamped = data_set_time.unstamped if data_set_time is not None else 0
     return result
 
 
