@@ -383,9 +383,15 @@ def watch(
     return result
 
 
+def _denied(settings: ZenohSettings, what: str = "ask it") -> str:
+    """What else no reply can mean under access control: a denied query gets none (docs/security.md)."""
+    return "" if settings.tls is None else f", and may {settings.tls.certificate.stem!r} {what} under access control"
+
+
 def get_map(robot_id: str, settings: ZenohSettings, *, save: bool = False, timeout_secs: float = 5.0) -> list[TagMap]:
     """One get on the map queryable: the map of each slam that answers (`save`: it also writes its files)."""
     selector = key_for("map", robot_id) + ("?save=1" if save else "")
+    save_what = "save the map (only an operator may)" if save else "ask it"  # a denied query gets no reply
     session = open_session(settings)
     try:
         maps: list[TagMap] = []
@@ -402,7 +408,9 @@ def get_map(robot_id: str, settings: ZenohSettings, *, save: bool = False, timeo
     finally:
         session.close()
     if not maps:
-        raise ReaderError(f"no reply on {selector} within {timeout_secs:g} s (is slam running?)")
+        raise ReaderError(
+            f"no reply on {selector} within {timeout_secs:g} s: is slam running{_denied(settings, save_what)}?"
+        )
     return maps
 
 
@@ -423,7 +431,9 @@ def get_stats(robot_id: str, settings: ZenohSettings, *, timeout_secs: float = 5
     finally:
         session.close()
     if not found:
-        raise ReaderError(f"no reply on {selector} within {timeout_secs:g} s (are the services running?)")
+        raise ReaderError(
+            f"no reply on {selector} within {timeout_secs:g} s: are the services running{_denied(settings)}?"
+        )
     return dict(sorted(found.items()))
 
 
