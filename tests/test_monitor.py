@@ -87,6 +87,10 @@ def test_the_live_line_and_summary_say_how_sure_slam_is_and_how_far_off() -> Non
     assert abs(summary["slam_sigma_cm_median"] - 2.0) < 1e-9
     assert abs(summary["slam_online_error_cm_median"] - 3.0) < 1e-9
     assert summary["bad_messages"] == 1
+    # NEES of the two tracking poses: 3 cm along x under a 1 cm x sigma is 9 (calibrated would be 3 on
+    # average): the covariance understates by 3x here, the factor slam's covariance_scale would take
+    assert summary["slam_position_nees_mean"] == pytest.approx(9.0)
+    assert summary["slam_covariance_scale_measured"] == pytest.approx(3.0)
 
 
 def test_the_monitor_says_where_frames_wait_outside_their_compute() -> None:

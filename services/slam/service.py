@@ -244,7 +244,10 @@ class SlamNode:
                 world_from_camera=pose,
                 status=res.status,  # "tracking" | "bridged" (a fragment not yet tied to the world) | "lost"
                 tags_used=res.tags_used,
-                covariance_world=res.covariance_world,  # None when lost (the pose is the last one repeated)
+                # None when lost (the pose is the last one repeated); scaled as configured (calibration)
+                covariance_world=None
+                if res.covariance_world is None
+                else res.covariance_world * self.settings.covariance_scale,
             )
             run.frames += 1
             wanted = self.slam.settings.anchor_tag_id

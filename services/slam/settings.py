@@ -27,3 +27,7 @@ class SlamServiceSettings(ServiceSettings):
     checkpoint_period_secs: float = Field(default=5.0, gt=0)  # map + trajectory written atomically this often
     max_pending_map_queries: int = Field(default=4, ge=1)  # more are refused (reply_err), counted
     resume: bool = True  # start from run_dir's map.json / trajectory.tum when a previous slam left them
+    # Multiplies every published pose covariance (CameraPose.covariance_world). The graph's marginal is
+    # deliberately pessimistic (docs/slam.md, *Pose covariance*): an EKF that wants it calibrated sets the
+    # factor a run with ground truth measures (summary.json's slam_covariance_scale_measured).
+    covariance_scale: float = Field(default=1.0, gt=0, le=1000, allow_inf_nan=False)

@@ -269,6 +269,9 @@ class Monitor:
     _slam_recent: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=400))
     _slam_sigma_cm: deque[float] = field(default_factory=lambda: deque(maxlen=200_000))
     _slam_error_cm: deque[float] = field(default_factory=lambda: deque(maxlen=200_000))
+    # each tracking pose's position NEES against ground truth (e' S^-1 e; 3 on average when the published
+    # covariance is calibrated)
+    _slam_nees: deque[float] = field(default_factory=lambda: deque(maxlen=200_000))
     _lock: threading.Lock = field(default_factory=threading.Lock)
     clock: Callable[[], float] = time.monotonic  # when each message arrived (a fake in tests)
     # slam was given `tag_map` (its world is the map's): only then is its pose comparable with ground truth
@@ -367,15 +370,21 @@ class Monitor:
                 and any(t.world_from_tag is not None for t in self.tag_map.tags)
             )
             truth = self.gt.get(msg.seq) if mapped else None  # slam's world is the map's only with poses
-            error = None
+            error = nees = None
             if truth is not None and msg.status == "tracking":
-                error = 100 * float(np.linalg.norm(msg.world_from_camera[:3, 3] - truth[:3, 3]))
+                delta = np.asarray(msg.world_from_camera[:3, 3] - truth[:3, 3], np.float64)
+                error = 100 * float(np.linalg.norm(delta))
+                if cov is not None:
+                    with contextlib.suppress(np.linalg.LinAlgError):
+                        nees = float(delta @ np.linalg.solve(np.asarray(cov, np.float64)[:3, :3], delta))
             self.slam_status[msg.status] = self.slam_status.get(msg.status, 0) + 1
             self._slam_recent.append({"t": self.clock(), "status": msg.status, "sigma": sigma, "error": error})
             if sigma is not None:
                 self._slam_sigma_cm.append(sigma)
             if error is not None:
                 self._slam_error_cm.append(error)
+            if nees is not None and np.isfinite(nees):
+                self._slam_nees.append(nees)
 
     def on_gt(self, payload: bytes) -> None:
         """Record one ground-truth camera pose."""
@@ -508,6 +517,11 @@ class Monitor:
                 out["slam_sigma_cm_median"] = float(np.median(self._slam_sigma_cm))
             if self._slam_error_cm:
                 out["slam_online_error_cm_median"] = float(np.median(self._slam_error_cm))
+            if self._slam_nees:
+                # 3 when the covariance is calibrated; slam's covariance_scale that would make it so
+                mean_nees = float(np.mean(self._slam_nees))
+                out["slam_position_nees_mean"] = mean_nees
+                out["slam_covariance_scale_measured"] = mean_nees / 3.0
         if errs:
             out.update(
                 {
