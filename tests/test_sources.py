@@ -183,6 +183,18 @@ def test_camera_service_streams_a_folder_and_loops(tmp_path: Path) -> None:
     assert frames[0].intrinsics == CAM
 
 
+def test_only_the_demo_scenes_closed_loop_goes_on_as_one_camera_session() -> None:
+    """The demo path is a closed loop (frame 149 -> 0 is an ordinary step): its passes keep counting seq,
+    which slam's motion prior and robot_infer's tracker then carry across (review). A folder or video
+    jumps back to its start: a new session each pass (the test above)."""
+    from shared.runtime.sources import DemoSource, demo_trajectory
+
+    assert DemoSource.continuous_loop and not getattr(FolderSource, "continuous_loop", False)
+    path = demo_trajectory(150)
+    step = np.linalg.norm(path[0][:3, 3] - path[-1][:3, 3])
+    assert step < 2 * np.median([np.linalg.norm(a[:3, 3] - b[:3, 3]) for a, b in itertools.pairwise(path)])
+
+
 def test_camera_service_starts_later_in_the_source_and_refuses_a_start_past_its_end(tmp_path: Path) -> None:
     """`start_frame` (a fleet's robots at different places of one source) skips the first pass's first
     frames only; a start past the source's end is an error, not a camera that loops publishing nothing."""

@@ -151,6 +151,29 @@ def test_text_lines_say_what_an_operator_needs() -> None:
     ]
 
 
+def test_tum_lines_keep_one_time_for_the_whole_output() -> None:
+    """The stamps' subscription reaches the camera later than the poses' reaches slam: the first poses
+    used to go out in capture time, the rest in data-set time, in one file (review). Poses wait for a
+    stamp up to a grace period; then one time throughout."""
+    from shared.tools.watch import DataSetTime
+
+    now = [0.0]
+    first = _pose("tracking", 1)
+    second = first.model_copy(update={"seq": 2, "capture_nanos": first.capture_nanos + 10**8})
+    stamped = DataSetTime(grace_secs=2.0, clock=lambda: now[0])
+    assert stamped.lines(first) == []  # waits for a stamp
+    stamped.add(FrameStamp(robot_id="robot1", seq=2, capture_nanos=second.capture_nanos, source_stamp_nanos=5 * 10**9))
+    assert stamped.lines(second) == [tum_line(second, 5 * 10**9)]  # the first has no stamp: left out
+    assert stamped.unstamped == 1 and stamped.mode == "data set"
+    unstamped = DataSetTime(grace_secs=2.0, clock=lambda: now[0])
+    assert unstamped.lines(first) == []
+    now[0] = 2.5  # no stamp in the grace period: capture time throughout, a late stamp changes nothing
+    unstamped.add(FrameStamp(robot_id="robot1", seq=2, capture_nanos=second.capture_nanos, source_stamp_nanos=1))
+    assert unstamped.lines(second) == [tum_line(first), tum_line(second)] and unstamped.mode == "capture"
+    ended = DataSetTime(grace_secs=2.0, clock=lambda: 0.0)
+    assert ended.lines(first) == [] and ended.lines(final=True) == [tum_line(first)]  # the watch ended first
+
+
 def test_keys_for_one_robot_or_every_robot() -> None:
     assert key_for("poses", "r1") == keys.camera_pose("r1")
     assert key_for("map", "*") == "splittag/*/" + keys.tag_map("r1").split("/", 2)[2]

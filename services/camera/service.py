@@ -92,10 +92,12 @@ def run(
     viz = make_viz(settings.rerun, service="camera", run_dir=settings.run_dir)
     gt_keypoints = source.gt_keypoints if isinstance(source, DemoSource) else None
     period = 1.0 / settings.fps
-    # `seq` numbers the frames of one pass over the source: a looped source's next pass starts at 0 again,
-    # as a restarted camera does, so slam takes the wrap as a new camera session and does not carry its
-    # motion prior across it (a data-set trial's 1 m wrap at 10 fps was within the motion envelope, not a
-    # jump: poses 10-50 cm off for a dozen frames around each wrap, with a 2 cm sigma).
+    # `seq` numbers the frames of one pass over a folder or video: its next pass starts at 0 again, as a
+    # restarted camera does, so slam takes the jump back to the start as a new camera session and does not
+    # carry its motion prior across it (a data-set trial's 1 m wrap at 10 fps was within the motion
+    # envelope, not a jump: poses 10-50 cm off for a dozen frames around each wrap, with a 2 cm sigma).
+    # The demo scene's path is a closed loop: its passes go on as one session.
+    continuous = bool(getattr(source, "continuous_loop", False))
     seq = 0
     published = 0  # frames over all passes (max_frames, the return value)
     passes = 0  # completed passes over the source
@@ -167,7 +169,8 @@ def run(
                 log.info("source ended after %d frames", published)
                 return published
             passes += 1
-            seq = 0  # a new pass: a new camera session for whoever reads the frames
+            if not continuous:
+                seq = 0  # a new pass: a new camera session for whoever reads the frames
             if span is not None:
                 log.info(
                     "pass %d: data-set stamps shifted by %.3f s so time keeps going forward",

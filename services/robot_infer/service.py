@@ -183,11 +183,13 @@ class RobotInfer:
         with contextlib.suppress(WireError):
             # Every check, but no model: this runs on Zenoh's thread and reads a few fields.
             poses = decode_view(sample.payload.to_bytes(), TagPoses).fields
-            self.window.done(poses.seq)
+            # Frames are keyed by capture time, not seq: seq starts again with a camera session (a restart,
+            # a looped folder's next pass) while frames of the last one may still be in flight (review).
+            self.window.done(poses.capture_nanos)
             if self.pacer is not None and poses.link is not None:  # link None: computed on board
                 timings = poses.timings
                 self.pacer.answered(
-                    poses.seq,
+                    poses.capture_nanos,
                     tags=len(poses.tags),
                     link_secs=timings.transport_secs,
                     edge_secs=timings.edge_compute_secs,
@@ -307,11 +309,10 @@ class RobotInfer:
         features = self._features(frame, tags, split.k, split.codec, compute_secs)
         wire = encode(features)
         sent_nanos, sent_at = time.time_ns(), time.monotonic()
-        self.window.send(frame.seq, lambda: self.pub.put(wire), keep=features, gone=lambda: not self.watch.alive)
+        key = frame.capture_nanos  # unique and in send order across camera sessions (see _on_poses)
+        self.window.send(key, lambda: self.pub.put(wire), keep=features, gone=lambda: not self.watch.alive)
         if self.pacer is not None:
-            self.pacer.sent(
-                frame.seq, tags=len(tags), robot_secs=compute_secs, payload_bytes=len(wire), sent_at=sent_at
-            )
+            self.pacer.sent(key, tags=len(tags), robot_secs=compute_secs, payload_bytes=len(wire), sent_at=sent_at)
         sent = FrameSent(robot_id=self.settings.robot_id, seq=frame.seq, sent_nanos=sent_nanos, payload_bytes=len(wire))
         self.sent_pub.put(encode(sent))
         fixed_ms = (timings.detect_secs + timings.warp_secs) * 1e3

@@ -98,6 +98,10 @@ class DemoSource:
     """The demo scene rendered with MuJoCo along its trajectory; renders are cached on disk so the
     stream keeps its rate (first run renders, ~0.15 s per frame on this CPU)."""
 
+    # Its trajectory is one closed loop: looping it goes on moving as before (a folder or video jumps
+    # back to its start, a new camera session: the camera starts seq again there).
+    continuous_loop = True
+
     def __init__(self, *, n_frames: int, cache_dir: Path, camera: CameraIntrinsics | None = None) -> None:
         self.camera = camera or default_camera()
         self.scene = demo_scene()

@@ -730,7 +730,7 @@ def _add_control_commands(sub: Any) -> None:
         "--format",
         choices=["text", "json", "tum"],
         default="text",
-        help="json: one object per line; tum: poses as TUM trajectory lines (capture time, tracking poses only)",
+        help="json: one object per line; tum: tracking poses as TUM lines, stamped as trajectory.tum is",
     )
     p.add_argument("--count", type=int, default=None, help="stop after this many messages")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
@@ -1040,13 +1040,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 141
         raise
     except ModuleNotFoundError as exc:
-        if os.environ.get("SPLITTAG_TRACEBACK"):
-            raise
+        if os.environ.get("SPLITTAG_TRACEBACK") or args.command in LIGHT_COMMANDS:
+            raise  # a light command needs nothing a light install lacks: this is a bug
         # A light install (README *Reading poses from your own process*) has what split, watch, map and
         # stats need; any other command needs the full one (a trial got two chained tracebacks).
         print(
             f"splittag {args.command}: {exc}: this command needs the full install (`make setup`, README Quick "
-            f"start); a light install runs only {', '.join(LIGHT_COMMANDS)}",
+            f"start); a light install runs only {', '.join(LIGHT_COMMANDS)} and down",
             file=sys.stderr,
         )
         return 2

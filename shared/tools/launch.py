@@ -112,16 +112,22 @@ def busy_endpoints(endpoints: list[str]) -> list[str]:
     busy = []
     for endpoint in endpoints:
         proto, _, rest = endpoint.partition("/")
-        host, _, port = rest.rpartition(":")
+        host, _, port = rest.split("#", 1)[0].split("?", 1)[0].rpartition(":")  # Zenoh's #config / ?metadata
         if proto not in ("tcp", "tls") or not port.isdigit():
             continue
-        with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as probe:
-            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as a listener binds: TIME_WAIT is no use
+        try:
+            addresses = socket.getaddrinfo(host.strip("[]"), int(port), type=socket.SOCK_STREAM)
+        except OSError:
+            continue  # a name this host cannot resolve: the service itself will say so
+        for family, kind, _, _, address in addresses:
             try:
-                probe.bind((host.strip("[]"), int(port)))
+                with socket.socket(family, kind) as probe:
+                    probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as a listener binds
+                    probe.bind(address)
             except OSError as exc:
                 if exc.errno == errno.EADDRINUSE:
                     busy.append(endpoint)
+                    break
     return busy
 
 

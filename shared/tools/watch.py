@@ -18,6 +18,7 @@ msgspec, msgpack, pydantic and numpy installed (README *Reading poses from your 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import queue
@@ -48,6 +49,7 @@ TOPICS: Final[dict[str, tuple[Callable[[str], str], type[Message]]]] = {
 FORMATS: Final[tuple[str, ...]] = ("text", "json", "tum")
 QUEUE_MESSAGES: Final[int] = 1000  # received but not yet printed; beyond it a message is dropped (counted)
 QUIET_HINT_SECS: Final[float] = 5.0  # nothing by then: say on stderr what is being waited for
+QUIET_MAP_SECS: Final[float] = 60.0  # the same for the map, which a stable run publishes every 30 frames
 
 
 class ReaderError(RuntimeError):
@@ -136,22 +138,48 @@ def tum_line(pose: CameraPose, stamp_nanos: int | None = None) -> str | None:
 
 class DataSetTime:
     """A data set's time of each frame (the camera's FrameStamps, by capture time), for TUM lines in the
-    time trajectory.tum is written in (a trial had to join its live lines through frames.csv). Once
-    the camera sends stamps, a pose without one is left out (counted) rather than mixed in capture time."""
+    time trajectory.tum is written in (a trial had to join its live lines through frames.csv). One time
+    for the whole output: the first poses wait up to `grace_secs` for a stamp (the stamps' subscription
+    reaches the camera's router later than the poses' reaches slam's: review); a stamp by then and the
+    lines are in data-set time, a pose without one left out (counted); none, and they are in capture
+    time throughout."""
 
-    def __init__(self, keep: int = 4096) -> None:
+    def __init__(self, *, keep: int = 4096, grace_secs: float = 2.0, clock: Callable[[], float] = time.monotonic):
         self._by_capture: dict[int, int] = {}
-        self.keep = keep
+        self.keep, self.grace_secs, self._clock = keep, grace_secs, clock
+        self._start = clock()
+        self._waiting: list[CameraPose] = []
+        self.mode: str | None = None  # "data set" or "capture" once decided
         self.unstamped = 0
 
     def add(self, stamp: FrameStamp) -> None:
+        if self.mode is None and self._clock() - self._start >= self.grace_secs:
+            self.mode = "capture"  # no stamp in the grace period: capture time it is
+        if self.mode == "capture":
+            return  # decided: the output stays in one time
+        self.mode = "data set"
         self._by_capture[stamp.capture_nanos] = stamp.source_stamp_nanos
         while len(self._by_capture) > self.keep:
             del self._by_capture[next(iter(self._by_capture))]  # the oldest
 
-    def line(self, pose: CameraPose) -> str | None:
-        """The pose's TUM line in data-set time when the camera sends stamps, else in capture time."""
-        if not self._by_capture:
+    def lines(self, pose: CameraPose | None = None, *, final: bool = False) -> list[str]:
+        """TUM lines of the poses that can be written now (`final`: every one waiting, whatever the time)."""
+        if pose is not None:
+            self._waiting.append(pose)
+        if self.mode is None:
+            if not final and self._clock() - self._start < self.grace_secs:
+                return []
+            self.mode = "capture"
+        out = []
+        for waiting in self._waiting:
+            line = self._line(waiting)
+            if line is not None:
+                out.append(line)
+        self._waiting.clear()
+        return out
+
+    def _line(self, pose: CameraPose) -> str | None:
+        if self.mode == "capture":
             return tum_line(pose)
         stamp = self._by_capture.get(pose.capture_nanos)
         if stamp is None:
@@ -236,7 +264,9 @@ def render(message: Message, fmt: str, now_nanos: int, data_set_time: DataSetTim
     if fmt == "tum":
         if not isinstance(message, CameraPose):
             raise ValueError("the tum format is for poses only")
-        line = data_set_time.line(message) if data_set_time is not None else tum_line(message)
+        if data_set_time is not None:
+            return data_set_time.lines(message)
+        line = tum_line(message)
         return [line] if line is not None else []
     if isinstance(message, CameraPose):
         return [pose_text(message, now_nanos)]
@@ -270,6 +300,7 @@ class WatchResult:
     lines: int = 0
     dropped: int = 0
     unstamped: int = 0  # tum: tracking poses left out for want of their frame's data-set stamp
+    dropped_stamps: int = 0  # tum: data-set stamps dropped because printing fell behind
     rejected: dict[str, int] = field(default_factory=dict)
     by_robot: Counter[str] = field(default_factory=Counter)
 
@@ -278,6 +309,8 @@ class WatchResult:
         detail = f" ({', '.join(f'{r}: {n}' for r, n in sorted(self.rejected.items()))})" if refused else ""
         robots = f" from {', '.join(sorted(self.by_robot))}" if len(self.by_robot) > 1 else ""
         unstamped = f", {self.unstamped} left out (no data-set stamp)" if self.unstamped else ""
+        if self.dropped_stamps:
+            unstamped += f", {self.dropped_stamps} data-set stamps dropped (printing fell behind)"
         return (
             f"{key}: {self.messages} messages{robots}, {refused} refused{detail}, "
             f"{self.dropped} dropped (printing fell behind){unstamped}"
@@ -314,6 +347,28 @@ def watch(
             dropped["full"] += 1
 
     guard = InputGuard(f"splittag watch {topic}")
+    stamps: queue.Queue[bytes] = queue.Queue(maxsize=QUEUE_MESSAGES)
+
+    def on_stamp(sample: zenoh.Sample) -> None:
+        try:
+            stamps.put_nowait(sample.payload.to_bytes())
+        except queue.Full:
+            dropped["stamps"] += 1
+
+    data_set_time = DataSetTime() if fmt == "tum" else None
+    quiet_secs = QUIET_MAP_SECS if topic == "map" else QUIET_HINT_SECS  # a stable map comes every 30 frames
+
+    def emit(lines: list[str]) -> None:
+        for line in lines:
+            print(line, file=out, flush=True)
+            result.lines += 1
+
+    def take_stamps() -> None:  # stamps leave the camera long before their frames' poses
+        while data_set_time is not None and not stamps.empty():
+            stamp = guard.run("frame_stamp", 0, partial(decode, stamps.get_nowait(), FrameStamp))
+            if stamp is not None:
+                data_set_time.add(stamp)
+
     try:
         session = open_session(settings)
     except KeyboardInterrupt:
@@ -321,64 +376,55 @@ def watch(
     start = last_at = time.monotonic()
     hinted = False  # said that nothing came (yet, or since the last message)
     try:
-        subscriber = session.declare_subscriber(key, on_sample)
-        stamps: queue.Queue[bytes] = queue.Queue(maxsize=QUEUE_MESSAGES)
-
-        def on_stamp(sample: zenoh.Sample) -> None:
-            try:
-                stamps.put_nowait(sample.payload.to_bytes())
-            except queue.Full:
-                dropped["stamps"] += 1
-
-        data_set_time = DataSetTime() if fmt == "tum" else None
-        # the frames' data-set time, when the camera sends it (rgb.txt); kept: a dropped subscriber undeclares
+        # the frames' data-set time, when the camera sends it (rgb.txt), subscribed first; both kept (a
+        # subscriber that is garbage-collected is undeclared)
         stamp_subscriber = session.declare_subscriber(keys.frame_stamp(robot_id), on_stamp) if data_set_time else None
+        subscriber = session.declare_subscriber(key, on_sample)
         while count is None or result.messages < count:
             now = time.monotonic()
             if duration_secs is not None and now - start >= duration_secs:
                 break
-            if not hinted and now - last_at >= QUIET_HINT_SECS:
+            if not hinted and now - last_at >= quiet_secs:
                 if received == 0:
-                    print(
-                        f"nothing on {key} yet: is its publisher running, and reachable from here?",
-                        file=err,
-                        flush=True,
-                    )
+                    said = f"nothing on {key} yet: is its publisher running, and reachable from here?"
                 else:  # a deployment that stopped: say so once instead of waiting in silence
-                    print(
-                        f"nothing more on {key} for {now - last_at:.0f} s: has the deployment stopped? (Ctrl-C ends "
-                        "the watch)",
-                        file=err,
-                        flush=True,
+                    said = (
+                        f"nothing more on {key} for {now - last_at:.0f} s: has the deployment stopped? (Ctrl-C "
+                        "ends the watch)"
                     )
+                print(said, file=err, flush=True)
                 hinted = True
             try:
                 sample_key, payload = inbox.get(timeout=0.2)
             except queue.Empty:
+                if data_set_time is not None:  # the grace for stamps may have run out: poses waiting go out
+                    take_stamps()
+                    emit(data_set_time.lines())
                 continue
             received += 1
             last_at, hinted = time.monotonic(), False
-            while data_set_time is not None and not stamps.empty():  # stamps leave the camera long before poses
-                stamp = guard.run("frame_stamp", 0, partial(decode, stamps.get_nowait(), FrameStamp))
-                if stamp is not None:
-                    data_set_time.add(stamp)
+            take_stamps()
             message = guard.run(topic, len(payload), partial(_decode_checked, payload, model, sample_key))
             if message is None:
                 continue
             result.messages += 1
             result.by_robot[getattr(message, "robot_id", "")] += 1
-            for line in render(message, fmt, time.time_ns(), data_set_time):
-                print(line, file=out, flush=True)
-                result.lines += 1
+            emit(render(message, fmt, time.time_ns(), data_set_time))
+        take_stamps()
+        if data_set_time is not None:
+            emit(data_set_time.lines(final=True))
         subscriber.undeclare()
         if stamp_subscriber is not None:
             stamp_subscriber.undeclare()
     except KeyboardInterrupt:
-        pass
+        if data_set_time is not None:
+            with contextlib.suppress(BrokenPipeError):
+                emit(data_set_time.lines(final=True))
     finally:
         session.close()
     result.rejected = dict(guard.rejected)
     result.dropped = dropped["full"]
+    result.dropped_stamps = dropped["stamps"]
     result.unstamped = data_set_time.unstamped if data_set_time is not None else 0
     return result
 

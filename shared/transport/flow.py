@@ -31,8 +31,10 @@ T = TypeVar("T")
 
 
 class InFlightWindow(Generic[T]):
-    """Thread-safe set of in-flight sequence numbers with a capacity, per-entry expiry and, optionally,
-    what each frame needs to be recomputed if its answer can no longer come."""
+    """Thread-safe set of in-flight frames with a capacity, per-entry expiry and, optionally, what each
+    frame needs to be recomputed if its answer can no longer come. A frame's key (`seq` below) must be
+    unique and increase in send order: robot_infer uses the capture time, since the camera's seq starts
+    again with every camera session (a restart, a looped folder's next pass)."""
 
     def __init__(self, capacity: int, *, timeout_secs: float = 2.0, clock: Callable[[], float] = time.monotonic):
         if capacity < 0:
@@ -378,6 +380,7 @@ class EdgePacer:
         self.edge_secs_per_tag = 0.0
         self.edge_secs_fixed = 0.0
         self.edge_wait_secs = 0.0  # W: waiting at the edge behind other robots' frames
+        # keyed as InFlightWindow is (increasing in send order: robot_infer's capture time; older = smaller)
         self._done_at: dict[int, float] = {}  # seq -> predicted edge completion (robot clock)
         self._last_done_at = 0.0
         self._edge_done_nanos = 0  # when the edge finished this robot's latest answered frame (edge clock)
