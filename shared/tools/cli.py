@@ -703,8 +703,12 @@ def _add_deploy_commands(sub: Any) -> None:
     )
     p.set_defaults(func=_cmd_fleet)
 
-    p = sub.add_parser("down", help="stop the deployment in RUNS/current (SIGINT to every service)")
-    p.add_argument("--runs", type=Path, default=Path("runs"))
+    p = sub.add_parser(
+        "down",
+        help="stop the deployment in RUNS/current through its launcher; if the launcher had died, stop its "
+        "services and finish the run (summary.json, merged recording)",
+    )
+    p.add_argument("--runs", type=Path, default=Path("runs"), help="the runs folder (RUNS/current is stopped)")
     p.set_defaults(func=_cmd_down)
 
 
@@ -748,7 +752,7 @@ def _add_control_commands(sub: Any) -> None:
     p.set_defaults(func=_cmd_map)
 
     p = sub.add_parser("stats", help="every running service's input counters (accepted, refused by reason)")
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--json", action="store_true", help="the replies as one JSON object, by the key that answered")
     _add_reader_options(p)
     p.set_defaults(func=_cmd_stats)
 
@@ -1046,7 +1050,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         # stats need; any other command needs the full one (a trial got two chained tracebacks).
         print(
             f"splittag {args.command}: {exc}: this command needs the full install (`make setup`, README Quick "
-            f"start); a light install runs only {', '.join(LIGHT_COMMANDS)} and down",
+            f"start); a light install runs only {', '.join(LIGHT_COMMANDS)}",
             file=sys.stderr,
         )
         return 2

@@ -4,8 +4,9 @@ any shell or process, decoded and checked like the services check it.
 - `watch poses|tags|controller|map`: subscribe to one robot's (or, with robot id `*`, every robot's)
   CameraPose, TagPoses, ControllerState or TagMap and print each message as a line (`text`), as a JSON
   object per line (`json`: every field, arrays as nested lists, plus derived fields) or, for poses, as
-  TUM trajectory lines (`tum`: `t tx ty tz qx qy qz qw` with the frame's capture time, exact; lost and
-  bridged poses left out), until `count` messages or `duration_secs`.
+  TUM trajectory lines (`tum`: `t tx ty tz qx qy qz qw` stamped as trajectory.tum is, in the data set's
+  time when the camera sends it, else capture time, exact; lost and bridged poses left out), until
+  `count` messages or `duration_secs`.
 - `map`: one get on the map queryable (the map as slam holds it now; `save` also writes its files).
 - `stats`: one get of every service's input counters (`splittag/<robot>/*/stats`).
 
