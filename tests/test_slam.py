@@ -1133,6 +1133,15 @@ def test_the_pose_log_keeps_poses_compactly_in_stamp_order() -> None:
     assert per_pose <= 52
 
 
+def _feed(node: SlamNode, poses: list[np.ndarray], frames: range, source_ns: list[int], unstamped: int = -1) -> None:
+    """Frames `frames` with their data-set stamps (but `unstamped`'s), ground truth and exact views."""
+    for i in frames:
+        if i != unstamped:
+            node.on_frame_stamp(1_000 + i, source_ns[i])
+        node.on_ground_truth(1_000 + i, poses[i])
+        node.on_poses(_tag_poses(i, 1_000 + i, poses[i]))
+
+
 def test_trajectory_is_written_in_the_data_sets_time_when_every_frame_has_it(tmp_path: Path) -> None:
     """A folder source with rgb.txt sends each frame's data-set time (FrameStamp): trajectory.tum and
     groundtruth.tum come out in that time, so a TUM tool compares them with the data set's ground truth
@@ -1140,10 +1149,7 @@ def test_trajectory_is_written_in_the_data_sets_time_when_every_frame_has_it(tmp
     poses = _constant_velocity(12)
     source_ns = [1_305_031_102_175_304_000 + i * 33_333_333 for i in range(12)]
     node = SlamNode(SlamServiceSettings(run_dir=tmp_path))
-    for i in range(12):
-        node.on_frame_stamp(1_000 + i, source_ns[i])
-        node.on_ground_truth(1_000 + i, poses[i])
-        node.on_poses(_tag_poses(i, 1_000 + i, poses[i]))
+    _feed(node, poses, range(12), source_ns)
     node.write_outputs(tmp_path)
     stamps = [t for t, _ in read_tum(tmp_path / "trajectory.tum")]
     np.testing.assert_allclose(stamps, np.array(source_ns) / 1e9, rtol=0, atol=1e-6)
@@ -1167,17 +1173,10 @@ def test_a_restarted_slam_keeps_the_time_its_files_are_in(tmp_path: Path, caplog
     poses = _constant_velocity(20)
     source_ns = [1_305_031_102_175_304_000 + i * 33_333_333 for i in range(20)]
     first = SlamNode(SlamServiceSettings(run_dir=tmp_path))
-    for i in range(10):
-        first.on_frame_stamp(1_000 + i, source_ns[i])
-        first.on_ground_truth(1_000 + i, poses[i])
-        first.on_poses(_tag_poses(i, 1_000 + i, poses[i]))
+    _feed(first, poses, range(10), source_ns)
     first.write_outputs(tmp_path)
     second = SlamNode(SlamServiceSettings(run_dir=tmp_path))
-    for i in range(10, 20):
-        if i != 15:  # frame 15's stamp never came
-            second.on_frame_stamp(1_000 + i, source_ns[i])
-        second.on_ground_truth(1_000 + i, poses[i])
-        second.on_poses(_tag_poses(i, 1_000 + i, poses[i]))
+    _feed(second, poses, range(10, 20), source_ns, unstamped=15)  # frame 15's stamp never came
     with caplog.at_level("WARNING", logger="services.slam.service"):
         stats = second.write_outputs(tmp_path)
     expected = [f"{t // 10**9}.{t % 10**9:09d}" for i, t in enumerate(source_ns) if i != 15]

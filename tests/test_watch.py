@@ -370,6 +370,27 @@ def test_split_map_and_stats_as_a_light_client() -> None:
             out, err = _finish(proc)
             assert proc.returncode == 0, err
             assert out.strip() == "robot1/slam              accepted 1 (tag_poses 1)  refused 0  frames=7"
+            # a reply that is not what it should be is refused in one line, not shown
+            queryables.append(
+                session.declare_queryable(keys.tag_map("bad"), lambda q: q.reply(keys.tag_map("bad"), b"junk"))
+            )
+            queryables.append(
+                session.declare_queryable(
+                    keys.stats("bad", "slam"), lambda q: q.reply(keys.stats("bad", "slam"), b"not json")
+                )
+            )
+            for args, said in (
+                (("map",), "refused a reply from splittag/bad/map/v3"),
+                (("stats",), "splittag/bad/slam/stats answered no JSON"),
+            ):
+                proc = _light_cli(*args, "--connect", endpoint, "--robot-id", "bad")
+                out, err = _finish(proc)
+                assert proc.returncode == 1 and said in err and "Traceback" not in err and out == "", err
+            # every robot's: the good map shown, the bad reply said beside it
+            proc = _light_cli("map", "--robot-id", "*", "--connect", endpoint)
+            out, err = _finish(proc)
+            assert proc.returncode == 0 and out.splitlines() == map_text(tag_map), err  # type: ignore[arg-type]
+            assert "refused a reply from splittag/bad/map/v3" in err
             proc = _light_cli("stats", "--connect", endpoint, "--robot-id", "nobody")
             out, err = _finish(proc)
             assert proc.returncode == 1 and "splittag stats: no reply on splittag/nobody/*/stats" in err
@@ -379,9 +400,7 @@ def test_split_map_and_stats_as_a_light_client() -> None:
             proc = _light_cli("split", "get", "--robot-id", "*", "--connect", endpoint)
             out, err = _finish(proc)
             assert proc.returncode == 0 and out.strip() == "robot1 k=3 codec=fp16 pinned=True source=user", err
-            proc = _light_cli("map", "--robot-id", "*", "--connect", endpoint)  # every robot's slam
-            out, err = _finish(proc)
-            assert proc.returncode == 0 and out.splitlines() == map_text(tag_map), err  # type: ignore[arg-type]
+
             proc = _light_cli("split", "set", "9", "--connect", endpoint)
             out, err = _finish(proc)
             assert proc.returncode == 2 and "Traceback" not in err, err

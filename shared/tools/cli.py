@@ -718,14 +718,7 @@ def _add_control_commands(sub: Any) -> None:
     p.add_argument("action", choices=["get", "set", "release"])
     p.add_argument("k", type=int, nargs="?", help="split index 0..7 (for set)")
     p.add_argument("--codec", choices=["fp16", "fp32"], help="set: how cuts 1..6 travel (with or without k)")
-    p.add_argument("--robot-id", default="robot1", help="the robot's id (get: '*' reads every robot's)")
-    p.add_argument(
-        "--connect",
-        default=None,
-        help=f"zenoh endpoint to connect to (default {Topology().edge_router}, tls/ with --certs)",
-    )
-    p.add_argument("--certs", type=Path, help="TLS deployments: the certificates folder (deploy/make-certs.sh)")
-    p.add_argument("--identity", default="operator", help="TLS deployments: whose certificate to present")
+    _add_reader_options(p, robot_help="the robot's id (get: '*' reads every robot's)")
     p.set_defaults(func=_cmd_split)
 
     p = sub.add_parser("watch", help="print what a running deployment publishes: poses, tags, controller, map")
@@ -765,9 +758,9 @@ def _add_control_commands(sub: Any) -> None:
     p.set_defaults(func=_cmd_echo)
 
 
-def _add_reader_options(p: argparse.ArgumentParser) -> None:
-    """Where a command that reads a running deployment connects, and as whom."""
-    p.add_argument("--robot-id", default="robot1", help="the robot's id, or '*' for every robot")
+def _add_reader_options(p: argparse.ArgumentParser, robot_help: str = "the robot's id, or '*' for every robot") -> None:
+    """Where a command that reads or steers a running deployment connects, and as whom."""
+    p.add_argument("--robot-id", default="robot1", help=robot_help)
     p.add_argument(
         "--connect",
         default=None,

@@ -426,19 +426,16 @@ def run_fleet(
     def write_pids() -> None:  # what `splittag down` signals when the launcher itself is gone
         (run_dir / "pids").write_text("".join(f"{s.name} {p.popen.pid}\n" for s, p in running))
 
-    ended: set[str] = set()  # cameras whose source ended: said once, never restarted
-
     def restart_dead() -> None:  # what died, after its backoff (also while the fleet comes up)
         for i, (spec, proc) in enumerate(running):
             code = proc.popen.poll()
-            if code is None or spec.name in ended:
+            if code is None or spec.name in supervisor.ended:  # a camera whose source ended is not restarted
                 continue
             if code == CONFIG_EXIT:  # it refused its settings: a restart would only refuse them again
                 raise LaunchError(configuration_error_line(proc), exit_code=CONFIG_EXIT)
             if spec.name not in restart_at:
                 delay = supervisor.exited(spec.name, code, service=spec.service)
                 if delay is None:  # a camera whose source ended (its robot's other processes run on)
-                    ended.add(spec.name)
                     print(f"{spec.name}: its source ended", flush=True)
                     continue
                 print(supervisor.exit_line(spec.name, code, delay), flush=True)

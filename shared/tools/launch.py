@@ -809,12 +809,9 @@ class ComingsAndGoings:
                 down = self.supervisor.ready(name)
                 if down is not None:
                     out.append(f"{name} is back: ready {down:.1f} s after it exited")
-            if self.robots and name in self._worker_names(key):
+            if self.robots and "/edge_worker/" in key:  # a fleet worker: its robots move
                 out += self._handover(name, up)
         return out
-
-    def _worker_names(self, key: str) -> set[str]:
-        return {key.rsplit("/", 1)[1]} if "/edge_worker/" in key else set()
 
     def _handover(self, worker: str, up: bool) -> list[str]:
         from shared.transport.fleet import assign

@@ -41,7 +41,7 @@ class Supervisor:
     _started_at: dict[str, float] = field(default_factory=dict)
     _backoff: dict[str, float] = field(default_factory=dict)
     _down_since: dict[str, float] = field(default_factory=dict)  # exited, not ready again yet
-    _ended: set[str] = field(default_factory=set)  # cameras whose source ended (said once)
+    ended: set[str] = field(default_factory=set)  # cameras whose source ended (said once, never restarted)
 
     def started(self, name: str, *, pid: int | None = None) -> None:
         """A service (re)started now (a restart is an incident: `pid` is its new process)."""
@@ -77,12 +77,12 @@ class Supervisor:
     def exited(self, name: str, code: int | None, *, service: str | None = None) -> float | None:
         """Seconds to wait before restarting `name` (a process of kind `service`: by default its name),
         or None when its exit ends the deployment."""
-        if name in self._ended:  # asked again about a camera whose source ended: already said
+        if name in self.ended:  # asked again about a camera whose source ended: already said
             return None
         up_secs = self.clock() - self._started_at.get(name, self.clock())
         said = {"event": "exited", "name": name, "code": code, "up_secs": round(up_secs, 1)}
         if (service or name) == "camera" and code == 0:
-            self._ended.add(name)
+            self.ended.add(name)
             self._note({**said, "source_ended": True})
             return None  # the source ended (a file without loop, max_frames): the run is complete
         self._down_since.setdefault(name, self.clock())

@@ -435,13 +435,24 @@ def _denied(settings: ZenohSettings, what: str = "ask it") -> str:
     return "" if settings.tls is None else f", and may {settings.tls.certificate.stem!r} {what} under access control"
 
 
-def get_map(robot_id: str, settings: ZenohSettings, *, save: bool = False, timeout_secs: float = 5.0) -> list[TagMap]:
-    """One get on the map queryable: the map of each slam that answers (`save`: it also writes its files)."""
+def _refused(selector: str, refused: list[str], err: TextIO) -> None:
+    """Replies that could not be trusted: said on `err` beside the good ones (a wildcard get's other
+    replies are still shown), or the error when nothing good came."""
+    for line in refused:
+        print(f"{selector}: {line}", file=err, flush=True)
+
+
+def get_map(
+    robot_id: str, settings: ZenohSettings, *, save: bool = False, timeout_secs: float = 5.0, err: TextIO = sys.stderr
+) -> list[TagMap]:
+    """One get on the map queryable: the map of each slam that answers (`save`: it also writes its files).
+    A reply that does not decode, or is an error, is said and left out; ReaderError if none is left."""
     selector = key_for("map", robot_id) + ("?save=1" if save else "")
     save_what = "save the map (only an operator may)" if save else "ask it"  # a denied query gets no reply
+    maps: list[TagMap] = []
+    refused: list[str] = []
     session = open_session(settings)
     try:
-        maps: list[TagMap] = []
         for reply in session.get(selector, timeout=timeout_secs):
             if reply.ok is not None:
                 try:
@@ -449,38 +460,49 @@ def get_map(robot_id: str, settings: ZenohSettings, *, save: bool = False, timeo
                     assert isinstance(tag_map, TagMap)
                     maps.append(tag_map)
                 except Exception as exc:  # a reply we cannot trust is said, not shown
-                    raise ReaderError(f"{selector}: refused a reply from {reply.ok.key_expr}: {exc}") from None
+                    refused.append(f"refused a reply from {reply.ok.key_expr}: {exc}")
             elif reply.err is not None:
-                raise ReaderError(f"{selector}: {reply.err.payload.to_string()}")
+                refused.append(reply.err.payload.to_string())
     finally:
         session.close()
+    if not maps and refused:
+        raise ReaderError(f"{selector}: {'; '.join(refused)}")
     if not maps:
         raise ReaderError(
             f"no reply on {selector} within {timeout_secs:g} s: is slam running{_denied(settings, save_what)}?"
         )
+    _refused(selector, refused, err)
     return maps
 
 
-def get_stats(robot_id: str, settings: ZenohSettings, *, timeout_secs: float = 5.0) -> dict[str, dict[str, Any]]:
-    """Every service's input counters, by the key that answered (`splittag/<robot>/<service>/stats`)."""
+def get_stats(
+    robot_id: str, settings: ZenohSettings, *, timeout_secs: float = 5.0, err: TextIO = sys.stderr
+) -> dict[str, dict[str, Any]]:
+    """Every service's input counters, by the key that answered (`splittag/<robot>/<service>/stats`); a
+    reply that is not JSON is said and left out, ReaderError if none is left."""
     robot = "*" if robot_id == "*" else keys.robot_of(keys.stats(robot_id, "any"))  # checks the id
     selector = f"{keys.ROOT}/{robot}/*/stats"
+    found: dict[str, dict[str, Any]] = {}
+    refused: list[str] = []
     session = open_session(settings)
     try:
-        found: dict[str, dict[str, Any]] = {}
         for reply in session.get(selector, timeout=timeout_secs):
             if reply.ok is not None:
                 try:
                     body = json.loads(reply.ok.payload.to_bytes())
                 except ValueError as exc:
-                    raise ReaderError(f"{selector}: {reply.ok.key_expr} answered no JSON: {exc}") from None
+                    refused.append(f"{reply.ok.key_expr} answered no JSON: {exc}")
+                    continue
                 found[str(reply.ok.key_expr)] = body if isinstance(body, dict) else {"reply": body}
     finally:
         session.close()
+    if not found and refused:
+        raise ReaderError(f"{selector}: {'; '.join(refused)}")
     if not found:
         raise ReaderError(
             f"no reply on {selector} within {timeout_secs:g} s: are the services running{_denied(settings)}?"
         )
+    _refused(selector, refused, err)
     return dict(sorted(found.items()))
 
 
