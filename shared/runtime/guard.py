@@ -15,6 +15,7 @@ from typing import Any, TypeVar
 
 import zenoh
 
+from shared.transport.query import get_until_answered
 from shared.wire import keys
 
 T = TypeVar("T")
@@ -124,7 +125,7 @@ def serve_stats(
 
 def service_stats(session: zenoh.Session, robot_id: str, service: str, *, timeout_secs: float = 5.0) -> dict[str, Any]:
     """Ask a running service for its input counters (see serve_stats)."""
-    for reply in session.get(keys.stats(robot_id, service), timeout=timeout_secs):
+    for reply in get_until_answered(session, keys.stats(robot_id, service), timeout_secs):
         if reply.ok is not None:
             parsed: dict[str, Any] = json.loads(reply.ok.payload.to_bytes())
             return parsed

@@ -36,6 +36,7 @@ import zenoh
 from pydantic import BaseModel
 
 from shared.runtime.guard import InputGuard
+from shared.transport.query import get_until_answered
 from shared.transport.session import ZenohSettings, open_session
 from shared.vision.stamps import format_stamp_nanos
 from shared.wire import keys
@@ -453,7 +454,7 @@ def get_map(
     refused: list[str] = []
     session = open_session(settings)
     try:
-        for reply in session.get(selector, timeout=timeout_secs):
+        for reply in get_until_answered(session, selector, timeout_secs):
             if reply.ok is not None:
                 try:
                     tag_map = _decode_checked(reply.ok.payload.to_bytes(), TagMap, str(reply.ok.key_expr))
@@ -486,7 +487,7 @@ def get_stats(
     refused: list[str] = []
     session = open_session(settings)
     try:
-        for reply in session.get(selector, timeout=timeout_secs):
+        for reply in get_until_answered(session, selector, timeout_secs):
             if reply.ok is not None:
                 try:
                     body = json.loads(reply.ok.payload.to_bytes())

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import zenoh
 
+from shared.transport.query import get_until_answered
 from shared.transport.session import TlsSettings, ZenohSettings, open_session
 from shared.wire import keys
 from shared.wire.messages import SplitConfig, decode
@@ -27,7 +28,7 @@ def query_split(
     session presents (TLS), named when nothing answers."""
     key = keys.split_auto(robot_id) if auto else keys.split(robot_id)
     selector = key + (f"?{params}" if params else "")
-    for reply in session.get(selector, timeout=timeout_secs):
+    for reply in get_until_answered(session, selector, timeout_secs):
         if reply.ok is not None:
             return decode(reply.ok.payload.to_bytes(), SplitConfig)
         err = reply.err.payload.to_string() if reply.err is not None else "unknown error"
@@ -47,7 +48,7 @@ def every_split(
     whose answer is an error or cannot be read gets the reason instead, so one does not hide the others."""
     selector = keys.for_every_robot(keys.split("any"))
     found: dict[str, SplitConfig | str] = {}
-    for reply in session.get(selector, timeout=timeout_secs):
+    for reply in get_until_answered(session, selector, timeout_secs):
         if reply.ok is not None:
             where = str(reply.ok.key_expr)
             try:
