@@ -203,3 +203,36 @@ def test_the_split_survives_a_restart_of_its_process(tmp_path: Path) -> None:
     memory.write_text('{"k": 11}')  # damaged: said, and the configured split is used
     assert remembered_split(memory) is None and resumed_split(memory) is None
     assert sorted(p.name for p in tmp_path.iterdir()) == ["split_r1.json"]  # no temporary file left
+
+
+def test_a_split_get_waits_for_a_queryable_that_is_not_routed_yet() -> None:
+    """A get that no queryable matches ends at once; right after a restart robot_infer's token can be seen
+    before its queryable is routed (CI: 'no reply' on a set). query_split asks again until its timeout."""
+    import threading
+    import time
+
+    from shared.transport.session import ZenohSettings, free_tcp_port, open_session
+    from shared.transport.split_client import SplitQueryError, query_split
+    from shared.transport.split_control import serve_split
+    from shared.wire import keys
+
+    port = free_tcp_port()
+    server = open_session(ZenohSettings(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
+    client = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
+    state = _state()
+    declared: list[zenoh.Queryable[None]] = []
+    late = threading.Timer(1.0, lambda: declared.append(serve_split(server, keys.split("w1"), state)))
+    try:
+        started = time.monotonic()
+        with pytest.raises(SplitQueryError, match="no reply"):  # nothing serves it: the whole timeout
+            query_split(client, "w1", timeout_secs=0.6)
+        assert time.monotonic() - started >= 0.5
+        late.start()
+        assert query_split(client, "w1", params="k=4", timeout_secs=10).k == 4  # asked before it existed
+        assert state.get().k == 4
+    finally:
+        late.cancel()
+        for q in declared:
+            q.undeclare()
+        client.close()
+        server.close()
