@@ -102,15 +102,24 @@ def test_controller_service_rejects_bad_messages_and_keeps_running(
         time.sleep(1.0)
         hub.put(keys.tag_poses("ctl1"), b"not msgpack at all")
         hub.put(keys.compute("ctl1", "edge"), encode(_profile("edge", [1.0] * 8))[:-5])  # truncated
-        hub.put(keys.compute("ctl1", "robot"), encode(_profile("robot", [1.0] * 8)))  # fine
+        hub.put(keys.compute("ctl1", "robot"), encode(_profile("robot", [1.0] * 8)))  # robot r1's, on ctl1's key
+        fine = _profile("robot", [1.0] * 8).model_copy(update={"robot_id": "ctl1"})
+        hub.put(keys.compute("ctl1", "robot"), encode(fine))
         deadline = time.monotonic() + 10
         stats: dict = {}
-        while time.monotonic() < deadline and stats.get("rejected", 0) < 2:
+        while time.monotonic() < deadline and (stats.get("rejected", 0) < 3 or stats.get("accepted", 0) < 1):
             time.sleep(0.05)
             replies = [r.ok for r in hub.get(keys.stats("ctl1", "controller"), timeout=5) if r.ok is not None]
             stats = json.loads(replies[0].payload.to_bytes()) if replies else {}
         # Counted by reason on the stats queryable; logged (at most one line a second).
-        assert stats["rejected_by_reason"] == {"TagPoses: MalformedFrame": 1, "ComputeProfile: MalformedFrame": 1}
+        assert stats["rejected_by_reason"] == {
+            "TagPoses: MalformedFrame": 1,
+            "ComputeProfile: MalformedFrame": 1,
+            "ComputeProfile: SchemaError": 1,
+        }
+        # ... with why, for a sender that cannot read this service's log
+        assert "not a splittag message" in stats["last_rejected"]["TagPoses: MalformedFrame"]
+        assert "of robot 'r1' on robot 'ctl1'" in stats["last_rejected"]["ComputeProfile: SchemaError"]
         assert stats["accepted"] >= 1
         assert any("controller rejected" in r.message for r in caplog.records)
         assert worker.is_alive()

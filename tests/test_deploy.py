@@ -343,3 +343,15 @@ def test_up_restarts_a_killed_service(tmp_path: Path) -> None:
         ready = [i for i in incidents if i["event"] == "ready"]
         assert ready and ready[0]["name"] == "edge_infer" and ready[0]["down_secs"] > 0, incidents
         assert "edge_infer is back: ready" in d.log_path.read_text()
+        # While edge_infer (and its router) was away, slam and the launcher's monitor went on through the
+        # robot's router with the poses the robot computed on board (they were cut off until it was back).
+        gone = next(i for i in incidents if i["event"] == "exited" and i["name"] == "edge_infer")["unix_nanos"] / 1e9
+        back = ready[0]["unix_nanos"] / 1e9
+        run = d.runs / "current"
+        lines = (run / "trajectory.tum").read_text().splitlines()
+        posed = [float(line.split()[0]) for line in lines if line[:1].isdigit()]
+        seen = [int(row["capture_unix_nanos"]) / 1e9 for row in csv.DictReader((run / "frames.csv").open())]
+        for name, stamps in (("slam", posed), ("monitor", seen)):
+            during = [t for t in stamps if gone + 0.5 < t < back - 0.5]
+            assert len(during) >= 3, f"{name}: {len(during)} poses in the {back - gone:.1f} s without the edge"
+        assert "slam and the monitor go on through the robot's router" in d.log_path.read_text()

@@ -19,7 +19,7 @@ from shared.tools.launch import Monitor, attach_monitor, demo_tag_map
 from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
 from shared.vision.camera import CameraIntrinsics
 from shared.wire import keys
-from shared.wire.messages import CameraPose, Frame, Message, decode, encode
+from shared.wire.messages import CameraPose, Frame, Message, TagPoses, decode, encode
 from tests.conftest import DeployConfig
 from tests.examples import example_messages
 from tests.procs import processes, start_process, wait_until
@@ -104,7 +104,19 @@ def test_no_message_kills_a_service(tmp_path: Path, deploy_config: DeployConfig)
             real = raw_poses[-1]  # a real TagPoses (slam has fused it), re-sent below
             tag = ("tags", 0)
             crashes = {
-                "robot_infer": (frames_key, [_with(ex["Frame"], ("image",), EVIL_ARRAY), encode(tiny_frame)]),
+                "robot_infer": (
+                    frames_key,
+                    [
+                        _with(ex["Frame"], ("image",), EVIL_ARRAY),
+                        encode(tiny_frame),
+                        # another robot's frame on this robot's key (it was posed and relabelled: a trial)
+                        encode(ex["Frame"].model_copy(update={"robot_id": "robot9", "seq": 9_001})),
+                        # captured two minutes ahead (its poses said capture->pose -119 s on the way to slam)
+                        encode(
+                            ex["Frame"].model_copy(update={"seq": 9_002, "capture_nanos": time.time_ns() + 120 * 10**9})
+                        ),
+                    ],
+                ),
                 "edge_infer": (
                     features_key,
                     [
@@ -132,6 +144,7 @@ def test_no_message_kills_a_service(tmp_path: Path, deploy_config: DeployConfig)
                         ),
                         _with(ex["TagPoses"], ("seq",), 2**56 + 5),
                         real,
+                        encode(decode(real, TagPoses).model_copy(update={"robot_id": "robot9", "seq": 9_003})),
                     ],
                 ),
             }

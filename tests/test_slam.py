@@ -1491,3 +1491,22 @@ def test_a_size_that_is_no_size_is_refused_before_any_rescaling(tmp_path: Path) 
     tiny = msg.model_copy(update={"tags": [t.model_copy(update={"tag_size_m": 1e-6}) for t in msg.tags]})
     with pytest.raises(SlamInputError):
         node.on_poses(tiny)
+
+
+def test_one_map_revision_is_one_map(tmp_path: Path) -> None:
+    """The revision used to rise only when a tag was added, while every frame refined the poses and
+    counts: a client that cached the map by revision kept stale poses (a fresh-clone trial saw three
+    maps at revision 6). Now a map whose content differs from the last one handed out gets the next
+    revision, and the same content keeps it."""
+    node = SlamNode(SlamServiceSettings(run_dir=tmp_path))
+    poses = _constant_velocity(12)
+    for i in range(6):
+        node.on_poses(_tag_poses(i, 1_000 + i, poses[i]))
+    first = node.current_map("r1")
+    assert node.current_map("r1").revision == first.revision  # nothing fused since: the same map
+    node.on_poses(_tag_poses(6, 1_006, poses[6], only={t.tag_id for t in first.tags}))
+    second = node.current_map("r1")
+    assert [t.tag_id for t in second.tags] == [t.tag_id for t in first.tags]  # no tag added ...
+    assert [t.observations for t in second.tags] != [t.observations for t in first.tags]  # ... but refined
+    assert second.revision > first.revision
+    assert int((tmp_path / "map_revision").read_text()) == second.revision  # a restart goes on past it

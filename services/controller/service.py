@@ -28,7 +28,15 @@ from shared.transport.session import encoding_for
 from shared.transport.split_client import SplitQueryError, query_split
 from shared.viz.recording import Viz, make_viz
 from shared.wire import keys
-from shared.wire.messages import ComputeProfile, ControllerState, FrameSent, Message, TagPoses, decode, encode
+from shared.wire.messages import (
+    ComputeProfile,
+    ControllerState,
+    FrameSent,
+    Message,
+    TagPoses,
+    decode_for_robot,
+    encode,
+)
 from shared.wire.sizing import probe_features
 
 log = logging.getLogger(__name__)
@@ -136,7 +144,7 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
         """A callback subscriber that decodes, counts and logs bad messages, and fuses good ones."""
 
         def fuse(payload: bytes) -> None:
-            msg = decode(payload, schema)
+            msg = decode_for_robot(payload, schema, rid)
             with lock:
                 handle(msg)
 

@@ -6,6 +6,7 @@ import contextlib
 import logging
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from functools import partial
 
@@ -35,7 +36,7 @@ from shared.vision.proposals import Stage1Detector
 from shared.vision.tagmap import TagMapFile, load_tag_map
 from shared.vision.tracking import TagTracker
 from shared.wire import keys
-from shared.wire.codec import WireError
+from shared.wire.codec import SchemaError, WireError
 from shared.wire.cuts import N_CUTS, CodecName
 from shared.wire.messages import (
     ComputeProfile,
@@ -45,12 +46,26 @@ from shared.wire.messages import (
     SplitConfig,
     TagFeature,
     TagPoses,
-    decode,
+    decode_for_robot,
     decode_view,
     encode,
 )
 
 log = logging.getLogger(__name__)
+
+
+def checked_frame(
+    payload: bytes, robot_id: str, *, max_bytes: int, ahead_nanos: int, now_nanos: Callable[[], int] = time.time_ns
+) -> Frame:
+    """A Frame for this robot (decode_for_robot), captured at most `ahead_nanos` ahead of this host's clock."""
+    frame = decode_for_robot(payload, Frame, robot_id, max_bytes=max_bytes)
+    ahead = frame.capture_nanos - now_nanos()
+    if ahead > ahead_nanos:
+        raise SchemaError(
+            f"Frame seq {frame.seq} captured {ahead / 1e9:.1f} s ahead of this host's clock (more than "
+            f"{ahead_nanos / 1e9:g} s: is the camera's clock set?)"
+        )
+    return frame
 
 
 class _Skipped:
@@ -135,8 +150,9 @@ class RobotInfer:
         rid = s.robot_id
         # Frames are checked as they arrive: a bad one is counted and never displaces the good one waiting.
         max_bytes = s.max_payload_bytes
+        ahead_nanos = round(s.max_capture_ahead_secs * 1e9)
         self.frames: LatestValid[Frame] = LatestValid(
-            lambda b: decode(b, Frame, max_bytes=max_bytes), self.guard, "frame"
+            lambda b: checked_frame(b, rid, max_bytes=max_bytes, ahead_nanos=ahead_nanos), self.guard, "frame"
         )
         self.sub = declare_latest_valid(session, keys.frames(rid), self.frames)
         self.pub = declare_tensor_publisher(session, keys.features(rid), Features.SCHEMA)

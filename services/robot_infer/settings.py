@@ -74,6 +74,9 @@ class RobotInferSettings(ServiceSettings):
     # link as a queue (shared.transport.flow.UplinkQueue, from the answers' link stamps) instead of a delay.
     pace_to_link: bool = True
     in_flight_timeout_secs: float = Field(default=2.0, gt=0)  # a frame never answered returns its credit
+    # A frame captured further ahead of this host's clock is refused (a camera's clock set wrong): slam
+    # refuses its poses anyway, and its latencies read negative on the way there.
+    max_capture_ahead_secs: float = Field(default=60.0, gt=0)
     profile_period_secs: float = Field(default=1.0, gt=0)  # ComputeProfile C(k) publication period
     # Without the edge (its liveliness token gone, or an answer this late) the robot runs the whole
     # chain on board (k = 7 + PnP) and publishes TagPoses itself; back to the split when the edge is.

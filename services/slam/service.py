@@ -8,6 +8,7 @@ slam.json (run statistics) and, when ground truth was seen, groundtruth.tum / at
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import logging
 import math
@@ -136,6 +137,10 @@ class SlamNode:
         previous = _read_revision(self.revision_path)
         self.revision = 0 if previous is None else previous + 1
         _write_revision(self.revision_path, self.revision)
+        # (revision, content digest) of the last map handed out: a map whose content differs gets the
+        # next revision, so one revision is one map (poses and counts are refined every frame, and a
+        # client that cached the map by revision kept stale poses: a fresh-clone trial)
+        self.given: tuple[int, bytes] | None = None
         self.lock = threading.Lock()
 
     def _sized(self, o: Observation) -> Observation:
@@ -333,7 +338,13 @@ class SlamNode:
         anchor = self.slam.anchor
         if anchor is None and self.resumed is not None:
             anchor = self.resumed.anchor_tag_id
-        return TagMap(robot_id=robot_id, revision=self.revision, anchor_tag_id=anchor or 0, tags=tags)
+        anchor_id = anchor or 0
+        digest = map_digest(anchor_id, tags)
+        if self.given is not None and self.given[0] == self.revision and self.given[1] != digest:
+            self.revision += 1
+            _write_revision(self.revision_path, self.revision)
+        self.given = (self.revision, digest)
+        return TagMap(robot_id=robot_id, revision=self.revision, anchor_tag_id=anchor_id, tags=tags)
 
     def current_map(self, robot_id: str) -> TagMap:
         """Thread-safe map snapshot (the one shared map, addressed to `robot_id`)."""
@@ -506,6 +517,16 @@ class SlamQueryError(ValueError):
     """A map query slam refuses (a save through a wildcard key)."""
 
 
+def map_digest(anchor_tag_id: int, tags: list[MapTag]) -> bytes:
+    """What a map's revision stands for: its anchor and every tag's fields, exactly."""
+    h = hashlib.blake2b(str(anchor_tag_id).encode(), digest_size=16)
+    for t in tags:
+        fields = (t.tag_id, t.size_m, t.observations, t.bridged, t.position_sigma_m, t.rotation_sigma_deg)
+        h.update(repr(fields).encode())
+        h.update(np.ascontiguousarray(t.world_from_tag, np.float64).tobytes())
+    return h.digest()
+
+
 def _read_revision(path: Path) -> int | None:
     """The map revision a previous slam of this run reached (None: none written; unreadable: said, and
     taken as far ahead as a run could have got, so no revision is given twice)."""
@@ -666,7 +687,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
         """One TagPoses: fuse, publish the camera pose (and the map on change), log (raises on bad input)."""
         robot = robot_of(sample_key)
         msg = decode(payload, TagPoses)
-        if node.fleet and msg.robot_id != robot:
+        if msg.robot_id != robot:  # (one robot's slam fused and relabelled another's: a fresh-clone trial)
             raise SlamInputError(f"TagPoses of robot {msg.robot_id!r} on robot {robot!r}'s key")
         cam, tag_map = node.on_poses(msg)
         cam_pub, map_pub = publishers(robot)

@@ -41,6 +41,9 @@ class InputGuard:
         self.accepted = 0
         self.accepted_by_input: Counter[str] = Counter()  # slam takes TagPoses, ground truth, frame stamps...
         self.rejected: Counter[str] = Counter()
+        # The newest rejection's text per reason, on the stats key: a sender on another host sees why
+        # without the service's log (the log says one line a second; a trial's never showed its error).
+        self.last_rejected: dict[str, str] = {}
         self._last_log = -float("inf")
         self._unlogged = 0
 
@@ -60,16 +63,17 @@ class InputGuard:
         """Count one rejected input; log it unless a line was logged less than log_every_secs ago."""
         reason = f"{what}: {type(exc).__name__}"
         now = self._clock()
+        text = str(exc).replace("\n", " ")
+        if len(text) > self.max_chars:
+            text = text[: self.max_chars] + f"... ({len(text)} chars)"
         with self._lock:
             self.rejected[reason] += 1
+            self.last_rejected[reason] = f"{text} ({payload_bytes} bytes)"
             total = sum(self.rejected.values())
             if now - self._last_log < self.log_every_secs:
                 self._unlogged += 1
                 return
             skipped, self._unlogged, self._last_log = self._unlogged, 0, now
-        text = str(exc).replace("\n", " ")
-        if len(text) > self.max_chars:
-            text = text[: self.max_chars] + f"... ({len(text)} chars)"
         more = f" (+{skipped} not logged)" if skipped else ""
         log.warning(
             "%s rejected %s #%d (%d bytes): %s: %s%s",
@@ -83,7 +87,8 @@ class InputGuard:
         )
 
     def stats(self) -> dict[str, Any]:
-        """accepted (in all and by input), rejected and rejected by reason."""
+        """accepted (in all and by input), rejected, rejected by reason and the newest rejection's text by
+        reason."""
         with self._lock:
             return {
                 "service": self.service,
@@ -91,6 +96,7 @@ class InputGuard:
                 "accepted_by_input": dict(self.accepted_by_input),
                 "rejected": sum(self.rejected.values()),
                 "rejected_by_reason": dict(self.rejected),
+                "last_rejected": dict(self.last_rejected),
             }
 
 

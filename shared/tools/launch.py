@@ -640,12 +640,16 @@ def run_tag_map(config: Path) -> TagMapFile | None:
 
 
 def monitor_settings(config: Path) -> tuple[str, ZenohSettings]:
-    """robot_id and a client session to the edge router, from the run config."""
+    """robot_id and a client session to the edge router (and the robot's, where the edge side reaches
+    it), from the run config."""
     doc = tomllib.loads(config.read_text())
     robot_id = doc.get("common", {}).get("robot_id", "robot1")
     tls_table = doc.get("monitor", {}).get("tls")  # the operator's certificate in a TLS deployment
     tls = TlsSettings.model_validate(tls_table) if tls_table is not None else None
-    return robot_id, ZenohSettings(mode="client", connect=[Topology.from_config(config).edge_router], tls=tls)
+    topology = Topology.from_config(config)
+    # the robot's router second, where reachable: a client fails over to it while the edge's is away
+    endpoints = topology.edge_side_endpoints(topology.edge_router)
+    return robot_id, ZenohSettings(mode="client", connect=endpoints, tls=tls)
 
 
 class LaunchError(RuntimeError):
@@ -870,19 +874,28 @@ def finish_orphaned_run(run_dir: Path, stopped: list[str], *, still_running: lis
     return summary
 
 
+def router_hosts(run_config: Path) -> dict[str, str]:
+    """What each router's process takes down with it, for the supervisor's line when it dies."""
+    fails_over = Topology.from_config(run_config).robot_from_edge is not None
+    edge = (
+        "it is the edge's router: slam and the monitor go on through the robot's router (the robot computes "
+        "on board) until it is back"
+        if fails_over
+        else "it is the edge's router: robot, slam and monitor are cut off until it is back"
+    )
+    return {
+        "edge_infer": edge,
+        "robot_infer": "it is the robot's router: the camera's frames wait until it is back",
+    }
+
+
 class _Services:
     """The services of one run: started, their pids written, restarted by the supervisor's policy."""
 
     def __init__(self, run_config: Path, run_dir: Path, wrappers: dict[str, list[str]]) -> None:
         self.run_config, self.run_dir, self.wrappers = run_config, run_dir, wrappers
         self.started: list[Service] = []
-        self.supervisor = Supervisor(
-            record=incidents_file(run_dir / "incidents.jsonl"),
-            hosts={
-                "edge_infer": "it is the edge's router: robot, slam and monitor are cut off until it is back",
-                "robot_infer": "it is the robot's router: the camera's frames wait until it is back",
-            },
-        )
+        self.supervisor = Supervisor(record=incidents_file(run_dir / "incidents.jsonl"), hosts=router_hosts(run_config))
         self.restart_at: dict[str, float] = {}
 
     def _start(self, name: str) -> Service:

@@ -4,8 +4,12 @@ and the run config written from a deploy TOML with it.
 Every deployment has the same shape: the edge runs a router (edge_infer) that slam joins; the robot
 runs its own router (robot_infer, so camera frames never leave the robot) that connects to the edge
 and that the camera and the controller join; tools (monitor, tests, benches) reach the edge router.
-Only the addresses differ: loopback on fixed or free ports, two hosts, or the emulated link's
-namespaces. The launcher, link emulation, benchmarks and tests all build their configs here.
+Where the edge side can reach the robot's router too (one host, or two hosts whose robot router
+listens on an address the edge reaches), slam joins both as a peer and the monitor has it as its
+second endpoint: while edge_infer (and its router) is away, the poses the robot computes on board
+still reach them. Only the addresses differ: loopback on fixed or free ports, two hosts, or the
+emulated link's namespaces. The launcher, link emulation, benchmarks and tests all build their configs
+here.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ EDGE_PORT: Final[int] = 7447
 ROBOT_PORT: Final[int] = 7448
 ROBOT_SIDE: Final[tuple[str, ...]] = ("camera", "robot_infer", "controller")
 EDGE_SIDE: Final[tuple[str, ...]] = ("edge_infer", "slam")
+LOOPBACK_HOSTS: Final[frozenset[str]] = frozenset({"127.0.0.1", "localhost", "[::1]", "::1"})
 
 
 @dataclass(frozen=True)
@@ -86,6 +91,20 @@ class Topology:
         """The robot router's endpoint (robot side only)."""
         return f"{self.protocol}/{self.robot_bind}:{self.robot_port}"
 
+    @property
+    def robot_from_edge(self) -> str | None:
+        """The robot router's endpoint as the edge side (slam, tools) reaches it, or None where it cannot:
+        a robot router on the robot's own loopback while the edge listens elsewhere (another host, or
+        the emulated link's namespaces)."""
+        if self.robot_bind in LOOPBACK_HOSTS and self.edge_bind != self.robot_bind:
+            return None
+        return self.robot_router
+
+    def edge_side_endpoints(self, edge: str) -> list[str]:
+        """`edge`, then the robot's router where the edge side reaches it (robot_from_edge)."""
+        robot = self.robot_from_edge
+        return [edge] if robot is None else [edge, robot]
+
     def zenoh_tables(self) -> dict[str, dict[str, Any]]:
         """The `[<service>.zenoh]` tables (and `[monitor]`) of a run config."""
         p = self.protocol
@@ -101,8 +120,10 @@ class Topology:
             },
             "camera": {"zenoh": {"mode": "client", "connect": [self.robot_router]}},
             "controller": {"zenoh": {"mode": "client", "connect": [self.robot_router]}},
-            "slam": {"zenoh": {"mode": "client", "connect": [edge_local]}},
-            "monitor": {"connect": [self.edge_router]},
+            # A peer of both routers: while the edge's is away, the poses the robot computes on board
+            # still reach slam (a client would stay on the robot's router once it failed over to it).
+            "slam": {"zenoh": {"mode": "peer", "connect": self.edge_side_endpoints(edge_local)}},
+            "monitor": {"connect": self.edge_side_endpoints(self.edge_router)},
         }
 
 

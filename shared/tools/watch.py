@@ -508,7 +508,7 @@ def get_stats(
 
 
 _GUARD_FIELDS: Final[frozenset[str]] = frozenset(
-    {"service", "accepted", "accepted_by_input", "rejected", "rejected_by_reason"}
+    {"service", "accepted", "accepted_by_input", "rejected", "rejected_by_reason", "last_rejected"}
 )
 
 
@@ -518,7 +518,8 @@ def _counts(value: Any) -> dict[str, Any]:
 
 
 def stats_text(stats: dict[str, dict[str, Any]]) -> list[str]:
-    """One line per service: accepted (by input) and refused (by reason)."""
+    """One line per service: accepted (by input) and refused (by reason), then the newest refusal's
+    text per reason, indented."""
     lines = []
     for key, body in stats.items():
         name = key.removeprefix(f"{keys.ROOT}/").removesuffix("/stats")
@@ -533,4 +534,5 @@ def stats_text(stats: dict[str, dict[str, Any]]) -> list[str]:
             + (f" ({reasons})" if reasons else "")
             + more
         )
+        lines += [f"    last {k}: {v}" for k, v in sorted(_counts(body.get("last_rejected")).items())]
     return lines

@@ -740,6 +740,31 @@ def encode_values(model: type[Message], *values: Any) -> bytes:
     return positional_codec().pack_values(model, values)
 
 
+def _not_a_message(payload: bytes | bytearray | memoryview, why: str) -> MalformedFrame:
+    """A payload that is no splittag message: say how one starts (an integrator's bytes, or a framing 1/2
+    error alone, named nothing a sender of framing 3 would recognise: a fresh-clone trial)."""
+    if len(payload) >= 1 and payload[0] == FRAME_MAGIC:  # a framed message (3, or 2), damaged
+        return MalformedFrame(why)
+    if len(payload) == 0:
+        return MalformedFrame("empty payload: not a splittag message")
+    return MalformedFrame(
+        f"not a splittag message: it starts with {bytes(payload[:4]).hex(' ')}, not the framing-3 head c1 03 00 00 "
+        f"(docs/wire.md), nor does it read as an older framing ({why})"
+    )
+
+
+def decode_for_robot(
+    payload: bytes | bytearray | memoryview, expected: type[M], robot_id: str, *, max_bytes: int = DEFAULT_MAX_BYTES
+) -> M:
+    """decode(), and a message that names another robot than the key it came on (`robot_id`) refused:
+    someone published under another robot's key (it was fused and relabelled: a fresh-clone trial)."""
+    message = decode(payload, expected, max_bytes=max_bytes)
+    claimed = getattr(message, "robot_id", robot_id)
+    if claimed != robot_id:
+        raise SchemaError(f"{type(message).__name__} of robot {claimed!r} on robot {robot_id!r}'s key")
+    return cast(M, message)
+
+
 def _schema_error(schema: Any) -> SchemaError:
     if not isinstance(schema, str):
         return SchemaError(f"schema id must be a string, got {type(schema).__name__}")
@@ -866,10 +891,13 @@ def decode(
     payload = _as_bytes_view(payload)
     if len(payload) >= 2 and payload[0] == FRAME_MAGIC and payload[1] == FRAMING3 and len(payload) <= max_bytes:
         return _decode_positional(payload, expected)
-    doc = unpack(payload, max_bytes=max_bytes)
+    try:
+        doc = unpack(payload, max_bytes=max_bytes)
+    except MalformedFrame as exc:
+        raise _not_a_message(payload, str(exc)) from exc
     if not isinstance(doc, dict) or doc.keys() != ENVELOPE_KEYS:
         got = sorted(doc) if isinstance(doc, dict) else type(doc).__name__
-        raise MalformedFrame(f"expected an envelope map with keys schema and body, got {got}")
+        raise _not_a_message(payload, f"an older framing's envelope is a map with keys schema and body, got {got}")
     schema = doc["schema"]
     legacy = LEGACY_SCHEMAS.get(schema) if isinstance(schema, str) else None
     model = legacy or (SCHEMAS.get(schema) if isinstance(schema, str) else None)
