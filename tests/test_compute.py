@@ -75,3 +75,13 @@ def test_the_edge_times_each_tail_on_its_own_cuts_input_and_runs_no_head() -> No
     assert len(out) == len(CUTS) and all(v >= 0 for v in out)
     expected = [(c.k, (1, *c.shape), "uint8" if c.k == 0 else "float32") for c in CUTS]
     assert sorted(set(net.calls)) == expected and len(net.calls) == 3 * len(CUTS)  # one untimed + 2 timed each
+
+
+def test_a_calibration_under_load_cannot_make_a_shorter_head_dearer() -> None:
+    """A trial's start-up calibration read the head up to block 1 dearer than up to block 3, and up to
+    block 5 dearer than the whole network; a head contains every shorter head (a tail every later tail),
+    and each timing is an upper bound, so a cut takes the least of its own and the longer part's."""
+    robot = head_per_tag_ms([0.0, 213.0, 230.0, 221.0, 260.0, 293.0, 269.0, 272.0])
+    assert robot == [0.0, 213.0, 221.0, 221.0, 260.0, 269.0, 269.0, 272.0]
+    edge = tail_per_tag_ms([40.0, 45.0, 30.0, 31.0, 20.0, 5.0, 6.0, 0.5], pnp_ms=1.0, views=2)
+    assert edge == [81.0, 41.0, 31.0, 31.0, 21.0, 6.0, 6.0, 1.5]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -156,3 +157,26 @@ def test_the_recording_gets_no_prediction_before_both_compute_profiles() -> None
     _log_state(viz, core.decide(robot_id="r1", current_k=7, pinned=False))  # type: ignore[arg-type]
     assert {f"controller/predicted_ms/k{k}" for k in range(8)} <= set(viz.logged[-1])
     assert viz.logged[-1]["controller/t0_ms"] > 0
+
+
+def test_failed_probes_are_said_once_a_run_and_why(caplog: pytest.LogCaptureFixture) -> None:
+    """A trial's controller logged 6.5 warnings a second while robot_infer (the robot's router) was down,
+    each asking whether the edge was running: now the first failure of a run says why, once."""
+    from services.controller.service import ProbeFailures
+    from shared.transport.probe import ProbeError
+
+    routed = [True]
+    now = [0.0]
+    failures = ProbeFailures(lambda: routed[0], clock=lambda: now[0])
+    caplog.set_level(logging.INFO, logger="services.controller.service")
+    failures.failure(16384, ProbeError("no reply"))  # the edge still starting: info
+    failures.success()
+    routed[0] = False
+    for _ in range(50):
+        failures.failure(16384, ProbeError("no reply from the echo queryable (is the edge running?)"))
+        now[0] += 0.15
+    failures.success()
+    said = [(r.levelname, r.getMessage()) for r in caplog.records]
+    assert [level for level, _ in said] == ["INFO", "WARNING", "WARNING"], said
+    assert "reaches no router" in said[1][1] and "is the edge running" not in said[1][1]
+    assert "after 50 failed over 7.5 s" in said[2][1]

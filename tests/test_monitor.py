@@ -179,6 +179,10 @@ def test_the_live_line_says_how_long_the_poses_have_stopped() -> None:
     at_robot.on_gt(encode(truth.model_copy(update={"seq": 60})))
     now[0] += 1.5
     assert "is robot_infer running?" in at_robot.line(), at_robot.line()
+    # The launcher knows which process is restarting: that, not a guess (a trial's monitor asked whether
+    # the edge was up while robot_infer was the one killed).
+    assert at_robot.line(down=["robot_infer"]).endswith(": robot_infer exited and is not back yet")
+    assert monitor.line(down=["edge_infer", "slam"]).endswith(": edge_infer and slam exited and are not back yet")
 
 
 def test_no_slam_error_when_slam_works_in_a_world_of_its_own() -> None:

@@ -325,7 +325,7 @@ def test_watch_says_when_the_messages_stop() -> None:
             publisher.undeclare()
     assert proc.returncode == 0 and out.startswith("robot1 k=7"), err
     assert "nothing more on splittag/robot1/controller/v1 for 5 s: has the deployment stopped?" in err
-    assert "1 messages, 0 refused" in err  # the summary, after SIGTERM
+    assert "1 message, 0 refused" in err  # the summary, after SIGTERM
 
 
 @pytest.mark.multiprocess

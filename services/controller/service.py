@@ -43,15 +43,49 @@ log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)
 
 
+class ProbeFailures:
+    """What the probe loop says about failed probes: the first of a run of failures (a warning once the
+    echo has answered before; until then the edge is still starting: info), with why, then nothing
+    until a probe is answered again, which is said with how many failed and for how long. (A trial's
+    controller logged 84 warnings, 6.5 a second, while robot_infer, the robot's router, was down, each
+    asking whether the edge was running.)"""
+
+    def __init__(self, reaches_router: Callable[[], bool], clock: Callable[[], float] = time.monotonic) -> None:
+        self.reaches_router, self.clock = reaches_router, clock
+        self.answered = False
+        self.failed = 0
+        self.since = 0.0
+
+    def failure(self, size: int, exc: Exception) -> None:
+        self.failed += 1
+        if self.failed > 1:
+            return
+        self.since = self.clock()
+        why = str(exc)
+        if not self.reaches_router():
+            why = "this controller reaches no router (robot_infer hosts the robot's router: is it running?)"
+        level = logging.WARNING if self.answered else logging.INFO
+        log.log(level, "probe of %d bytes failed: %s; further failures are not logged until one is answered", size, why)
+
+    def success(self) -> None:
+        if self.failed and self.answered:
+            log.warning("probes answered again after %d failed over %.1f s", self.failed, self.clock() - self.since)
+        self.answered, self.failed = True, 0
+
+
 def _probe_loop(
-    settings: ControllerSettings, core: SplitController, lock: threading.Lock, prober: Prober, stop: threading.Event
+    settings: ControllerSettings,
+    core: SplitController,
+    lock: threading.Lock,
+    prober: Prober,
+    stop: threading.Event,
+    failures: ProbeFailures,
 ) -> None:
     """Sparse probes: one per period at a size not seen lately; at once (largest size) when the change
     detector is half-way to firing, to confirm or dismiss it quickly; every size right after a change."""
     burst_from = core.link.changes
     last_probe = 0.0
     busy_since: float | None = None
-    answered = False  # until the echo first answers, a failed probe is the edge still starting: info, not warning
     while not stop.wait(0.005):
         now = time.monotonic()
         with lock:
@@ -78,11 +112,11 @@ def _probe_loop(
             try:
                 r = prober.round_trip(encode(probe_features(size)))
             except ProbeError as exc:
-                log.log(logging.WARNING if answered else logging.INFO, "probe of %d bytes failed: %s", size, exc)
+                failures.failure(size, exc)
                 continue
             finally:
                 last_probe = time.monotonic()
-            answered = True
+            failures.success()
             with lock:
                 if r.link is not None:
                     core.add_crossing(r.payload_bytes, r.link)
@@ -170,7 +204,10 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
     ]
     pub = session.declare_publisher(keys.controller(rid), encoding=encoding_for(ControllerState.SCHEMA))
     prober = Prober(session, keys.echo(rid), timeout_secs=5.0)
-    prober_thread = threading.Thread(target=_probe_loop, args=(settings, core, lock, prober, stop), daemon=True)
+    failures = ProbeFailures(lambda: any(True for _ in session.info.routers_zid()))
+    prober_thread = threading.Thread(
+        target=_probe_loop, args=(settings, core, lock, prober, stop, failures), daemon=True
+    )
     prober_thread.start()
     token = session.liveliness().declare_token(keys.alive(rid, "controller"))
     viz = make_viz(settings.rerun, service="controller", run_dir=settings.run_dir)

@@ -107,8 +107,15 @@ class ComputeEstimator:
 
 def head_per_tag_ms(cumulative_ms: Sequence[float], *, views: int = 1) -> list[float]:
     """Robot side: the cumulative head time up to each cut is what the robot computes per tag; at the
-    last cut (the whole network) once per test-time view (shared.model.views)."""
-    out = [max(0.0, float(v)) for v in cumulative_ms]
+    last cut (the whole network) once per test-time view (shared.model.views).
+
+    The head up to k contains the head up to every earlier cut, so its time cannot fall with k; each
+    timing is an upper bound of its cut's (contention only adds), so a cut's time is the least of its
+    own and every later cut's. A trial's start-up calibration under load read 118, 213, 230, 221, 260,
+    293, 269, 272 ms: block 1 dearer than block 3, block 5 than the whole network, and the controller
+    saw gains that were noise."""
+    times = np.maximum(np.asarray(cumulative_ms, np.float64), 0.0)
+    out = [float(v) for v in np.minimum.accumulate(times[::-1])[::-1]]
     out[-1] *= views
     return out
 
@@ -116,7 +123,9 @@ def head_per_tag_ms(cumulative_ms: Sequence[float], *, views: int = 1) -> list[f
 def tail_per_tag_ms(tail_ms: Sequence[float], pnp_ms: float, *, views: int = 1) -> list[float]:
     """Edge side: the rest of the network after each cut (`tail_ms`, one view's, timed per cut:
     shared.model.runtime.calibrate_tail_ms), plus PnP, per tag; from cut 0 (the whole network) once per
-    test-time view."""
-    out = [max(0.0, float(v)) + pnp_ms for v in tail_ms]
-    out[0] = max(0.0, views * float(tail_ms[0])) + pnp_ms
+    test-time view. The tail from k contains the tail from every later cut: a cut's time is the least
+    of its own and every earlier cut's (as head_per_tag_ms)."""
+    times = np.minimum.accumulate(np.maximum(np.asarray(tail_ms, np.float64), 0.0))
+    out = [float(v) + pnp_ms for v in times]
+    out[0] = views * float(times[0]) + pnp_ms
     return out

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import shlex
 import sys
 from collections.abc import Callable, Sequence
@@ -640,12 +641,32 @@ def _launch_extra(args: argparse.Namespace) -> dict[str, dict[str, Any]]:
     return extra
 
 
+def _number_above(floor: float, *, inclusive: bool = False) -> Callable[[str], float]:
+    """An argparse type: a finite number > floor (>= with `inclusive`), refused at once with the
+    parser's own message (a trial's --fps 0 and --gamma 0.5 started every service, then failed)."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        ok = value >= floor if inclusive else value > floor
+        if not math.isfinite(value) or not ok:
+            raise argparse.ArgumentTypeError(f"{text} must be {'>=' if inclusive else '>'} {floor:g}")
+        return value
+
+    return parse
+
+
+POSITIVE = _number_above(0.0)
+
+
 def _add_launch_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--controller", action="store_true", help="also run the adaptive split controller")
-    p.add_argument("--fps", type=float, default=None, help="the camera's rate (camera.fps; the config's otherwise)")
+    p.add_argument("--fps", type=POSITIVE, default=None, help="the camera's rate (camera.fps; the config's otherwise)")
     p.add_argument(
         "--gamma",
-        type=float,
+        type=_number_above(1.0, inclusive=True),
         default=None,
         help="emulate a robot CPU this many times slower than this one: robot_infer's compute x gamma "
         "(robot_infer.gamma, >= 1; the paper's gamma in T(k) = gamma C(k) + t0 + beta S(k))",
@@ -681,19 +702,19 @@ def _add_deploy_commands(sub: Any) -> None:
     """demo, up, down: run the services."""
     p = sub.add_parser("demo", help="run the whole pipeline on the demo scene with a live line per second")
     p.add_argument("--config", type=Path, default=Path("deploy/local.toml"))
-    p.add_argument("--duration", type=float, default=30.0)
+    p.add_argument("--duration", type=POSITIVE, default=30.0)
     _add_launch_options(p)
     p.set_defaults(func=_cmd_demo)
 
     p = sub.add_parser("up", help="start every service (deploy/up.sh); Ctrl-C stops them")
     p.add_argument("--config", type=Path, default=Path("deploy/local.toml"))
-    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    p.add_argument("--duration", type=POSITIVE, default=None, help="stop after this many seconds")
     p.add_argument("--runs", type=Path, default=Path("runs"), help="run folders go under here (RUNS/current links)")
     _add_launch_options(p)
     p.set_defaults(func=_cmd_up)
     p = sub.add_parser("fleet", help="N robots and M edge workers with one slam (deploy/fleet.toml); Ctrl-C stops")
     p.add_argument("--config", type=Path, default=Path("deploy/fleet.toml"))
-    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    p.add_argument("--duration", type=POSITIVE, default=None, help="stop after this many seconds")
     p.add_argument("--runs", type=Path, default=Path("runs"), help="run folders go under here (RUNS/current links)")
     p.add_argument("--only", default=None, help="'edge' (slam + workers) or one robot id: this host's part")
     p.add_argument(
@@ -730,7 +751,7 @@ def _add_control_commands(sub: Any) -> None:
         help="json: one object per line; tum: tracking poses as TUM lines, stamped as trajectory.tum is",
     )
     p.add_argument("--count", type=int, default=None, help="stop after this many messages")
-    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    p.add_argument("--duration", type=POSITIVE, default=None, help="stop after this many seconds")
     _add_reader_options(p)
     p.set_defaults(func=_cmd_watch)
 
@@ -976,13 +997,14 @@ def _user_errors(command: str) -> tuple[tuple[type[BaseException], ...], tuple[t
     from shared.runtime.settings import ConfigurationError
     from shared.tools.fleet import FleetConfigError
     from shared.tools.launch import LaunchError
-    from shared.tools.linkemu import LinkProfileError
+    from shared.tools.linkemu import LinkEmulationUnavailable, LinkProfileError
     from shared.vision.geometry import CameraFileError
     from shared.vision.tagmap import TagMapError
 
     usage = (
         FleetConfigError,
         LinkProfileError,
+        LinkEmulationUnavailable,
         ModelFileError,
         ConfigurationError,
         FileNotFoundError,

@@ -18,7 +18,7 @@ import threading
 import time
 import tomllib
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -426,8 +426,10 @@ class Monitor:
                 out.append(float(translation_error_cm(tag.camera_from_tag[:3, 3], true[:3, 3])))
         return out
 
-    def line(self) -> str:
-        """One status line over the last second."""
+    def line(self, down: Sequence[str] = ()) -> str:
+        """One status line over the last second. `down`: the run's processes that exited and are not
+        back yet (the supervisor's), named first when the poses stopped (a trial's monitor asked
+        whether the edge was up while robot_infer was the one restarting)."""
         now = self.clock()
         with self._lock:
             recent = [r for r in self._recent if now - r["t"] <= 1.0]
@@ -440,6 +442,8 @@ class Monitor:
             # reaches this monitor, so the poses are what stopped (a monitor at the edge's router does not
             # see those the robot computes on board while the edge is down). Both stopped: the robot.
             silent = f"no TagPoses for {now - last['t']:.1f} s (the last: frame {last['seq']})"
+            if down:
+                return f"{silent}: {' and '.join(down)} exited and {'is' if len(down) == 1 else 'are'} not back yet"
             # the poses caught up and the camera went quiet (a restarted camera counts from 0 again: only
             # a second's silence of its own says so)
             if gt_at is not None and gt_seq <= last["seq"] and now - gt_at > 1.0:
@@ -1188,6 +1192,9 @@ def run_pipeline(
     if controller and "controller" not in services:
         services = (*services, "controller")
     topology, wrappers, emu = _placement(config, services, link)
+    initial = profile(link) if link is not None else None  # refused before the run folder exists
+    if emu is not None:
+        emu.refuse_if_in_use()  # (up() checks again)
     with preparing_run_dir(runs_root) as run_dir:
         run_config = write_run_config(run_dir, config, topology=topology, extra=extra)
         robot_id, zs = monitor_settings(run_config)
@@ -1196,7 +1203,7 @@ def run_pipeline(
             refuse_busy_endpoints([run_config])
     if emu is not None:
         emu.log_dir = run_dir
-        emu.up(profile(link or "5g"))
+        emu.up(initial or profile("5g"))
         cli = Path(sys.executable).parent / "splittag"
         print(
             f"emulated link up: profile {link}; `sudo {cli} link set PROFILE` switches it live; the edge's router "
@@ -1239,7 +1246,7 @@ def run_pipeline(
             run_for(
                 stop,
                 duration_secs,
-                lines=lambda: [*link_lines.new_lines(), *comings.lines(), monitor.line()],
+                lines=lambda: [*link_lines.new_lines(), *comings.lines(), monitor.line(running.supervisor.down())],
                 quiet=quiet,
                 supervise=running.supervise,
                 every_second=frames_csv.flush,

@@ -16,6 +16,7 @@ Shared memory never crosses a namespace (and is off in every splittag session an
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -147,6 +148,19 @@ def profile(name: str) -> LinkProfile:
         raise LinkProfileError(f"unknown link profile {name!r}; known: {', '.join(PROFILES)}") from None
 
 
+def netns_pids(ns: str) -> list[int]:
+    """The processes inside network namespace `ns` (none when it does not exist)."""
+    out = _run(["ip", "netns", "pids", ns], check=False).stdout
+    return [int(t) for t in out.split() if t.isdigit()]
+
+
+def _is_delay_line(pid: int) -> bool:
+    try:
+        return b"shared.tools.delayline" in Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return False
+
+
 class LinkEmulatorSettings(BaseModel):
     """Names and addresses of the emulated link. A prefix keeps the namespaces and links of parallel
     emulations apart; the management address lives in the root namespace, so parallel emulations also
@@ -235,12 +249,31 @@ class LinkEmulator:
         self._delay: subprocess.Popen[bytes] | None = None
 
     # -- lifecycle -------------------------------------------------------------------------------
+    def refuse_if_in_use(self) -> list[int]:
+        """LinkEmulationUnavailable if a running deployment's processes are in this emulation's namespaces:
+        tearing them down as leftovers cut that run's link, and its monitor then read the new run's
+        frames (a trial's second `up --link` did both). Returns the pids of a crashed run's delay line
+        there, the one process a dead run leaves behind."""
+        s = self.settings
+        users = {ns: netns_pids(ns) for ns in (s.robot_ns, s.edge_ns)}
+        services = {ns: [p for p in pids if not _is_delay_line(p)] for ns, pids in users.items()}
+        if any(services.values()):
+            held = "; ".join(f"{ns}: pids {' '.join(map(str, p))}" for ns, p in services.items() if p)
+            raise LinkEmulationUnavailable(
+                f"the emulated link's namespaces are in use by a running deployment ({held}): stop it first "
+                "(`splittag down`), or give this emulation another prefix and addresses"
+            )
+        return [p for pids in users.values() for p in pids]
+
     def up(self, initial: LinkProfile) -> LinkEmulator:
         """Create namespaces, links, routes and the delay line, then apply `initial`."""
         reason = unavailable_reason()
         if reason is not None:
             raise LinkEmulationUnavailable(reason)
         s = self.settings
+        for pid in self.refuse_if_in_use():  # a crashed run's delay line (it runs in a session of its own)
+            with contextlib.suppress(OSError):
+                os.kill(pid, 9)
         self.down()  # leftovers of a crashed run with the same prefix
         owner = address_owner(_run(["ip", "-o", "-4", "addr", "show"], check=False).stdout, s.mgmt_root_addr)
         if owner is not None:

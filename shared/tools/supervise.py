@@ -59,6 +59,10 @@ class Supervisor:
         self._note({"event": "ready", "name": name, "down_secs": down_secs})
         return down_secs
 
+    def down(self) -> list[str]:
+        """The processes that exited and are not ready again (restarting), by name."""
+        return sorted(self._down_since)
+
     def _note(self, incident: dict[str, Any]) -> None:
         incident = {"unix_nanos": self.wall_clock(), **incident}
         self.incidents.append(incident)

@@ -314,7 +314,7 @@ class WatchResult:
         if self.dropped_stamps:
             unstamped += f", {self.dropped_stamps} data-set stamps dropped (printing fell behind)"
         return (
-            f"{key}: {self.messages} messages{robots}, {refused} refused{detail}, "
+            f"{key}: {self.messages} message{'' if self.messages == 1 else 's'}{robots}, {refused} refused{detail}, "
             f"{self.dropped} dropped (printing fell behind){unstamped}"
         )
 
