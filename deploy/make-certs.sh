@@ -8,7 +8,8 @@
 #
 # (`splittag fleet --config F --make-certs` issues a fleet's names, one per process: see docs/fleet.md.)
 # OUT_DIR defaults to certs/. Every certificate is valid for localhost and 127.0.0.1 plus each
-# EXTRA_SAN (an IP address or a DNS name: the edge's address when robot and edge are two hosts).
+# EXTRA_SAN (an IP address or a DNS name: the edge's and the robot's addresses when robot and edge
+# are two hosts; slam reaches the robot's router too, as its second endpoint).
 # Keep ca.key offline after use: whoever holds it can mint identities.
 set -euo pipefail
 

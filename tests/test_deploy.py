@@ -351,6 +351,7 @@ def test_up_restarts_a_killed_service(tmp_path: Path) -> None:
         lines = (run / "trajectory.tum").read_text().splitlines()
         posed = [float(line.split()[0]) for line in lines if line[:1].isdigit()]
         seen = [int(row["capture_unix_nanos"]) / 1e9 for row in csv.DictReader((run / "frames.csv").open())]
+        assert len(seen) == len(set(seen)), "a frame's poses arrived twice"  # (slam as a peer of both: twice)
         for name, stamps in (("slam", posed), ("monitor", seen)):
             during = [t for t in stamps if gone + 0.5 < t < back - 0.5]
             assert len(during) >= 3, f"{name}: {len(during)} poses in the {back - gone:.1f} s without the edge"

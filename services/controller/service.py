@@ -131,7 +131,7 @@ def _decide(
     Returns the state to publish and whether the split was switched."""
     rid = settings.robot_id
     try:
-        split = query_split(session, rid, timeout_secs=2.0, auto=True)
+        split = query_split(session, rid, timeout_secs=2.0, auto=True, ask_again=False)
     except SplitQueryError as exc:
         log.debug("no split state: %s", exc)
         return None
@@ -140,7 +140,7 @@ def _decide(
     if not settings.enabled or state.chosen_k == split.k:
         return state, False
     try:
-        applied = query_split(session, rid, params=f"k={state.chosen_k}", auto=True)
+        applied = query_split(session, rid, params=f"k={state.chosen_k}", auto=True, ask_again=False)
     except SplitQueryError as exc:  # pinned meanwhile, or robot_infer restarting
         return state.model_copy(update={"reason": f"{state.reason}; refused: {exc}"}), False
     log.info("split k=%d -> %d: %s", split.k, state.chosen_k, state.reason)

@@ -639,7 +639,11 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
                     # map key (which sees only the query's own key): a save names the map it saves.
                     query.reply_err(b"save=1 needs the robot's own map key, not a wildcard")
                     raise SlamQueryError(f"map save through a wildcard key refused: {query.key_expr}")
-                node.write_outputs(settings.run_dir)
+                try:
+                    node.write_outputs(settings.run_dir)
+                except Exception as exc:  # said to the asker, not a silent end (a getter asks again then)
+                    query.reply_err(f"map save failed: {type(exc).__name__}: {exc}".encode())
+                    raise
             try:
                 asker = keys.robot_of(str(query.key_expr))
             except ValueError:

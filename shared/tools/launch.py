@@ -459,14 +459,17 @@ class Monitor:
             if gt_at is not None and now - gt_at <= 2.0:
                 return (
                     f"{silent} while its camera streams; is the edge up? The robot computes on board while it "
-                    "is not, and a monitor at the edge's router does not see those poses"
+                    "is not, and a monitor that cannot reach the robot's router does not see those poses"
                 )
             if gt_at is not None:
                 return (
                     f"{silent}, nor its camera's ground truth for {now - gt_at:.1f} s; is the robot's host up "
                     "(its camera, robot_infer), and its link to the edge?"
                 )
-            return f"{silent}; is the robot up, and the edge? (a monitor at the edge sees no on-board poses)"
+            return (
+                f"{silent}; is the robot up, and the edge? (a monitor that cannot reach the robot's router sees "
+                "no on-board poses)"
+            )
         med = {k: float(np.median([r[k] for r in recent])) for k in ("robot_ms", "transport_ms", "edge_ms", "e2e_ms")}
         errs = [e for r in recent for e in r["errors_cm"]]
         err = f" e_t {np.median(errs):.2f} cm" if errs else ""

@@ -5,9 +5,10 @@ Every deployment has the same shape: the edge runs a router (edge_infer) that sl
 runs its own router (robot_infer, so camera frames never leave the robot) that connects to the edge
 and that the camera and the controller join; tools (monitor, tests, benches) reach the edge router.
 Where the edge side can reach the robot's router too (one host, or two hosts whose robot router
-listens on an address the edge reaches), slam joins both as a peer and the monitor has it as its
-second endpoint: while edge_infer (and its router) is away, the poses the robot computes on board
-still reach them. Only the addresses differ: loopback on fixed or free ports, two hosts, or the
+listens on an address the edge reaches), slam and the monitor have it as their second endpoint: a
+client fails over to it while edge_infer (and its router) is away, so the poses the robot computes on
+board still reach them. A client does not fail back: it stays on the robot's router until that one
+goes. Only the addresses differ: loopback on fixed or free ports, two hosts, or the
 emulated link's namespaces. The launcher, link emulation, benchmarks and tests all build their configs
 here.
 """
@@ -120,9 +121,10 @@ class Topology:
             },
             "camera": {"zenoh": {"mode": "client", "connect": [self.robot_router]}},
             "controller": {"zenoh": {"mode": "client", "connect": [self.robot_router]}},
-            # A peer of both routers: while the edge's is away, the poses the robot computes on board
-            # still reach slam (a client would stay on the robot's router once it failed over to it).
-            "slam": {"zenoh": {"mode": "peer", "connect": self.edge_side_endpoints(edge_local)}},
+            # A client with the robot's router as its second endpoint: while the edge's is away, the poses
+            # the robot computes on board still reach slam. Not a peer of both: a peer's own puts reached
+            # a subscriber at either router twice (through both; a review counted 40 of 20).
+            "slam": {"zenoh": {"mode": "client", "connect": self.edge_side_endpoints(edge_local)}},
             "monitor": {"connect": self.edge_side_endpoints(self.edge_router)},
         }
 

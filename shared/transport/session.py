@@ -70,8 +70,8 @@ class ZenohSettings(BaseModel):
     multicast_scouting: bool = False  # find peers by UDP multicast (off: only the endpoints given)
     shared_memory: bool = False  # same host only; it bypasses any link shaping (docs/wire.md)
     config_file: Path | None = None  # JSON5; the fields above are applied on top of it
-    # A client, or a peer of one endpoint: open() fails after this long without a connection; a router
-    # or a peer of several endpoints starts without one and keeps connecting in the background.
+    # A client or peer: open() fails after this long without a connection; a router starts without one
+    # and keeps connecting in the background.
     connect_timeout_secs: float = Field(default=30.0, gt=0)
     # Larger messages are refused by the transport before they are reassembled (zenoh's default: 1 GiB).
     max_message_bytes: int = Field(default=MAX_MESSAGE_BYTES, gt=0)
@@ -96,12 +96,6 @@ class ZenohSettings(BaseModel):
         return self
 
 
-def connects_in_background(settings: ZenohSettings) -> bool:
-    """A router, or a peer given several endpoints: it opens with whatever it reaches (even nothing) and
-    keeps connecting to the rest in the background; a client or a peer of one endpoint fails instead."""
-    return settings.mode == "router" or (settings.mode == "peer" and len(settings.connect) > 1)
-
-
 def build_config(settings: ZenohSettings) -> zenoh.Config:
     """A zenoh.Config from settings (the optional JSON5 file first, explicit fields on top)."""
     if settings.config_file is not None:
@@ -116,15 +110,13 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
     if settings.connect or settings.config_file is None:
         config.insert_json5("connect/endpoints", json.dumps(settings.connect))
     if settings.connect:
-        # A client, or a peer of one endpoint, waits for the other side to come up (start order does not
-        # matter), but fails loudly. A router starts at once and keeps connecting in the background, as
-        # zenoh's own router default does: robot_infer's router, whose robot computes on board while no
-        # edge is in reach (it used to exit when the edge was not up within the timeout, and a robot's
-        # host started before its edge never came up: found by a fresh-clone trial). So does a peer of
-        # several endpoints: zenoh fails such a peer unless every one of them is reached, and slam's
-        # second endpoint (the robot's router) is there for when the first is away.
+        # A client or peer waits for the other side to come up (start order does not matter), but fails
+        # loudly. A router starts at once and keeps connecting in the background, as zenoh's own router
+        # default does: robot_infer's router, whose robot computes on board while no edge is in reach (it
+        # used to exit when the edge was not up within the timeout, and a robot's host started before
+        # its edge never came up: found by a fresh-clone trial).
         config.insert_json5("connect/timeout_ms", json.dumps(int(settings.connect_timeout_secs * 1000)))
-        config.insert_json5("connect/exit_on_failure", json.dumps(not connects_in_background(settings)))
+        config.insert_json5("connect/exit_on_failure", json.dumps(settings.mode != "router"))
     config.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
     config.insert_json5("transport/shared_memory/enabled", json.dumps(settings.shared_memory))
     config.insert_json5("transport/link/rx/max_message_size", json.dumps(settings.max_message_bytes))
@@ -177,16 +169,15 @@ def open_session(settings: ZenohSettings) -> zenoh.Session:
         settings.multicast_scouting,
         settings.shared_memory,
     )
-    if settings.connect and connects_in_background(settings):
+    if settings.mode == "router" and settings.connect:
         _warn_if_unconnected(session, settings)
     return session
 
 
 def _warn_if_unconnected(session: zenoh.Session, settings: ZenohSettings) -> None:
-    """A router (or a peer of several endpoints) keeps connecting in the background without a word
-    (zenoh logs each failed attempt at debug level): after `connect_timeout_secs` with nothing reached,
-    say so once, with the likely causes, so a wrong address or certificate is not mistaken for an edge
-    that is merely away."""
+    """A router keeps connecting in the background without a word (zenoh logs each failed attempt at
+    debug level): after `connect_timeout_secs` with nothing reached, say so once, with the likely
+    causes, so a wrong address or certificate is not mistaken for an edge that is merely away."""
 
     def check() -> None:
         try:
@@ -195,9 +186,8 @@ def _warn_if_unconnected(session: zenoh.Session, settings: ZenohSettings) -> Non
         except Exception:  # closed meanwhile: nothing to say
             return
         log.warning(
-            "zenoh %s: none of %s reached in %.0f s; still trying in the background (check the address, "
+            "zenoh router: none of %s reached in %.0f s; still trying in the background (check the address, "
             "that the other side listens there, and with TLS the certificates' CA and names)",
-            settings.mode,
             settings.connect,
             settings.connect_timeout_secs,
         )

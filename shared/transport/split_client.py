@@ -22,13 +22,21 @@ def query_split(
     timeout_secs: float = 5.0,
     identity: str | None = None,
     auto: bool = False,
+    ask_again: bool = True,
 ) -> SplitConfig:
     """One get on splittag/<robot_id>/split[?params] (`auto`: on the controller's key, split/auto, where
     every set is a controller's); returns the reply's SplitConfig. `identity`: the certificate the
-    session presents (TLS), named when nothing answers."""
+    session presents (TLS), named when nothing answers. `ask_again`: until something answers or the
+    timeout passes (get_until_answered); False for a caller that asks again anyway (the controller,
+    every decision: it would otherwise block its decisions while robot_infer is away)."""
     key = keys.split_auto(robot_id) if auto else keys.split(robot_id)
     selector = key + (f"?{params}" if params else "")
-    for reply in get_until_answered(session, selector, timeout_secs):
+    replies = (
+        get_until_answered(session, selector, timeout_secs)
+        if ask_again
+        else list(session.get(selector, timeout=timeout_secs))
+    )
+    for reply in replies:
         if reply.ok is not None:
             return decode(reply.ok.payload.to_bytes(), SplitConfig)
         err = reply.err.payload.to_string() if reply.err is not None else "unknown error"

@@ -743,8 +743,8 @@ def encode_values(model: type[Message], *values: Any) -> bytes:
 def _not_a_message(payload: bytes | bytearray | memoryview, why: str) -> MalformedFrame:
     """A payload that is no splittag message: say how one starts (an integrator's bytes, or a framing 1/2
     error alone, named nothing a sender of framing 3 would recognise: a fresh-clone trial)."""
-    if len(payload) >= 1 and payload[0] == FRAME_MAGIC:  # a framed message (3, or 2), damaged
-        return MalformedFrame(why)
+    if len(payload) >= 1 and (payload[0] == FRAME_MAGIC or payload[0] in (0x82, 0xDE)):
+        return MalformedFrame(why)  # a damaged framed message (3 or 2), or framing 1's two-key map
     if len(payload) == 0:
         return MalformedFrame("empty payload: not a splittag message")
     return MalformedFrame(
