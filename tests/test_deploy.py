@@ -355,4 +355,4 @@ def test_up_restarts_a_killed_service(tmp_path: Path) -> None:
         for name, stamps in (("slam", posed), ("monitor", seen)):
             during = [t for t in stamps if gone + 0.5 < t < back - 0.5]
             assert len(during) >= 3, f"{name}: {len(during)} poses in the {back - gone:.1f} s without the edge"
-        assert "slam and the monitor go on through the robot's router" in d.log_path.read_text()
+        assert "slam and the monitor fail over to the robot's router" in d.log_path.read_text()

@@ -46,7 +46,8 @@ M = TypeVar("M", bound=Message)
 class ProbeFailures:
     """What the probe loop says about failed probes: the first of a run of failures (a warning once the
     echo has answered before; until then the edge is still starting: info), with why, then nothing
-    until a probe is answered again, which is said with how many failed and for how long. (A trial's
+    until a probe is answered again, which is said with how many failed and for how long (not after
+    the failures of start-up, before any probe was answered). (A trial's
     controller logged 84 warnings, 6.5 a second, while robot_infer, the robot's router, was down, each
     asking whether the edge was running.)"""
 

@@ -1,4 +1,5 @@
-"""slam loop: TagPoses -> MarkerSlam -> CameraPose every frame, TagMap on change; files at exit/on request.
+"""slam loop: TagPoses -> MarkerSlam -> CameraPose every frame, TagMap when a tag is added and every 30
+frames; files at exit/on request.
 
 Map queryable on `splittag/<robot_id>/map/v3` (`keys.tag_map`): a get replies the current TagMap; `?save=1`
 (through the robot's own key, never a wildcard) also writes trajectory.tum, map.json (a tag map),

@@ -669,7 +669,8 @@ def _add_launch_options(p: argparse.ArgumentParser) -> None:
         type=_number_above(1.0, inclusive=True),
         default=None,
         help="emulate a robot CPU this many times slower than this one: robot_infer's compute x gamma "
-        "(robot_infer.gamma, >= 1; the paper's gamma in T(k) = gamma C(k) + t0 + beta S(k))",
+        "(robot_infer.gamma, >= 1 here; a gamma < 1 needs robot_infer.emulated_ms_per_tag_by_k, set both in "
+        "the config; the paper's gamma in T(k) = gamma C(k) + t0 + beta S(k))",
     )
     p.add_argument("--split-k", type=int, choices=range(8), default=None, help="the cut at start (robot_infer.split_k)")
     p.add_argument(

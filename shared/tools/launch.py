@@ -439,8 +439,9 @@ class Monitor:
             if last is None:
                 return "waiting for TagPoses..."
             # Say what a silence means. The camera's ground truth still coming: the robot's side is up and
-            # reaches this monitor, so the poses are what stopped (a monitor at the edge's router does not
-            # see those the robot computes on board while the edge is down). Both stopped: the robot.
+            # reaches this monitor, so the poses are what stopped (a monitor that cannot reach the robot's
+            # router does not see those the robot computes on board while the edge is down). Both stopped:
+            # the robot.
             silent = f"no TagPoses for {now - last['t']:.1f} s (the last: frame {last['seq']})"
             if down:
                 return f"{silent}: {' and '.join(down)} exited and {'is' if len(down) == 1 else 'are'} not back yet"
@@ -885,8 +886,8 @@ def router_hosts(run_config: Path) -> dict[str, str]:
     """What each router's process takes down with it, for the supervisor's line when it dies."""
     fails_over = Topology.from_config(run_config).robot_from_edge is not None
     edge = (
-        "it is the edge's router: slam and the monitor go on through the robot's router (the robot computes "
-        "on board) until it is back"
+        "it is the edge's router: slam and the monitor fail over to the robot's router and stay there (the "
+        "robot computes on board until it is back)"
         if fails_over
         else "it is the edge's router: robot, slam and monitor are cut off until it is back"
     )
