@@ -407,3 +407,22 @@ def test_a_frames_csv_that_cannot_be_written_does_not_stop_the_run(tmp_path: Pat
     monitor.on_poses(encode(poses.model_copy(update={"seq": 2})))
     frames_csv.flush(final=True)
     assert (frames_csv.rows, frames_csv.missed) == (1, 1)
+
+
+def test_the_summary_says_what_the_split_did() -> None:
+    """Frames per cut, frames computed on board and the controller's decisions, switches and time under
+    a pin are in summary.json (a trial over the emulated link had to grep controller.log for them)."""
+    from shared.wire.messages import ControllerState
+
+    monitor = Monitor(None)
+    poses = EXAMPLES[TagPoses.SCHEMA]
+    state = EXAMPLES[ControllerState.SCHEMA]
+    assert isinstance(poses, TagPoses) and isinstance(state, ControllerState) and poses.link is not None
+    for seq, k in enumerate([7, 7, 5, 7]):
+        monitor.on_poses(encode(poses.model_copy(update={"seq": seq, "split_k": k})))
+    monitor.on_poses(encode(poses.model_copy(update={"seq": 4, "link": None, "payload_bytes": 0})))  # on board
+    for applied, pinned in [(False, False), (True, False), (False, True), (False, True)]:
+        monitor.on_controller(encode(state.model_copy(update={"applied": applied, "pinned": pinned})))
+    summary = monitor.summary()
+    assert summary["frames_by_k"] == {"5": 1, "7": 3} and summary["frames_on_board"] == 1
+    assert summary["controller"] == {"decisions": 4, "switches": 1, "pinned_fraction": 0.5}

@@ -17,7 +17,7 @@ import sys
 import threading
 import time
 import tomllib
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import partial
@@ -289,6 +289,13 @@ class Monitor:
     stamps_total: int = 0
     # listening at the robot's own router (a fleet's robot host), which sees the poses computed on board
     at_robot: bool = False
+    # What the split did over the whole run (a trial had to grep controller.log for it): frames per cut
+    # and computed on board, and the controller's decisions, switches and decisions under a pin.
+    frames_by_k: Counter[int] = field(default_factory=Counter)
+    frames_on_board: int = 0
+    controller_decisions: int = 0
+    controller_switches: int = 0
+    controller_pinned: int = 0
 
     def _decode(self, payload: bytes, kind: type[M]) -> M | None:
         """One message of `kind`, or None (counted in `bad`, logged) when the payload is not one."""
@@ -324,6 +331,10 @@ class Monitor:
             self.records.append(rec)
             self._recent.append(rec)
             self.frames_total += 1
+            if msg.link is None:
+                self.frames_on_board += 1
+            else:
+                self.frames_by_k[msg.split_k] += 1
             if self.max_records is not None and len(self.records) > self.max_records:
                 del self.records[: len(self.records) // 2]
 
@@ -335,6 +346,10 @@ class Monitor:
         if state is None:
             return
         self.controller = state
+        with self._lock:
+            self.controller_decisions += 1
+            self.controller_switches += int(state.applied)
+            self.controller_pinned += int(state.pinned)
         if state.has_prediction:
             with self._lock:
                 self.predictions.append(
@@ -525,6 +540,16 @@ class Monitor:
                 out["frame_age_ms_p50"] = float(np.median([r["before_robot_ms"] for r in split]))
                 out["edge_queue_ms_p50"] = float(np.median([r["at_edge_ms"] for r in split]))
         with self._lock:
+            if self.frames_by_k:
+                out["frames_by_k"] = {str(k): n for k, n in sorted(self.frames_by_k.items())}
+            if self.frames_on_board:
+                out["frames_on_board"] = self.frames_on_board
+            if self.controller_decisions:
+                out["controller"] = {
+                    "decisions": self.controller_decisions,
+                    "switches": self.controller_switches,
+                    "pinned_fraction": round(self.controller_pinned / self.controller_decisions, 4),
+                }
             if self.slam_status:
                 out["slam_frames"] = dict(self.slam_status)
             if self._slam_sigma_cm:
