@@ -13,6 +13,7 @@ import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -482,3 +483,19 @@ def test_bad_arguments_are_one_line_before_any_connection() -> None:
         proc = _light_cli(*args)
         _out, err = _finish(proc)
         assert proc.returncode == 2 and said in err and "Traceback" not in err, (args, err)
+
+
+def test_a_reader_that_cannot_connect_is_told_where_the_run_listens(tmp_path: Path) -> None:
+    """Under --link the edge's router is on the emulated link's address: a trial's `split get` without
+    --connect only heard that 127.0.0.1:7447 was unreachable."""
+    import argparse
+
+    from shared.tools.cli import _endpoint_hint
+
+    runs = tmp_path / "runs"
+    args = argparse.Namespace(connect="tcp/127.0.0.1:7447")
+    assert _endpoint_hint(args, runs) == ""  # no run: nothing to say
+    (runs / "current").mkdir(parents=True)
+    (runs / "current" / "config.toml").write_text('[monitor]\nconnect = ["tcp/10.78.0.2:7447"]\n')
+    assert _endpoint_hint(args, runs).endswith("listens at tcp/10.78.0.2:7447 (--connect tcp/10.78.0.2:7447)")
+    assert _endpoint_hint(argparse.Namespace(connect="tcp/10.78.0.2:7447"), runs) == ""  # it was asked there

@@ -977,6 +977,23 @@ def _load_link_profiles(args: argparse.Namespace) -> None:
         load_profiles(path)
 
 
+def _endpoint_hint(args: argparse.Namespace, runs: Path = Path("runs")) -> str:
+    """Where the deployment in runs/current listens, when a reader could not connect elsewhere (under
+    --link the edge's router is on the emulated link's address: a trial's `split get` without
+    --connect only said that 127.0.0.1:7447 was unreachable)."""
+    import tomllib
+
+    given = getattr(args, "connect", None)
+    try:
+        doc = tomllib.loads((runs / "current" / "config.toml").read_text())
+    except (OSError, ValueError):
+        return ""
+    endpoints = [str(e) for e in doc.get("monitor", {}).get("connect", [])]
+    if not endpoints or given in endpoints:
+        return ""
+    return f"; the deployment in {runs}/current listens at {endpoints[0]} (--connect {endpoints[0]})"
+
+
 # The commands a light client runs (README *Reading poses from your own process*): they, their errors
 # included, import only zenoh, msgspec, msgpack, pydantic(-settings) and numpy (tests/test_watch.py).
 LIGHT_COMMANDS: Final[tuple[str, ...]] = ("split", "watch", "map", "stats")
@@ -1079,7 +1096,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not (settings or isinstance(exc, usage + failed)) or os.environ.get("SPLITTAG_TRACEBACK"):
             raise
         what = "Zenoh: " if type(exc).__module__.startswith("zenoh") else ""
-        print(f"splittag {args.command}: {what}{one_line_error(exc)}", file=sys.stderr)
+        hint = _endpoint_hint(args) if what and "Unable to connect" in str(exc) else ""
+        print(f"splittag {args.command}: {what}{one_line_error(exc)}{hint}", file=sys.stderr)
         return 2 if settings or isinstance(exc, usage) else int(getattr(exc, "exit_code", 1))
     return code
 
