@@ -166,9 +166,9 @@ def test_split_connects_over_tls_when_given_certificates() -> None:
     plain TCP: found by a fresh-clone trial); an endpoint given is used as it is."""
     from shared.tools.cli import split_endpoint
 
-    assert split_endpoint(None, tls=False) == "tcp/127.0.0.1:7447"
-    assert split_endpoint(None, tls=True) == "tls/127.0.0.1:7447"
-    assert split_endpoint("tcp/10.0.0.2:7447", tls=True) == "tcp/10.0.0.2:7447"
+    assert split_endpoint(None, tls=False) == ["tcp/127.0.0.1:7447"]
+    assert split_endpoint(None, tls=True) == ["tls/127.0.0.1:7447"]
+    assert split_endpoint(["tcp/10.0.0.2:7447"], tls=True) == ["tcp/10.0.0.2:7447"]
 
 
 def test_the_in_flight_window_asked_for_stays_that_window() -> None:

@@ -374,3 +374,34 @@ def test_keep_local_needs_a_router_and_joins_the_roles_rules(tmp_path: Path) -> 
     assert rule["permission"] == "deny" and rule["flows"] == ["egress"] and "put" in rule["messages"]
     assert acl["policies"] and all("keep-local" in p["rules"] for p in acl["policies"])
     assert not any(r["id"] == "keep-local" for r in access_control_config(AccessControlSettings(enabled=True))["rules"])
+
+
+def test_a_client_opens_on_its_second_endpoint_while_the_first_is_away() -> None:
+    """zenoh 1.10 fails a client whose first endpoint is down although the second answers: slam and the
+    monitor (the robot's router second) could not start while the edge's router was away (a trial)."""
+    import zenoh
+
+    from shared.transport.session import ZenohSettings, free_tcp_port, open_session
+
+    dead, alive = free_tcp_port(), free_tcp_port()
+    router = open_session(ZenohSettings(mode="router", listen=[f"tcp/127.0.0.1:{alive}"]))
+    try:
+        client = open_session(
+            ZenohSettings(
+                mode="client",
+                connect=[f"tcp/127.0.0.1:{dead}", f"tcp/127.0.0.1:{alive}"],
+                connect_timeout_secs=1.0,
+            )
+        )
+        try:
+            assert [str(z) for z in client.info.routers_zid()] == [str(router.info.zid())]
+        finally:
+            client.close()
+        with pytest.raises(zenoh.ZError):  # none answers: still an error
+            open_session(
+                ZenohSettings(
+                    mode="client", connect=[f"tcp/127.0.0.1:{dead}", f"tcp/127.0.0.1:{dead}"], connect_timeout_secs=0.5
+                )
+            )
+    finally:
+        router.close()

@@ -493,9 +493,23 @@ def test_a_reader_that_cannot_connect_is_told_where_the_run_listens(tmp_path: Pa
     from shared.tools.cli import _endpoint_hint
 
     runs = tmp_path / "runs"
-    args = argparse.Namespace(connect="tcp/127.0.0.1:7447")
+    args = argparse.Namespace(connect=["tcp/127.0.0.1:7447"], identity="operator")
     assert _endpoint_hint(args, runs) == ""  # no run: nothing to say
     (runs / "current").mkdir(parents=True)
     (runs / "current" / "config.toml").write_text('[monitor]\nconnect = ["tcp/10.78.0.2:7447"]\n')
     assert _endpoint_hint(args, runs).endswith("listens at tcp/10.78.0.2:7447 (--connect tcp/10.78.0.2:7447)")
-    assert _endpoint_hint(argparse.Namespace(connect="tcp/10.78.0.2:7447"), runs) == ""  # it was asked there
+    assert _endpoint_hint(argparse.Namespace(connect=None, identity="operator"), runs) != ""
+    assert _endpoint_hint(argparse.Namespace(connect=["tcp/10.78.0.2:7447"], identity="operator"), runs) == ""
+    # the launcher's own failure (not a reader) names its endpoints itself: no hint that repeats them
+    assert _endpoint_hint(argparse.Namespace(config=Path("x.toml")), runs) == ""
+
+
+def test_a_reader_takes_a_second_endpoint() -> None:
+    """`--connect` twice: a trial's second endpoint silently replaced the first."""
+    from shared.tools.cli import build_parser, split_endpoint
+
+    args = build_parser().parse_args(
+        ["watch", "poses", "--connect", "tcp/10.0.0.2:7447", "--connect", "tcp/10.0.0.3:7448"]
+    )
+    assert split_endpoint(args.connect, tls=False) == ["tcp/10.0.0.2:7447", "tcp/10.0.0.3:7448"]
+    assert split_endpoint(None, tls=True) == ["tls/127.0.0.1:7447"]

@@ -151,13 +151,14 @@ def _running(pid: int) -> bool:
     return fields[0] != "Z"
 
 
-def split_endpoint(connect: str | None, *, tls: bool) -> str:
-    """Where `splittag split` connects: the endpoint given, else the local edge router (tls/ when
-    certificates are given: `--certs` alone used to try plain TCP)."""
-    if connect is not None:
-        return connect
+def split_endpoint(connect: str | list[str] | None, *, tls: bool) -> list[str]:
+    """Where a reader connects: the endpoints given (`--connect` again for a second one, tried when the
+    first is away, as slam and the launcher's monitor have the robot's router), else the local edge
+    router (tls/ when certificates are given: `--certs` alone used to try plain TCP)."""
+    if connect:
+        return [connect] if isinstance(connect, str) else list(connect)
     default = Topology().edge_router
-    return "tls/" + default.split("/", 1)[1] if tls else default
+    return ["tls/" + default.split("/", 1)[1] if tls else default]
 
 
 def _reader_settings(args: argparse.Namespace, command: str) -> ZenohSettings | None:
@@ -167,12 +168,12 @@ def _reader_settings(args: argparse.Namespace, command: str) -> ZenohSettings | 
 
     tls = TlsSettings.from_dir(args.certs, args.identity) if args.certs else None
     connect = split_endpoint(args.connect, tls=tls is not None)
-    if connect.startswith("tls/") and tls is None:
-        print(f"splittag {command}: {connect} is a TLS endpoint: give --certs (and --identity)", file=sys.stderr)
+    if tls is None and (secure := [c for c in connect if c.startswith("tls/")]):
+        print(f"splittag {command}: {secure[0]} is a TLS endpoint: give --certs (and --identity)", file=sys.stderr)
         return None
-    if tls is not None and not connect.startswith("tls/"):
+    if tls is not None and (plain := [c for c in connect if not c.startswith("tls/")]):
         print(
-            f"splittag {command}: --certs with {connect}: a TLS deployment listens on a tls/ endpoint", file=sys.stderr
+            f"splittag {command}: --certs with {plain[0]}: a TLS deployment listens on a tls/ endpoint", file=sys.stderr
         )
         return None
     if args.robot_id != "*":
@@ -183,7 +184,7 @@ def _reader_settings(args: argparse.Namespace, command: str) -> ZenohSettings | 
         except ValueError as exc:
             print(f"splittag {command}: {exc} (or '*' for every robot)", file=sys.stderr)
             return None
-    return ZenohSettings(mode="client", connect=[connect], tls=tls, connect_timeout_secs=5.0)
+    return ZenohSettings(mode="client", connect=connect, tls=tls, connect_timeout_secs=5.0)
 
 
 def _cmd_watch(args: argparse.Namespace) -> int:
@@ -265,7 +266,7 @@ def _cmd_split(args: argparse.Namespace) -> int:
     settings = _reader_settings(args, "split")
     if settings is None:
         return 2
-    print(split_query(args.robot_id, settings.connect[0], k=k, codec=codec, release=release, tls=settings.tls))
+    print(split_query(args.robot_id, settings.connect, k=k, codec=codec, release=release, tls=settings.tls))
     return 0
 
 
@@ -785,8 +786,10 @@ def _add_reader_options(p: argparse.ArgumentParser, robot_help: str = "the robot
     p.add_argument("--robot-id", default="robot1", help=robot_help)
     p.add_argument(
         "--connect",
+        action="append",
         default=None,
-        help=f"zenoh endpoint to connect to (default {Topology().edge_router}, tls/ with --certs)",
+        help=f"zenoh endpoint to connect to (default {Topology().edge_router}, tls/ with --certs); again for a "
+        "second one, used while the first is away (the robot's router, tcp/<robot>:7448)",
     )
     p.add_argument("--certs", type=Path, help="TLS deployments: the certificates folder (deploy/make-certs.sh)")
     p.add_argument("--identity", default="operator", help="TLS deployments: whose certificate to present")
@@ -978,18 +981,21 @@ def _load_link_profiles(args: argparse.Namespace) -> None:
 
 
 def _endpoint_hint(args: argparse.Namespace, runs: Path = Path("runs")) -> str:
-    """Where the deployment in runs/current listens, when a reader could not connect elsewhere (under
-    --link the edge's router is on the emulated link's address: a trial's `split get` without
-    --connect only said that 127.0.0.1:7447 was unreachable)."""
+    """Where the deployment in runs/current listens, when a reader (split, watch, map, stats) could not
+    connect elsewhere (under --link the edge's router is on the emulated link's address: a trial's
+    `split get` without --connect only said that 127.0.0.1:7447 was unreachable)."""
     import tomllib
 
-    given = getattr(args, "connect", None)
+    if not hasattr(args, "identity"):  # not a reader: the launcher's own failure names its endpoints
+        return ""
+    given = args.connect or []
+    given = [given] if isinstance(given, str) else given
     try:
         doc = tomllib.loads((runs / "current" / "config.toml").read_text())
     except (OSError, ValueError):
         return ""
     endpoints = [str(e) for e in doc.get("monitor", {}).get("connect", [])]
-    if not endpoints or given in endpoints:
+    if not endpoints or set(given) & set(endpoints):
         return ""
     return f"; the deployment in {runs}/current listens at {endpoints[0]} (--connect {endpoints[0]})"
 

@@ -916,10 +916,10 @@ def router_hosts(run_config: Path) -> dict[str, str]:
         if fails_over
         else "it is the edge's router: robot, slam and monitor are cut off until it is back"
     )
-    return {
-        "edge_infer": edge,
-        "robot_infer": "it is the robot's router: the camera's frames wait until it is back",
-    }
+    robot = "it is the robot's router: the camera's frames wait until it is back" + (
+        " (slam and the monitor, if on it since an edge restart, fail over to the edge's)" if fails_over else ""
+    )
+    return {"edge_infer": edge, "robot_infer": robot}
 
 
 class _Services:

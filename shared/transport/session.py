@@ -158,8 +158,17 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
 
 
 def open_session(settings: ZenohSettings) -> zenoh.Session:
-    """Open a session; logs the resolved mode and endpoints once."""
-    session = zenoh.open(build_config(settings))
+    """Open a session; logs the resolved mode and endpoints once. A client given several endpoints opens
+    on whichever answers: zenoh 1.10 fails such a client when its first endpoint is down although
+    another answers (a trial: slam and the monitor, whose second endpoint is the robot's router, could
+    not start while the edge's was away), so the others are tried first in turn, each for
+    `connect_timeout_secs`."""
+    try:
+        session = zenoh.open(build_config(settings))
+    except zenoh.ZError:
+        if settings.mode != "client" or len(settings.connect) < 2:
+            raise
+        session = _open_rotated(settings)
     log.info(
         "zenoh session %s: mode=%s listen=%s connect=%s multicast=%s shm=%s",
         session.info.zid(),
@@ -172,6 +181,18 @@ def open_session(settings: ZenohSettings) -> zenoh.Session:
     if settings.mode == "router" and settings.connect:
         _warn_if_unconnected(session, settings)
     return session
+
+
+def _open_rotated(settings: ZenohSettings) -> zenoh.Session:
+    """A client session whose first endpoint is each of the others in turn (the last error if none opens)."""
+    ends = settings.connect
+    for i in range(1, len(ends)):
+        try:
+            return zenoh.open(build_config(settings.model_copy(update={"connect": ends[i:] + ends[:i]})))
+        except zenoh.ZError:
+            if i == len(ends) - 1:
+                raise
+    raise AssertionError("unreachable: a client of several endpoints")
 
 
 def _warn_if_unconnected(session: zenoh.Session, settings: ZenohSettings) -> None:
