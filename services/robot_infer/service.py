@@ -314,9 +314,6 @@ class RobotInfer:
             # frames sent to an edge whose token is gone are recomputed here; an answer that is merely
             # overdue may still come, so those are dropped
             self.window.clear(recover=not self.watch.alive)
-            # the older frames first: slam refuses a frame older than one it has fused (a trial lost the
-            # recovered frame 2 kills in 4, computed after the next one: 'out of order')
-            self._recover_orphans()
             self.on_board(s1)
             return
         split = self.state.get()  # changes apply from the next frame; each message says its k
