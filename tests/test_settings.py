@@ -159,6 +159,20 @@ def test_the_cli_says_a_users_mistake_in_one_line(tmp_path: Path) -> None:
         assert expected in out.stderr and "Traceback" not in out.stderr, (argv, out.stderr)
         assert len(out.stderr.strip().splitlines()) == 1, (argv, out.stderr)
     assert not (tmp_path / "runs").exists()  # refused before a run folder was made
+    # Numbers the parser refuses at once (a trial's --fps 0 and --gamma 0.5 started every service first)
+    runs = ["--runs", str(tmp_path / "runs")]
+    for argv, expected in [
+        (["up", "--fps", "0", *runs], "--fps: 0 must be > 0"),
+        (["up", "--gamma", "0.5", *runs], "--gamma: 0.5 must be >= 1"),
+        (["up", "--duration", "-1", *runs], "--duration: -1 must be > 0"),
+        (["demo", "--fps", "nan"], "--fps: nan must be > 0"),
+        (["up", "--link", "6g", *runs], "unknown link profile '6g'"),
+    ]:
+        out = subprocess.run(
+            [sys.executable, "-m", "shared.tools.cli", *argv], capture_output=True, text=True, timeout=120
+        )
+        assert out.returncode == 2 and expected in out.stderr and "Traceback" not in out.stderr, (argv, out.stderr)
+    assert not (tmp_path / "runs").exists()
 
 
 def test_split_connects_over_tls_when_given_certificates() -> None:

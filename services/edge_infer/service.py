@@ -36,8 +36,7 @@ from shared.transport.session import declare_tensor_publisher, encoding_for
 from shared.vision.tagmap import TagMapFile, load_tag_map
 from shared.viz.recording import make_viz
 from shared.wire import keys
-from shared.wire.codec import SchemaError
-from shared.wire.messages import ComputeProfile, Features, TagPoses, decode, encode
+from shared.wire.messages import ComputeProfile, Features, TagPoses, decode_for_robot, encode
 
 log = logging.getLogger(__name__)
 
@@ -296,9 +295,7 @@ class EdgeInfer:
 
     def _decode(self, item: _Item, lane: Lane) -> EdgeInput:
         s, emulated = self.settings, self.emulated
-        features = decode(item.payload, Features, max_bytes=s.max_payload_bytes)
-        if features.robot_id != item.robot_id:
-            raise SchemaError(f"Features of robot {features.robot_id!r} on robot {item.robot_id!r}'s key")
+        features = decode_for_robot(item.payload, Features, item.robot_id, max_bytes=s.max_payload_bytes)
         check_features(features)
         min_secs = len(features.tags) * emulated[features.split_k] / 1e3 if emulated else 0.0
         return EdgeInput(features, item.received, item.previous, len(item.payload), lane.tag_map, min_secs)

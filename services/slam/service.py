@@ -48,7 +48,7 @@ from shared.vision.tagmap import TagMapFile, TagSpec, load_tag_map, tag_map_from
 from shared.vision.trajectory import PoseLog, StampMap, read_tum_nanos, write_tum_arrays
 from shared.viz.recording import make_viz
 from shared.wire import keys
-from shared.wire.messages import CameraPose, FrameStamp, MapTag, TagMap, TagPoses, decode, encode
+from shared.wire.messages import CameraPose, FrameStamp, MapTag, TagMap, TagPoses, decode, decode_for_robot, encode
 
 log = logging.getLogger(__name__)
 MAX_RESIZED_WARNINGS = 64  # tags whose size mismatch is said (each once)
@@ -691,9 +691,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
     def process(payload: bytes, sample_key: object) -> None:
         """One TagPoses: fuse, publish the camera pose (and the map on change), log (raises on bad input)."""
         robot = robot_of(sample_key)
-        msg = decode(payload, TagPoses)
-        if msg.robot_id != robot:  # (one robot's slam fused and relabelled another's: a fresh-clone trial)
-            raise SlamInputError(f"TagPoses of robot {msg.robot_id!r} on robot {robot!r}'s key")
+        msg = decode_for_robot(payload, TagPoses, robot)  # (one robot's slam fused and relabelled another's)
         cam, tag_map = node.on_poses(msg)
         cam_pub, map_pub = publishers(robot)
         cam_pub.put(encode(cam))

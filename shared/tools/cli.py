@@ -151,12 +151,12 @@ def _running(pid: int) -> bool:
     return fields[0] != "Z"
 
 
-def split_endpoint(connect: str | list[str] | None, *, tls: bool) -> list[str]:
+def split_endpoint(connect: list[str] | None, *, tls: bool) -> list[str]:
     """Where a reader connects: the endpoints given (`--connect` again for a second one, tried when the
     first is away, as slam and the launcher's monitor have the robot's router), else the local edge
     router (tls/ when certificates are given: `--certs` alone used to try plain TCP)."""
     if connect:
-        return [connect] if isinstance(connect, str) else list(connect)
+        return list(connect)
     default = Topology().edge_router
     return ["tls/" + default.split("/", 1)[1] if tls else default]
 
@@ -196,8 +196,8 @@ def _cmd_watch(args: argparse.Namespace) -> int:
     if args.format == "tum" and args.robot_id == "*":
         print("splittag watch: --format tum is one robot's trajectory: name it (--robot-id)", file=sys.stderr)
         return 2
-    if (args.count is not None and args.count < 1) or (args.duration is not None and not args.duration > 0):
-        print("splittag watch: --count and --duration must be positive", file=sys.stderr)
+    if args.count is not None and args.count < 1:  # (--duration: its parser type)
+        print("splittag watch: --count must be positive", file=sys.stderr)
         return 2
     settings = _reader_settings(args, "watch")
     if settings is None:
@@ -988,8 +988,7 @@ def _endpoint_hint(args: argparse.Namespace, runs: Path = Path("runs")) -> str:
 
     if not hasattr(args, "identity"):  # not a reader: the launcher's own failure names its endpoints
         return ""
-    given = args.connect or []
-    given = [given] if isinstance(given, str) else given
+    given: list[str] = args.connect or []
     try:
         doc = tomllib.loads((runs / "current" / "config.toml").read_text())
     except (OSError, ValueError):

@@ -40,7 +40,16 @@ from shared.transport.query import get_until_answered
 from shared.transport.session import ZenohSettings, open_session
 from shared.vision.stamps import format_stamp_nanos
 from shared.wire import keys
-from shared.wire.messages import CameraPose, ControllerState, FrameStamp, Message, TagMap, TagPoses, decode
+from shared.wire.messages import (
+    CameraPose,
+    ControllerState,
+    FrameStamp,
+    Message,
+    TagMap,
+    TagPoses,
+    decode,
+    decode_for_robot,
+)
 
 TOPICS: Final[dict[str, tuple[Callable[[str], str], type[Message]]]] = {
     "poses": (keys.camera_pose, CameraPose),
@@ -281,17 +290,10 @@ def render(message: Message, fmt: str, now_nanos: int, data_set_time: DataSetTim
     raise TypeError(f"no text form for {type(message).__name__}")
 
 
-def check_robot(message: Message, key: str) -> Message:
-    """A message whose robot id is not its key's is refused: someone published under another's key."""
-    robot = keys.robot_of(key)
-    claimed = getattr(message, "robot_id", robot)
-    if claimed != robot:
-        raise ValueError(f"a message of robot {claimed!r} on {key}")
-    return message
-
-
 def _decode_checked(payload: bytes, model: type[Message], key: str) -> Message:
-    return check_robot(decode(payload, model), key)
+    """A message whose robot id is not its key's is refused (as the services refuse it)."""
+    message: Message = decode_for_robot(payload, model, keys.robot_of(key))
+    return message
 
 
 @dataclass

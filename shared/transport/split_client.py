@@ -78,7 +78,7 @@ def split_line(robot_id: str, cfg: SplitConfig) -> str:
 
 def split_query(
     robot_id: str,
-    connect: str | list[str],
+    connect: list[str],
     *,
     k: int | None,
     release: bool,
@@ -88,8 +88,7 @@ def split_query(
     """CLI helper: get, set (k and/or codec) or release; returns a printable line. `tls`: the
     operator's certificate in a TLS deployment (deploy/secure.toml)."""
     # A person waits at the prompt: 5 s to reach the router, not the services' patient default.
-    endpoints = [connect] if isinstance(connect, str) else connect
-    session = open_session(ZenohSettings(mode="client", connect=endpoints, tls=tls, connect_timeout_secs=5.0))
+    session = open_session(ZenohSettings(mode="client", connect=connect, tls=tls, connect_timeout_secs=5.0))
     try:
         sets = [f"k={k}"] if k is not None else []
         sets += [f"codec={codec}"] if codec is not None else []
