@@ -298,6 +298,125 @@ def test_a_service_refusing_its_settings_says_why_before_any_connection(tmp_path
         assert expected in out.stderr and "Traceback" not in out.stderr, out.stderr
 
 
+def test_a_session_that_can_never_open_is_a_configuration_error(tmp_path: Path) -> None:
+    """A listen address this host does not have, and a router whose certificate is not valid for the
+    address dialled: no restart can cure either, so the service says what is wrong in one line and exits
+    with the configuration error's code (before, both exited 1 and were restarted for ever, the first
+    with zenoh's bind error, the second with only "Timeout!")."""
+    import sys
+
+    from shared.transport.session import TlsSettings, free_tcp_port
+
+    solo = {**os.environ, "SPLITTAG_SLAM_RUN_DIR": str(tmp_path / "run"), "SPLITTAG_SLAM_ZENOH__MODE": "peer"}
+    cases = [
+        (
+            {**solo, "SPLITTAG_SLAM_ZENOH__LISTEN": '["tcp/192.0.2.1:7447"]'},
+            "cannot listen on tcp/192.0.2.1:7447: this host has no such address",
+        )
+    ]
+    certs = tmp_path / "certs"
+    made = subprocess.run(["bash", "deploy/make-certs.sh", str(certs)], cwd=REPO, capture_output=True, text=True)
+    assert made.returncode == 0, made.stderr
+    port = free_tcp_port()
+    # Valid for localhost and 127.0.0.1 only; dialled at 127.0.0.2 (loopback too, but another name).
+    edge = TlsSettings.from_dir(certs, "edge")
+    router = open_session(ZenohSettings(mode="router", listen=[f"tls/127.0.0.2:{port}"], tls=edge))
+    try:
+        tls = {
+            "SPLITTAG_SLAM_ZENOH__MODE": "client",
+            "SPLITTAG_SLAM_ZENOH__CONNECT": f'["tls/127.0.0.2:{port}"]',
+            "SPLITTAG_SLAM_ZENOH__CONNECT_TIMEOUT_SECS": "2",
+            "SPLITTAG_SLAM_ZENOH__TLS__ROOT_CA_CERTIFICATE": str(certs / "ca.pem"),
+            "SPLITTAG_SLAM_ZENOH__TLS__CERTIFICATE": str(certs / "slam.pem"),
+            "SPLITTAG_SLAM_ZENOH__TLS__PRIVATE_KEY": str(certs / "slam.key"),
+        }
+        cases.append(
+            (
+                {**solo, **tls},
+                "certificate is refused here: IP address mismatch, certificate is not valid for '127.0.0.2'",
+            )
+        )
+        for environ, expected in cases:
+            out = subprocess.run(
+                [sys.executable, "-m", "services.slam"],
+                cwd=REPO,
+                env=environ,
+                capture_output=True,
+                text=True,
+                timeout=300,
+            )
+            assert out.returncode == 2, out.stderr
+            assert "slam: configuration error: zenoh: " in out.stderr and expected in out.stderr, out.stderr
+            assert "Traceback" not in out.stderr, out.stderr
+        # The router not up yet is not such an error: exit 1, and the launcher tries again.
+        router.close()
+        out = subprocess.run(
+            [sys.executable, "-m", "services.slam"],
+            cwd=REPO,
+            env={**solo, **tls},
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert out.returncode == 1 and "cannot open its Zenoh session" in out.stderr, out.stderr
+    finally:
+        router.close()
+
+
+def test_up_only_runs_one_hosts_part_of_two_hosts(tmp_path: Path) -> None:
+    """deploy/two_host.toml as two launchers, one per host (`up --only edge`, `up --only robot`, the same
+    config, runs folders of their own): each starts its own part, the robot's watches the poses at the
+    robot's router, and the edge's slam makes the trajectory. A part that cannot be is refused (exit 2,
+    no run folder)."""
+    import sys
+
+    cfg = write_config(
+        tmp_path / "two.toml",
+        base=REPO / "deploy" / "two_host.toml",
+        extra={"common": {"robot_id": "twohost1", "rerun": {"enabled": False}}, "camera": {"fps": 2.0}},
+    )
+    up = [sys.executable, "-m", "shared.tools.cli", "up", "--config", str(cfg), "--duration"]
+    refused = subprocess.run(
+        [*up, "5", "--only", "edge", "--controller", "--runs", str(tmp_path / "nope")],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert refused.returncode == 2 and "the controller runs with the robot's part" in refused.stderr, refused.stderr
+    assert not (tmp_path / "nope").exists()
+    parts = {
+        part: subprocess.Popen(
+            [*up, "25", "--only", part, "--runs", str(tmp_path / part)],
+            cwd=REPO,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            start_new_session=True,
+        )
+        for part in ("edge", "robot")
+    }
+    said = {}
+    try:
+        for part, proc in parts.items():
+            said[part], _ = proc.communicate(timeout=240)
+            assert proc.returncode == 0, said[part]
+    finally:
+        for proc in parts.values():
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+    summaries = {part: json.loads((tmp_path / part / "current" / "summary.json").read_text()) for part in parts}
+    assert set(summaries["edge"]["exit_codes"]) == {"edge_infer", "slam"}, said["edge"]
+    assert set(summaries["robot"]["exit_codes"]) == {"robot_infer", "camera"}, said["robot"]
+    assert "edge_infer, slam alive" in said["edge"] and "robot_infer, camera alive" in said["robot"]
+    for part in parts:  # poses reach both hosts' monitors
+        assert summaries[part]["frames"] >= 10, (part, summaries[part])
+    trajectory = (tmp_path / "edge" / "current" / "trajectory.tum").read_text().splitlines()
+    assert len(trajectory) >= 10
+    assert not list((tmp_path / "robot" / "current").glob("trajectory*"))  # slam is the edge's
+
+
 def test_up_restarts_a_killed_service(tmp_path: Path) -> None:
     """Supervision: SIGKILL edge_infer under deploy/up.sh; it comes back (new pid, alive again) and the
     deployment goes on until a person stops it."""

@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
 import time
 from collections.abc import Iterator
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -18,6 +20,7 @@ from shared.runtime.guard import service_stats
 from shared.tools.launch import Monitor, attach_monitor, demo_tag_map, write_run_config
 from shared.tools.topology import Topology
 from shared.transport.session import (
+    TlsSettings,
     ZenohSettings,
     declare_tensor_publisher,
     open_session,
@@ -27,7 +30,7 @@ from shared.vision.geometry import default_camera
 from shared.wire import keys
 from shared.wire.messages import Features, SplitConfig, TagFeature, decode, encode
 from tests.conftest import DeployConfig
-from tests.procs import Service, processes, start_process, wait_until
+from tests.procs import REPO, Service, processes, start_process, wait_until
 
 pytestmark = pytest.mark.multiprocess
 
@@ -211,14 +214,39 @@ def test_split_changes_live_bad_input_and_edge_restart(pipeline: tuple, tmp_path
     assert returned_secs <= 2.0
 
 
-def test_two_host_profile_on_loopback(tmp_path: Path) -> None:
-    """deploy/two_host.toml as shipped: edge on 127.0.0.2, robot on 127.0.0.3, each its own endpoint."""
-    cfg = write_run_config(tmp_path, Path("deploy/two_host.toml"))  # its own endpoints, as shipped
+@pytest.mark.parametrize("profile", ["two_host.toml", "secure_two_host.toml"])
+def test_two_host_profile_on_loopback(tmp_path: Path, profile: str) -> None:
+    """deploy/two_host.toml and its TLS twin as shipped: edge on 127.0.0.2, robot on 127.0.0.3, each its
+    own endpoint (the secure one with certificates made as its comment says, for both addresses)."""
+    extra: dict[str, dict[str, Any]] = {}
+    tls = None
+    if profile.startswith("secure"):
+        certs = tmp_path / "certs"
+        made = subprocess.run(
+            ["bash", "deploy/make-certs.sh", str(certs), "127.0.0.2", "127.0.0.3"],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+        )
+        assert made.returncode == 0, made.stderr
+        who = {"edge_infer": "edge", "robot_infer": "robot", "camera": "camera", "slam": "slam"}
+        extra = {  # the profile's relative certs/ paths, here in tmp_path
+            "common": {"zenoh": {"tls": {"root_ca_certificate": str(certs / "ca.pem")}}},
+            **{
+                name: {
+                    "zenoh": {"tls": {"certificate": str(certs / f"{w}.pem"), "private_key": str(certs / f"{w}.key")}}
+                }
+                for name, w in who.items()
+            },
+        }
+        tls = TlsSettings.from_dir(certs, "operator")
+    cfg = write_run_config(tmp_path, Path("deploy") / profile, extra=extra)  # its own endpoints, as shipped
+    topology = Topology.from_config(cfg)
     env = {"SPLITTAG_CAMERA_FPS": "2", "SPLITTAG_CAMERA_MAX_FRAMES": "8", "SPLITTAG_CAMERA_LOOP": "false"}
     with processes(tmp_path) as procs:
         for name in ("edge_infer", "robot_infer"):
             procs.append(start_process(name, ["-m", f"services.{name}", "--config", str(cfg)], tmp_path, env=env))
-        session = open_session(ZenohSettings(mode="client", connect=[Topology.from_config(cfg).edge_router]))
+        session = open_session(ZenohSettings(mode="client", connect=[topology.edge_router], tls=tls))
         monitor = Monitor(demo_tag_map())
         subs = attach_monitor(session, "robot1", monitor)
         try:
@@ -231,7 +259,7 @@ def test_two_host_profile_on_loopback(tmp_path: Path) -> None:
             wait_until(lambda: len(monitor.records) >= 8, 120, "8 TagPoses through the two-host profile")
             assert {r["k"] for r in monitor.records} == {5}
             robot_log = next(p for p in procs if p.name == "robot_infer").log_text()
-            assert "connect=['tcp/127.0.0.2:7447']" in robot_log
+            assert f"connect=['{topology.protocol}/127.0.0.2:7447']" in robot_log
         finally:
             for s in subs:
                 s.undeclare()

@@ -139,3 +139,41 @@ def test_an_incidents_file_that_cannot_be_written_does_not_stop_the_run(tmp_path
     written = tmp_path / "incidents.jsonl"
     written.write_text('{"event": "exited", "name": "slam", "restart": 1}\n{"event": "exi')  # cut short
     assert summarise_incidents(read_incidents(written)) == {"restarts": {"slam": 1}, "exits": 1}
+
+
+def test_an_exit_says_why_from_this_start_of_the_service_only(tmp_path: Path) -> None:
+    """The launcher's line for a death carries the last error its log holds since that process started
+    (the log is shared by every restart of it): an ERROR line without its stamp and logger, else the
+    exception that ended a traceback, else nothing."""
+    import subprocess
+
+    from shared.tools.launch import Service, last_error_line
+
+    log = (
+        "12:00:01.000 slam INFO slam: started\n"
+        "12:00:02.000 slam ERROR slam: slam: cannot open its Zenoh session: Unable to connect to any of [tcp/x]\n"
+    )
+    assert last_error_line(log) == "slam: cannot open its Zenoh session: Unable to connect to any of [tcp/x]"
+    crash = (
+        "12:00:01.000 slam INFO slam: started\nTraceback (most recent call last):\n"
+        '  File "x.py", line 1\n    boom()\nRuntimeError: boom\n'
+    )
+    assert last_error_line(crash) == "RuntimeError: boom"
+    assert last_error_line("12:00:01.000 slam INFO slam: started\n") is None
+    assert last_error_line("12:00:02.000 slam ERROR slam: " + "x" * 500, max_chars=50) == "x" * 47 + "..."
+
+    path = tmp_path / "slam.log"
+    path.write_text(log)  # an earlier start's error
+    popen = subprocess.Popen(["true"])
+    popen.wait()
+    assert Service("slam", popen, path, log_start_bytes=len(log)).last_error() is None  # not this start's
+    with path.open("a") as f:
+        f.write(crash)
+    assert Service("slam", popen, path, log_start_bytes=len(log)).last_error() == "RuntimeError: boom"
+    sup = Supervisor(clock=FakeClock())
+    sup.started("slam")
+    delay = sup.exited("slam", 1) or 0
+    assert (
+        sup.exit_line("slam", 1, delay, why="RuntimeError: boom")
+        == "slam exited (1): RuntimeError: boom; restart #1 in 1 s"
+    )

@@ -6,6 +6,7 @@ import argparse
 import faulthandler
 import logging
 import os
+import re
 import signal
 import threading
 import tomllib
@@ -22,7 +23,7 @@ from shared.runtime.cpus import CpuPlacementError, pin_cpus
 from shared.runtime.errors import one_line_error
 from shared.runtime.logs import setup_logging
 from shared.runtime.settings import CONFIG_EXIT, ConfigurationError, ServiceSettings
-from shared.transport.session import open_session
+from shared.transport.session import ZenohSettings, certificate_problem, open_session
 from shared.vision.files import atomic_write_text
 from shared.vision.geometry import CameraFileError
 from shared.vision.tagmap import TagMapError
@@ -58,6 +59,20 @@ def write_resolved(settings: ServiceSettings, name: str) -> Path | None:
         logging.getLogger(name).warning("%s: cannot write its settings to %s: %s", name, path, exc)
         return None
     return path
+
+
+def unrecoverable_open_error(exc: zenoh.ZError, zenoh_settings: ZenohSettings) -> str | None:
+    """Why a Zenoh session can never open with these settings, however often it is retried: a listen
+    address this host does not have (the edge's address on the robot's host), or a certificate that the
+    other side refuses or that is not valid for the address dialled (found by a handshake of our own:
+    zenoh says only that it timed out). None: it may open later (the router is not up yet)."""
+    text = str(exc)
+    if "os error 99" in text:  # EADDRNOTAVAIL
+        found = re.search(r"bound to (\S+?):? \[", text)
+        where = found[1] if found else "a listen endpoint"
+        return f"cannot listen on {where}: this host has no such address (listen = {zenoh_settings.listen})"
+    problems = [certificate_problem(e, zenoh_settings.tls) for e in zenoh_settings.connect]
+    return "; ".join(p for p in problems if p) or None
 
 
 def service_main(
@@ -102,7 +117,11 @@ def service_main(
     except (FileNotFoundError, ValueError) as exc:
         log.error("%s: configuration error: zenoh: %s", name, one_line_error(exc))
         return CONFIG_EXIT
-    except zenoh.ZError as exc:  # the router it connects to is not (yet) up: one line; the launcher retries
+    except zenoh.ZError as exc:
+        if (why := unrecoverable_open_error(exc, settings.zenoh)) is not None:
+            log.error("%s: configuration error: zenoh: %s", name, why)
+            return CONFIG_EXIT
+        # the router it connects to is not (yet) up: one line; the launcher retries
         log.error("%s: cannot open its Zenoh session: %s", name, one_line_error(exc))
         return 1
     try:

@@ -55,6 +55,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
         controller=args.controller,
         link=args.link,
         extra=_launch_extra(args),
+        only=args.only,
     )
     print(json.dumps(summary, indent=2))
     return 0
@@ -712,6 +713,13 @@ def _add_deploy_commands(sub: Any) -> None:
     p.add_argument("--config", type=Path, default=Path("deploy/local.toml"))
     p.add_argument("--duration", type=POSITIVE, default=None, help="stop after this many seconds")
     p.add_argument("--runs", type=Path, default=Path("runs"), help="run folders go under here (RUNS/current links)")
+    p.add_argument(
+        "--only",
+        choices=["edge", "robot"],
+        default=None,
+        help="this host's part of a two-host deployment: edge (edge_infer, slam) or robot (camera, robot_infer, "
+        "and the controller with --controller); run the other part on the other host with the same config",
+    )
     _add_launch_options(p)
     p.set_defaults(func=_cmd_up)
     p = sub.add_parser("fleet", help="N robots and M edge workers with one slam (deploy/fleet.toml); Ctrl-C stops")

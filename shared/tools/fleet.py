@@ -438,7 +438,7 @@ def run_fleet(
                 if delay is None:  # a camera whose source ended (its robot's other processes run on)
                     print(f"{spec.name}: its source ended", flush=True)
                     continue
-                print(supervisor.exit_line(spec.name, code, delay), flush=True)
+                print(supervisor.exit_line(spec.name, code, delay, why=proc.last_error()), flush=True)
                 restart_at[spec.name] = time.monotonic() + delay
             elif time.monotonic() >= restart_at[spec.name]:
                 del restart_at[spec.name]

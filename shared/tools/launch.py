@@ -47,6 +47,8 @@ log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)
 REPO = Path(__file__).resolve().parents[2]
 SERVICES = ("edge_infer", "slam", "robot_infer", "camera")
+# `splittag up --only PART`: one host's part of a two-host deployment (the controller joins the robot's).
+PARTS: dict[str, tuple[str, ...]] = {"edge": ("edge_infer", "slam"), "robot": ("robot_infer", "camera")}
 
 
 def demo_tag_map() -> TagMapFile:
@@ -92,10 +94,12 @@ def preparing_run_dir(root: Path) -> Iterator[Path]:
     link_current(run)
 
 
-def listen_endpoints(config: Path) -> list[str]:
-    """Every endpoint a run config's processes listen on (each table's `zenoh.listen`)."""
+def listen_endpoints(config: Path, services: Sequence[str] | None = None) -> list[str]:
+    """Every endpoint a run config's processes (or those of `services`) listen on (each table's `zenoh.listen`)."""
     found: list[str] = []
-    for table in tomllib.loads(Path(config).read_text()).values():
+    for name, table in tomllib.loads(Path(config).read_text()).items():
+        if services is not None and name not in services:
+            continue
         zenoh_table = table.get("zenoh") if isinstance(table, dict) else None
         if isinstance(zenoh_table, dict):
             found += [e for e in zenoh_table.get("listen", []) if isinstance(e, str) and e not in found]
@@ -131,9 +135,9 @@ def busy_endpoints(endpoints: list[str]) -> list[str]:
     return busy
 
 
-def refuse_busy_endpoints(configs: list[Path]) -> None:
-    """LaunchError (exit 2) naming the endpoints of the run that something already listens on."""
-    busy = busy_endpoints([e for c in configs for e in listen_endpoints(c)])
+def refuse_busy_endpoints(configs: list[Path], services: Sequence[str] | None = None) -> None:
+    """LaunchError (exit 2) naming the endpoints of the run (of its `services`) that something already listens on."""
+    busy = busy_endpoints([e for c in configs for e in listen_endpoints(c, services)])
     if busy:
         raise LaunchError(
             f"{', '.join(busy)} already in use on this host: another deployment (`splittag down` stops the one in "
@@ -161,6 +165,7 @@ class Service:
     name: str
     popen: subprocess.Popen[bytes]
     log_path: Path
+    log_start_bytes: int = 0  # the log's size when this process started (the log is shared by its restarts)
 
     def stop(self, timeout_secs: float = 15.0) -> int | None:
         """SIGINT to the process group; after timeout_secs its thread stacks go to its log (faulthandler
@@ -185,6 +190,35 @@ class Service:
         """Everything the process printed so far."""
         return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
 
+    def last_error(self, *, max_chars: int = 300) -> str | None:
+        """Why this process (this start of it, not an earlier one) ended, from its log: the last ERROR
+        line, else the last line of a traceback; None when it said neither."""
+        try:
+            with self.log_path.open("rb") as f:
+                f.seek(self.log_start_bytes)
+                tail = f.read().decode(errors="replace")
+        except OSError:
+            return None
+        return last_error_line(tail, max_chars=max_chars)
+
+
+def last_error_line(log_text: str, *, max_chars: int = 300) -> str | None:
+    """The last ERROR line of a service's log text without its time and logger (`cannot open its Zenoh
+    session: ...`), else the exception line that ends a traceback; None when there is neither."""
+    lines = log_text.splitlines()
+    for line in reversed(lines):
+        found = re.match(r"\S+ \S+ (?:ERROR|CRITICAL) \S+: (.*)$", line)
+        if found:
+            text = found[1]
+            break
+    else:
+        ends = [i for i, line in enumerate(lines) if line.startswith("Traceback (most recent call last)")]
+        after = [line for line in lines[ends[-1] + 1 :] if line and not line[0].isspace()] if ends else []
+        if not after:
+            return None
+        text = after[0]
+    return text if len(text) <= max_chars else text[: max_chars - 3] + "..."
+
 
 def start_process(
     name: str,
@@ -199,6 +233,7 @@ def start_process(
     log_path = log_dir / f"{name}.log"
     full_env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
     with log_path.open("ab") as out:
+        start_bytes = out.tell()
         popen = subprocess.Popen(
             [*(wrapper or []), sys.executable, *argv],
             cwd=REPO,
@@ -207,7 +242,7 @@ def start_process(
             start_new_session=True,
             env=full_env,
         )
-    return Service(name, popen, log_path)
+    return Service(name, popen, log_path, start_bytes)
 
 
 def start_service(
@@ -672,16 +707,16 @@ def run_tag_map(config: Path) -> TagMapFile | None:
     return load_tag_map(repo_path(path)) if path else None
 
 
-def monitor_settings(config: Path) -> tuple[str, ZenohSettings]:
+def monitor_settings(config: Path, *, at_robot: bool = False) -> tuple[str, ZenohSettings]:
     """robot_id and a client session to the edge router (and the robot's, where the edge side reaches
-    it), from the run config."""
+    it), from the run config; `at_robot` (the robot's host of `up --only robot`): to the robot's router."""
     doc = tomllib.loads(config.read_text())
     robot_id = doc.get("common", {}).get("robot_id", "robot1")
     tls_table = doc.get("monitor", {}).get("tls")  # the operator's certificate in a TLS deployment
     tls = TlsSettings.model_validate(tls_table) if tls_table is not None else None
     topology = Topology.from_config(config)
     # the robot's router second, where reachable: a client fails over to it while the edge's is away
-    endpoints = topology.edge_side_endpoints(topology.edge_router)
+    endpoints = [topology.robot_router] if at_robot else topology.edge_side_endpoints(topology.edge_router)
     return robot_id, ZenohSettings(mode="client", connect=endpoints, tls=tls)
 
 
@@ -960,8 +995,8 @@ class _Services:
                     print("the camera's source ended; stopping", flush=True)
                     time.sleep(1.0)  # let the last frames arrive
                     return False
-                # Printed once (it was also logged, and a terminal showed every restart twice).
-                print(self.supervisor.exit_line(service.name, code, delay), flush=True)
+                # Printed once (it was also logged, and a terminal showed every restart twice), with why.
+                print(self.supervisor.exit_line(service.name, code, delay, why=service.last_error()), flush=True)
                 self.restart_at[service.name] = time.monotonic() + delay
             elif time.monotonic() >= self.restart_at[service.name]:
                 del self.restart_at[service.name]
@@ -1208,6 +1243,7 @@ def run_pipeline(
     runs_root: Path = Path("runs"),
     controller: bool = False,
     link: str | None = None,
+    only: str | None = None,
 ) -> dict[str, Any]:
     """Start the services, print a live line per second until duration/SIGINT/camera end, stop all.
 
@@ -1215,9 +1251,19 @@ def run_pipeline(
     side (camera, robot_infer, controller) and the edge side (edge_infer, slam) in the namespaces of
     an emulated uplink with that profile (switch it live with `splittag link set`), rewriting the
     endpoints: edge router on tcp/0.0.0.0:7447, robot router connecting over the shaped veth.
+    `only` ("edge" or "robot", PARTS): this host's part of a two-host deployment; the other host runs
+    the other part with the same config. The robot's part watches the poses at the robot's router.
     """
     from shared.tools.linkemu import profile
 
+    if only is not None:
+        if only not in PARTS:
+            raise LaunchError(f"--only is one of {', '.join(PARTS)}, not {only!r}", exit_code=2)
+        if link is not None:
+            raise LaunchError("--only runs one host's part; --link emulates both hosts on this one", exit_code=2)
+        if controller and only != "robot":
+            raise LaunchError("the controller runs with the robot's part (--only robot --controller)", exit_code=2)
+        services = tuple(s for s in services if s in PARTS[only])
     if controller and "controller" not in services:
         services = (*services, "controller")
     topology, wrappers, emu = _placement(config, services, link)
@@ -1226,10 +1272,10 @@ def run_pipeline(
         emu.refuse_if_in_use()  # (up() checks again)
     with preparing_run_dir(runs_root) as run_dir:
         run_config = write_run_config(run_dir, config, topology=topology, extra=extra)
-        robot_id, zs = monitor_settings(run_config)
+        robot_id, zs = monitor_settings(run_config, at_robot=only == "robot")
         run_tags = run_tag_map(run_config)
         if link is None:  # under --link the routers listen in namespaces of the run's own
-            refuse_busy_endpoints([run_config])
+            refuse_busy_endpoints([run_config], services)
     if emu is not None:
         emu.log_dir = run_dir
         emu.up(initial or profile("5g"))
@@ -1243,7 +1289,7 @@ def run_pipeline(
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     from shared.tools.linkemu import read_events
 
-    monitor = Monitor(run_tags, max_records=200_000)  # a deployment may run for days
+    monitor = Monitor(run_tags, max_records=200_000, at_robot=only == "robot")  # a deployment may run for days
     frames_csv = FramesCsv(run_dir / "frames.csv", monitor, lambda: read_events(run_dir))
     running = _Services(run_config, run_dir, wrappers)
     comings = ComingsAndGoings(running.supervisor, partial(_service_of_token, robot_id, services))

@@ -69,10 +69,11 @@ class Supervisor:
         if self.record is not None:
             self.record(incident)
 
-    def exit_line(self, name: str, code: int | None, delay_secs: float) -> str:
-        """What the launcher prints when `name` died (after `exited`)."""
+    def exit_line(self, name: str, code: int | None, delay_secs: float, *, why: str | None = None) -> str:
+        """What the launcher prints when `name` died (after `exited`); `why`: what its log said last."""
         hosted = f" ({self.hosts[name]})" if name in self.hosts else ""
-        return f"{name} exited ({code}){hosted}; restart #{self.restarts.get(name, 0)} in {delay_secs:.0f} s"
+        said = f": {why}" if why else ""
+        return f"{name} exited ({code}){said}{hosted}; restart #{self.restarts.get(name, 0)} in {delay_secs:.0f} s"
 
     def summary(self) -> dict[str, Any]:
         """For summary.json: restarts per process, and how many exits (each in incidents.jsonl)."""

@@ -6,6 +6,7 @@ import contextlib
 import json
 import logging
 import socket
+import ssl
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -195,25 +196,84 @@ def _open_rotated(settings: ZenohSettings) -> zenoh.Session:
 
 def _warn_if_unconnected(session: zenoh.Session, settings: ZenohSettings) -> None:
     """A router keeps connecting in the background without a word (zenoh logs each failed attempt at
-    debug level): after `connect_timeout_secs` with nothing reached, say so once, with the likely
-    causes, so a wrong address or certificate is not mistaken for an edge that is merely away."""
+    debug level): when nothing has been reached for `connect_timeout_secs` from the start, say so once,
+    with the likely causes (and, for a tls/ endpoint whose certificate is wrong, what is wrong with it),
+    so a wrong address or certificate is not mistaken for an edge that is merely away. A router that
+    reached a peer in that time and lost it again is not told it reached none."""
+
+    def connected() -> bool:
+        return any(session.info.routers_zid()) or any(session.info.peers_zid())
 
     def check() -> None:
+        deadline = time.monotonic() + settings.connect_timeout_secs
         try:
-            if session.is_closed() or any(session.info.routers_zid()) or any(session.info.peers_zid()):
+            while time.monotonic() < deadline:
+                if session.is_closed() or connected():
+                    return
+                time.sleep(0.5)
+            if session.is_closed() or connected():
                 return
         except Exception:  # closed meanwhile: nothing to say
             return
+        found = "; ".join(filter(None, (certificate_problem(e, settings.tls) for e in settings.connect)))
         log.warning(
-            "zenoh router: none of %s reached in %.0f s; still trying in the background (check the address, "
-            "that the other side listens there, and with TLS the certificates' CA and names)",
+            "zenoh router: none of %s reached in %.0f s; still trying in the background (%s)",
             settings.connect,
             settings.connect_timeout_secs,
+            found
+            or "check the address, that the other side listens there, and with TLS the certificates' CA and names",
         )
 
-    timer = threading.Timer(settings.connect_timeout_secs, check)
-    timer.daemon = True
-    timer.start()
+    threading.Thread(target=check, name="zenoh-connect-check", daemon=True).start()
+
+
+def certificate_problem(endpoint: str, tls: TlsSettings | None, *, timeout_secs: float = 3.0) -> str | None:
+    """What is wrong with the certificates between this process and a tls/ `endpoint`, found by a TLS
+    handshake of our own with the same CA, certificate and key (zenoh only says it timed out): the
+    endpoint's certificate not valid for the address dialled or not from this CA, or this process's
+    certificate refused there. None when the handshake succeeds, for any other endpoint, or when
+    nothing answers at the address (not a certificate problem)."""
+    if tls is None or not endpoint.startswith("tls/"):
+        return None
+    host, _, port = endpoint.removeprefix("tls/").split("#")[0].rpartition(":")
+    host = host.strip("[]")
+    try:
+        context = ssl.create_default_context(cafile=str(tls.root_ca_certificate))
+        context.load_cert_chain(str(tls.certificate), str(tls.private_key))
+    except (OSError, ssl.SSLError) as exc:
+        return f"{endpoint}: this process's TLS files cannot be used: {exc}"
+    try:
+        with (
+            socket.create_connection((host, int(port)), timeout=timeout_secs) as raw,
+            context.wrap_socket(raw, server_hostname=host) as conn,
+            contextlib.suppress(TimeoutError),
+        ):
+            # TLS 1.3: the server judges the client's certificate after the handshake; its alert
+            # arrives on the first read (a timeout means it kept the connection: accepted)
+            conn.settimeout(0.5)
+            conn.recv(1)
+    except ssl.SSLCertVerificationError as exc:
+        return f"{endpoint}: its certificate is refused here: {exc.verify_message or exc.reason}"
+    except ssl.SSLError as exc:
+        if any(alert in str(exc.reason) for alert in _CERTIFICATE_ALERTS):  # not an EOF, a reset, ...
+            return f"{endpoint}: it refused this process's certificate (TLS alert {exc.reason})"
+        return None
+    except (OSError, ValueError):
+        return None
+    return None
+
+
+# TLS alerts a server sends about the client's certificate (OpenSSL's reason names).
+_CERTIFICATE_ALERTS: Final = (
+    "UNKNOWN_CA",
+    "BAD_CERTIFICATE",
+    "DECRYPT_ERROR",
+    "CERTIFICATE_REQUIRED",
+    "CERTIFICATE_UNKNOWN",
+    "CERTIFICATE_EXPIRED",
+    "UNSUPPORTED_CERTIFICATE",
+    "CERTIFICATE_REVOKED",
+)
 
 
 def encoding_for(schema: str) -> zenoh.Encoding:
