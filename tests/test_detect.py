@@ -7,6 +7,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 from shared.tools.cli import main
 from shared.vision.geometry import camera_to_yaml, default_camera, make_pose
@@ -32,7 +33,30 @@ def test_detect_reports_keypoints_poses_and_bad_files(tmp_path: Path) -> None:
     (tag,) = images["tag.png"]["tags"]
     assert tag["id"] == 17
     assert len(tag["keypoints_px"]) == 16
-    assert len(tag["apriltag_corners_px"]) == 4
+    assert len(tag["stage1_corners_px"]) == 4
+    # AprilTag's own corners only where AprilTag found the tag (else another proposer's: null)
+    assert tag["apriltag_corners_px"] == (
+        tag["stage1_corners_px"] if tag["proposer"] in ("apriltag", "fullres") else None
+    )
     chosen = tag["camera_from_tag"]["chosen"]
     assert np.linalg.norm(np.array(chosen["t_m"]) - pose[:3, 3]) < 0.01
     assert tag["camera_from_tag"]["alternative"]["reprojection_error_px"] >= chosen["reprojection_error_px"]
+
+
+def test_detect_says_in_one_line_what_is_wrong_with_a_camera_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A distortion model it cannot use, or a plumb_bob with the wrong number of coefficients: one line,
+    exit 2, like the services (a trial got a traceback)."""
+    text = camera_to_yaml(default_camera())
+    cases = {
+        "equidistant.yaml": text.replace("distortion_model: none", "distortion_model: equidistant"),
+        "no_coefficients.yaml": text.replace("distortion_model: none", "distortion_model: plumb_bob"),
+    }
+    for name, body in cases.items():
+        assert body != text, name  # the edit applied
+        (tmp_path / name).write_text(body)
+        code = main(["detect", str(tmp_path), "--camera", str(tmp_path / name), "--json", str(tmp_path / "o.json")])
+        err = capsys.readouterr().err
+        assert code == 2 and "Traceback" not in err, err
+        assert f"camera file {tmp_path / name}" in err, err

@@ -426,3 +426,67 @@ def test_the_summary_says_what_the_split_did() -> None:
     summary = monitor.summary()
     assert summary["frames_by_k"] == {"5": 1, "7": 3} and summary["frames_on_board"] == 1
     assert summary["controller"] == {"decisions": 4, "switches": 1, "pinned_fraction": 0.5}
+
+
+def test_a_tag_missing_from_the_runs_map_is_said_once_and_listed() -> None:
+    """A trial's map listed three of its four tags: the fourth was solved at the default size and the
+    ATE went from 0.15 to 19.6 cm with no word anywhere. The monitor says it once and the summary lists it;
+    a run without a map (every tag at the default size, warned at start) says nothing per tag."""
+    from shared.vision.tagmap import TagMapFile, TagSpec
+
+    poses = EXAMPLES[TagPoses.SCHEMA]
+    assert isinstance(poses, TagPoses) and poses.tags
+    seen = {t.tag_id for t in poses.tags}
+    listed = TagMapFile(default_size_m=0.16, tags=[TagSpec(id=max(seen) + 1, size_m=0.1)])  # not those seen
+    monitor = Monitor(listed)
+    for seq in range(3):
+        monitor.on_poses(encode(poses.model_copy(update={"seq": seq})))
+    missing = sorted(seen)
+    said = monitor.notices()
+    assert (
+        missing
+        and len(said) == len(missing)
+        and all("not in the run's tag map: solved at the default size" in n for n in said)
+    )
+    assert monitor.notices() == []  # once
+    sizes = {t.tag_id: t.tag_size_m for t in poses.tags}
+    assert monitor.summary()["tags_not_in_map"] == {str(i): sizes[i] for i in missing}
+    for tag_map in (None, TagMapFile(default_size_m=0.2)):
+        quiet = Monitor(tag_map)
+        quiet.on_poses(encode(poses))
+        assert quiet.notices() == [] and "tags_not_in_map" not in quiet.summary()
+
+
+def test_frames_csv_carries_the_data_sets_own_stamp(tmp_path: Path) -> None:
+    """A data-set trial could not join frames.csv with trajectory.tum (keyed by rgb.txt's stamps): each
+    row now has the frame's `source_stamp` as trajectory.tum writes it, written exactly; empty for a
+    source without stamps. Frames written as the run goes get it too."""
+    import csv
+
+    from shared.tools.launch import FramesCsv
+    from shared.vision.trajectory import format_stamp_nanos
+    from shared.wire.messages import FrameStamp
+
+    poses, stamp = EXAMPLES[TagPoses.SCHEMA], EXAMPLES[FrameStamp.SCHEMA]
+    assert isinstance(poses, TagPoses) and isinstance(stamp, FrameStamp)
+    clock = [0.0]
+    monitor = Monitor(None, clock=lambda: clock[0])
+    frames_csv = FramesCsv(tmp_path / "frames.csv", monitor, lag_secs=1.0)
+    source = [1305031102_175304000 + 33_333_333 * i for i in range(3)]
+    for seq in range(3):
+        capture = poses.capture_nanos + seq
+        if seq != 1:  # frame 1 came from a source without a stamp for it
+            monitor.on_stamp(
+                encode(
+                    stamp.model_copy(update={"seq": seq, "capture_nanos": capture, "source_stamp_nanos": source[seq]})
+                )
+            )
+        monitor.on_poses(encode(poses.model_copy(update={"seq": seq, "capture_nanos": capture})))
+    clock[0] = 5.0
+    frames_csv.flush()
+    with (tmp_path / "frames.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert [r["source_stamp"] for r in rows] == [format_stamp_nanos(source[0]), "", format_stamp_nanos(source[2])]
+    assert rows[0]["source_stamp"] == "1305031102.175304000"
+    records, _ = monitor.snapshot()
+    assert [r["source_stamp_nanos"] for r in records] == [source[0], None, source[2]]

@@ -1027,6 +1027,11 @@ def test_rerun_draws_bridged_poses_apart_from_the_worlds(tmp_path: Path) -> None
     viz.close()
     entities = recording_entities(tmp_path / "slam.rrd")
     assert {"/world/camera", "/world/camera_bridged", "/world/camera_sigma", "/camera/image/tag_quads"} <= entities
+    # read back from Python with rerun-sdk's chunk reader (README; a trial found no API named for it)
+    from shared.viz.recording import recording_scalars
+
+    e2e = recording_scalars(tmp_path / "slam.rrd", "/latency/capture_to_pose_ms")
+    assert e2e == [(poses.capture_nanos, pytest.approx(1e3 * poses.timings.capture_to_pose_secs))]
 
 
 def test_a_restarted_process_keeps_the_dead_ones_recording(tmp_path: Path) -> None:

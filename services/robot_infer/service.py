@@ -21,6 +21,7 @@ from shared.model.weights import load_keypoint_fusion
 from shared.perception.split import RobotTimings, Stage1Output, edge_step, robot_head, robot_stage1
 from shared.runtime.guard import InputGuard, serve_stats
 from shared.runtime.service_main import started_by_run_launcher
+from shared.runtime.waiting import result_of
 from shared.transport.flow import (
     EdgePacer,
     EdgeWatch,
@@ -249,7 +250,7 @@ class RobotInfer:
                 self._recover_orphans()
                 s1: Stage1Output | _Skipped | None = _SKIPPED
                 if ahead is not None:  # stage 1 of this frame may have run while the last one's network did
-                    s1, ahead = ahead.result(), None
+                    s1, ahead = result_of(ahead), None  # (a stop signal must still run its handler)
                     self.stage1_ahead_frames += isinstance(s1, Stage1Output)
                 if isinstance(s1, _Skipped):
                     # Start when this frame would reach the edge as it becomes free (the camera ring keeps
@@ -314,6 +315,9 @@ class RobotInfer:
             # frames sent to an edge whose token is gone are recomputed here; an answer that is merely
             # overdue may still come, so those are dropped
             self.window.clear(recover=not self.watch.alive)
+            # the older frames first: slam refuses a frame older than one it has fused (a trial lost the
+            # recovered frame 2 kills in 4, computed after the next one: 'out of order')
+            self._recover_orphans()
             self.on_board(s1)
             return
         split = self.state.get()  # changes apply from the next frame; each message says its k

@@ -91,7 +91,10 @@ class TagResult:
             "hamming": d.hamming,
             "proposer": d.proposer,
             "tag_size_m": self.tag_size_m,
-            "apriltag_corners_px": d.corners_px.tolist(),
+            # what stage 1 proposed, whoever did; AprilTag's own corners only when it found the tag (a trial
+            # compared "AprilTag" corners that ArUco or the line quads had found)
+            "stage1_corners_px": d.corners_px.tolist(),
+            "apriltag_corners_px": d.corners_px.tolist() if d.proposer in ("apriltag", "fullres") else None,
             "keypoints_px": None if self.keypoints_px is None else self.keypoints_px.tolist(),
             "camera_from_tag": None if self.pose is None else pose_json(self.pose),
             "camera_from_tag_corners_only": pose_json(self.corner_pose),

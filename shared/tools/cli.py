@@ -114,8 +114,16 @@ def _cmd_down(args: argparse.Namespace) -> int:
     for name, service_pid in services:
         print(f"stopping {name} ({service_pid})")
     waiting = [*([pid] if pid else []), *(p for _, p in services)]
-    deadline = time.monotonic() + 90
-    while any(_running(p) for p in waiting) and time.monotonic() < deadline:
+    start = time.monotonic()
+    dumped = False
+    while any(_running(p) for p in waiting) and time.monotonic() < start + 90:
+        if not dumped and time.monotonic() > start + 30:  # a hung service says where it hangs, in its log
+            dumped = True
+            for name, service_pid in services:
+                if _running(service_pid):
+                    print(f"{name} ({service_pid}) has not stopped after 30 s: its thread stacks go to its log")
+                    with contextlib.suppress(ProcessLookupError):
+                        os.kill(service_pid, signal.SIGUSR1)
         time.sleep(0.2)
     if pid is None:  # the launcher had died: finish the run as it would have
         alive = [name for name, p in services if _running(p)]
@@ -473,7 +481,9 @@ def _cmd_link_up(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    stop.wait()
+    from shared.runtime.waiting import until_set
+
+    until_set(stop)
     emu.down()
     return 0
 
@@ -956,7 +966,12 @@ def _add_model_commands(sub: Any) -> None:
     p.add_argument("paths", type=Path, nargs="+")
     p.add_argument("--camera", type=Path, required=True, help="ROS camera_info YAML")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--tag-size", type=float, default=None, help="tag size in metres (black square side)")
+    g.add_argument(
+        "--tag-size",
+        type=POSITIVE,
+        default=None,
+        help="tag size in metres (black square side; without it or --tags: 0.16, said on stderr)",
+    )
     g.add_argument("--tags", type=Path, default=None, help="tag map YAML/JSON with per-tag sizes")
     p.add_argument("--weights", type=Path, default=None, help="weights folder (default: models/)")
     p.add_argument("--json", type=Path, required=True)

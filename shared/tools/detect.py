@@ -22,6 +22,7 @@ from shared.vision.proposals import ArucoSettings, FullResSettings, Stage1Detect
 from shared.vision.tagmap import TagMapFile, load_tag_map
 
 DEFAULT_WEIGHTS: Final[Path] = Path(__file__).resolve().parents[2] / "models"
+DEFAULT_TAG_SIZE_M: Final[float] = 0.16  # without --tag-size or --tags (said on stderr)
 
 
 def run_detect(
@@ -40,7 +41,13 @@ def run_detect(
 ) -> int:
     """Process every image; unreadable ones are reported in the JSON and on stderr. Exit 0 if any ran."""
     camera = camera_from_yaml(camera_path)
-    tag_map = load_tag_map(tags_path) if tags_path else TagMapFile(default_size_m=tag_size_m or 0.16)
+    if tags_path is None and tag_size_m is None:
+        print(
+            f"splittag detect: no --tag-size or --tags: every tag is solved at {DEFAULT_TAG_SIZE_M} m (the poses' "
+            "translations scale with the true size)",
+            file=sys.stderr,
+        )
+    tag_map = load_tag_map(tags_path) if tags_path else TagMapFile(default_size_m=tag_size_m or DEFAULT_TAG_SIZE_M)
     # fp32 PyTorch, as always; with views, each ROI's views averaged (shared.model.views)
     torch_model = load_model(weights or DEFAULT_WEIGHTS)
     model = torch_model if views == 1 else with_views(TorchSplitNet(torch_model, bf16=False), views)

@@ -8,6 +8,7 @@ import threading
 
 import zenoh
 
+from shared.runtime.waiting import until_set
 from shared.transport.probe import serve_echo
 from shared.transport.session import ZenohSettings, open_session
 from shared.wire import keys
@@ -41,7 +42,7 @@ def run(
         raw = session.declare_queryable(keys.echo(robot_id) + "/raw", raw_echo)
         token = session.liveliness().declare_token(keys.alive(robot_id, "echo"))
         log.info("echo serving %s", keys.echo(robot_id))
-        stop.wait()
+        until_set(stop)
         token.undeclare()
         raw.undeclare()
         queryable.undeclare()

@@ -490,7 +490,11 @@ def run_fleet(
             run_for(
                 stop,
                 duration_secs,
-                lines=lambda: [*comings.lines(), *(f"{robot:>10} {m.line()}" for robot, m in monitors.items())],
+                lines=lambda: [
+                    *comings.lines(),
+                    *(f"{robot:>10} {n}" for robot, m in monitors.items() for n in m.notices()),
+                    *(f"{robot:>10} {m.line()}" for robot, m in monitors.items()),
+                ],
                 quiet=quiet,
                 supervise=restart_dead,
                 every_second=write_frames,

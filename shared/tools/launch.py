@@ -35,6 +35,7 @@ from shared.tools.topology import Topology, merge, write_config
 from shared.transport.session import TlsSettings, ZenohSettings, open_session, wait_for_liveliness
 from shared.vision.metrics import translation_error_cm
 from shared.vision.tagmap import TagMapFile, TagSpec, load_tag_map
+from shared.vision.trajectory import format_stamp_nanos
 from shared.viz.recording import merge_recordings
 from shared.wire import keys
 from shared.wire.codec import WireError
@@ -328,6 +329,14 @@ class Monitor:
     # and computed on board, and the controller's decisions, switches and decisions under a pin.
     frames_by_k: Counter[int] = field(default_factory=Counter)
     frames_on_board: int = 0
+    # Tags seen that a run's tag map listing some tags does not list, with the size they were solved at
+    # (its default_size_m): a trial's map missing one tag of four took its ATE from 0.15 to 19.6 cm and
+    # nothing said so. Each is said once (`notices`) and listed in the summary.
+    tags_not_in_map: dict[int, float] = field(default_factory=dict)
+    _notices: list[str] = field(default_factory=list)
+    # the data set's own stamp of each frame (FrameStamp), by capture time: frames.csv's `source_stamp`,
+    # the key of the run's trajectory.tum and of the data set's ground truth (the newest 20000 frames)
+    _source_stamps: dict[int, int] = field(default_factory=dict)
     controller_decisions: int = 0
     controller_switches: int = 0
     controller_pinned: int = 0
@@ -362,7 +371,16 @@ class Monitor:
             "errors_cm": self._errors(msg),
             "sent_nanos": msg.link.sent_nanos if msg.link is not None else None,  # None: computed on board
         }
+        listed = {t.id for t in self.tag_map.tags} if self.tag_map is not None else set()
+        unlisted = {t.tag_id: t.tag_size_m for t in msg.tags if listed and t.tag_id not in listed}
         with self._lock:
+            for tag_id, size_m in unlisted.items():
+                if tag_id not in self.tags_not_in_map:
+                    self.tags_not_in_map[tag_id] = size_m
+                    self._notices.append(
+                        f"tag {tag_id} is not in the run's tag map: solved at the default size {size_m:g} m "
+                        "(its poses and slam's are wrong if that is not its size: list it in the map)"
+                    )
             self.records.append(rec)
             self._recent.append(rec)
             self.frames_total += 1
@@ -372,6 +390,12 @@ class Monitor:
                 self.frames_by_k[msg.split_k] += 1
             if self.max_records is not None and len(self.records) > self.max_records:
                 del self.records[: len(self.records) // 2]
+
+    def notices(self) -> list[str]:
+        """What the run should be told once, since the last call (a tag missing from its map)."""
+        with self._lock:
+            out, self._notices = self._notices, []
+        return out
 
     def on_controller(self, payload: bytes) -> None:
         """Keep the latest controller state for the live line, and its predictions (when it has them) by
@@ -403,13 +427,15 @@ class Monitor:
             for rec in self.records[i:]:
                 if arrived_by is not None and rec["t"] > arrived_by:
                     break
-                out.append(rec)
+                out.append({**rec, "source_stamp_nanos": self._source_stamps.get(rec["capture_nanos"])})
             return start + i, out, sorted(self.predictions) if out else []
 
     def snapshot(self) -> tuple[list[dict[str, Any]], list[Prediction]]:
         """Copies of the frame records and the controller's predictions, for a run's files."""
         with self._lock:
-            return list(self.records), sorted(self.predictions)
+            stamps = self._source_stamps
+            records = [{**r, "source_stamp_nanos": stamps.get(r["capture_nanos"])} for r in self.records]
+            return records, sorted(self.predictions)
 
     def on_camera(self, payload: bytes) -> None:
         """Record one SLAM CameraPose: its status, its position sigma (sqrt of the covariance's position
@@ -456,10 +482,15 @@ class Monitor:
                 del self.gt[next(iter(self.gt))]  # the oldest (insertion order)
 
     def on_stamp(self, payload: bytes) -> None:
-        """Count one data-set stamp (FrameStamp): the camera captured that frame."""
-        if self._decode(payload, FrameStamp) is not None:
+        """Count one data-set stamp (FrameStamp): the camera captured that frame; keep its stamp."""
+        stamp = self._decode(payload, FrameStamp)
+        if stamp is not None:
             with self._lock:
                 self.stamps_total += 1
+                self._source_stamps[stamp.capture_nanos] = stamp.source_stamp_nanos
+                if len(self._source_stamps) > 20_000:  # a dict keeps insertion order: the oldest go
+                    for old in list(self._source_stamps)[:10_000]:
+                        del self._source_stamps[old]
 
     def _errors(self, msg: TagPoses) -> list[float]:
         if self.tag_map is None:
@@ -579,6 +610,8 @@ class Monitor:
                 out["frames_by_k"] = {str(k): n for k, n in sorted(self.frames_by_k.items())}
             if self.frames_on_board:
                 out["frames_on_board"] = self.frames_on_board
+            if self.tags_not_in_map:  # tag id -> the size it was solved at
+                out["tags_not_in_map"] = {str(i): m for i, m in sorted(self.tags_not_in_map.items())}
             if self.controller_decisions:
                 out["controller"] = {
                     "decisions": self.controller_decisions,
@@ -1022,6 +1055,7 @@ def _placement(
 
 FRAME_COLUMNS: tuple[str, ...] = (
     "seq",
+    "source_stamp",
     "capture_unix_nanos",
     "sent_unix_nanos",
     "k",
@@ -1071,6 +1105,10 @@ def frame_rows(
         out.append(
             {
                 "seq": r["seq"],
+                # the data set's stamp (rgb.txt), seconds as trajectory.tum writes it
+                "source_stamp": None
+                if r.get("source_stamp_nanos") is None
+                else format_stamp_nanos(r["source_stamp_nanos"]),
                 "capture_unix_nanos": r["capture_nanos"],
                 "sent_unix_nanos": sent,
                 "k": r["k"],
@@ -1203,14 +1241,52 @@ def incidents_summary(run_dir: Path, codes: dict[str, int | None], supervisor: S
     return out
 
 
+def logged_problems(run_dir: Path, *, examples: int = 3) -> dict[str, dict[str, Any]]:
+    """Per process log of the run, how many WARNING and ERROR lines it holds and its first few distinct
+    messages (stamps and logger names left out): what a run said only in a log, such as a data set's
+    unreadable image, is in summary.json too (a trial found it only in camera.log)."""
+    out: dict[str, dict[str, Any]] = {}
+    pattern = re.compile(r"^\S+ \S+ (WARNING|ERROR|CRITICAL) \S+: (.*)$")
+    for path in sorted(run_dir.glob("*.log")):
+        counts: Counter[str] = Counter()
+        first: list[str] = []
+        try:
+            text = path.read_text(errors="replace")
+        except OSError:
+            continue
+        for line in text.splitlines():
+            found = pattern.match(line)
+            if found is None:
+                continue
+            counts["errors" if found[1] != "WARNING" else "warnings"] += 1
+            message = found[2] if len(found[2]) <= 300 else found[2][:297] + "..."
+            if len(first) < examples and message not in first:
+                first.append(message)
+        if counts:
+            out[path.stem] = {**counts, "first": first}
+    return out
+
+
 def _summarise_run(
-    run_dir: Path, monitor: Monitor, codes: dict[str, int | None], frames_csv: FramesCsv, supervisor: Supervisor
+    run_dir: Path,
+    monitor: Monitor,
+    codes: dict[str, int | None],
+    frames_csv: FramesCsv,
+    supervisor: Supervisor,
+    *,
+    stopped_by: str | None = None,
 ) -> dict[str, Any]:
     """summary.json: the monitor's figures, the services' exits and restarts, the link profiles applied,
-    the merged recording and slam's ATE; frames.csv (written as the run went): the frames not yet written."""
+    the merged recording and slam's ATE; frames.csv (written as the run went): the frames not yet written.
+    `stopped_by`: why the launcher ended the run (a service refused its settings, the run did not come up)."""
     from shared.tools.linkemu import read_events
 
     summary = {**monitor.summary(), **incidents_summary(run_dir, codes, supervisor), "run_dir": str(run_dir)}
+    if stopped_by is not None:
+        summary["stopped_by"] = stopped_by
+    logged = logged_problems(run_dir)
+    if logged:
+        summary["logged"] = logged
     events = read_events(run_dir)
     if events:
         summary["link_profiles"] = events
@@ -1299,6 +1375,7 @@ def run_pipeline(
         return [*attach_monitor(session, robot_id, monitor), tokens]
 
     started = Started()
+    failure: LaunchError | None = None
     try:
         (run_dir / "launcher.pid").write_text(f"{os.getpid()}\n")  # `splittag down` stops the run through it
         running.start_all(services)
@@ -1321,13 +1398,20 @@ def run_pipeline(
             run_for(
                 stop,
                 duration_secs,
-                lines=lambda: [*link_lines.new_lines(), *comings.lines(), monitor.line(running.supervisor.down())],
+                lines=lambda: [
+                    *link_lines.new_lines(),
+                    *comings.lines(),
+                    *monitor.notices(),
+                    monitor.line(running.supervisor.down()),
+                ],
                 quiet=quiet,
                 supervise=running.supervise,
                 every_second=frames_csv.flush,
             )
         for sub in started.subscriptions:
             sub.undeclare()
+    except LaunchError as exc:  # the run is finished all the same (a trial found one left half-written)
+        failure = exc
     finally:
         if started.session is not None:
             started.session.close()
@@ -1337,4 +1421,8 @@ def run_pipeline(
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         forget_run_files(run_dir)
-    return _summarise_run(run_dir, monitor, codes, frames_csv, running.supervisor)
+    stopped_by = None if failure is None else str(failure)
+    summary = _summarise_run(run_dir, monitor, codes, frames_csv, running.supervisor, stopped_by=stopped_by)
+    if failure is not None:
+        raise failure
+    return summary

@@ -86,11 +86,11 @@ def camera_from_yaml(path: Path) -> CameraIntrinsics:
     coeffs_doc = doc.get("distortion_coefficients", {"data": []}) or {"data": []}
     coeffs = list(coeffs_doc.get("data", []) if isinstance(coeffs_doc, dict) else [])
     if model not in ("plumb_bob", "none"):
-        raise GeometryError(f"camera file {path}: distortion_model {model!r} not supported")
+        raise CameraFileError(f"camera file {path}: distortion_model {model!r} not supported")
     if model == "plumb_bob" and len(coeffs) not in (4, 5, 8):
-        raise GeometryError(f"camera file {path}: plumb_bob needs 4, 5 or 8 coefficients")
+        raise CameraFileError(f"camera file {path}: plumb_bob needs 4, 5 or 8 coefficients")
     if k[0, 1] != 0 or k[1, 0] != 0 or k[2, 0] != 0 or k[2, 1] != 0 or k[2, 2] != 1:
-        raise GeometryError(f"camera file {path}: camera_matrix is not a pinhole K: {k.tolist()}")
+        raise CameraFileError(f"camera file {path}: camera_matrix is not a pinhole K: {k.tolist()}")
     try:
         return CameraIntrinsics(
             width=int(doc["image_width"]),
@@ -103,7 +103,7 @@ def camera_from_yaml(path: Path) -> CameraIntrinsics:
             distortion=[float(c) for c in coeffs],
         )
     except (ValueError, TypeError) as exc:
-        raise GeometryError(f"camera file {path}: {exc}") from exc
+        raise CameraFileError(f"camera file {path}: {exc}") from exc
 
 
 def camera_to_yaml(camera: CameraIntrinsics) -> str:

@@ -145,7 +145,8 @@ class RerunViz:
         self.rec.log(path, *args, **kwargs)
 
     def _at(self, capture_nanos: int) -> None:
-        self.rec.set_time("capture_time", timestamp=capture_nanos / 1e9)
+        # exact nanoseconds (float seconds of this size are good to ~0.2 us): joins frames.csv's capture_unix_nanos
+        self.rec.set_time("capture_time", timestamp=np.datetime64(int(capture_nanos), "ns"))
 
     def image(self, capture_nanos: int, image: np.ndarray, camera: CameraIntrinsics, seq: int) -> None:
         """The frame (subsampled by image_every)."""
@@ -368,3 +369,19 @@ def recording_components(path: Path) -> set[str]:
 
     section = _rrd_stats(path).partition("Num chunks per component")[2]
     return {m.group(1) for m in re.finditer(r"^([A-Za-z0-9]+:[A-Za-z0-9_]+): \d+$", section, re.MULTILINE)}
+
+
+def recording_scalars(path: Path, entity: str) -> list[tuple[int, float]]:
+    """(capture time in unix ns, value) of each scalar logged at `entity` (e.g. `/latency/capture_to_pose_ms`)
+    in an .rrd file, in time order: rerun-sdk's own chunk reader (README *Run folder*: no datafusion needed)."""
+    import pyarrow as pa
+    import rerun.chunk as rc
+
+    chunks = rc.RrdReader(str(path)).store().stream().to_chunks()
+    batches = [c.to_record_batch() for c in chunks if str(c.entity_path) == entity]
+    if not batches:
+        return []
+    table = pa.Table.from_batches(batches)
+    stamps = table.column("capture_time").cast(pa.int64()).to_pylist()
+    values = [float(v[0]) for v in table.column("Scalars:scalars").to_pylist()]
+    return sorted(zip(stamps, values, strict=True))
