@@ -160,6 +160,11 @@ def test_an_exit_says_why_from_this_start_of_the_service_only(tmp_path: Path) ->
     )
     assert last_error_line(crash) == "RuntimeError: boom"
     assert last_error_line("12:00:01.000 slam INFO slam: started\n") is None
+    # logger.exception: its ERROR line, then the traceback: both (the exception is the cause)
+    died = "12:00:03.000 slam ERROR slam: slam failed\n" + crash.split("\n", 1)[1]
+    assert last_error_line(log + died) == "slam failed: RuntimeError: boom"
+    # a traceback after an older ERROR line: the traceback's exception is the later news
+    assert last_error_line(log + crash) == "RuntimeError: boom"
     assert last_error_line("12:00:02.000 slam ERROR slam: " + "x" * 500, max_chars=50) == "x" * 47 + "..."
 
     path = tmp_path / "slam.log"

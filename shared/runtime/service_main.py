@@ -6,7 +6,6 @@ import argparse
 import faulthandler
 import logging
 import os
-import re
 import signal
 import threading
 import tomllib
@@ -62,17 +61,25 @@ def write_resolved(settings: ServiceSettings, name: str) -> Path | None:
 
 
 def unrecoverable_open_error(exc: zenoh.ZError, zenoh_settings: ZenohSettings) -> str | None:
-    """Why a Zenoh session can never open with these settings, however often it is retried: a listen
-    address this host does not have (the edge's address on the robot's host), or a certificate that the
-    other side refuses or that is not valid for the address dialled (found by a handshake of our own:
-    zenoh says only that it timed out). None: it may open later (the router is not up yet)."""
-    text = str(exc)
-    if "os error 99" in text:  # EADDRNOTAVAIL
-        found = re.search(r"bound to (\S+?):? \[", text)
-        where = found[1] if found else "a listen endpoint"
-        return f"cannot listen on {where}: this host has no such address (listen = {zenoh_settings.listen})"
+    """Why a Zenoh client can never connect with these settings, however often it is retried: every
+    endpoint it dials answers with a certificate this process refuses (not valid for the address dialled,
+    not from its CA) or refuses this process's own (found by a TLS handshake of our own: zenoh says only
+    that it timed out). None: it may open later (the router is not up yet, an address not assigned yet)."""
+    if "Unable to connect" not in str(exc):
+        return None  # a listen error (an address in use, not yet assigned) or anything else: retried
     problems = [certificate_problem(e, zenoh_settings.tls) for e in zenoh_settings.connect]
-    return "; ".join(p for p in problems if p) or None
+    if not problems or any(p is None for p in problems):
+        return None  # an endpoint that shakes hands (or was not checked) may answer next time
+    return "; ".join(p for p in problems if p)
+
+
+def open_error_line(exc: zenoh.ZError) -> str:
+    """Zenoh's open error in one line, saying what EADDRNOTAVAIL means (an address this host does not
+    have, or not yet: Wi-Fi or DHCP still coming up)."""
+    text = one_line_error(exc)
+    if "os error 99" in text:
+        text += " (no such address on this host, or not yet: check the listen endpoints)"
+    return text
 
 
 def service_main(
@@ -121,8 +128,9 @@ def service_main(
         if (why := unrecoverable_open_error(exc, settings.zenoh)) is not None:
             log.error("%s: configuration error: zenoh: %s", name, why)
             return CONFIG_EXIT
-        # the router it connects to is not (yet) up: one line; the launcher retries
-        log.error("%s: cannot open its Zenoh session: %s", name, one_line_error(exc))
+        # the router it connects to is not (yet) up, an address not (yet) on this host: one line; the
+        # launcher retries and prints it with each restart
+        log.error("%s: cannot open its Zenoh session: %s", name, open_error_line(exc))
         return 1
     try:
         run(settings, session, stop)

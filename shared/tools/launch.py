@@ -204,20 +204,28 @@ class Service:
 
 
 def last_error_line(log_text: str, *, max_chars: int = 300) -> str | None:
-    """The last ERROR line of a service's log text without its time and logger (`cannot open its Zenoh
-    session: ...`), else the exception line that ends a traceback; None when there is neither."""
+    """Why a service ended, from its log text: the later of its last ERROR line (without its time and
+    logger: `cannot open its Zenoh session: ...`) and the exception line that ends its last traceback;
+    an ERROR line followed by its traceback (`slam failed`, then the exception) gives both. None when
+    there is neither."""
     lines = log_text.splitlines()
-    for line in reversed(lines):
-        found = re.match(r"\S+ \S+ (?:ERROR|CRITICAL) \S+: (.*)$", line)
+    error_at, error = -1, ""
+    for i in range(len(lines) - 1, -1, -1):
+        found = re.match(r"\S+ \S+ (?:ERROR|CRITICAL) \S+: (.*)$", lines[i])
         if found:
-            text = found[1]
+            error_at, error = i, found[1]
             break
+    tracebacks = [i for i, line in enumerate(lines) if line.startswith("Traceback (most recent call last)")]
+    exception = ""
+    if tracebacks and tracebacks[-1] > error_at:
+        after = [line for line in lines[tracebacks[-1] + 1 :] if line and not line[0].isspace()]
+        exception = after[0] if after else ""
+    if exception and error_at >= 0 and tracebacks[-1] == error_at + 1:
+        text = f"{error}: {exception}"  # logger.exception: its message, then the traceback
     else:
-        ends = [i for i, line in enumerate(lines) if line.startswith("Traceback (most recent call last)")]
-        after = [line for line in lines[ends[-1] + 1 :] if line and not line[0].isspace()] if ends else []
-        if not after:
-            return None
-        text = after[0]
+        text = exception or error
+    if not text:
+        return None
     return text if len(text) <= max_chars else text[: max_chars - 3] + "..."
 
 
@@ -975,9 +983,15 @@ def finish_orphaned_run(run_dir: Path, stopped: list[str], *, still_running: lis
     return summary
 
 
-def router_hosts(run_config: Path) -> dict[str, str]:
-    """What each router's process takes down with it, for the supervisor's line when it dies."""
+def router_hosts(run_config: Path, *, only: str | None = None) -> dict[str, str]:
+    """What each router's process takes down with it, for the supervisor's line when it dies (`only`:
+    this launcher runs one host's part, `up --only`)."""
     fails_over = Topology.from_config(run_config).robot_from_edge is not None
+    if only == "robot":  # this host's monitor listens at the robot's router alone
+        return {
+            "robot_infer": "it is the robot's router: the camera's frames and this host's monitor wait until it is "
+            "back" + (" (slam, if on it since an edge restart, fails over to the edge's)" if fails_over else "")
+        }
     edge = (
         "it is the edge's router: slam and the monitor fail over to the robot's router and stay there (the "
         "robot computes on board until it is back)"
@@ -993,10 +1007,13 @@ def router_hosts(run_config: Path) -> dict[str, str]:
 class _Services:
     """The services of one run: started, their pids written, restarted by the supervisor's policy."""
 
-    def __init__(self, run_config: Path, run_dir: Path, wrappers: dict[str, list[str]]) -> None:
+    def __init__(
+        self, run_config: Path, run_dir: Path, wrappers: dict[str, list[str]], *, only: str | None = None
+    ) -> None:
         self.run_config, self.run_dir, self.wrappers = run_config, run_dir, wrappers
         self.started: list[Service] = []
-        self.supervisor = Supervisor(record=incidents_file(run_dir / "incidents.jsonl"), hosts=router_hosts(run_config))
+        hosts = router_hosts(run_config, only=only)
+        self.supervisor = Supervisor(record=incidents_file(run_dir / "incidents.jsonl"), hosts=hosts)
         self.restart_at: dict[str, float] = {}
 
     def _start(self, name: str) -> Service:
@@ -1251,17 +1268,17 @@ def logged_problems(run_dir: Path, *, examples: int = 3) -> dict[str, dict[str, 
         counts: Counter[str] = Counter()
         first: list[str] = []
         try:
-            text = path.read_text(errors="replace")
+            with path.open(errors="replace") as f:  # line by line: a long run's log may be large
+                for line in f:
+                    found = pattern.match(line.rstrip("\n"))
+                    if found is None:
+                        continue
+                    counts["errors" if found[1] != "WARNING" else "warnings"] += 1
+                    message = found[2] if len(found[2]) <= 300 else found[2][:297] + "..."
+                    if len(first) < examples and message not in first:
+                        first.append(message)
         except OSError:
             continue
-        for line in text.splitlines():
-            found = pattern.match(line)
-            if found is None:
-                continue
-            counts["errors" if found[1] != "WARNING" else "warnings"] += 1
-            message = found[2] if len(found[2]) <= 300 else found[2][:297] + "..."
-            if len(first) < examples and message not in first:
-                first.append(message)
         if counts:
             out[path.stem] = {**counts, "first": first}
     return out
@@ -1304,7 +1321,8 @@ def _summarise_run(
         summary["recording"] = str(recording)
     ate_path = run_dir / "ate.json"
     if ate_path.is_file():
-        summary["slam"] = json.loads(ate_path.read_text())
+        with contextlib.suppress(OSError, ValueError):  # slam killed mid-write: the rest of the summary stands
+            summary["slam"] = json.loads(ate_path.read_text())
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
 
@@ -1367,7 +1385,7 @@ def run_pipeline(
 
     monitor = Monitor(run_tags, max_records=200_000, at_robot=only == "robot")  # a deployment may run for days
     frames_csv = FramesCsv(run_dir / "frames.csv", monitor, lambda: read_events(run_dir))
-    running = _Services(run_config, run_dir, wrappers)
+    running = _Services(run_config, run_dir, wrappers, only=only)
     comings = ComingsAndGoings(running.supervisor, partial(_service_of_token, robot_id, services))
 
     def attach(session: zenoh.Session) -> list[Any]:
@@ -1421,8 +1439,10 @@ def run_pipeline(
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         forget_run_files(run_dir)
-    stopped_by = None if failure is None else str(failure)
-    summary = _summarise_run(run_dir, monitor, codes, frames_csv, running.supervisor, stopped_by=stopped_by)
-    if failure is not None:
-        raise failure
-    return summary
+    if failure is None:
+        return _summarise_run(run_dir, monitor, codes, frames_csv, running.supervisor)
+    try:  # the run is finished all the same; the reason it stopped is what the user must see
+        _summarise_run(run_dir, monitor, codes, frames_csv, running.supervisor, stopped_by=str(failure))
+    except Exception:
+        log.exception("could not finish the run's files in %s", run_dir)
+    raise failure

@@ -233,12 +233,13 @@ def certificate_problem(endpoint: str, tls: TlsSettings | None, *, timeout_secs:
     endpoint's certificate not valid for the address dialled or not from this CA, or this process's
     certificate refused there. None when the handshake succeeds, for any other endpoint, or when
     nothing answers at the address (not a certificate problem)."""
-    if tls is None or not endpoint.startswith("tls/"):
-        return None
-    host, _, port = endpoint.removeprefix("tls/").split("#")[0].rpartition(":")
+    if tls is None or not endpoint.startswith("tls/") or "#" in endpoint:
+        return None  # (an endpoint with a configuration of its own may use other certificates)
+    host, _, port = endpoint.removeprefix("tls/").split("?")[0].rpartition(":")
     host = host.strip("[]")
     try:
         context = ssl.create_default_context(cafile=str(tls.root_ca_certificate))
+        context.verify_flags &= ~ssl.VERIFY_X509_STRICT  # (Python >= 3.13 sets it; rustls does not ask that)
         context.load_cert_chain(str(tls.certificate), str(tls.private_key))
     except (OSError, ssl.SSLError) as exc:
         return f"{endpoint}: this process's TLS files cannot be used: {exc}"
