@@ -44,7 +44,16 @@ class ComputeEstimator:
     LEARN_FROM_FRACTION = 0.3
     SKIP_FIRST = 3  # the first frames after start-up carry one-time costs, not the steady state
 
-    def __init__(self, per_tag_ms: Sequence[float], *, window: int = 30) -> None:
+    # Frames for a stale scale (no evidence at the k in use) to fall halfway back to the calibration.
+    # 30 (the window) made the controller flap under a load on both sides (a trial: 46 switches in 5.5
+    # min at load 6-7): at k = 7 the edge's learnt slowdown faded within 2 s, k = 0 looked faster, the
+    # next frame there taught it again and the robot's faded in turn. Each fade is a trip to a worse k:
+    # the simulated chain in tests/test_compute.py switches 311 times in 2800 frames at 30, 39 at 300.
+    STALE_HALF_LIFE_FRAMES = 300
+
+    def __init__(
+        self, per_tag_ms: Sequence[float], *, window: int = 30, stale_half_life_frames: float = STALE_HALF_LIFE_FRAMES
+    ) -> None:
         if len(per_tag_ms) != N_CUTS or min(per_tag_ms) < 0:
             raise ValueError(f"need {N_CUTS} non-negative per-tag times, got {list(per_tag_ms)}")
         self.per_tag_ms = np.asarray(per_tag_ms, np.float64)
@@ -53,7 +62,7 @@ class ComputeEstimator:
         self._tags = _RunningMedian(window)
         self._seen = 0
         self._stale = 0  # frames since the last scale evidence
-        self._half_life = float(window)
+        self._half_life = float(stale_half_life_frames)
         self.current_k = 0
 
     def observe(self, *, k: int, tags: int, network_ms: float, fixed_ms: float = 0.0) -> None:
@@ -76,8 +85,8 @@ class ComputeEstimator:
     @property
     def live_scale(self) -> float:
         """Running median of live / calibrated network time; 1.0 before any evidence, and decaying back
-        towards 1.0 (half-life `window` frames) while the k in use gives no evidence: a scale learnt
-        long ago, perhaps under start-up load, must not decide the other cuts forever."""
+        towards 1.0 (half-life `stale_half_life_frames`) while the k in use gives no evidence: a scale
+        learnt long ago, perhaps under start-up load, must not decide the other cuts forever."""
         learnt = self._scale.get(1.0)
         return 1.0 + (learnt - 1.0) * 0.5 ** (self._stale / self._half_life)
 
