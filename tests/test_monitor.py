@@ -490,3 +490,18 @@ def test_frames_csv_carries_the_data_sets_own_stamp(tmp_path: Path) -> None:
     assert rows[0]["source_stamp"] == "1305031102.175304000"
     records, _ = monitor.snapshot()
     assert [r["source_stamp_nanos"] for r in records] == [source[0], None, source[2]]
+
+
+def test_a_repeated_tag_poses_message_is_counted_not_recorded_again() -> None:
+    """A trial re-sent 53 TagPoses: slam refused them, but the monitor counted 168 frames of 115 and
+    frames.csv had a row for each. The same frame (capture time and seq) is now counted as repeated."""
+    poses = EXAMPLES[TagPoses.SCHEMA]
+    assert isinstance(poses, TagPoses)
+    monitor = Monitor(None)
+    for seq in range(5):
+        frame = encode(poses.model_copy(update={"seq": seq, "capture_nanos": poses.capture_nanos + seq}))
+        monitor.on_poses(frame)
+        monitor.on_poses(frame)  # the same message again
+    summary = monitor.summary()
+    assert (summary["frames"], summary["frames_total"], summary["repeated_messages"]) == (5, 5, 5)
+    assert sorted(r["seq"] for r in monitor.records) == [0, 1, 2, 3, 4]

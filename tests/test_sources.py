@@ -406,3 +406,51 @@ def test_demo_cameras_starting_together_render_the_cache_once(tmp_path: Path) ->
         assert [j.get(120) for j in jobs] == [0, 0]
     assert sorted(p.name for p in folder.glob("*.png")) == ["00000.png", "00001.png", "00002.png"]
     assert not list(folder.glob("*tmp*")) and (folder / "scene.json").is_file()
+
+
+def test_the_camera_says_by_its_exit_code_whether_its_source_ended(tmp_path: Path) -> None:
+    """A source that ended (the run is complete) exits SOURCE_ENDED_EXIT; a camera stopped by a signal
+    exits 0, which the launcher, had it not asked, restarts: a trial's SIGTERM to the demo camera was
+    read as a source that ended and stopped the whole run."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from shared.runtime.settings import SOURCE_ENDED_EXIT
+    from shared.transport.session import wait_for_liveliness
+    from tests.procs import REPO
+
+    folder, info, _ = _folder(tmp_path)
+    port = free_tcp_port()
+    hub = open_session(ZenohSettings(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
+    env = {
+        **os.environ,
+        "SPLITTAG_CAMERA_ROBOT_ID": "exit1",
+        "SPLITTAG_CAMERA_SOURCE": "folder",
+        "SPLITTAG_CAMERA_PATH": str(folder),
+        "SPLITTAG_CAMERA_CAMERA_INFO": str(info),
+        "SPLITTAG_CAMERA_FPS": "20",
+        "SPLITTAG_CAMERA_WAIT_FOR": "[]",
+        "SPLITTAG_CAMERA_RUN_DIR": str(tmp_path),
+        "SPLITTAG_CAMERA_ZENOH__MODE": "client",
+        "SPLITTAG_CAMERA_ZENOH__CONNECT": f'["tcp/127.0.0.1:{port}"]',
+    }
+    camera = [sys.executable, "-m", "services.camera"]
+    try:
+        ended = subprocess.run(camera, cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+        assert ended.returncode == SOURCE_ENDED_EXIT, ended.stderr
+        looping = subprocess.Popen(
+            camera, cwd=REPO, env={**env, "SPLITTAG_CAMERA_LOOP": "true"}, stderr=subprocess.PIPE
+        )
+        try:
+            wait_for_liveliness(hub, [keys.alive("exit1", "camera")], timeout_secs=60)  # streaming
+            looping.send_signal(signal.SIGTERM)
+            _, err = looping.communicate(timeout=60)
+            assert looping.returncode == 0, err.decode(errors="replace")
+        finally:
+            if looping.poll() is None:
+                looping.kill()
+                looping.wait()
+    finally:
+        hub.close()

@@ -7,6 +7,7 @@ import json
 from functools import partial
 from pathlib import Path
 
+from shared.runtime.settings import SOURCE_ENDED_EXIT
 from shared.tools.supervise import (
     RestartPolicy,
     Supervisor,
@@ -32,14 +33,16 @@ def test_backoff_doubles_for_quick_deaths_and_resets_after_a_healthy_run() -> No
     assert sup.restarts["edge_infer"] == 7
 
 
-def test_a_finished_camera_ends_the_run_and_a_crashed_one_restarts() -> None:
+def test_a_finished_camera_ends_the_run_and_a_crashed_or_stopped_one_restarts() -> None:
     sup = Supervisor(clock=FakeClock())
     sup.started("camera")
-    assert sup.exited("camera", 0) is None
+    assert sup.exited("camera", SOURCE_ENDED_EXIT) is None
     assert Supervisor(clock=FakeClock()).exited("camera", 1) == 1.0
+    # stopped by a signal the launcher did not send (a trial's SIGTERM): exit 0, restarted, not "ended"
+    assert Supervisor(clock=FakeClock()).exited("camera", 0) == 1.0
     # a fleet names its cameras per robot: the kind decides, not the name
-    assert sup.exited("robot2_camera", 0, service="camera") is None
-    assert sup.exited("robot2_robot_infer", 0, service="robot_infer") == 1.0
+    assert sup.exited("robot2_camera", SOURCE_ENDED_EXIT, service="camera") is None
+    assert sup.exited("robot2_robot_infer", SOURCE_ENDED_EXIT, service="robot_infer") == 1.0
 
 
 def test_every_exit_and_restart_is_an_incident_the_run_keeps(tmp_path: Path) -> None:
@@ -56,8 +59,8 @@ def test_every_exit_and_restart_is_an_incident_the_run_keeps(tmp_path: Path) -> 
     delay = sup.exited("slam", -9)
     assert sup.exit_line("slam", -9, delay or 0) == "slam exited (-9) (it is the edge tier's router); restart #1 in 1 s"
     sup.started("slam", pid=102)
-    assert sup.exited("robot1_camera", 0, service="camera") is None
-    assert sup.exited("robot1_camera", 0, service="camera") is None  # a fleet asks every second: said once
+    assert sup.exited("robot1_camera", SOURCE_ENDED_EXIT, service="camera") is None
+    assert sup.exited("robot1_camera", SOURCE_ENDED_EXIT, service="camera") is None  # asked every second: said once
     lines = [json.loads(line) for line in path.read_text().splitlines()]
     assert lines == sup.incidents
     assert lines == [
@@ -72,7 +75,7 @@ def test_every_exit_and_restart_is_an_incident_the_run_keeps(tmp_path: Path) -> 
             "takes_down": "it is the edge tier's router",
         },
         {"unix_nanos": 7, "event": "restarted", "name": "slam", "restart": 1, "pid": 102},
-        {"unix_nanos": 7, "event": "exited", "name": "robot1_camera", "code": 0, "up_secs": 5.0, "source_ended": True},
+        {"unix_nanos": 7, "event": "exited", "name": "robot1_camera", "code": 3, "up_secs": 5.0, "source_ended": True},
     ]
     assert sup.summary() == {"restarts": {"slam": 1}, "exits": 2}
 

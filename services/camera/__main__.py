@@ -6,14 +6,15 @@ import zenoh
 
 from services.camera.service import check_source, run
 from services.camera.settings import CameraSettings
-from shared.runtime.service_main import service_main
+from shared.runtime.service_main import SOURCE_ENDED, service_main
 from shared.runtime.sources import FrameSource
 
 checked: list[FrameSource | None] = []  # the source check_source made: the loop streams that one
 
 
-def _run(settings: CameraSettings, session: zenoh.Session, stop: threading.Event) -> int:
-    return run(settings, session=session, stop=stop, source=checked[0] if checked else None)
+def _run(settings: CameraSettings, session: zenoh.Session, stop: threading.Event) -> object:
+    run(settings, session=session, stop=stop, source=checked[0] if checked else None)
+    return None if stop.is_set() else SOURCE_ENDED  # returned by itself: the source ended (or max_frames)
 
 
 raise SystemExit(service_main("camera", CameraSettings, _run, check=lambda s: checked.append(check_source(s))))

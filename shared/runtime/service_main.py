@@ -21,13 +21,14 @@ from shared.model.precision import ModelFileError  # no torch: the weights folde
 from shared.runtime.cpus import CpuPlacementError, pin_cpus
 from shared.runtime.errors import one_line_error
 from shared.runtime.logs import setup_logging
-from shared.runtime.settings import CONFIG_EXIT, ConfigurationError, ServiceSettings
+from shared.runtime.settings import CONFIG_EXIT, SOURCE_ENDED_EXIT, ConfigurationError, ServiceSettings
 from shared.transport.session import ZenohSettings, certificate_problem, open_session
 from shared.vision.files import atomic_write_text
 from shared.vision.geometry import CameraFileError
 from shared.vision.tagmap import TagMapError
 
 S = TypeVar("S", bound=ServiceSettings)
+SOURCE_ENDED = object()  # what a service's run returns when its input ended by itself (exit SOURCE_ENDED_EXIT)
 
 
 def started_by_run_launcher(run_dir: Path) -> bool:
@@ -132,8 +133,10 @@ def service_main(
         # launcher retries and prints it with each restart
         log.error("%s: cannot open its Zenoh session: %s", name, open_error_line(exc))
         return 1
+    code = 0
     try:
-        run(settings, session, stop)
+        if run(settings, session, stop) is SOURCE_ENDED and not stop.is_set():
+            code = SOURCE_ENDED_EXIT  # (a source that ended as the stop came: stopped on request)
     except (ConfigurationError, ModelFileError, TagMapError, CameraFileError) as exc:
         # A file the settings name is missing or unusable (weights folder, tag map, camera file):
         # restarting cannot help. (Any other error, a FileNotFoundError included, is restarted.)
@@ -150,4 +153,4 @@ def service_main(
         # process mid-cleanup with -SIGINT. Ignored signals stay ignored: the exit code stays ours.
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, signal.SIG_IGN)
-    return 0
+    return code

@@ -34,6 +34,10 @@ _CONFIG_FILE: ContextVar[Path | None] = ContextVar("splittag_config_file", defau
 
 S = TypeVar("S", bound="ServiceSettings")
 CONFIG_EXIT: Final[int] = 2  # a service's exit code for settings it cannot work with: restarting cannot help
+# The camera's exit code when its source ended (loop off, max_frames): the run is complete. A camera
+# stopped by a signal exits 0 like every service, and a launcher that did not ask restarts it (a trial's
+# SIGTERM to the demo camera, whose source never ends, read as a source that ended and stopped the run).
+SOURCE_ENDED_EXIT: Final[int] = 3
 
 
 class ConfigurationError(RuntimeError):

@@ -342,6 +342,10 @@ class Monitor:
     # nothing said so. Each is said once (`notices`) and listed in the summary.
     tags_not_in_map: dict[int, float] = field(default_factory=dict)
     _notices: list[str] = field(default_factory=list)
+    # TagPoses of a frame already recorded (the same capture time and seq: a message sent again, by a
+    # replay or a duplicating route): counted, not recorded again (a trial's 53 repeats read as 168 frames of 115)
+    repeated: int = 0
+    _recent_frames: dict[tuple[int, int], None] = field(default_factory=dict)
     # the data set's own stamp of each frame (FrameStamp), by capture time: frames.csv's `source_stamp`,
     # the key of the run's trajectory.tum and of the data set's ground truth (the newest 20000 frames)
     _source_stamps: dict[int, int] = field(default_factory=dict)
@@ -379,6 +383,15 @@ class Monitor:
             "errors_cm": self._errors(msg),
             "sent_nanos": msg.link.sent_nanos if msg.link is not None else None,  # None: computed on board
         }
+        with self._lock:
+            frame = (msg.capture_nanos, msg.seq)
+            if frame in self._recent_frames:
+                self.repeated += 1
+                return
+            self._recent_frames[frame] = None
+            if len(self._recent_frames) > 20_000:  # the newest frames only (insertion order)
+                for old in list(self._recent_frames)[:10_000]:
+                    del self._recent_frames[old]
         listed = {t.id for t in self.tag_map.tags} if self.tag_map is not None else set()
         unlisted = {t.tag_id: t.tag_size_m for t in msg.tags if listed and t.tag_id not in listed}
         with self._lock:
@@ -602,6 +615,8 @@ class Monitor:
             recs = list(self.records)
         errs = [e for r in recs for e in r["errors_cm"]]
         out: dict[str, Any] = {"frames": len(recs), "frames_total": self.frames_total, "bad_messages": self.bad}
+        if self.repeated:
+            out["repeated_messages"] = self.repeated
         captured = max(self.gt_total, self.stamps_total)
         if captured:  # robot_infer takes the newest frame: a camera faster than the robot skips frames
             out["frames_captured"] = captured

@@ -1,7 +1,8 @@
 """The launcher's restart policy (pure): a service that dies is restarted after a backoff that doubles
 with each quick death and resets once it has stayed up; only a person's stop, or a camera whose
-source ended (exit code 0, `loop = false`), ends a deployment. Every exit and restart is an incident
-the run keeps (`incidents.jsonl` in the run folder, counted in summary.json), not only a printed line."""
+source ended (exit code SOURCE_ENDED_EXIT: `loop = false`, max_frames), ends a deployment. Every exit
+and restart is an incident the run keeps (`incidents.jsonl` in the run folder, counted in summary.json),
+not only a printed line."""
 
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from shared.runtime.settings import SOURCE_ENDED_EXIT
 
 log = logging.getLogger(__name__)
 
@@ -86,7 +89,7 @@ class Supervisor:
             return None
         up_secs = self.clock() - self._started_at.get(name, self.clock())
         said = {"event": "exited", "name": name, "code": code, "up_secs": round(up_secs, 1)}
-        if (service or name) == "camera" and code == 0:
+        if (service or name) == "camera" and code == SOURCE_ENDED_EXIT:
             self.ended.add(name)
             self._note({**said, "source_ended": True})
             return None  # the source ended (a file without loop, max_frames): the run is complete
