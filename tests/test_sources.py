@@ -454,3 +454,33 @@ def test_the_camera_says_by_its_exit_code_whether_its_source_ended(tmp_path: Pat
                 looping.wait()
     finally:
         hub.close()
+
+
+def test_a_restarted_camera_goes_on_with_its_data_set(tmp_path: Path) -> None:
+    """A folder camera the run's launcher restarts goes on from the next image of its data set, not from
+    the first again (a trial's restart made trajectory.tum jump back in time: 220 rows for 150 stamps).
+    The first camera stops after two images (max_frames, as a crash would); the second sends the third."""
+    import os
+
+    folder, info, gt = _folder(tmp_path)
+    (tmp_path / "launcher.pid").write_text(f"{os.getppid()}\n")  # this process plays the run's launcher's child
+    settings = CameraSettings(
+        robot_id="resume1",
+        source="folder",
+        path=str(folder),
+        camera_info=info,
+        groundtruth=gt,
+        fps=50.0,
+        loop=False,
+        max_frames=2,
+        run_dir=tmp_path,
+    )
+    first, _, published = _stream(settings, "resume1", 2)
+    assert published == 2 and np.array_equal(first[1].image, _tag_image(1))
+    again, gts, published = _stream(settings.model_copy(update={"max_frames": 0}), "resume1", 1, expect_gts=1)
+    assert published == 1 and np.array_equal(again[0].image, _tag_image(2))
+    assert gts[0].world_from_camera[0, 3] == 2.0  # its own ground truth
+    assert again[0].seq == 0  # a new camera session for slam, as any camera restart
+    (tmp_path / "launcher.pid").unlink()  # a camera started by hand beside the run plays it all
+    alone, _, published = _stream(settings.model_copy(update={"max_frames": 0}), "resume1", 3)
+    assert published == 3 and np.array_equal(alone[0].image, _tag_image(0))
