@@ -539,6 +539,42 @@ def test_a_restarted_slam_resumes_its_map_and_trajectory(tmp_path: Path) -> None
     assert third.resumed is None and third.revision > second.revision
 
 
+def test_a_killed_slam_loses_none_of_the_poses_it_placed_after_its_last_checkpoint(tmp_path: Path) -> None:
+    """A trial SIGKILLed slam: the 19 poses it had published since its last checkpoint were missing from
+    the final trajectory.tum (a 6.4 s hole). Each pose goes to a journal as it is placed; the restarted
+    slam appends what the journal holds after its trajectory's last stamp, and a checkpoint empties it.
+    Killed again before its own first checkpoint, the next process still finds them."""
+    settings = SlamServiceSettings(run_dir=tmp_path)
+    first = SlamNode(settings)
+    poses = _constant_velocity(40)
+    for i in range(10):
+        first.on_poses(_tag_poses(i, 1_000 + i, poses[i]))
+    first.write_outputs(tmp_path)  # the last checkpoint
+    assert not (tmp_path / "trajectory.tum.journal.old").exists()
+    published = {}
+    for i in range(10, 17):  # placed and published, then SIGKILL: no checkpoint, no close
+        published[1_000 + i] = first.on_poses(_tag_poses(i, 1_000 + i, poses[i]))[0].world_from_camera
+    assert len(read_tum(tmp_path / "trajectory.tum")) == 10
+    second = SlamNode(settings)
+    for i in range(20, 25):
+        published[1_000 + i] = second.on_poses(_tag_poses(i, 1_000 + i, poses[i]))[0].world_from_camera
+    third = SlamNode(settings)  # the second killed before its first checkpoint too
+    for i in range(30, 35):
+        third.on_poses(_tag_poses(i, 1_000 + i, poses[i]))
+    stats = third.write_outputs(tmp_path)
+    rows = read_tum(tmp_path / "trajectory.tum")
+    stamps = [round(t * 1e9) for t, _ in rows]
+    expected = [1_000 + i for i in [*range(17), *range(20, 25), *range(30, 35)]]
+    assert stamps == expected, stamps
+    assert stats["poses"] == len(expected) and stats["resumed_poses"] == 22, stats
+    for stamp, (_, pose) in zip(stamps, rows, strict=True):
+        if stamp in published:  # the journal's poses are the ones published
+            np.testing.assert_allclose(pose, published[stamp], atol=1e-6)
+    journal = tmp_path / "trajectory.tum.journal"
+    assert not journal.exists() or not journal.read_text()  # the checkpoint holds them all
+    assert not (tmp_path / "trajectory.tum.journal.old").exists()
+
+
 def test_a_restarted_slam_publishes_and_saves_unseen_tags_as_the_priors_it_holds(tmp_path: Path) -> None:
     """A tag the checkpoint and a configured tag map both give: slam holds the configured map's pose as
     its prior (it wins over the checkpoint's), and the published map and the next map.json say the same
