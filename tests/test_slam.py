@@ -602,6 +602,28 @@ def test_a_restarted_slam_publishes_and_saves_unseen_tags_as_the_priors_it_holds
     np.testing.assert_allclose(saved[other.id], moved)
 
 
+def test_a_configured_maps_tags_never_seen_stay_in_the_map(tmp_path: Path) -> None:
+    """A trial's surveyed map listed 11 tags; in SLAM mode map.json kept only the 9 seen, so feeding it
+    back as tag_map lost the other two. The tags whose world pose slam holds as priors and has not seen
+    are published and saved as it holds them."""
+    known = {t.id: (t.size_m, t.pose()) for t in SCENE.tags}
+    write_tag_map(tmp_path / "known.json", tag_map_from_poses(known, anchor_tag_id=SCENE.tags[0].id))
+    node = SlamNode(SlamServiceSettings(run_dir=tmp_path / "run", tag_map=tmp_path / "known.json"))
+    poses = _constant_velocity(20)
+    unseen = SCENE.tags[-1].id
+    seen = {t.id for t in SCENE.tags} - {unseen}
+    for i in range(20):
+        node.on_poses(_tag_poses(i, 1_000 + i, poses[i], only=seen))
+    assert unseen not in node.slam.tag_map()
+    published = {t.tag_id: t for t in node.current_map("r1").tags}
+    assert set(published) == set(known) and published[unseen].observations == 0
+    np.testing.assert_allclose(published[unseen].world_from_tag, known[unseen][1])
+    node.write_outputs(tmp_path / "run")
+    saved = {t.id: t for t in load_tag_map(tmp_path / "run" / "map.json").tags}
+    assert set(saved) == set(known)
+    np.testing.assert_allclose(np.asarray(saved[unseen].world_from_tag), known[unseen][1])
+
+
 def test_a_map_query_takes_a_save_or_nothing() -> None:
     """The split queryable refuses what it does not know; the map's got the map back for `?foo=1`,
     `?save=abc` or a payload (a fresh-clone trial), saving nothing and saying nothing."""
