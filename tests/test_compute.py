@@ -57,12 +57,15 @@ def _switches(
         beta_ms_per_kB=0.18,
     )
     k, switches, at_best = 7, 0, 0
+    robot_ms, edge_ms = robot.ms_by_k(), edge.ms_by_k()
     for i in range(frames):
         lr, le = (1.0, 1.0) if i < 200 else (load_robot, load_edge)
         robot.observe(k=k, tags=3, network_ms=lr * 3 * CUMULATIVE[k], fixed_ms=lr * 35.0)
         edge.observe(k=k, tags=3, network_ms=le * 3 * (TAILS[k] + 0.5))
+        if i % 15 == 0:  # each side publishes its profile once a second (profile_period_secs): 15 fps
+            robot_ms, edge_ms = robot.ms_by_k(), edge.ms_by_k()
         costs = split_costs(
-            compute_ms=robot.ms_by_k(), edge_ms=edge.ms_by_k(), payload_kB=payload_kB, t0_ms=20.0, beta_ms_per_kB=0.18
+            compute_ms=robot_ms, edge_ms=edge_ms, payload_kB=payload_kB, t0_ms=20.0, beta_ms_per_kB=0.18
         )
         chosen = chooser.choose(costs, k).k
         switches += chosen != k
@@ -75,13 +78,16 @@ def _switches(
 def test_a_lasting_load_does_not_make_the_split_flap(load_robot: float, load_edge: float) -> None:
     """Each side learns its slowdown only at cuts where it runs most of the network; its stale scale
     fades back to the calibration. Faded within 30 frames, a load on both sides made the controller
-    leave the best cut every ~9 frames (a trial: 46 switches in 5.5 min); now it looks again every few
-    hundred frames, and stays where the truth says for >= 98 % of the frames."""
+    leave the best cut again and again (a trial: 46 switches in 5.5 min), each time for about a second
+    (until the next profile tells it); now it looks again every few hundred frames."""
     switches, at_best = _switches(load_robot, load_edge, stale_half_life_frames=ComputeEstimator.STALE_HALF_LIFE_FRAMES)
-    fast_fade, _ = _switches(load_robot, load_edge, stale_half_life_frames=30)
-    print(f"load {load_robot}/{load_edge}: {switches} switches (fade in 30: {fast_fade}), {at_best} of 2800 at best")
-    assert switches <= 50 and at_best >= 0.98 * 2800
-    assert load_robot != load_edge or fast_fade > 5 * switches  # (what it was)
+    fast_fade, fast_at_best = _switches(load_robot, load_edge, stale_half_life_frames=30)
+    print(
+        f"load {load_robot}/{load_edge}: {switches} switches, {at_best} of 2800 frames at the best cut "
+        f"(fade in 30 frames: {fast_fade}, {fast_at_best})"
+    )
+    assert switches <= 40 and at_best >= 0.9 * 2800 and at_best >= fast_at_best
+    assert load_robot == load_edge == 1.0 or fast_fade == switches == 0 or fast_fade > 3 * switches  # what it was
 
 
 def test_bad_calibration_is_rejected() -> None:

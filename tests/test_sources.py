@@ -478,9 +478,36 @@ def test_a_restarted_camera_goes_on_with_its_data_set(tmp_path: Path) -> None:
     first, _, published = _stream(settings, "resume1", 2)
     assert published == 2 and np.array_equal(first[1].image, _tag_image(1))
     again, gts, published = _stream(settings.model_copy(update={"max_frames": 0}), "resume1", 1, expect_gts=1)
-    assert published == 1 and np.array_equal(again[0].image, _tag_image(2))
+    assert published == 3 and np.array_equal(again[0].image, _tag_image(2))  # the run's count
     assert gts[0].world_from_camera[0, 3] == 2.0  # its own ground truth
     assert again[0].seq == 0  # a new camera session for slam, as any camera restart
     (tmp_path / "launcher.pid").unlink()  # a camera started by hand beside the run plays it all
     alone, _, published = _stream(settings.model_copy(update={"max_frames": 0}), "resume1", 3)
     assert published == 3 and np.array_equal(alone[0].image, _tag_image(0))
+
+
+def test_a_restarted_camera_counts_images_by_their_place_in_the_listing(tmp_path: Path) -> None:
+    """A data set with an unreadable image: the progress counts places in the listing, not images read,
+    so a camera restarted after the whole pass ends at once instead of skipping everything and failing
+    ('start_frame past the end') on every restart (a review); max_frames counts the run's frames."""
+    import os
+
+    folder, info, _ = _folder(tmp_path, n=4)
+    (folder / "0001.png").write_bytes(b"not an image")  # unreadable: skipped (said in the log)
+    (tmp_path / "groundtruth.tum").unlink()
+    (tmp_path / "launcher.pid").write_text(f"{os.getppid()}\n")
+    settings = CameraSettings(
+        robot_id="resume2", source="folder", path=str(folder), camera_info=info, fps=50.0, loop=False, run_dir=tmp_path
+    )
+    frames, _, published = _stream(settings, "resume2", 3)
+    assert published == 3 and np.array_equal(frames[1].image, _tag_image(2))
+    alone = open_session(ZenohSettings(mode="peer"))  # nobody listens: the camera ends before sending
+    try:
+        again = run_camera(settings.model_copy(update={"wait_for": []}), session=alone, stop=threading.Event())
+        assert again == 3  # the pass was complete: the source ends at once, the run's count kept
+        capped = settings.model_copy(update={"robot_id": "resume3", "max_frames": 2})
+        _, _, published = _stream(capped, "resume3", 2)
+        assert published == 2
+        assert run_camera(capped.model_copy(update={"wait_for": []}), session=alone, stop=threading.Event()) == 2
+    finally:
+        alone.close()

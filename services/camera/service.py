@@ -36,18 +36,22 @@ class FolderProgress:
     def of_run(cls, settings: CameraSettings) -> FolderProgress:
         return cls(settings.run_dir / f"camera_{settings.robot_id}.progress.json")
 
-    def read(self) -> tuple[int, int] | None:
-        """(completed passes, index of the next image), or None (no progress, or unreadable: from the start)."""
+    def read(self, listing: list[Path]) -> tuple[int, int, int] | None:
+        """(completed passes, index of the next image, frames published in the run), or None (no progress,
+        unreadable, or of another listing: from the start)."""
         try:
             doc = json.loads(self.path.read_text())
-            return int(doc["passes"]), int(doc["next_index"])
-        except (OSError, ValueError, KeyError, TypeError):
+            if doc.get("images") != len(listing) or doc.get("first") != str(listing[0]):
+                return None
+            return int(doc["passes"]), int(doc["next_index"]), int(doc.get("published", 0))
+        except (OSError, ValueError, KeyError, TypeError, AttributeError, IndexError):
             return None
 
-    def write(self, passes: int, next_index: int) -> None:
+    def write(self, listing: list[Path], passes: int, next_index: int, published: int) -> None:
         tmp = self.path.with_name(f".{self.path.name}.tmp")
+        doc = {"images": len(listing), "first": str(listing[0]), "passes": passes, "next_index": next_index}
         try:
-            tmp.write_text(json.dumps({"passes": passes, "next_index": next_index}))
+            tmp.write_text(json.dumps({**doc, "published": published}))
             os.replace(tmp, self.path)
         except OSError as exc:  # a side record: the stream goes on
             log.debug("camera progress not written to %s: %s", self.path, exc)
@@ -137,27 +141,28 @@ def run(
     span = source.span_nanos if isinstance(source, FolderSource) else None
     first = settings.start_frame  # the first pass starts later in the source (a fleet's robots at different places)
     progress = None
+    resumed = None
     if isinstance(source, FolderSource) and started_by_run_launcher(settings.run_dir):
         progress = FolderProgress.of_run(settings)
-        resumed = progress.read()
+        resumed = progress.read(source.files)
         if resumed is not None:
-            passes, first = resumed
+            passes, first, published = resumed  # (max_frames counts the run's frames, not this process's)
             log.info("restarted in this run: the data set goes on from image %d (pass %d)", first, passes + 1)
-            if first >= len(source.files):  # that pass was complete
-                if not settings.loops:
-                    log.info("the data set was played to its end before the restart")
-                    token.undeclare()
-                    viz.close()
-                    return 0
-                passes, first = passes + 1, 0
+            if settings.max_frames and published >= settings.max_frames:
+                log.info("the run's %d frames (max_frames) were sent before the restart", published)
+                token.undeclare()
+                viz.close()
+                return published
     next_t = time.monotonic()
     try:
         while not stop.is_set():
             produced = False
             shift = passes * span if span is not None else 0
+            sent_this_pass = 0
             for index, item in enumerate(source.frames()):
                 produced = True
-                if index < first and not published:
+                position = item.index if item.index is not None else index  # (a folder's skips unreadable images)
+                if position < first and not sent_this_pass:
                     continue  # not yet at the first pass's (or the resumed) start
                 now = time.monotonic()
                 if now < next_t and stop.wait(next_t - now):
@@ -204,8 +209,9 @@ def run(
                     viz.keypoints_gt(capture, gt_keypoints(item.world_from_camera))
                 seq += 1
                 published += 1
-                if progress is not None:
-                    progress.write(passes, index + 1)
+                sent_this_pass += 1
+                if progress is not None and isinstance(source, FolderSource):
+                    progress.write(source.files, passes, position + 1, published)
                 if settings.max_frames and published >= settings.max_frames:
                     log.info("published %d frames (max_frames)", published)
                     return published
@@ -213,8 +219,11 @@ def run(
                     return published
             if not produced:
                 raise RuntimeError("the source produced no frames")
-            if not published:  # the whole first pass was skipped: looping again would skip it again, forever
+            if not sent_this_pass and resumed is not None:
+                log.info("the pass was played to its end before the restart")
+            elif not published:  # the whole first pass was skipped: looping again would skip it again, forever
                 raise ValueError(f"start_frame {first} is past the source's last frame")
+            first = 0  # later passes start at the beginning
             if not settings.loops:
                 log.info("source ended after %d frames", published)
                 return published

@@ -27,7 +27,9 @@ class CameraSettings(ServiceSettings):
     # stamped forward on every new pass (pass n: + n x its span), so time never runs backwards.
     loop: bool | None = None
     max_frames: int = Field(default=0, ge=0)  # 0 = unlimited
-    start_frame: int = Field(default=0, ge=0)  # skip this many frames of the source's first pass
+    # skip this many frames of the source's first pass (a folder camera restarted by the run's launcher
+    # goes on from where it was instead)
+    start_frame: int = Field(default=0, ge=0)
     demo_frames: int = Field(default=150, ge=2)  # length of the demo scene's loop
 
     @property

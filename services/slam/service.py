@@ -69,20 +69,30 @@ class PoseJournal:
         self.path = path
         self.rotated = path.with_name(path.name + ".old")
         self._file: Any = None
+        self.failed = False
 
     def append(self, capture_nanos: int, source_nanos: int | None, world_from_camera: np.ndarray) -> None:
-        if self._file is None:
-            if not self.path.parent.is_dir():
-                return  # no run folder: nothing to resume from either
-            self._file = self.path.open("a", buffering=1)  # line-buffered: each pose reaches the OS
+        """One placed pose (a write that fails, a full disk say, is said once and the journal stops:
+        the poses are published all the same)."""
+        if self.failed:
+            return
         values = " ".join(f"{v:.9f}" for v in np.asarray(world_from_camera, np.float64)[:3].ravel())
-        self._file.write(f"{capture_nanos} {-1 if source_nanos is None else source_nanos} {values}\n")
+        try:
+            if self._file is None:
+                if not self.path.parent.is_dir():
+                    return  # no run folder: nothing to resume from either
+                self._file = self.path.open("a", buffering=1)  # line-buffered: each pose reaches the OS
+            self._file.write(f"{capture_nanos} {-1 if source_nanos is None else source_nanos} {values}\n")
+        except OSError as exc:
+            self.failed = True
+            log.warning("%s: cannot write (%s): a kill now loses the poses since the last checkpoint", self.path, exc)
 
     def rotate(self) -> None:
         """A checkpoint is being written from the state up to now: later poses go to a fresh file (what a
         checkpoint that never finished had rotated stays, with these lines after it)."""
         if self._file is not None:
-            self._file.close()
+            with contextlib.suppress(OSError):
+                self._file.close()
             self._file = None
         if not self.path.is_file():
             return
@@ -92,6 +102,16 @@ class PoseJournal:
             self.path.unlink()
         else:
             os.replace(self.path, self.rotated)
+
+    def discard(self, why: str) -> None:
+        """A journal this process cannot resume from (no checkpoint to append it to): said, then removed."""
+        lines = 0
+        for path in (self.rotated, self.path):
+            with contextlib.suppress(OSError):
+                lines += len(path.read_text().splitlines())
+                path.unlink()
+        if lines:
+            log.warning("%s: %d poses of a previous process not resumed (%s)", self.path.name, lines, why)
 
     def drop_rotated(self) -> None:
         """The checkpoint holds what the rotated file had."""
@@ -253,7 +273,10 @@ class SlamNode:
             run = self.runs[robot] = RobotRun(robot)
             path = self.settings.run_dir / self._trajectory_file(robot)
             journal = PoseJournal(path.with_name(path.name + ".journal"))
-            if self.resumed is not None and path.is_file():
+            anchored = self.resumed is not None and (self.resumed.anchor_tag_id is not None or bool(self.world_tags))
+            if self.resumed is not None and path.is_file() and not anchored:
+                journal.discard("the checkpoint names no anchor: their world may not be this one")
+            if self.resumed is not None and path.is_file() and anchored:
                 run.previous_stamps_nanos, run.previous_poses = read_tum_nanos(path)
                 gt_path = self.settings.run_dir / self._trajectory_file(robot, "groundtruth")
                 if gt_path.is_file():
@@ -266,6 +289,10 @@ class SlamNode:
                 )
                 if len(stamps):
                     log.info("resumed %s and %d poses of its journal (%s)", path.name, len(stamps), journal.path.name)
+            elif self.resumed is None or not path.is_file():
+                # killed before its first checkpoint (or this robot before it was in one): nothing to
+                # append the journal's poses to
+                journal.discard("no checkpoint of this robot's trajectory to resume them after")
             # (the journal's lines stay on disk until this process's first checkpoint holds them: killed
             # before it, the next process reads them again)
             run.journal = journal if self.settings.resume else None
@@ -424,9 +451,7 @@ class SlamNode:
                     )
                 )
         tags.sort(key=lambda m: m.tag_id)
-        anchor = self.slam.anchor
-        if anchor is None and self.resumed is not None:
-            anchor = self.resumed.anchor_tag_id
+        anchor = self._anchor_id()
         anchor_id = anchor or 0
         digest = map_digest(anchor_id, tags)
         if self.given is not None and self.given[0] == self.revision and self.given[1] != digest:
@@ -434,6 +459,15 @@ class SlamNode:
             _write_revision(self.revision_path, self.revision)
         self.given = (self.revision, digest)
         return TagMap(robot_id=robot_id, revision=self.revision, anchor_tag_id=anchor_id, tags=tags)
+
+    def _anchor_id(self) -> int | None:
+        """The map's anchor: slam's, else the checkpoint's, else the configured one (its priors are
+        published before slam has chosen: a map fed back must keep it)."""
+        if self.slam.anchor is not None:
+            return self.slam.anchor
+        if self.resumed is not None and self.resumed.anchor_tag_id is not None:
+            return self.resumed.anchor_tag_id
+        return self.slam.settings.anchor_tag_id
 
     def current_map(self, robot_id: str) -> TagMap:
         """Thread-safe map snapshot (the one shared map, addressed to `robot_id`)."""
@@ -472,21 +506,17 @@ class SlamNode:
         # map.json is a tag map (loadable as slam's or edge_infer's `tag_map`); run statistics go apart.
         # A tag in a fragment not tied to the world goes in with its size but no pose: its pose is a
         # gap's guess, and a resumed slam takes every pose in map.json as a world prior.
-        anchor = (
-            self.slam.anchor if self.slam.anchor is not None else (self.resumed.anchor_tag_id if self.resumed else None)
-        )
+        anchor = self._anchor_id()
         world = {t: v for t, v in tag_map.items() if t not in bridged}
         posed = tag_map_from_poses(world, anchor_tag_id=None, sigmas=sigmas)
         sizes_only |= {t: tag_map[t][0] for t in bridged}
         # built whole, then checked once (each id once, the anchor among them) as a reader will check it
-        checkpoint = TagMapFile(
-            default_size_m=posed.default_size_m,
-            anchor_tag_id=anchor,
-            tags=sorted(
-                [*posed.tags, *(TagSpec(id=t, size_m=size) for t, size in sizes_only.items())],
-                key=lambda t: t.id,
-            ),
+        tags = sorted(
+            [*posed.tags, *(TagSpec(id=t, size_m=size) for t, size in sizes_only.items())], key=lambda t: t.id
         )
+        if anchor not in {t.id for t in tags}:
+            anchor = None  # (a configured anchor not placed yet: a map names only an anchor it lists)
+        checkpoint = TagMapFile(default_size_m=posed.default_size_m, anchor_tag_id=anchor, tags=tags)
         write_tag_map(run_dir / "map.json", checkpoint)
         out: dict[str, Any] = {
             "frames": frames,

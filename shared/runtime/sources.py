@@ -42,6 +42,7 @@ class SourceFrame:
     image: NDArray[np.uint8]
     world_from_camera: Array | None  # ground truth, when the source knows it
     stamp_nanos: int | None = None  # the data set's time of this frame (TUM rgb.txt), when it has one
+    index: int | None = None  # a folder's: the image's place in its listing (unreadable ones are skipped)
 
 
 class FrameSource(Protocol):
@@ -317,7 +318,7 @@ class FolderSource:
                 log.warning("skipping %s: unreadable or not %dx%d", f, self.camera.width, self.camera.height)
                 continue
             stamp = None if self.stamps_nanos is None else self.stamps_nanos[i]
-            yield SourceFrame(np.ascontiguousarray(img), None if self.gt is None else self.gt[i], stamp)
+            yield SourceFrame(np.ascontiguousarray(img), None if self.gt is None else self.gt[i], stamp, index=i)
 
 
 class CaptureSource:
