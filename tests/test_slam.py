@@ -572,6 +572,16 @@ def test_a_killed_slam_loses_none_of_the_poses_it_placed_after_its_last_checkpoi
             np.testing.assert_allclose(pose, published[stamp], atol=1e-6)
     journal = tmp_path / "trajectory.tum.journal"
     assert not journal.exists() or not journal.read_text()  # the checkpoint holds them all
+    # a line the kill cut short, or garbage, is skipped; the lines around it are read
+    from services.slam.service import PoseJournal
+
+    cut = PoseJournal(tmp_path / "cut.journal")
+    cut.append(5, -1, np.eye(4))
+    cut.append(7, 70, np.eye(4))
+    with cut.path.open("a") as f:
+        f.write("9 -1 1.0 0.0\nnot a pose at all but fourteen words long so that only its numbers fail x\n")
+    assert cut.read(source_time=False)[0].tolist() == [5, 7]
+    assert cut.read(source_time=True)[0].tolist() == [70]  # (a line without a data-set stamp: left out)
     assert not (tmp_path / "trajectory.tum.journal.old").exists()
 
 

@@ -462,19 +462,8 @@ def test_a_restarted_camera_goes_on_with_its_data_set(tmp_path: Path) -> None:
     The first camera stops after two images (max_frames, as a crash would); the second sends the third."""
     import os
 
-    folder, info, gt = _folder(tmp_path)
+    settings = _looping_folder(tmp_path, "resume1", max_frames=2).model_copy(update={"loop": False})
     (tmp_path / "launcher.pid").write_text(f"{os.getppid()}\n")  # this process plays the run's launcher's child
-    settings = CameraSettings(
-        robot_id="resume1",
-        source="folder",
-        path=str(folder),
-        camera_info=info,
-        groundtruth=gt,
-        fps=50.0,
-        loop=False,
-        max_frames=2,
-        run_dir=tmp_path,
-    )
     first, _, published = _stream(settings, "resume1", 2)
     assert published == 2 and np.array_equal(first[1].image, _tag_image(1))
     again, gts, published = _stream(settings.model_copy(update={"max_frames": 0}), "resume1", 1, expect_gts=1)
@@ -511,3 +500,22 @@ def test_a_restarted_camera_counts_images_by_their_place_in_the_listing(tmp_path
         assert run_camera(capped.model_copy(update={"wait_for": []}), session=alone, stop=threading.Event()) == 2
     finally:
         alone.close()
+
+
+def test_a_progress_file_that_is_not_this_data_sets_is_ignored(tmp_path: Path) -> None:
+    """The progress a restarted camera reads is refused, and the data set played from its start, when it
+    is damaged or names another listing (another folder, images added): never a crash, never a skip."""
+    from services.camera.service import FolderProgress
+
+    settings = _looping_folder(tmp_path, "prog1", max_frames=0)
+    assert settings.camera_info is not None
+    source = FolderSource(Path(settings.path), settings.camera_info, settings.groundtruth)
+    progress = FolderProgress.of_run(settings, source)
+    progress.write(1, 2, 5)
+    assert progress.read() == (1, 2, 5)
+    for damaged in ("", "{", "[]", '{"images": 3}', progress.path.read_text().replace('"passes": 1', '"passes": "x"')):
+        progress.path.write_text(damaged)
+        assert progress.read() is None, damaged
+    progress.write(1, 2, 5)
+    other = FolderProgress(progress.path, source.files[:2])  # a listing of two images
+    assert other.read() is None

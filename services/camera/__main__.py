@@ -14,7 +14,7 @@ checked: list[FrameSource | None] = []  # the source check_source made: the loop
 
 def _run(settings: CameraSettings, session: zenoh.Session, stop: threading.Event) -> object:
     run(settings, session=session, stop=stop, source=checked[0] if checked else None)
-    return None if stop.is_set() else SOURCE_ENDED  # returned by itself: the source ended (or max_frames)
+    return SOURCE_ENDED  # (service_main: unless the stop ended it)
 
 
 raise SystemExit(service_main("camera", CameraSettings, _run, check=lambda s: checked.append(check_source(s))))

@@ -29,29 +29,32 @@ class FolderProgress:
     (a trial's restart at 17 s gave trajectory.tum 220 rows for 150 stamps, jumping back in time).
     Written after each frame (a rename, no fsync: it has to survive the process, not the host)."""
 
-    def __init__(self, path: Path) -> None:
-        self.path = path
+    def __init__(self, path: Path, listing: list[Path]) -> None:
+        self.path, self.listing = path, listing
 
     @classmethod
-    def of_run(cls, settings: CameraSettings) -> FolderProgress:
-        return cls(settings.run_dir / f"camera_{settings.robot_id}.progress.json")
+    def of_run(cls, settings: CameraSettings, source: FolderSource) -> FolderProgress:
+        return cls(settings.run_dir / f"camera_{settings.robot_id}.progress.json", source.files)
 
-    def read(self, listing: list[Path]) -> tuple[int, int, int] | None:
+    def _listing_doc(self) -> dict[str, object]:
+        return {"images": len(self.listing), "first": str(self.listing[0])}
+
+    def read(self) -> tuple[int, int, int] | None:
         """(completed passes, index of the next image, frames published in the run), or None (no progress,
         unreadable, or of another listing: from the start)."""
         try:
             doc = json.loads(self.path.read_text())
-            if doc.get("images") != len(listing) or doc.get("first") != str(listing[0]):
+            if {k: doc.get(k) for k in ("images", "first")} != self._listing_doc():
                 return None
-            return int(doc["passes"]), int(doc["next_index"]), int(doc.get("published", 0))
-        except (OSError, ValueError, KeyError, TypeError, AttributeError, IndexError):
+            return int(doc["passes"]), int(doc["next_index"]), int(doc["published"])
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
             return None
 
-    def write(self, listing: list[Path], passes: int, next_index: int, published: int) -> None:
+    def write(self, passes: int, next_index: int, published: int) -> None:
         tmp = self.path.with_name(f".{self.path.name}.tmp")
-        doc = {"images": len(listing), "first": str(listing[0]), "passes": passes, "next_index": next_index}
+        doc = {**self._listing_doc(), "passes": passes, "next_index": next_index, "published": published}
         try:
-            tmp.write_text(json.dumps({**doc, "published": published}))
+            tmp.write_text(json.dumps(doc))
             os.replace(tmp, self.path)
         except OSError as exc:  # a side record: the stream goes on
             log.debug("camera progress not written to %s: %s", self.path, exc)
@@ -143,18 +146,16 @@ def run(
     progress = None
     resumed = None
     if isinstance(source, FolderSource) and started_by_run_launcher(settings.run_dir):
-        progress = FolderProgress.of_run(settings)
-        resumed = progress.read(source.files)
+        progress = FolderProgress.of_run(settings, source)
+        resumed = progress.read()
         if resumed is not None:
             passes, first, published = resumed  # (max_frames counts the run's frames, not this process's)
             log.info("restarted in this run: the data set goes on from image %d (pass %d)", first, passes + 1)
-            if settings.max_frames and published >= settings.max_frames:
-                log.info("the run's %d frames (max_frames) were sent before the restart", published)
-                token.undeclare()
-                viz.close()
-                return published
     next_t = time.monotonic()
     try:
+        if settings.max_frames and published >= settings.max_frames:
+            log.info("the run's %d frames (max_frames) were sent before the restart", published)
+            return published
         while not stop.is_set():
             produced = False
             shift = passes * span if span is not None else 0
@@ -210,8 +211,8 @@ def run(
                 seq += 1
                 published += 1
                 sent_this_pass += 1
-                if progress is not None and isinstance(source, FolderSource):
-                    progress.write(source.files, passes, position + 1, published)
+                if progress is not None:
+                    progress.write(passes, position + 1, published)
                 if settings.max_frames and published >= settings.max_frames:
                     log.info("published %d frames (max_frames)", published)
                     return published

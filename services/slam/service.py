@@ -117,11 +117,6 @@ class PoseJournal:
         """The checkpoint holds what the rotated file had."""
         self.rotated.unlink(missing_ok=True)
 
-    def close(self) -> None:
-        if self._file is not None:
-            self._file.close()
-            self._file = None
-
     def read(self, *, source_time: bool) -> tuple[np.ndarray, np.ndarray]:
         """(stamps ns, poses 4x4) of both files, in the data set's time (lines without a data-set stamp
         left out) or capture time, sorted; a line cut short by the kill is skipped."""
@@ -273,25 +268,24 @@ class SlamNode:
             run = self.runs[robot] = RobotRun(robot)
             path = self.settings.run_dir / self._trajectory_file(robot)
             journal = PoseJournal(path.with_name(path.name + ".journal"))
-            anchored = self.resumed is not None and (self.resumed.anchor_tag_id is not None or bool(self.world_tags))
-            if self.resumed is not None and path.is_file() and not anchored:
-                journal.discard("the checkpoint names no anchor: their world may not be this one")
-            if self.resumed is not None and path.is_file() and anchored:
+            if self.resumed is not None and path.is_file():
                 run.previous_stamps_nanos, run.previous_poses = read_tum_nanos(path)
                 gt_path = self.settings.run_dir / self._trajectory_file(robot, "groundtruth")
                 if gt_path.is_file():
                     run.previous_gt_stamps_nanos, run.previous_gt_poses = read_tum_nanos(gt_path)
                 run.previous_time = self._resumed_time(robot)
-                # what the killed process placed after its last checkpoint
-                stamps, poses = journal.read(source_time=run.previous_time != "capture")
-                run.previous_stamps_nanos, run.previous_poses = _after(
-                    run.previous_stamps_nanos, run.previous_poses, stamps, poses
-                )
-                if len(stamps):
-                    log.info("resumed %s and %d poses of its journal (%s)", path.name, len(stamps), journal.path.name)
-            elif self.resumed is None or not path.is_file():
-                # killed before its first checkpoint (or this robot before it was in one): nothing to
-                # append the journal's poses to
+                if self.resumed.anchor_tag_id is None and not self.world_tags:
+                    journal.discard("the checkpoint names no anchor: their world may not be this one")
+                else:  # what the killed process placed after its last checkpoint
+                    stamps, poses = journal.read(source_time=run.previous_time != "capture")
+                    run.previous_stamps_nanos, run.previous_poses = _after(
+                        run.previous_stamps_nanos, run.previous_poses, stamps, poses
+                    )
+                    if len(stamps):
+                        log.info(
+                            "resumed %s and %d poses of its journal (%s)", path.name, len(stamps), journal.path.name
+                        )
+            else:  # killed before its first checkpoint (or this robot before it was in one)
                 journal.discard("no checkpoint of this robot's trajectory to resume them after")
             # (the journal's lines stay on disk until this process's first checkpoint holds them: killed
             # before it, the next process reads them again)

@@ -7,6 +7,7 @@ the demo tag map, `pids`, and `summary.json` at exit. runs/current points at the
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import logging
 import os
@@ -203,6 +204,10 @@ class Service:
         return last_error_line(tail, max_chars=max_chars)
 
 
+# A service's log line of a warning or worse (shared.runtime.logs' format: time, process, level, logger).
+_PROBLEM_LINE = re.compile(r"^\S+ \S+ (WARNING|ERROR|CRITICAL) \S+: (.*)$")
+
+
 def last_error_line(log_text: str, *, max_chars: int = 300) -> str | None:
     """Why a service ended, from its log text: the later of its last ERROR line (without its time and
     logger: `cannot open its Zenoh session: ...`) and the exception line that ends its last traceback;
@@ -211,9 +216,9 @@ def last_error_line(log_text: str, *, max_chars: int = 300) -> str | None:
     lines = log_text.splitlines()
     error_at, error = -1, ""
     for i in range(len(lines) - 1, -1, -1):
-        found = re.match(r"\S+ \S+ (?:ERROR|CRITICAL) \S+: (.*)$", lines[i])
-        if found:
-            error_at, error = i, found[1]
+        found = _PROBLEM_LINE.match(lines[i])
+        if found and found[1] != "WARNING":
+            error_at, error = i, found[2]
             break
     tracebacks = [i for i, line in enumerate(lines) if line.startswith("Traceback (most recent call last)")]
     exception = ""
@@ -294,6 +299,13 @@ def _waits_ms(msg: TagPoses) -> dict[str, float]:
     }
 
 
+def _keep_newest(d: dict[Any, Any], limit: int) -> None:
+    """Drop the oldest half of an insertion-ordered dict grown past `limit`."""
+    if len(d) > limit:
+        for old in list(d)[: limit // 2]:
+            del d[old]
+
+
 @dataclass
 class Monitor:
     """Subscribes to TagPoses, SLAM poses and ground truth; keeps per-frame records and prints a line per
@@ -368,6 +380,12 @@ class Monitor:
         msg = self._decode(payload, TagPoses)
         if msg is None:
             return
+        with self._lock:
+            if (msg.capture_nanos, msg.seq) in self._recent_frames:
+                self.repeated += 1
+                return
+            self._recent_frames[(msg.capture_nanos, msg.seq)] = None
+            _keep_newest(self._recent_frames, 20_000)
         rec: dict[str, Any] = {
             "seq": msg.seq,
             "capture_nanos": msg.capture_nanos,
@@ -383,16 +401,7 @@ class Monitor:
             "errors_cm": self._errors(msg),
             "sent_nanos": msg.link.sent_nanos if msg.link is not None else None,  # None: computed on board
         }
-        with self._lock:
-            frame = (msg.capture_nanos, msg.seq)
-            if frame in self._recent_frames:
-                self.repeated += 1
-                return
-            self._recent_frames[frame] = None
-            if len(self._recent_frames) > 20_000:  # the newest frames only (insertion order)
-                for old in list(self._recent_frames)[:10_000]:
-                    del self._recent_frames[old]
-        listed = {t.id for t in self.tag_map.tags} if self.tag_map is not None else set()
+        listed = self._listed_ids
         unlisted = {t.tag_id: t.tag_size_m for t in msg.tags if listed and t.tag_id not in listed}
         with self._lock:
             for tag_id, size_m in unlisted.items():
@@ -411,6 +420,11 @@ class Monitor:
                 self.frames_by_k[msg.split_k] += 1
             if self.max_records is not None and len(self.records) > self.max_records:
                 del self.records[: len(self.records) // 2]
+
+    @functools.cached_property
+    def _listed_ids(self) -> frozenset[int]:
+        """The ids the run's tag map lists (none: no map, or sizes by default only)."""
+        return frozenset(t.id for t in self.tag_map.tags) if self.tag_map is not None else frozenset()
 
     def notices(self) -> list[str]:
         """What the run should be told once, since the last call (a tag missing from its map)."""
@@ -509,9 +523,7 @@ class Monitor:
             with self._lock:
                 self.stamps_total += 1
                 self._source_stamps[stamp.capture_nanos] = stamp.source_stamp_nanos
-                if len(self._source_stamps) > 20_000:  # a dict keeps insertion order: the oldest go
-                    for old in list(self._source_stamps)[:10_000]:
-                        del self._source_stamps[old]
+                _keep_newest(self._source_stamps, 20_000)
 
     def _errors(self, msg: TagPoses) -> list[float]:
         if self.tag_map is None:
@@ -1278,14 +1290,13 @@ def logged_problems(run_dir: Path, *, examples: int = 3) -> dict[str, dict[str, 
     messages (stamps and logger names left out): what a run said only in a log, such as a data set's
     unreadable image, is in summary.json too (a trial found it only in camera.log)."""
     out: dict[str, dict[str, Any]] = {}
-    pattern = re.compile(r"^\S+ \S+ (WARNING|ERROR|CRITICAL) \S+: (.*)$")
     for path in sorted(run_dir.glob("*.log")):
         counts: Counter[str] = Counter()
         first: list[str] = []
         try:
             with path.open(errors="replace") as f:  # line by line: a long run's log may be large
                 for line in f:
-                    found = pattern.match(line.rstrip("\n"))
+                    found = _PROBLEM_LINE.match(line.rstrip("\n"))
                     if found is None:
                         continue
                     counts["errors" if found[1] != "WARNING" else "warnings"] += 1
