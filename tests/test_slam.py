@@ -505,6 +505,10 @@ def test_a_restarted_slam_resumes_its_map_and_trajectory(tmp_path: Path) -> None
     assert resumed_map.revision > revision_before
     assert {t.tag_id for t in resumed_map.tags} == {t.id for t in before.tags}
     assert resumed_map.anchor_tag_id == before.anchor_tag_id
+    # each tag's observations go on counting from the checkpoint's (a trial read 0 after a restart)
+    counted = {t.tag_id: t.observations for t in first.current_map("r1").tags}
+    assert all(n > 0 for n in counted.values())
+    assert {t.tag_id: t.observations for t in resumed_map.tags} == counted
     for i in range(15, 30):
         second.on_ground_truth(1_000 + i, poses[i])
         res = second.on_poses(_tag_poses(i, 1_000 + i, poses[i]))[0]
@@ -521,6 +525,11 @@ def test_a_restarted_slam_resumes_its_map_and_trajectory(tmp_path: Path) -> None
     assert {t.id for t in after.tags} >= {t.id for t in before.tags}
     stamps = [t for t, _ in read_tum(tmp_path / "trajectory.tum")]
     assert len(stamps) == 30 and stamps == sorted(stamps)
+    assert {int(t): n for t, n in stats["observations_by_tag"].items()} == {
+        t.tag_id: t.observations for t in second.current_map("r1").tags
+    }
+    after_counts = {int(t): n for t, n in stats["observations_by_tag"].items()}
+    assert all(after_counts[t] >= n for t, n in counted.items()) and sum(after_counts.values()) > sum(counted.values())
     # The world frame did not move: a tag's pose before and after agrees.
     b = {t.id: np.asarray(t.world_from_tag) for t in before.tags}
     a = {t.id: np.asarray(t.world_from_tag) for t in after.tags}

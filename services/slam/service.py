@@ -203,6 +203,9 @@ class SlamNode:
                     update={"anchor_tag_id": slam_settings.anchor_tag_id or tm.anchor_tag_id}
                 )
         self.slam = MarkerSlam(slam_settings, known_tags=known, known_sigmas=known_sigmas, surveyed=surveyed)
+        if self.resumed is not None:  # each tag's observations go on counting (a trial read 0 after a restart)
+            listed = {t.id for t in self.resumed.tags}
+            self.slam.state.observations |= _resumed_observations(settings.run_dir / "slam.json", listed)
         # The sizes slam's map gives: a tag the edge solved at another size (its own tag map, or none) is
         # rescaled to this one (PnP's translation scales with the size), said once per tag.
         self.sizes = configured  # (its sizes by id below: looked up for every tag of every frame)
@@ -438,7 +441,7 @@ class SlamNode:
                         tag_id=tag_id,
                         size_m=size,
                         world_from_tag=prior_pose,
-                        observations=0,
+                        observations=self.slam.state.observations.get(tag_id, 0),  # (a resumed count)
                         bridged=False,
                         position_sigma_m=pos,
                         rotation_sigma_deg=None if rot is None else math.degrees(rot),
@@ -479,6 +482,7 @@ class SlamNode:
             state = self.slam.state
             frames, lost, rejected = state.frames, state.lost, state.rejected_ambiguous
             fragments, jumps = state.fragments, state.jumps
+            observations = dict(state.observations)
             soft_skipped, soft_localised = state.soft_reads_skipped, state.soft_reads_localised
             tracked_skipped, tracked_localised = state.tracked_skipped, state.tracked_localised
             robots = sorted(self.runs)
@@ -516,6 +520,8 @@ class SlamNode:
             "frames": frames,
             "poses": sum(r["poses"] for r in per_robot.values()),
             "tags": len(tag_map),
+            # per tag: the views slam used over the run (a restarted slam goes on from these)
+            "observations_by_tag": {str(t): n for t, n in sorted(observations.items())},
             "lost_frames": lost,
             "rejected_ambiguous": rejected,
             "fragments": fragments,  # map fragments begun after long gaps without tags
@@ -870,3 +876,16 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
         summary = guard.run("final save", 0, lambda: node.write_outputs(settings.run_dir))
         log.info("slam outputs in %s: %s", settings.run_dir, summary)
         viz.close()
+
+
+def _resumed_observations(stats_path: Path, listed: set[int]) -> dict[int, int]:
+    """Each checkpointed tag's observation count as slam.json states it (`observations_by_tag`), for the
+    tags the checkpoint lists; nothing when the file is missing or damaged (the
+    counts are statistics: slam resumes all the same)."""
+    try:
+        stats = json.loads(stats_path.read_text())
+        counts = stats.get("observations_by_tag", {}) if isinstance(stats, dict) else {}
+        out = {int(t): int(n) for t, n in counts.items()}
+    except (OSError, ValueError, TypeError, AttributeError):
+        return {}
+    return {t: n for t, n in out.items() if t in listed and n >= 0}
