@@ -204,3 +204,49 @@ def test_the_delay_line_records_each_profile_applied_in_its_run_folder_only(tmp_
     answer = request({"delay_ms": 39.9, "event": event("5g", 60)}, path=linked)
     assert answer["ok"] is True and answer["recorded"] is False  # the change holds, nothing written through
     assert target.read_text() == "keep\n"
+
+
+@pytest.mark.multiprocess
+def test_a_link_in_use_is_never_torn_down_by_a_probe_that_refuses(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A trial: `link probe --profile 5g` beside a running `link up` (or a run) said the link was in use,
+    then removed it on its way out, and `link up` went on claiming a link that was gone. Now the probe
+    refuses and leaves the link as it is; `link down` says what it removed, and `link up` notices that
+    its link is gone and ends."""
+    reason = unavailable_reason()
+    if reason is not None:
+        pytest.skip(reason)
+    import subprocess
+    import sys
+
+    from shared.tools.linkemu import LinkEmulator, LinkEmulatorSettings
+
+    prefix = "stq"
+    emu = LinkEmulator(LinkEmulatorSettings(prefix=prefix))
+    holder = subprocess.Popen(
+        [sys.executable, "-m", "shared.tools.cli", "link", "up", "--profile", "5g", "--prefix", prefix],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert holder.stdout is not None
+        assert holder.stdout.readline().startswith("link up:")  # printed once the link is up
+        assert emu.is_up()
+        argv = ["link", "probe", "--profile", "5g", "--prefix", prefix, "--repetitions", "1"]
+        assert main([*argv, "--json", str(tmp_path / "p.json")]) == 2
+        err = capsys.readouterr().err
+        assert f"the emulated link with prefix '{prefix}' is up, held by pid {holder.pid}" in err, err
+        assert emu.is_up() and holder.poll() is None  # untouched
+        assert main(["link", "down", "--prefix", prefix]) == 0
+        assert capsys.readouterr().out.strip() == f"link {prefix} down"
+        assert holder.wait(timeout=10) == 1
+        assert holder.stderr is not None and "was removed by another process" in holder.stderr.read()
+        assert main(["link", "down", "--prefix", prefix]) == 0
+        assert capsys.readouterr().out.strip() == f"no emulated link with prefix '{prefix}' was up"
+    finally:
+        if holder.poll() is None:
+            holder.terminate()
+            holder.wait(timeout=10)
+        emu.down()

@@ -481,9 +481,18 @@ def _cmd_link_up(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    from shared.runtime.waiting import until_set
-
-    until_set(stop)
+    # Until Ctrl-C, or until the link is gone under it (`link down`, the delay line killed): then it
+    # says so and ends, rather than claim a link that is not there (a trial's kept running).
+    while not stop.wait(0.5):
+        if not emu.is_up():
+            print(
+                f"splittag link up: the emulated link with prefix {s.prefix!r} was removed by another process "
+                "(`splittag link down`?) or its delay line died; ending",
+                file=sys.stderr,
+                flush=True,
+            )
+            emu.down()
+            return 1
     emu.down()
     return 0
 
@@ -505,7 +514,10 @@ def _cmd_link_set(args: argparse.Namespace) -> int:
 def _cmd_link_down(args: argparse.Namespace) -> int:
     from shared.tools.linkemu import LinkEmulator, LinkEmulatorSettings
 
-    LinkEmulator(LinkEmulatorSettings(prefix=args.prefix)).down()
+    emu = LinkEmulator(LinkEmulatorSettings(prefix=args.prefix))
+    was_up = emu.is_up()
+    emu.down()
+    print(f"link {args.prefix} down" if was_up else f"no emulated link with prefix {args.prefix!r} was up")
     return 0
 
 

@@ -213,6 +213,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--delay-ms", type=float, required=True)
     ap.add_argument("--control", type=Path, required=True)
     ap.add_argument("--events", type=Path, default=None, help="append the requests' link events to this file")
+    # the process that started it (`link up`, a launcher): while it runs, the link is in use, not a leftover
+    ap.add_argument("--owner-pid", type=int, default=None)
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s delayline %(levelname)s %(message)s")
     return serve(args.tun, args.delay_ms, args.control, args.events)

@@ -161,6 +161,35 @@ def _is_delay_line(pid: int) -> bool:
         return False
 
 
+def delay_line_owner(pid: int) -> int | None:
+    """The live process that started delay line `pid` (`link up`, a launcher, a bench; its
+    `--owner-pid`), or None when that process is gone: a crashed run's leftover."""
+    try:
+        args = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    except OSError:
+        return None
+    if b"--owner-pid" not in args:
+        return None  # (started by an older version: taken for a leftover, as before)
+    at = args.index(b"--owner-pid") + 1
+    try:
+        owner = int(args[at])
+        os.kill(owner, 0)
+    except (IndexError, ValueError, ProcessLookupError):
+        return None
+    except PermissionError:
+        return owner  # alive, another user's
+    return owner
+
+
+def _describe(pid: int) -> str:
+    try:
+        words = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    except OSError:
+        return f"pid {pid}"
+    text = " ".join(w.decode(errors="replace") for w in words if w)
+    return f"pid {pid}: {text[:120]}"
+
+
 class LinkEmulatorSettings(BaseModel):
     """Names and addresses of the emulated link. A prefix keeps the namespaces and links of parallel
     emulations apart; the management address lives in the root namespace, so parallel emulations also
@@ -247,6 +276,9 @@ class LinkEmulator:
         self.settings = settings or LinkEmulatorSettings()
         self.log_dir = log_dir
         self._delay: subprocess.Popen[bytes] | None = None
+        # Whether up() took this prefix's namespaces over: only then does leaving the `with` block tear
+        # them down (a refused up() used to remove the running link it refused to touch: a trial).
+        self.owned = False
 
     # -- lifecycle -------------------------------------------------------------------------------
     def refuse_if_in_use(self) -> list[int]:
@@ -263,6 +295,17 @@ class LinkEmulator:
                 f"the emulated link's namespaces are in use by a running deployment ({held}): stop it first "
                 "(`splittag down`), or give this emulation another prefix and addresses"
             )
+        # A delay line whose starter still runs is a link in use (`splittag link up`, a launcher, a
+        # bench): a probe took it for a leftover, and the live link vanished under its owner (a trial).
+        owners = {o for pids in users.values() for p in pids if (o := delay_line_owner(p)) is not None}
+        owners.discard(os.getpid())
+        if owners:
+            holders = "; ".join(map(_describe, sorted(owners)))
+            raise LinkEmulationUnavailable(
+                f"the emulated link with prefix {s.prefix!r} is up, held by {holders}: "
+                "use it as it is (`splittag link set PROFILE` switches it), stop that process first, or give "
+                "this emulation another prefix and addresses"
+            )
         return [p for pids in users.values() for p in pids]
 
     def up(self, initial: LinkProfile) -> LinkEmulator:
@@ -274,6 +317,7 @@ class LinkEmulator:
         for pid in self.refuse_if_in_use():  # a crashed run's delay line (it runs in a session of its own)
             with contextlib.suppress(OSError):
                 os.kill(pid, 9)
+        self.owned = True
         self.down()  # leftovers of a crashed run with the same prefix
         owner = address_owner(_run(["ip", "-o", "-4", "addr", "show"], check=False).stdout, s.mgmt_root_addr)
         if owner is not None:
@@ -375,6 +419,8 @@ class LinkEmulator:
                     str(delay_ms),
                     "--control",
                     str(s.control_path),
+                    "--owner-pid",
+                    str(os.getpid()),
                     *(["--events", str(Path(self.log_dir).resolve() / EVENTS_FILE)] if self.log_dir else []),
                 ],
             ),
@@ -454,4 +500,14 @@ class LinkEmulator:
         return self
 
     def __exit__(self, *exc: tuple[type[BaseException] | None, BaseException | None, TracebackType | None]) -> None:
-        self.down()
+        if self.owned:
+            self.down()
+
+    def is_up(self) -> bool:
+        """Whether this prefix's namespaces exist and its delay line answers (a live `link up` checks it:
+        another process may have removed the link under it)."""
+        s = self.settings
+        listed = _run(["ip", "netns", "list"], check=False).stdout.split()
+        if s.robot_ns not in listed or s.edge_ns not in listed:
+            return False
+        return self._delay is None or self._delay.poll() is None
