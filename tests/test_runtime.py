@@ -192,6 +192,39 @@ def test_onnx_halves_run_in_onnx_runtime_like_the_weights(tmp_path: Path) -> Non
     kp = tail.run(None, {"cut3": z})[0]
     fp32 = load_split_net(MODELS, "fp32")
     np.testing.assert_allclose(kp, fp32.tail(rois, 0), atol=2e-5)
+    # each file is whole: the weights inside, nothing beside it that the manifest does not name (a trial
+    # copied the listed files and got graphs that did not load)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["head_3.onnx", "manifest.json", "tail_3.onnx"]
+    assert all(f["needs"] == [f["file"]] for f in manifest["files"])
+
+
+def test_openvino_halves_take_the_uint8_roi_and_match_the_services_int8(tmp_path: Path) -> None:
+    """The exported int8 IR, compiled with the manifest's settings, gives the services' int8 keypoints
+    exactly; its head takes the uint8 ROI as the ONNX head does (it took the normalised float ROI, and a
+    uint8 one went in silently, keypoints 21 px off), and the manifest says to compile in f32 (a CPU
+    with bf16 otherwise runs its float parts in bf16: a trial's keypoints moved by up to 0.9 px)."""
+    import openvino as ov
+
+    from shared.tools.cli import main
+
+    assert main(["export", "--out", str(tmp_path), "--format", "openvino", "--precision", "int8", "--ks", "3"]) == 0
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    head_file, tail_file = manifest["files"]
+    assert head_file["input"] == {"name": "roi", "shape": [-1, 1, 256, 256], "dtype": "uint8"}
+    assert manifest["openvino_compile"]["INFERENCE_PRECISION_HINT"] == "f32"
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        ["manifest.json", *head_file["needs"], *tail_file["needs"]]
+    )
+    core = ov.Core()
+    head, tail = (
+        core.compile_model(str(tmp_path / f["file"]), "CPU", manifest["openvino_compile"])
+        for f in (head_file, tail_file)
+    )
+    rois = _rois(2, seed=5)
+    z = head({"roi": rois[:, None]})[0]
+    kp = tail({tail_file["input"]["name"]: z})[0]
+    int8 = load_split_net(MODELS, "int8")
+    np.testing.assert_allclose(kp, int8.tail(int8.head(rois, 3), 3), atol=1e-6)
 
 
 def test_the_export_command_refuses_int8_onnx_with_the_way_out(

@@ -3,18 +3,23 @@ run another runtime than ours.
 
 Formats:
 - onnx (fp32): one `head_k.onnx` (k = 1..7) and `tail_k.onnx` (k = 0..6) per cut, exported from the
-  PyTorch weights with dynamic batch. The head takes the uint8 ROIs (N,1,256,256) and normalises them
-  itself; `tail_0` takes the uint8 ROIs too; every other input is the float32 cut tensor.
+  PyTorch weights with dynamic batch, each one self-contained file (weights inside).
 - openvino (fp32 or int8): the same halves as IR (`head_k.xml`/`tail_k.xml` + .bin), cut from the
   all-cuts graph exactly as the services cut it; int8 is the weights folder's int8 variant.
-`manifest.json` lists each file with its cut, input and output names, shapes and dtypes, plus the
-weights' data contract (ROI size, margin, keypoint layout, coordinates).
+In both, a half that starts at the image (every head, `tail_0`) takes the uint8 ROIs (N,1,256,256) and
+normalises them itself (u8 / 127.5 - 1, in the graph); every other input is the float32 cut tensor.
+`manifest.json` lists each file with its cut, input and output names, shapes and dtypes and every file
+it needs, plus the weights' data contract (ROI size, margin, keypoint layout, coordinates) and, for
+OpenVINO, the compile settings the services use: without `INFERENCE_PRECISION_HINT` f32 a CPU with bf16
+runs the int8 graph's float parts in bf16, which moves the keypoints by up to ~1 ROI px (a trial).
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import tempfile
+import warnings
 from pathlib import Path
 from typing import Any, Literal
 
@@ -22,7 +27,7 @@ import torch
 from torch import Tensor, nn
 
 from shared.model.net import AllCuts, SplitKeypointNet
-from shared.model.openvino_net import OpenVINOSplitNet, export_ir, variant_path
+from shared.model.openvino_net import COMPILE_CONFIG, OpenVINOSplitNet, export_ir, variant_path
 from shared.model.precision import ModelFileError, Precision
 from shared.model.weights import data_contract, load_model
 from shared.wire.cuts import CUTS, N_CUTS
@@ -78,7 +83,7 @@ def _export_onnx(net: SplitKeypointNet, out: Path, cuts: tuple[int, ...]) -> lis
             [1, *io["input"]["shape"][1:]], dtype=torch.uint8 if io["input"]["dtype"] == "uint8" else torch.float32
         )
         path = out / f"{side}_{k}.onnx"
-        with torch.no_grad():
+        with torch.no_grad(), _quiet_exporter():
             torch.onnx.export(
                 module,
                 (example,),
@@ -89,8 +94,40 @@ def _export_onnx(net: SplitKeypointNet, out: Path, cuts: tuple[int, ...]) -> lis
                 dynamo=True,
                 verbose=False,
             )
-        files.append({"file": path.name, "side": side, "k": k, **io})
+        _inline_weights(path)
+        files.append({"file": path.name, "needs": [path.name], "side": side, "k": k, **io})
     return files
+
+
+class _quiet_exporter:  # noqa: N801 (a context manager used as a statement)
+    """The exporter's advice and INFO lines (dynamo's dynamic_axes note, torchvision not installed,
+    onnxscript's rewrites) are not the user's business: a successful export prints one line."""
+
+    _loggers = ("onnx_ir", "onnxscript", "torch.onnx", "torch.export", "torch._dynamo")
+
+    def __enter__(self) -> None:
+        self._warnings = warnings.catch_warnings()
+        self._warnings.__enter__()
+        warnings.simplefilter("ignore")
+        self._levels = {name: logging.getLogger(name).level for name in self._loggers}
+        for name in self._loggers:
+            logging.getLogger(name).setLevel(logging.ERROR)
+
+    def __exit__(self, *exc: object) -> None:
+        for name, level in self._levels.items():
+            logging.getLogger(name).setLevel(level)
+        self._warnings.__exit__(None, None, None)
+
+
+def _inline_weights(path: Path) -> None:
+    """One self-contained .onnx per half: the exporter writes large weights beside it (`.onnx.data`),
+    which the manifest did not name and a copy of the listed files left behind (a trial)."""
+    import onnx
+
+    model = onnx.load(str(path))  # (reads the external data in)
+    onnx.save_model(model, str(path), save_as_external_data=False)
+    for side_file in path.parent.glob(f"{path.name}.data"):
+        side_file.unlink()
 
 
 def _export_openvino(ir: Path, out: Path, cuts: tuple[int, ...]) -> list[dict[str, Any]]:
@@ -100,14 +137,35 @@ def _export_openvino(ir: Path, out: Path, cuts: tuple[int, ...]) -> list[dict[st
     files = []
     for side, k in _halves(cuts):
         model = split.head_model(k) if side == "head" else split.tail_model(k)
+        io = _io(k, side)
+        if io["input"]["name"] == "roi":
+            # The ROI in as uint8, normalised in the graph as the ONNX halves do: the IR took the
+            # normalised float ROI, and a uint8 ROI fed to it was accepted silently, keypoints 21 px off.
+            model = _uint8_roi_input(model)
+        model.get_parameters()[0].output(0).get_tensor().set_names({io["input"]["name"]})
         path = out / f"{side}_{k}.xml"
         ov.save_model(model, str(path), compress_to_fp16=False)
-        io = _io(k, side)
-        # The IR halves take the normalised ROI (u8 / 127.5 - 1, float32) where the ONNX ones take uint8.
-        if io["input"]["name"] == "roi":
-            io["input"] = {**io["input"], "dtype": "float32", "normalised": "u8 / 127.5 - 1"}
-        files.append({"file": path.name, "side": side, "k": k, **io})
+        needs = [path.name, path.with_suffix(".bin").name]
+        files.append({"file": path.name, "needs": needs, "side": side, "k": k, **io})
     return files
+
+
+def _uint8_roi_input(model: Any) -> Any:
+    """`model` with a uint8 ROI input, converted and normalised (x * (1 / 127.5) - 1, float32) in the
+    graph with the services' own arithmetic (`openvino_net.normalise`)."""
+    import numpy as np
+    import openvino as ov
+    import openvino.opset13 as ops
+
+    model = model.clone()  # (the halves share the all-cuts graph's nodes)
+    (old,) = model.get_parameters()
+    new = ops.parameter(old.get_partial_shape(), ov.Type.u8, name="roi")
+    x = ops.convert(new, ov.Type.f32)
+    x = ops.multiply(x, ops.constant(np.float32(1 / 127.5)))
+    x = ops.subtract(x, ops.constant(np.float32(1.0)))
+    for target in list(old.output(0).get_target_inputs()):
+        target.replace_source_output(x.output(0))
+    return ov.Model([r.get_node() for r in model.outputs], [new], model.get_friendly_name())
 
 
 def export(
@@ -141,6 +199,7 @@ def export(
                 "precision": precision,
                 "weights": str(weights),
                 "contract": data_contract(),
+                **({"openvino_compile": COMPILE_CONFIG} if fmt == "openvino" else {}),  # (an IR cannot carry them)
                 "files": files,
             },
             indent=2,

@@ -95,8 +95,13 @@ def variant_path(folder: Path, name: str) -> Path:
     return path
 
 
+# Every graph compiles with these (`splittag export` writes them into its manifest): f32, because a CPU
+# with bf16 otherwise runs the float parts, the int8 graph's included, in bf16 (keypoints up to ~1 px off).
+COMPILE_CONFIG: dict[str, str] = {"PERFORMANCE_HINT": "LATENCY", "INFERENCE_PRECISION_HINT": "f32"}
+
+
 def _compile(model: Any, threads: int | None) -> Any:
-    config: dict[str, Any] = {"PERFORMANCE_HINT": "LATENCY", "INFERENCE_PRECISION_HINT": "f32"}
+    config: dict[str, Any] = dict(COMPILE_CONFIG)
     if threads:
         config["INFERENCE_NUM_THREADS"] = threads
     return _core().compile_model(model, "CPU", config)

@@ -17,6 +17,7 @@ from shared.tools import settings_doc
 from shared.tools.options import add_model_options, model_from_args
 from shared.tools.topology import EDGE_PORT, Topology
 from shared.training.settings import QuantizeSettings, TrainSettings
+from shared.wire.cuts import N_CUTS
 
 if TYPE_CHECKING:
     from shared.transport.session import ZenohSettings
@@ -380,10 +381,14 @@ def _cmd_quantize(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
+    import json
+
     from shared.model.export import export
 
-    manifest = export(args.weights, args.out, fmt=args.format, precision=args.precision)
-    print(f"wrote {manifest}")
+    cuts = tuple(sorted(set(args.ks))) if args.ks else tuple(range(N_CUTS))
+    manifest = export(args.weights, args.out, fmt=args.format, precision=args.precision, cuts=cuts)
+    files = json.loads(manifest.read_text())["files"]
+    print(f"wrote {len(files)} graphs for k = {', '.join(map(str, cuts))} and {manifest}")
     return 0
 
 
@@ -946,11 +951,31 @@ def _add_model_commands(sub: Any) -> None:
     add_model_options(p, QuantizeSettings)
     p.set_defaults(func=_cmd_quantize)
 
-    p = sub.add_parser("export", help="head and tail of every cut as ONNX or OpenVINO graphs, with a manifest")
-    p.add_argument("--weights", type=Path, default=Path("models"))
-    p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--format", choices=["onnx", "openvino"], default="onnx")
-    p.add_argument("--precision", choices=["fp32", "int8"], default="fp32", help="int8: --format openvino only")
+    p = sub.add_parser(
+        "export",
+        help="head and tail of every cut as ONNX or OpenVINO graphs, with a manifest",
+        description="Write head_k (the robot's part up to cut k) and tail_k (the edge's rest) for each cut as "
+        "standalone graphs, and manifest.json (each file's input and output, the files it needs, the ROI "
+        "contract; for OpenVINO the compile settings). A half that starts at the image takes the uint8 ROI "
+        "(N,1,256,256); the others take the float32 cut tensor. README *Exporting the network*.",
+    )
+    p.add_argument("--weights", type=Path, default=Path("models"), help="the weights folder (default: models)")
+    p.add_argument("--out", type=Path, required=True, help="the folder to write (made if missing)")
+    p.add_argument(
+        "--format",
+        choices=["onnx", "openvino"],
+        default="onnx",
+        help="onnx: self-contained .onnx files (ONNX Runtime, TensorRT, ...); openvino: IR .xml + .bin",
+    )
+    p.add_argument(
+        "--precision",
+        choices=["fp32", "int8"],
+        default="fp32",
+        help="int8 is the weights folder's OpenVINO int8 variant: --format openvino only",
+    )
+    p.add_argument(
+        "--ks", type=int, nargs="+", choices=range(N_CUTS), metavar="K", help="only these cuts (default: 0..7)"
+    )
     p.set_defaults(func=_cmd_export)
 
     p = sub.add_parser("settings", help="every setting of the services with its default and meaning")
