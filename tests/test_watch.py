@@ -494,12 +494,21 @@ def test_a_reader_that_cannot_connect_is_told_where_the_run_listens(tmp_path: Pa
 
     runs = tmp_path / "runs"
     args = argparse.Namespace(connect=["tcp/127.0.0.1:7447"], identity="operator")
-    assert _endpoint_hint(args, runs) == ""  # no run: nothing to say
+    assert _endpoint_hint(args, runs) == "; no deployment is running here (`splittag up` or `make demo` starts one)"
     (runs / "current").mkdir(parents=True)
     (runs / "current" / "config.toml").write_text('[monitor]\nconnect = ["tcp/10.78.0.2:7447"]\n')
-    assert _endpoint_hint(args, runs).endswith("listens at tcp/10.78.0.2:7447 (--connect tcp/10.78.0.2:7447)")
-    assert _endpoint_hint(argparse.Namespace(connect=None, identity="operator"), runs) != ""
-    assert _endpoint_hint(argparse.Namespace(connect=["tcp/10.78.0.2:7447"], identity="operator"), runs) == ""
+    # A run that has ended: its address is not where to go (two trials were sent to a finished run's)
+    assert _endpoint_hint(args, runs) == "; no deployment is running here (the last one, current, has ended)"
+    # a live one (a process standing in for its camera service)
+    service = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "services.camera"])
+    try:
+        (runs / "current" / "pids").write_text(f"camera {service.pid}\n")
+        assert _endpoint_hint(args, runs).endswith("listens at tcp/10.78.0.2:7447 (--connect tcp/10.78.0.2:7447)")
+        assert _endpoint_hint(argparse.Namespace(connect=None, identity="operator"), runs) != ""
+        assert _endpoint_hint(argparse.Namespace(connect=["tcp/10.78.0.2:7447"], identity="operator"), runs) == ""
+    finally:
+        service.kill()
+        service.wait()
     # the launcher's own failure (not a reader) names its endpoints itself: no hint that repeats them
     assert _endpoint_hint(argparse.Namespace(config=Path("x.toml")), runs) == ""
 

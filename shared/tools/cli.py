@@ -1048,15 +1048,35 @@ def _endpoint_hint(args: argparse.Namespace, runs: Path = Path("runs")) -> str:
 
     if not hasattr(args, "identity"):  # not a reader: the launcher's own failure names its endpoints
         return ""
-    given: list[str] = args.connect or []
+    tried = split_endpoint(args.connect, tls=bool(getattr(args, "certs", None)))
+    current = runs / "current"
     try:
-        doc = tomllib.loads((runs / "current" / "config.toml").read_text())
+        doc = tomllib.loads((current / "config.toml").read_text())
     except (OSError, ValueError):
-        return ""
+        return "; no deployment is running here (`splittag up` or `make demo` starts one)"
+    if not _run_is_live(current):  # (two trials were pointed at the address of a run that had ended)
+        return f"; no deployment is running here (the last one, {current.resolve().name}, has ended)"
     endpoints = [str(e) for e in doc.get("monitor", {}).get("connect", [])]
-    if not endpoints or set(given) & set(endpoints):
+    if not endpoints or set(tried) & set(endpoints):
         return ""
     return f"; the deployment in {runs}/current listens at {endpoints[0]} (--connect {endpoints[0]})"
+
+
+def _run_is_live(run: Path) -> bool:
+    """Whether the run folder's launcher, or any of its services, still runs (as `splittag down` judges)."""
+    launcher = run / "launcher.pid"
+    try:
+        pid = int(launcher.read_text())
+    except (OSError, ValueError):
+        pid = None
+    if pid is not None and _running(pid) and any(s in _cmdline(pid) for s in ("splittag", "shared.tools")):
+        return True
+    try:
+        lines = (run / "pids").read_text().splitlines()
+    except OSError:
+        return False
+    pids = [int(f[1]) for line in lines if len(f := line.split()) == 2 and f[1].isdigit()]
+    return any(_running(p) and "services." in _cmdline(p) for p in pids)
 
 
 # The commands a light client runs (README *Reading poses from your own process*): they, their errors
