@@ -200,11 +200,14 @@ def main() -> None:
                 errors[name] = float(e_px(pred, test_kp).mean())
     peak = peak_gflops(args.repetitions)
     names = list(columns)
-    print(f"1 thread, batch 1, median of {args.repetitions}; C(k) = cumulative head time in ms, S(k) per tag")
-    print(f"{'k':>2} {'cut':<10} {'S(k) kB fp16':>13}" + "".join(f"{n:>21}" for n in names))
+    print(
+        f"1 thread, batch 1, median of {args.repetitions}; C(k) = cumulative head time in ms, S(k) = one tag's "
+        "tensor on the wire (codec fp16: the ROI uint8, feature maps float16, keypoints float32)"
+    )
+    print(f"{'k':>2} {'cut':<10} {'S(k) kB':>9}" + "".join(f"{n:>21}" for n in names))
     for cut in CUTS:
         cells = "".join(f"{columns[n][cut.k]:>21.2f}" for n in names)
-        print(f"{cut.k:>2} {cut.name:<10} {cut.payload_bytes_fp16 / 1024:>13.2f}{cells}")
+        print(f"{cut.k:>2} {cut.name:<10} {cut.tensor_bytes('fp16') / 1024:>9.2f}{cells}")
     full = {n: columns[n][-1] for n in names}
     dtype_of = {"eager fp32": "fp32", "bf16": "bf16", "int8 (ours)": "int8", "OpenVINO int8 (ref)": "int8"}
     print(
