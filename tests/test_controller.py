@@ -180,3 +180,42 @@ def test_failed_probes_are_said_once_a_run_and_why(caplog: pytest.LogCaptureFixt
     assert [level for level, _ in said] == ["INFO", "WARNING", "WARNING"], said
     assert "reaches no router" in said[1][1] and "is the edge running" not in said[1][1]
     assert "after 50 failed over 7.5 s" in said[2][1]
+
+
+def test_a_switch_the_measured_frames_contradict_is_vetoed_until_they_age_or_the_link_changes() -> None:
+    """A trial: two cuts nearly tied on a loaded link (the model biased: the queue, each side slower when
+    it does the work) and the controller went 0 -> 7 -> 0 -> 7 -> 0 within 9 s, each time 'predicted
+    24-36 ms faster'. What the frames at both cuts took in the last 20 s now has the last word."""
+    clock = FakeClock(100.0)
+    core = SplitController(ControllerTuning(dwell=1), clock=clock)
+    c = [5.0, 60.0, 80.0, 95.0, 100.0, 110.0, 112.0, 115.0]
+    e = [160.0, 140.0, 130.0, 120.0, 115.0, 25.0, 8.0, 1.0]  # the model: k = 7 (116 ms) beats k = 0 (165 ms)
+    core.add_compute(_profile("robot", c))
+    core.add_compute(_profile("edge", e))
+    for i in range(60):
+        core.add_link_sample(1024 if i % 2 else 65536, 1.0 + (0.0 if i % 2 else 0.5))
+    for _ in range(5):  # yet measured: k = 0 took 150 ms a frame, k = 7 took 190
+        core.add_measured(0, 150.0)
+        core.add_measured(7, 190.0)
+        clock.now += 0.1
+    state = core.decide(robot_id="r1", current_k=0, pinned=False)
+    assert state.best_k == 7 and state.chosen_k == 0 and core.vetoed == 1
+    assert "its frames took 190 ms against 150 ms here" in state.reason, state.reason
+    clock.now += 21.0  # the measurements age out: the model decides again
+    state = core.decide(robot_id="r1", current_k=0, pinned=False)
+    assert state.chosen_k == 7 and "switch" in state.reason
+    # Measured where the model says too: no veto. A link change forgets what was measured on the old link.
+    for _ in range(5):
+        core.add_measured(0, 150.0)
+        core.add_measured(7, 190.0)
+    clock.now += 1.0
+    core.link.changes += 1
+    assert core.measured_ms(7) is None
+    assert core.decide(robot_id="r1", current_k=0, pinned=False).chosen_k == 7
+    off = SplitController(ControllerTuning(dwell=1, measured_window_secs=0), clock=clock)
+    off.add_compute(_profile("robot", c))
+    off.add_compute(_profile("edge", e))
+    for _ in range(5):
+        off.add_measured(0, 150.0)
+        off.add_measured(7, 190.0)
+    assert off.decide(robot_id="r1", current_k=0, pinned=False).chosen_k == 7

@@ -182,3 +182,44 @@ def test_one_payload_size_keeps_the_fit_on_what_it_saw() -> None:
         previous = sent + 5.0
         assert est.t0_ms + 300.0 * est.beta_ms_per_kB == pytest.approx(5.0, abs=0.5), i
         assert 0.0 <= est.t0_ms <= 5.5
+
+
+def _stalled(crossings: list[Crossing], start_ms: float, stall_ms: float) -> list[Crossing]:
+    """The receiver's process got no CPU from start_ms for stall_ms (a trial's CLI start-up on a 2-core
+    host): what arrived meanwhile is stamped at the stall's end, a few hundredths of a ms apart."""
+    from dataclasses import replace
+
+    end = start_ms + stall_ms
+    out: list[Crossing] = []
+    previous: float | None = None
+    for c in crossings:
+        received = c.received_ms
+        if start_ms <= received < end:
+            received = end + 0.05 * sum(1 for o in out if o.received_ms >= end)
+        elif received >= end:
+            received = max(received, (previous or 0.0) + 0.05)
+        out.append(replace(c, received_ms=received, previous_received_ms=previous))
+        previous = received
+    return out
+
+
+@pytest.mark.parametrize("frame_bytes", [[ROI_3_TAGS], [KEYPOINTS]], ids=["k0", "k7"])
+def test_a_receiver_stall_is_not_taken_for_a_change_of_the_link(frame_bytes: list[int]) -> None:
+    """A trial: a 1.5 s CPU stall on an unchanged 5g link published t0 0.0 ms and beta 1.54 ms/kB and
+    switched the split there and back within 0.2 s. The frames a stalled receiver stamps at once did not
+    cross the link 100x faster than its rate: they say nothing about beta, and the one late frame
+    before them is an outlier, not a new link."""
+    steady = simulate(floor_ms=39.9, beta_ms_per_kB=0.18, window=2, frame_bytes=frame_bytes, duration_ms=20_000)
+    est = OnlineLinkEstimator(half_life=40, cusum_threshold=5.0)
+    worst = [0.0, 0.0]
+    crossings = _stalled(steady, 8_000.0, 1_500.0)
+    for i, c in enumerate(crossings):
+        _feed(est, [c])
+        # (the late message before a burst moves the estimate until the burst's next stamp, microseconds
+        # later, undoes it: judged once each message's successor is in)
+        burst_next = i + 1 < len(crossings) and crossings[i + 1].received_ms - c.received_ms < 1.0
+        if c.received_ms > 8_000.0 and not burst_next:
+            worst[0] = max(worst[0], abs(est.t0_ms - 39.9) / 39.9)
+            worst[1] = max(worst[1], abs(est.beta_ms_per_kB - 0.18) / 0.18)
+    assert est.changes == 0 and est.bunched > 10, (est.changes, est.bunched)
+    assert worst[0] < 0.25 and worst[1] < 0.35, worst

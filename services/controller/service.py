@@ -196,6 +196,8 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
             core.add_crossing(m.payload_bytes, m.link)
         else:  # from an edge that predates link stamps: right only on an idle link
             core.add_link_sample(m.payload_bytes, m.timings.transport_secs * 1e3)
+        h = m.timings  # what the frame took where T(k) predicts it: the model's check (measured_window_secs)
+        core.add_measured(m.split_k, (h.robot_compute_secs + h.transport_secs + h.edge_compute_secs) * 1e3)
 
     subs = [
         subscribe(keys.tag_poses(rid), TagPoses, on_poses),

@@ -11,7 +11,9 @@ the pipeline's latency ends at the edge, so frames and probes are timed one way,
 
 from __future__ import annotations
 
+import math
 import time
+from collections import deque
 from collections.abc import Callable
 
 import numpy as np
@@ -34,6 +36,11 @@ class ControllerTuning(BaseModel):
     dwell: int = Field(default=2, ge=1)  # consecutive decisions that must agree before a switch
     half_life_samples: float = Field(default=40.0, gt=1)  # forgetting of the link estimator
     change_threshold: float = Field(default=5.0, gt=0)  # CUSUM threshold (robust sigmas) for a link change
+    # A switch the model asks for is vetoed while the frames measured at both cuts within this many
+    # seconds (and since the last link change) say the new cut is no faster: where two cuts nearly tie
+    # and the model is biased (a loaded link's queue, each side slower when it does the work), a trial's
+    # controller went 0 -> 7 -> 0 -> 7 -> 0 within 9 s. 0 turns the check off.
+    measured_window_secs: float = Field(default=20.0, ge=0)
     codec: CodecName = "fp16"  # the codec robot_infer uses at cuts 1..6 (payload sizes)
 
 
@@ -55,6 +62,11 @@ class SplitController:
         self.edge: ComputeProfile | None = None
         self._clock = clock
         self.last_sizes: dict[int, float] = {}  # payload bucket (log2 kB) -> when last seen
+        # each cut's measured frame times (robot + link + edge compute, ms) with when they came
+        self.measured: dict[int, deque[tuple[float, float]]] = {k: deque(maxlen=60) for k in range(N_CUTS)}
+        self._changes_seen = 0
+        self._link_changed_at = -math.inf
+        self.vetoed = 0  # switches the measured frame times vetoed
 
     # -- evidence ----------------------------------------------------------------------------------
     def add_link_sample(self, payload_bytes: int, ms: float) -> None:
@@ -73,6 +85,19 @@ class SplitController:
             previous_received_ms=link.previous_received_nanos / 1e6 if link.previous_received_nanos else None,
         )
         self.last_sizes[self._bucket(payload_bytes)] = self._clock()
+
+    def add_measured(self, k: int, frame_ms: float) -> None:
+        """A frame posed at cut k took frame_ms of robot compute + link + edge compute (what T(k) predicts)."""
+        if 0 <= k < N_CUTS and math.isfinite(frame_ms) and frame_ms > 0:
+            self.measured[k].append((self._clock(), frame_ms))
+
+    def measured_ms(self, k: int, *, min_frames: int = 3) -> float | None:
+        """The median measured frame time at cut k within the window and since the last link change."""
+        if self.link.changes != self._changes_seen:  # the link changed: what was measured is the old link's
+            self._changes_seen, self._link_changed_at = self.link.changes, self._clock()
+        start = self._clock() - self.settings.measured_window_secs
+        recent = [ms for t, ms in self.measured[k] if t >= start and t > self._link_changed_at]
+        return float(np.median(recent)) if len(recent) >= min_frames else None
 
     def frame_sent(self, msg: FrameSent) -> None:
         """robot_infer put a frame on the uplink: the link is busy for about beta * size from then."""
@@ -138,6 +163,16 @@ class SplitController:
         else:
             d = self.chooser.choose(t, current_k)
             chosen, best, reason, pred = d.k, d.best_k, d.reason, list(d.predicted_ms)
+            if chosen != current_k and self.settings.measured_window_secs > 0:
+                there, here = self.measured_ms(chosen), self.measured_ms(current_k)
+                if there is not None and here is not None and there >= here:
+                    self.vetoed += 1
+                    gain = float(t[current_k] - t[chosen])
+                    reason = (
+                        f"keep k={current_k}: k={chosen} predicted {gain:.1f} ms faster, but its frames took "
+                        f"{there:.0f} ms against {here:.0f} ms here (last {self.settings.measured_window_secs:g} s)"
+                    )
+                    chosen = current_k
         return ControllerState(
             robot_id=robot_id,
             stamp_nanos=time.time_ns(),

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -64,6 +65,7 @@ class OnlineLinkEstimator:
     """
 
     RESET_VARIANCE = (400.0, 0.25)  # after a change: t0 within ~20 ms, beta within ~0.5 ms/kB
+    BUNCHED_FRACTION = 0.2  # a busy sample under this fraction of beta S was stamped late, not carried fast
     PRIOR_VARIANCE = (1e4, 1.0)
 
     def __init__(
@@ -84,6 +86,8 @@ class OnlineLinkEstimator:
         self.scale = 5.0  # robust residual scale, ms
         self.n = 0
         self.busy = 0  # samples that crossed a busy link
+        self.bunched = 0  # busy samples left out: stamped at once by a stalled receiver
+        self._before_last: tuple[Any, ...] | None = None  # the state before the last crossing fused
         self._g_pos = self._g_neg = 0.0
         self.changes = 0
 
@@ -91,6 +95,7 @@ class OnlineLinkEstimator:
         """Fuse a (payload, latency) sample of a message that found the link idle."""
         if not (math.isfinite(size_kB) and math.isfinite(rtt_ms)) or size_kB < 0 or rtt_ms <= 0:
             return
+        self._before_last = None
         self._fuse(np.array([1.0, size_kB]), rtt_ms)
 
     def add_crossing(
@@ -105,10 +110,32 @@ class OnlineLinkEstimator:
         if previous_received_ms is not None and previous_received_ms > sent_ms + self.t0_ms:
             if received_ms <= previous_received_ms:
                 return  # out of order: not a FIFO crossing we can explain
+            gap = received_ms - previous_received_ms
+            if gap < self.BUNCHED_FRACTION * self.beta_ms_per_kB * size_kB:
+                # Stamped right behind the message ahead, far faster than the link carries it: the
+                # receiver was stalled (no CPU) and stamped what had arrived at once, the message ahead
+                # included (its latency is the stall's). Neither is the link (a trial's 1.5 s stall
+                # read as t0 0 ms, beta 1.54 ms/kB and switched the split there and back): the message
+                # ahead's update is undone and this one left out. A link that did become this much
+                # faster shows it in its idle samples.
+                self.bunched += 1
+                if self._before_last is not None:
+                    self._restore(self._before_last)
+                    self._before_last = None
+                return
+            self._before_last = self._snapshot()
             self.busy += 1
-            self._fuse(np.array([0.0, size_kB]), received_ms - previous_received_ms)
+            self._fuse(np.array([0.0, size_kB]), gap)
         elif received_ms > sent_ms:
+            self._before_last = self._snapshot()
             self._fuse(np.array([1.0, size_kB]), received_ms - sent_ms)
+
+    def _snapshot(self) -> tuple[Any, ...]:
+        return (self.theta.copy(), self.p.copy(), self.scale, self.n, self.busy, self._g_pos, self._g_neg, self.changes)
+
+    def _restore(self, state: tuple[Any, ...]) -> None:
+        theta, p, self.scale, self.n, self.busy, self._g_pos, self._g_neg, self.changes = state
+        self.theta, self.p = theta.copy(), p.copy()
 
     def _fuse(self, x: np.ndarray, y_ms: float) -> None:
         resid = y_ms - float(x @ self.theta)
