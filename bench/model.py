@@ -67,6 +67,27 @@ def _ov_cumulative_ms(net: OpenVINOSplitNet, repetitions: int) -> list[float]:
     return out
 
 
+def _ort_cumulative_ms(folder: Path, repetitions: int) -> list[float]:
+    """Each exported head_k in ONNX Runtime, one thread (k = 0 is the normalisation: nothing to run)."""
+    import onnxruntime as ort
+
+    x = np.random.default_rng(0).integers(0, 256, (1, 1, 256, 256), dtype=np.uint8)
+    out = [0.0]
+    for k in range(1, len(CUTS)):
+        options = ort.SessionOptions()
+        options.intra_op_num_threads, options.inter_op_num_threads = 1, 1
+        session = ort.InferenceSession(str(folder / f"head_{k}.onnx"), options, providers=["CPUExecutionProvider"])
+        out.append(_median_ms(lambda: session.run(None, {"roi": x}), repetitions))  # noqa: B023 (called at once)
+    return out
+
+
+def _ort_keypoints(folder: Path, rois: np.ndarray) -> np.ndarray:
+    import onnxruntime as ort
+
+    session = ort.InferenceSession(str(folder / "tail_0.onnx"), providers=["CPUExecutionProvider"])
+    return np.concatenate([session.run(None, {"roi": rois[i : i + 64, None]})[0] for i in range(0, len(rois), 64)])
+
+
 def reference_int8_ir(weights: Path | None, folder: Path, calibration_rois: np.ndarray | None) -> Path:
     """NNCF's default post-training quantisation of the fp32 weights' all-cuts graph, as IR in `folder`."""
     import nncf
@@ -166,6 +187,11 @@ def main() -> None:
     ap.add_argument("--repetitions", type=int, default=30)
     ap.add_argument("--data", type=Path, help="a data set (splittag data synth): calibration + keypoint error")
     ap.add_argument("--samples", type=int, default=1000, help="test ROIs for the keypoint error")
+    ap.add_argument(
+        "--onnx",
+        action="store_true",
+        help="also `splittag export --format onnx` fp32 and int8 in ONNX Runtime (the int8 quantised here, ~1 min)",
+    )
     args = ap.parse_args()
     print(f"CPU: {cpu_label()}", flush=True)
     torch.set_num_threads(1)
@@ -189,12 +215,25 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         reference = OpenVINOSplitNet(reference_int8_ir(args.weights, Path(tmp), calibration), threads=1)
         columns["OpenVINO int8 (ref)"] = _ov_cumulative_ms(reference, args.repetitions)
+        onnx_folders: dict[str, Path] = {}
+        if args.onnx:
+            from shared.datasets.synth import CALIBRATION_SEED, generated_rois
+            from shared.model.export import export
+
+            if calibration is None:
+                calibration, _ = generated_rois(300, CALIBRATION_SEED)
+            for precision in ("fp32", "int8"):
+                folder = Path(tmp) / f"onnx_{precision}"
+                export(args.weights, folder, fmt="onnx", precision=precision, calibration=calibration)
+                onnx_folders[f"ORT {precision} (export)"] = folder
+                columns[f"ORT {precision} (export)"] = _ort_cumulative_ms(folder, args.repetitions)
         if test_rois is not None and test_kp is not None:
             for name, run in (
                 ("eager fp32", lambda r: run_network(model, r)),
                 ("bf16", lambda r: run_network(model, r, bf16=True)),
                 ("int8 (ours)", lambda r: ours.tail(r, 0)),
                 ("OpenVINO int8 (ref)", lambda r: reference.tail(r, 0)),
+                *((name, lambda r, f=folder: _ort_keypoints(f, r)) for name, folder in onnx_folders.items()),
             ):
                 pred = np.concatenate([run(test_rois[i : i + 64]) for i in range(0, len(test_rois), 64)])
                 errors[name] = float(e_px(pred, test_kp).mean())
@@ -209,7 +248,14 @@ def main() -> None:
         cells = "".join(f"{columns[n][cut.k]:>21.2f}" for n in names)
         print(f"{cut.k:>2} {cut.name:<10} {cut.tensor_bytes('fp16') / 1024:>9.2f}{cells}")
     full = {n: columns[n][-1] for n in names}
-    dtype_of = {"eager fp32": "fp32", "bf16": "bf16", "int8 (ours)": "int8", "OpenVINO int8 (ref)": "int8"}
+    dtype_of = {
+        "eager fp32": "fp32",
+        "bf16": "bf16",
+        "int8 (ours)": "int8",
+        "OpenVINO int8 (ref)": "int8",
+        "ORT fp32 (export)": "fp32",
+        "ORT int8 (export)": "int8",
+    }
     print(
         "peak (3x3 conv 256->256 @ 32x32, fastest of PyTorch/OpenVINO): "
         + ", ".join(f"{d} {g:.0f} G/s" for d, g in peak.items())

@@ -429,3 +429,27 @@ class SynthMaker:
         if self._detector is None:
             self._detector = make_stage1(self.settings)
         return make_sample(index, self.camera, self.settings, self._detector)
+
+
+# Generator seeds no training set used (the shipped sets are seeds 0-8): the int8 ONNX export's
+# calibration and its held-out check (`splittag export --format onnx --precision int8`).
+CALIBRATION_SEED = 9001
+EVALUATION_SEED = 9002
+
+
+def generated_rois(n: int, seed: int) -> tuple[NDArray[np.uint8], NDArray[np.float64]]:
+    """n ROIs (uint8, N x 256 x 256) and their keypoints (normalised) from the training generator at a
+    seed no training set used (~0.1 s each)."""
+    from shared.vision.geometry import default_camera
+
+    maker = SynthMaker(default_camera(), SynthSettings(seed=seed))
+    rois: list[NDArray[np.uint8]] = []
+    keypoints: list[NDArray[np.float64]] = []
+    index = 0
+    while len(rois) < n:
+        sample, _ = maker(index)
+        index += 1
+        if sample is not None:  # (stage 1 missed the tag: the generator's sample is skipped)
+            rois.append(sample["roi"])
+            keypoints.append(sample["keypoints"])
+    return np.stack(rois).astype(np.uint8), np.stack(keypoints).astype(np.float64)

@@ -2,8 +2,9 @@
 run another runtime than ours.
 
 Formats:
-- onnx (fp32): one `head_k.onnx` (k = 1..7) and `tail_k.onnx` (k = 0..6) per cut, exported from the
-  PyTorch weights with dynamic batch, each one self-contained file (weights inside).
+- onnx (fp32 or int8): one `head_k.onnx` (k = 1..7) and `tail_k.onnx` (k = 0..6) per cut, exported
+  from the PyTorch weights with dynamic batch, each one self-contained file (weights inside); int8 is
+  quantised for ONNX Runtime here (`shared/model/onnx_int8.py`), its cost measured into the manifest.
 - openvino (fp32 or int8): the same halves as IR (`head_k.xml`/`tail_k.xml` + .bin), cut from the
   all-cuts graph exactly as the services cut it; int8 is the weights folder's int8 variant.
 In both, a half that starts at the image (every head, `tail_0`) takes the uint8 ROIs (N,1,256,256) and
@@ -23,7 +24,9 @@ import warnings
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
 import torch
+from numpy.typing import NDArray
 from torch import Tensor, nn
 
 from shared.model.net import AllCuts, SplitKeypointNet
@@ -83,7 +86,7 @@ def _export_onnx(net: SplitKeypointNet, out: Path, cuts: tuple[int, ...]) -> lis
             [1, *io["input"]["shape"][1:]], dtype=torch.uint8 if io["input"]["dtype"] == "uint8" else torch.float32
         )
         path = out / f"{side}_{k}.onnx"
-        with torch.no_grad(), _quiet_exporter():
+        with torch.no_grad(), quiet_exporter():
             torch.onnx.export(
                 module,
                 (example,),
@@ -94,12 +97,12 @@ def _export_onnx(net: SplitKeypointNet, out: Path, cuts: tuple[int, ...]) -> lis
                 dynamo=True,
                 verbose=False,
             )
-        _inline_weights(path)
+        inline_weights(path)
         files.append({"file": path.name, "needs": [path.name], "side": side, "k": k, **io})
     return files
 
 
-class _quiet_exporter:  # noqa: N801 (a context manager used as a statement)
+class quiet_exporter:  # noqa: N801 (a context manager used as a statement)
     """The exporter's advice and INFO lines (dynamo's dynamic_axes note, torchvision not installed,
     onnxscript's rewrites) are not the user's business: a successful export prints one line."""
 
@@ -119,7 +122,7 @@ class _quiet_exporter:  # noqa: N801 (a context manager used as a statement)
         self._warnings.__exit__(None, None, None)
 
 
-def _inline_weights(path: Path) -> None:
+def inline_weights(path: Path) -> None:
     """One self-contained .onnx per half: the exporter writes large weights beside it (`.onnx.data`),
     which the manifest did not name and a copy of the listed files left behind (a trial)."""
     import onnx
@@ -128,6 +131,34 @@ def _inline_weights(path: Path) -> None:
     onnx.save_model(model, str(path), save_as_external_data=False)
     for side_file in path.parent.glob(f"{path.name}.data"):
         side_file.unlink()
+
+
+def _export_onnx_int8(
+    net: SplitKeypointNet,
+    out: Path,
+    cuts: tuple[int, ...],
+    calibration: NDArray[np.uint8] | None,
+    evaluation: tuple[NDArray[np.uint8], NDArray[np.float64]] | None,
+) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    from shared.model import onnx_int8
+
+    if calibration is None or not len(calibration):
+        raise ExportError("int8 ONNX is calibrated on ROIs: give some (splittag export makes them)")
+    if evaluation is None:
+        evaluation = (np.zeros((0, 256, 256), np.uint8), np.zeros((0, 16, 2)))
+    checked: dict[str, Any] = {"calibration": {"samples": len(calibration), "quantised": "every Conv but the first"}}
+    with tempfile.TemporaryDirectory() as tmp:
+        fp32, int8 = Path(tmp) / "all_fp32.onnx", Path(tmp) / "all_int8.onnx"
+        onnx_int8.export_all_cuts(net, fp32)
+        onnx_int8.quantise(fp32, int8, calibration)
+        if len(evaluation[0]):
+            checked["accuracy"] = onnx_int8.accuracy(fp32, int8, *evaluation)
+        files = []
+        for side, k in _halves(cuts):
+            path = out / f"{side}_{k}.onnx"
+            onnx_int8.cut(int8, path, side, k)
+            files.append({"file": path.name, "needs": [path.name], "side": side, "k": k, **_io(k, side)})
+    return files, checked
 
 
 def _export_openvino(ir: Path, out: Path, cuts: tuple[int, ...]) -> list[dict[str, Any]]:
@@ -175,14 +206,19 @@ def export(
     fmt: ExportFormat,
     precision: Precision,
     cuts: tuple[int, ...] = tuple(range(N_CUTS)),
+    calibration: NDArray[np.uint8] | None = None,
+    evaluation: tuple[NDArray[np.uint8], NDArray[np.float64]] | None = None,
 ) -> Path:
-    """Write the halves of every cut in `cuts` and manifest.json to `out`; returns the manifest."""
+    """Write the halves of every cut in `cuts` and manifest.json to `out`; returns the manifest.
+    ONNX int8 only: `calibration` ROIs (uint8, N x 256 x 256) and `evaluation` (ROIs, keypoints) on
+    which its cost is measured and written into the manifest (None: not measured)."""
     if precision == "bf16":
         raise ExportError("bf16 is a runtime setting, not a weights format: export fp32 and run it in bf16")
-    if fmt == "onnx" and precision == "int8":
-        raise ExportError("the int8 variant is an OpenVINO graph: export it with --format openvino")
     out.mkdir(parents=True, exist_ok=True)
-    if fmt == "onnx":
+    checked: dict[str, Any] = {}
+    if fmt == "onnx" and precision == "int8":
+        files, checked = _export_onnx_int8(load_model(weights), out, cuts, calibration, evaluation)
+    elif fmt == "onnx":
         files = _export_onnx(load_model(weights), out, cuts)
     elif precision == "int8":
         files = _export_openvino(variant_path(weights, "int8"), out, cuts)
@@ -200,6 +236,7 @@ def export(
                 "weights": str(weights),
                 "contract": data_contract(),
                 **({"openvino_compile": COMPILE_CONFIG} if fmt == "openvino" else {}),  # (an IR cannot carry them)
+                **checked,
                 "files": files,
             },
             indent=2,
