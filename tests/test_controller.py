@@ -190,32 +190,48 @@ def test_a_switch_the_measured_frames_contradict_is_vetoed_until_they_age_or_the
     core = SplitController(ControllerTuning(dwell=1), clock=clock)
     c = [5.0, 60.0, 80.0, 95.0, 100.0, 110.0, 112.0, 115.0]
     e = [160.0, 140.0, 130.0, 120.0, 115.0, 25.0, 8.0, 1.0]  # the model: k = 7 (116 ms) beats k = 0 (165 ms)
-    core.add_compute(_profile("robot", c))
+    core.add_compute(_profile("robot", c))  # 4 tags a frame
     core.add_compute(_profile("edge", e))
     for i in range(60):
         core.add_link_sample(1024 if i % 2 else 65536, 1.0 + (0.0 if i % 2 else 0.5))
-    for _ in range(5):  # yet measured: k = 0 took 150 ms a frame, k = 7 took 190
-        core.add_measured(0, 150.0)
-        core.add_measured(7, 190.0)
-        clock.now += 0.1
+
+    def measure(k: int, ms: float, frames: int = 5, tags: int = 4) -> None:
+        for _ in range(frames):
+            core.add_measured(k, ms, tags)
+            clock.now += 0.1
+
+    measure(0, 150.0)  # yet measured: k = 0 took 150 ms a frame, k = 7 took 190
+    measure(7, 190.0)
+    measure(7, 40.0, tags=0)  # (frames without tags, or with other tag counts, are not compared)
+    measure(7, 60.0, tags=1)
     state = core.decide(robot_id="r1", current_k=0, pinned=False)
     assert state.best_k == 7 and state.chosen_k == 0 and core.vetoed == 1
     assert "its frames took 190 ms against 150 ms here" in state.reason, state.reason
     clock.now += 21.0  # the measurements age out: the model decides again
     state = core.decide(robot_id="r1", current_k=0, pinned=False)
     assert state.chosen_k == 7 and "switch" in state.reason
-    # Measured where the model says too: no veto. A link change forgets what was measured on the old link.
-    for _ in range(5):
-        core.add_measured(0, 150.0)
-        core.add_measured(7, 190.0)
-    clock.now += 1.0
-    core.link.changes += 1
-    assert core.measured_ms(7) is None
+    # Measured where the model says too: no veto.
+    measure(0, 170.0)
+    measure(7, 120.0)
     assert core.decide(robot_id="r1", current_k=0, pinned=False).chosen_k == 7
+    # A link change forgets what was measured on the old link, dated when the change was found (a review:
+    # dated at the next decision, the frames measured since the change were dropped too).
+    measure(0, 150.0)
+    measure(7, 190.0)
+    for _ in range(40):  # the link becomes 30 ms slower: the estimator raises the alarm as it happens
+        core.add_link_sample(1024, 31.0)
+        if core.link.changes:
+            break
+    assert core.link.changes >= 1
+    clock.now += 0.1
+    assert core.measured_ms(7) is None
+    measure(0, 150.0)  # measured since the change, before the next decision: the veto holds again
+    measure(7, 190.0)
+    assert core.decide(robot_id="r1", current_k=0, pinned=False).chosen_k == 0
     off = SplitController(ControllerTuning(dwell=1, measured_window_secs=0), clock=clock)
     off.add_compute(_profile("robot", c))
     off.add_compute(_profile("edge", e))
     for _ in range(5):
-        off.add_measured(0, 150.0)
-        off.add_measured(7, 190.0)
+        off.add_measured(0, 150.0, 4)
+        off.add_measured(7, 190.0, 4)
     assert off.decide(robot_id="r1", current_k=0, pinned=False).chosen_k == 7

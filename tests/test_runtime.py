@@ -221,10 +221,38 @@ def test_openvino_halves_take_the_uint8_roi_and_match_the_services_int8(tmp_path
         for f in (head_file, tail_file)
     )
     rois = _rois(2, seed=5)
-    z = head({"roi": rois[:, None]})[0]
-    kp = tail({tail_file["input"]["name"]: z})[0]
+    z = head({"roi": rois[:, None]})[head_file["output"]["name"]]  # (outputs by the manifest's names)
+    kp = tail({tail_file["input"]["name"]: z})[tail_file["output"]["name"]]
     int8 = load_split_net(MODELS, "int8")
     np.testing.assert_allclose(kp, int8.tail(int8.head(rois, 3), 3), atol=1e-6)
+    # fp32 IR alike (uint8 in, the float graph's keypoints), into the same folder: the int8 files go
+    assert main(["export", "--out", str(tmp_path), "--format", "openvino", "--ks", "7"]) == 0
+    fp32_doc = json.loads((tmp_path / "manifest.json").read_text())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["head_7.bin", "head_7.xml", "manifest.json"]
+    head7 = core.compile_model(str(tmp_path / "head_7.xml"), "CPU", fp32_doc["openvino_compile"])
+    kp7 = head7({"roi": rois[:, None]})["keypoints"]
+    np.testing.assert_allclose(kp7, load_split_net(MODELS, "fp32").tail(rois, 0), atol=1e-4)
+
+
+def test_the_export_command_makes_int8_onnx_and_says_what_it_cost(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The command calibrates on generated ROIs (or a data set), checks on held-out ones, prints the cost
+    and records where both came from; counts it cannot use are refused by the parser."""
+    from shared.tools.cli import main
+
+    argv = ["export", "--out", str(tmp_path), "--format", "onnx", "--precision", "int8", "--ks", "7"]
+    assert main([*argv, "--calibration-samples", "8", "--evaluation-samples", "8"]) == 0
+    out = capsys.readouterr().out
+    assert "wrote 1 graphs for k = 7" in out and "int8 on 8 held-out ROIs: e_px" in out, out
+    doc = json.loads((tmp_path / "manifest.json").read_text())
+    assert doc["calibration"]["samples"] == 8 and "seed 9001" in doc["calibration"]["source"]
+    assert doc["accuracy"]["samples"] == 8 and [f["file"] for f in doc["files"]] == ["head_7.onnx"]
+    with pytest.raises(SystemExit):
+        main([*argv, "--calibration-samples", "0"])
+    assert "must be >= 1" in capsys.readouterr().err
+    assert main(["export", "--out", str(tmp_path), "--calibration-data", str(tmp_path)]) == 2
+    assert "--calibration-data is for --format onnx --precision int8" in capsys.readouterr().err
 
 
 def test_int8_onnx_halves_for_onnx_runtime_are_one_quantised_graph_cut_at_k(tmp_path: Path) -> None:

@@ -489,16 +489,24 @@ def test_a_reader_that_cannot_connect_is_told_where_the_run_listens(tmp_path: Pa
     """Under --link the edge's router is on the emulated link's address: a trial's `split get` without
     --connect only heard that 127.0.0.1:7447 was unreachable."""
     import argparse
+    import os
 
     from shared.tools.cli import _endpoint_hint
 
     runs = tmp_path / "runs"
     args = argparse.Namespace(connect=["tcp/127.0.0.1:7447"], identity="operator")
     assert _endpoint_hint(args, runs) == "; no deployment is running here (`splittag up` or `make demo` starts one)"
+    remote = argparse.Namespace(connect=["tcp/192.0.2.7:7447"], identity="operator")
+    assert _endpoint_hint(remote, runs) == ""  # another host's deployment: nothing to say about this one
     (runs / "current").mkdir(parents=True)
-    (runs / "current" / "config.toml").write_text('[monitor]\nconnect = ["tcp/10.78.0.2:7447"]\n')
+    config = runs / "current" / "config.toml"
+    config.write_text('[monitor]\nconnect = ["tcp/10.78.0.2:7447"]\n')
+    assert _endpoint_hint(args, runs) == ""  # just written: its launcher may still be starting
+    old = time.time() - 600
+    os.utime(config, (old, old))
     # A run that has ended: its address is not where to go (two trials were sent to a finished run's)
     assert _endpoint_hint(args, runs) == "; no deployment is running here (the last one, current, has ended)"
+    assert _endpoint_hint(remote, runs) == ""
     # a live one (a process standing in for its camera service)
     service = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "services.camera"])
     try:

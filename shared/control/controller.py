@@ -62,9 +62,8 @@ class SplitController:
         self.edge: ComputeProfile | None = None
         self._clock = clock
         self.last_sizes: dict[int, float] = {}  # payload bucket (log2 kB) -> when last seen
-        # each cut's measured frame times (robot + link + edge compute, ms) with when they came
-        self.measured: dict[int, deque[tuple[float, float]]] = {k: deque(maxlen=60) for k in range(N_CUTS)}
-        self._changes_seen = 0
+        # each cut's measured frames (when, ms, tags): robot + link + edge compute, what T(k) predicts
+        self.measured: dict[int, deque[tuple[float, float, int]]] = {k: deque(maxlen=120) for k in range(N_CUTS)}
         self._link_changed_at = -math.inf
         self.vetoed = 0  # switches the measured frame times vetoed
 
@@ -73,30 +72,39 @@ class SplitController:
         """A latency sample of a message that found the link idle (a probe's RTT without stamps)."""
         if ms <= 0 or not np.isfinite(ms):
             return
+        changes = self.link.changes
         self.link.add(payload_bytes / 1024.0, ms)
+        self._note_change(changes)
         self.last_sizes[self._bucket(payload_bytes)] = self._clock()
 
     def add_crossing(self, payload_bytes: int, link: LinkStamps) -> None:
         """A frame's or probe's crossing of the uplink, with what was ahead of it (queue-aware)."""
+        changes = self.link.changes
         self.link.add_crossing(
             size_kB=payload_bytes / 1024.0,
             sent_ms=link.sent_nanos / 1e6,
             received_ms=link.received_nanos / 1e6,
             previous_received_ms=link.previous_received_nanos / 1e6 if link.previous_received_nanos else None,
         )
+        self._note_change(changes)
         self.last_sizes[self._bucket(payload_bytes)] = self._clock()
 
-    def add_measured(self, k: int, frame_ms: float) -> None:
-        """A frame posed at cut k took frame_ms of robot compute + link + edge compute (what T(k) predicts)."""
-        if 0 <= k < N_CUTS and math.isfinite(frame_ms) and frame_ms > 0:
-            self.measured[k].append((self._clock(), frame_ms))
+    def _note_change(self, changes_before: int) -> None:
+        if self.link.changes != changes_before:  # the link changed now: what was measured is the old link's
+            self._link_changed_at = self._clock()
+
+    def add_measured(self, k: int, frame_ms: float, tags: int) -> None:
+        """A frame of `tags` tags posed at cut k took frame_ms of robot compute + link + edge compute (what
+        T(k) predicts). Frames without tags say nothing of the network's cost: left out."""
+        if 0 <= k < N_CUTS and tags > 0 and math.isfinite(frame_ms) and frame_ms > 0:
+            self.measured[k].append((self._clock(), frame_ms, tags))
 
     def measured_ms(self, k: int, *, min_frames: int = 3) -> float | None:
-        """The median measured frame time at cut k within the window and since the last link change."""
-        if self.link.changes != self._changes_seen:  # the link changed: what was measured is the old link's
-            self._changes_seen, self._link_changed_at = self.link.changes, self._clock()
+        """The median measured time at cut k of frames with as many tags as the prediction is for, within
+        the window and since the last link change (None: too few such frames)."""
         start = self._clock() - self.settings.measured_window_secs
-        recent = [ms for t, ms in self.measured[k] if t >= start and t > self._link_changed_at]
+        tags = self.tags()
+        recent = [ms for t, ms, n in self.measured[k] if n == tags and t >= start and t > self._link_changed_at]
         return float(np.median(recent)) if len(recent) >= min_frames else None
 
     def frame_sent(self, msg: FrameSent) -> None:

@@ -7,6 +7,7 @@ Units: milliseconds and kilobytes (1 kB = 1024 bytes, as the paper's table).
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -87,15 +88,18 @@ class OnlineLinkEstimator:
         self.n = 0
         self.busy = 0  # samples that crossed a busy link
         self.bunched = 0  # busy samples left out: stamped at once by a stalled receiver
-        self._before_last: tuple[Any, ...] | None = None  # the state before the last crossing fused
+        # the last crossing fused (its receipt stamp, the state before it): undone when a message
+        # bunched behind it shows that it was stamped at a stall's end
+        self._last_fused: tuple[float, tuple[Any, ...]] | None = None
+        self._burst_heads: deque[float] = deque(maxlen=32)  # stamps at a stall's end not yet seen
         self._g_pos = self._g_neg = 0.0
-        self.changes = 0
+        self.changes = 0  # alarms raised (only ever rises: one that a stall's rollback undid stays counted)
 
     def add(self, size_kB: float, rtt_ms: float) -> None:
         """Fuse a (payload, latency) sample of a message that found the link idle."""
         if not (math.isfinite(size_kB) and math.isfinite(rtt_ms)) or size_kB < 0 or rtt_ms <= 0:
             return
-        self._before_last = None
+        self._last_fused = None
         self._fuse(np.array([1.0, size_kB]), rtt_ms)
 
     def add_crossing(
@@ -107,34 +111,42 @@ class OnlineLinkEstimator:
         values = (size_kB, sent_ms, received_ms, 0.0 if previous_received_ms is None else previous_received_ms)
         if not all(math.isfinite(v) for v in values) or size_kB < 0:
             return
+        if received_ms in self._burst_heads:
+            self.bunched += 1  # (stamped at a stall's end: a message bunched behind it came in first)
+            return
+        if previous_received_ms is not None and received_ms <= previous_received_ms:
+            return  # out of order: not a FIFO crossing we can explain
+        gap = math.inf if previous_received_ms is None else received_ms - previous_received_ms
+        if gap < self.BUNCHED_FRACTION * self.beta_ms_per_kB * size_kB:
+            # On a FIFO link a message arrives at least beta S after the one ahead of it, whether it
+            # queued or not. Stamped far sooner, it was not carried that fast: the receiver was stalled
+            # (no CPU) and stamped what had arrived meanwhile at once, the message ahead included (its
+            # latency is the stall's). Neither is the link (a trial's 1.5 s stall read as t0 0 ms and
+            # beta 1.54 ms/kB, and switched the split there and back): this one is left out, and so is
+            # the message ahead: its update undone when it was the last one fused, or refused when it
+            # comes (a probe's answer comes before the poses of the frame ahead of it). A link that did
+            # become this much faster shows it in its idle samples.
+            self.bunched += 1
+            if self._last_fused is not None and self._last_fused[0] == previous_received_ms:
+                self._restore(self._last_fused[1])
+                self._last_fused = None
+            elif previous_received_ms is not None:
+                self._burst_heads.append(previous_received_ms)
+            return
         if previous_received_ms is not None and previous_received_ms > sent_ms + self.t0_ms:
-            if received_ms <= previous_received_ms:
-                return  # out of order: not a FIFO crossing we can explain
-            gap = received_ms - previous_received_ms
-            if gap < self.BUNCHED_FRACTION * self.beta_ms_per_kB * size_kB:
-                # Stamped right behind the message ahead, far faster than the link carries it: the
-                # receiver was stalled (no CPU) and stamped what had arrived at once, the message ahead
-                # included (its latency is the stall's). Neither is the link (a trial's 1.5 s stall
-                # read as t0 0 ms, beta 1.54 ms/kB and switched the split there and back): the message
-                # ahead's update is undone and this one left out. A link that did become this much
-                # faster shows it in its idle samples.
-                self.bunched += 1
-                if self._before_last is not None:
-                    self._restore(self._before_last)
-                    self._before_last = None
-                return
-            self._before_last = self._snapshot()
+            self._last_fused = (received_ms, self._snapshot())
             self.busy += 1
             self._fuse(np.array([0.0, size_kB]), gap)
         elif received_ms > sent_ms:
-            self._before_last = self._snapshot()
+            self._last_fused = (received_ms, self._snapshot())
             self._fuse(np.array([1.0, size_kB]), received_ms - sent_ms)
 
     def _snapshot(self) -> tuple[Any, ...]:
-        return (self.theta.copy(), self.p.copy(), self.scale, self.n, self.busy, self._g_pos, self._g_neg, self.changes)
+        return (self.theta.copy(), self.p.copy(), self.scale, self.n, self.busy, self._g_pos, self._g_neg)
 
     def _restore(self, state: tuple[Any, ...]) -> None:
-        theta, p, self.scale, self.n, self.busy, self._g_pos, self._g_neg, self.changes = state
+        # (`changes` stays: it counts the alarms raised, and its readers act on each rise once)
+        theta, p, self.scale, self.n, self.busy, self._g_pos, self._g_neg = state
         self.theta, self.p = theta.copy(), p.copy()
 
     def _fuse(self, x: np.ndarray, y_ms: float) -> None:

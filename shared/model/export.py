@@ -18,9 +18,7 @@ runs the int8 graph's float parts in bf16, which moves the keypoints by up to ~1
 from __future__ import annotations
 
 import json
-import logging
 import tempfile
-import warnings
 from pathlib import Path
 from typing import Any, Literal
 
@@ -30,6 +28,7 @@ from numpy.typing import NDArray
 from torch import Tensor, nn
 
 from shared.model.net import AllCuts, SplitKeypointNet
+from shared.model.onnx_files import inline_weights, quiet_exporter
 from shared.model.openvino_net import COMPILE_CONFIG, OpenVINOSplitNet, export_ir, variant_path
 from shared.model.precision import ModelFileError, Precision
 from shared.model.weights import data_contract, load_model
@@ -81,7 +80,7 @@ def _export_onnx(net: SplitKeypointNet, out: Path, cuts: tuple[int, ...]) -> lis
     files = []
     for side, k in _halves(cuts):
         io = _io(k, side)
-        module = _Head(net, k) if side == "head" else _Tail(net, k)
+        module = (_Head(net, k) if side == "head" else _Tail(net, k)).eval()  # (the wrapper too)
         example = torch.zeros(
             [1, *io["input"]["shape"][1:]], dtype=torch.uint8 if io["input"]["dtype"] == "uint8" else torch.float32
         )
@@ -102,43 +101,13 @@ def _export_onnx(net: SplitKeypointNet, out: Path, cuts: tuple[int, ...]) -> lis
     return files
 
 
-class quiet_exporter:  # noqa: N801 (a context manager used as a statement)
-    """The exporter's advice and INFO lines (dynamo's dynamic_axes note, torchvision not installed,
-    onnxscript's rewrites) are not the user's business: a successful export prints one line."""
-
-    _loggers = ("onnx_ir", "onnxscript", "torch.onnx", "torch.export", "torch._dynamo")
-
-    def __enter__(self) -> None:
-        self._warnings = warnings.catch_warnings()
-        self._warnings.__enter__()
-        warnings.simplefilter("ignore")
-        self._levels = {name: logging.getLogger(name).level for name in self._loggers}
-        for name in self._loggers:
-            logging.getLogger(name).setLevel(logging.ERROR)
-
-    def __exit__(self, *exc: object) -> None:
-        for name, level in self._levels.items():
-            logging.getLogger(name).setLevel(level)
-        self._warnings.__exit__(None, None, None)
-
-
-def inline_weights(path: Path) -> None:
-    """One self-contained .onnx per half: the exporter writes large weights beside it (`.onnx.data`),
-    which the manifest did not name and a copy of the listed files left behind (a trial)."""
-    import onnx
-
-    model = onnx.load(str(path))  # (reads the external data in)
-    onnx.save_model(model, str(path), save_as_external_data=False)
-    for side_file in path.parent.glob(f"{path.name}.data"):
-        side_file.unlink()
-
-
 def _export_onnx_int8(
     net: SplitKeypointNet,
     out: Path,
     cuts: tuple[int, ...],
     calibration: NDArray[np.uint8] | None,
     evaluation: tuple[NDArray[np.uint8], NDArray[np.float64]] | None,
+    calibration_source: str,
 ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     from shared.model import onnx_int8
 
@@ -146,7 +115,10 @@ def _export_onnx_int8(
         raise ExportError("int8 ONNX is calibrated on ROIs: give some (splittag export makes them)")
     if evaluation is None:
         evaluation = (np.zeros((0, 256, 256), np.uint8), np.zeros((0, 16, 2)))
-    checked: dict[str, Any] = {"calibration": {"samples": len(calibration), "quantised": "every Conv but the first"}}
+    quantised = "every Conv but the first"
+    checked: dict[str, Any] = {
+        "calibration": {"samples": len(calibration), "source": calibration_source, "quantised": quantised}
+    }
     with tempfile.TemporaryDirectory() as tmp:
         fp32, int8 = Path(tmp) / "all_fp32.onnx", Path(tmp) / "all_int8.onnx"
         onnx_int8.export_all_cuts(net, fp32)
@@ -174,6 +146,7 @@ def _export_openvino(ir: Path, out: Path, cuts: tuple[int, ...]) -> list[dict[st
             # normalised float ROI, and a uint8 ROI fed to it was accepted silently, keypoints 21 px off.
             model = _uint8_roi_input(model)
         model.get_parameters()[0].output(0).get_tensor().set_names({io["input"]["name"]})
+        model.outputs[0].get_tensor().set_names({io["output"]["name"]})  # (the manifest's names, by name)
         path = out / f"{side}_{k}.xml"
         ov.save_model(model, str(path), compress_to_fp16=False)
         needs = [path.name, path.with_suffix(".bin").name]
@@ -184,7 +157,6 @@ def _export_openvino(ir: Path, out: Path, cuts: tuple[int, ...]) -> list[dict[st
 def _uint8_roi_input(model: Any) -> Any:
     """`model` with a uint8 ROI input, converted and normalised (x * (1 / 127.5) - 1, float32) in the
     graph with the services' own arithmetic (`openvino_net.normalise`)."""
-    import numpy as np
     import openvino as ov
     import openvino.opset13 as ops
 
@@ -208,22 +180,28 @@ def export(
     cuts: tuple[int, ...] = tuple(range(N_CUTS)),
     calibration: NDArray[np.uint8] | None = None,
     evaluation: tuple[NDArray[np.uint8], NDArray[np.float64]] | None = None,
+    calibration_source: str = "given",
 ) -> Path:
     """Write the halves of every cut in `cuts` and manifest.json to `out`; returns the manifest.
-    ONNX int8 only: `calibration` ROIs (uint8, N x 256 x 256) and `evaluation` (ROIs, keypoints) on
-    which its cost is measured and written into the manifest (None: not measured)."""
+    ONNX int8 only: `calibration` ROIs (uint8, N x 256 x 256), where they came from (`calibration_source`,
+    for the manifest), and `evaluation` (ROIs, keypoints) on which its cost is measured and written into
+    the manifest (None: not measured)."""
     if precision == "bf16":
         raise ExportError("bf16 is a runtime setting, not a weights format: export fp32 and run it in bf16")
     out.mkdir(parents=True, exist_ok=True)
+    # An earlier export in the same folder: its halves go (a folder holds one export, all of it listed)
+    for stale in [*out.glob("head_*.*"), *out.glob("tail_*.*"), out / "manifest.json"]:
+        if stale.is_file() and stale.suffix in {".onnx", ".data", ".xml", ".bin", ".json"}:
+            stale.unlink()
     checked: dict[str, Any] = {}
     if fmt == "onnx" and precision == "int8":
-        files, checked = _export_onnx_int8(load_model(weights), out, cuts, calibration, evaluation)
+        files, checked = _export_onnx_int8(load_model(weights), out, cuts, calibration, evaluation, calibration_source)
     elif fmt == "onnx":
         files = _export_onnx(load_model(weights), out, cuts)
     elif precision == "int8":
         files = _export_openvino(variant_path(weights, "int8"), out, cuts)
     else:
-        with tempfile.TemporaryDirectory() as tmp:
+        with tempfile.TemporaryDirectory() as tmp, quiet_exporter():
             ir = export_ir(AllCuts(load_model(weights).to(memory_format=torch.contiguous_format)), Path(tmp))  # type: ignore[call-overload]
             files = _export_openvino(ir, out, cuts)
     manifest = out / "manifest.json"

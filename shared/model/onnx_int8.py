@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 from torch import Tensor, nn
 
 from shared.model.net import AllCuts, SplitKeypointNet
+from shared.model.onnx_files import DropAdvice, inline_weights, quiet_exporter
 from shared.vision.metrics import e_px
 from shared.wire.cuts import N_CUTS
 
@@ -44,9 +45,7 @@ class _AllCutsFromImage(nn.Module):
 
 def export_all_cuts(net: SplitKeypointNet, path: Path) -> None:
     """The fp32 network, uint8 ROI in, every cut out (`cut1`..`cut6`, `keypoints`), one file."""
-    from shared.model.export import inline_weights, quiet_exporter
-
-    module = _AllCutsFromImage(net.to(memory_format=torch.contiguous_format).eval())  # type: ignore[call-overload]
+    module = _AllCutsFromImage(net.to(memory_format=torch.contiguous_format)).eval()  # type: ignore[call-overload]
     with torch.no_grad(), quiet_exporter():
         torch.onnx.export(
             module,
@@ -77,13 +76,13 @@ def quantise(fp32_path: Path, int8_path: Path, calibration: NDArray[np.uint8]) -
         def get_next(self) -> dict[str, Any] | None:
             return next(self.batches, None)
 
-    root = logging.getLogger()
-    level = root.level
-    root.setLevel(logging.ERROR)  # (its advice to pre-process the graph is for other models)
+    root, advice = logging.getLogger(), DropAdvice()
+    root.addFilter(advice)
     try:
-        _quantize_static(fp32_path, int8_path, Reader(), convs[:1])
+        with quiet_exporter():
+            _quantize_static(fp32_path, int8_path, Reader(), convs[:1])
     finally:
-        root.setLevel(level)
+        root.removeFilter(advice)
 
 
 def _quantize_static(fp32_path: Path, int8_path: Path, reader: Any, exclude: list[str]) -> None:

@@ -387,8 +387,13 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
     cuts = tuple(sorted(set(args.ks))) if args.ks else tuple(range(N_CUTS))
     calibration = evaluation = None
-    if args.format == "onnx" and args.precision == "int8":
-        print("quantising for ONNX Runtime: calibration and a check on held-out ROIs (about 2 minutes)", flush=True)
+    source = ""
+    int8_onnx = args.format == "onnx" and args.precision == "int8"
+    if not int8_onnx and args.calibration_data is not None:
+        print("splittag export: --calibration-data is for --format onnx --precision int8", file=sys.stderr)
+        return 2
+    if int8_onnx:
+        print("quantising for ONNX Runtime: calibration and a check on held-out ROIs (about a minute)", flush=True)
         if args.calibration_data is not None:
             from shared.datasets.shards import load_dataset
 
@@ -396,12 +401,14 @@ def _cmd_export(args: argparse.Namespace) -> int:
             calibration = data.arrays["roi"][data.split("train")[: args.calibration_samples]]
             test = data.split("test")[: args.evaluation_samples]
             evaluation = (data.arrays["roi"][test], data.arrays["keypoints"][test])
+            source = f"{args.calibration_data}: its train split (checked on its test split)"
         else:
             from shared.datasets.synth import CALIBRATION_SEED, EVALUATION_SEED, generated_rois
 
             calibration, _ = generated_rois(args.calibration_samples, CALIBRATION_SEED)
             if args.evaluation_samples > 0:
                 evaluation = generated_rois(args.evaluation_samples, EVALUATION_SEED)
+            source = f"the training generator at seed {CALIBRATION_SEED} (checked at seed {EVALUATION_SEED})"
     manifest = export(
         args.weights,
         args.out,
@@ -410,6 +417,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
         cuts=cuts,
         calibration=calibration,
         evaluation=evaluation,
+        calibration_source=source,
     )
     doc = json.loads(manifest.read_text())
     print(f"wrote {len(doc['files'])} graphs for k = {', '.join(map(str, cuts))} and {manifest}")
@@ -519,7 +527,7 @@ def _cmd_link_up(args: argparse.Namespace) -> int:
     # Until Ctrl-C, or until the link is gone under it (`link down`, the delay line killed): then it
     # says so and ends, rather than claim a link that is not there (a trial's kept running).
     while not stop.wait(0.5):
-        if not emu.is_up():
+        if not stop.is_set() and not emu.is_up():  # (Ctrl-C also reaches the `ip` child it runs)
             print(
                 f"splittag link up: the emulated link with prefix {s.prefix!r} was removed by another process "
                 "(`splittag link down`?) or its delay line died; ending",
@@ -718,6 +726,24 @@ def _number_above(floor: float, *, inclusive: bool = False) -> Callable[[str], f
 
 
 POSITIVE = _number_above(0.0)
+
+
+def _count_from(floor: int) -> Callable[[str], int]:
+    """An argparse type: a whole number >= floor, refused with the parser's own message."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+        if value < floor:
+            raise argparse.ArgumentTypeError(f"{text} must be >= {floor}")
+        return value
+
+    return parse
+
+
+_positive_int, _non_negative_int = _count_from(1), _count_from(0)
 
 
 def _add_launch_options(p: argparse.ArgumentParser) -> None:
@@ -1010,8 +1036,10 @@ def _add_model_commands(sub: Any) -> None:
         help="onnx int8: a training data set (`splittag data synth`) to calibrate on (its train split) and "
         "check on (its test split); default: ROIs of the training generator at seeds no shipped set used",
     )
-    p.add_argument("--calibration-samples", type=int, default=300, help="onnx int8: ROIs to calibrate on")
-    p.add_argument("--evaluation-samples", type=int, default=200, help="onnx int8: held-out ROIs to check on")
+    p.add_argument("--calibration-samples", type=_positive_int, default=300, help="onnx int8: ROIs to calibrate on")
+    p.add_argument(
+        "--evaluation-samples", type=_non_negative_int, default=200, help="onnx int8: held-out ROIs to check (0: none)"
+    )
     p.add_argument(
         "--ks", type=int, nargs="+", choices=range(N_CUTS), metavar="K", help="only these cuts (default: 0..7)"
     )
@@ -1087,15 +1115,24 @@ def _endpoint_hint(args: argparse.Namespace, runs: Path = Path("runs")) -> str:
 
     if not hasattr(args, "identity"):  # not a reader: the launcher's own failure names its endpoints
         return ""
+    import time
+
     tried = split_endpoint(args.connect, tls=bool(getattr(args, "certs", None)))
+    hosts = {e.split("/", 1)[-1].rsplit(":", 1)[0].strip("[]") for e in tried}
+    local = all(h == "localhost" or h == "::1" or h.startswith("127.") for h in hosts)
     current = runs / "current"
     try:
-        doc = tomllib.loads((current / "config.toml").read_text())
-    except (OSError, ValueError):
-        return "; no deployment is running here (`splittag up` or `make demo` starts one)"
-    if not _run_is_live(current):  # (two trials were pointed at the address of a run that had ended)
-        return f"; no deployment is running here (the last one, {current.resolve().name}, has ended)"
+        config = current / "config.toml"
+        doc = tomllib.loads(config.read_text())
+        written = config.stat().st_mtime
+    except (OSError, ValueError):  # (a reader of another host's deployment: nothing to say about this one)
+        return "; no deployment is running here (`splittag up` or `make demo` starts one)" if local else ""
     endpoints = [str(e) for e in doc.get("monitor", {}).get("connect", [])]
+    if not _run_is_live(current):  # (two trials were pointed at the address of a run that had ended)
+        starting = time.time() - written < 120  # (its launcher may not have written its pid yet)
+        if starting or not (local or set(tried) & set(endpoints)):
+            return ""
+        return f"; no deployment is running here (the last one, {current.resolve().name}, has ended)"
     if not endpoints or set(tried) & set(endpoints):
         return ""
     return f"; the deployment in {runs}/current listens at {endpoints[0]} (--connect {endpoints[0]})"

@@ -163,22 +163,31 @@ def _is_delay_line(pid: int) -> bool:
 
 def delay_line_owner(pid: int) -> int | None:
     """The live process that started delay line `pid` (`link up`, a launcher, a bench; its
-    `--owner-pid`), or None when that process is gone: a crashed run's leftover."""
+    `--owner-pid`), or None when that process is gone: a crashed run's leftover. A pid reused since, or
+    a dead owner not yet reaped, is not the owner: the owner started before its delay line and runs."""
     try:
         args = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
     except OSError:
         return None
     if b"--owner-pid" not in args:
         return None  # (started by an older version: taken for a leftover, as before)
-    at = args.index(b"--owner-pid") + 1
     try:
-        owner = int(args[at])
-        os.kill(owner, 0)
-    except (IndexError, ValueError, ProcessLookupError):
+        owner = int(args[args.index(b"--owner-pid") + 1])
+    except (IndexError, ValueError):
         return None
-    except PermissionError:
-        return owner  # alive, another user's
+    mine, theirs = _stat(pid), _stat(owner)
+    if mine is None or theirs is None or theirs[0] == "Z" or theirs[1] > mine[1]:
+        return None
     return owner
+
+
+def _stat(pid: int) -> tuple[str, int] | None:
+    """(state, start time in clock ticks since boot) of a process, None when it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return fields[0], int(fields[19])
+    except (OSError, IndexError, ValueError):
+        return None
 
 
 def _describe(pid: int) -> str:
@@ -303,8 +312,8 @@ class LinkEmulator:
             holders = "; ".join(map(_describe, sorted(owners)))
             raise LinkEmulationUnavailable(
                 f"the emulated link with prefix {s.prefix!r} is up, held by {holders}: "
-                "use it as it is (`splittag link set PROFILE` switches it), stop that process first, or give "
-                "this emulation another prefix and addresses"
+                "use it as it is (`splittag link set PROFILE` switches it), stop that process or remove the "
+                "link (`splittag link down`), or give this emulation another prefix and addresses"
             )
         return [p for pids in users.values() for p in pids]
 
@@ -504,8 +513,8 @@ class LinkEmulator:
             self.down()
 
     def is_up(self) -> bool:
-        """Whether this prefix's namespaces exist and its delay line answers (a live `link up` checks it:
-        another process may have removed the link under it)."""
+        """Whether this prefix's namespaces exist and, when this process started the delay line, it runs
+        (a live `link up` checks it: another process may have removed the link under it)."""
         s = self.settings
         listed = _run(["ip", "netns", "list"], check=False).stdout.split()
         if s.robot_ns not in listed or s.edge_ns not in listed:
