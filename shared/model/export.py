@@ -128,8 +128,12 @@ def _export_onnx_int8(
         files = []
         for side, k in _halves(cuts):
             path = out / f"{side}_{k}.onnx"
-            onnx_int8.cut(int8, path, side, k)
-            files.append({"file": path.name, "needs": [path.name], "side": side, "k": k, **_io(k, side)})
+            grid = onnx_int8.cut(int8, path, side, k)
+            io = _io(k, side)
+            if grid is not None:  # the cut's values lie on a uint8 grid: it may travel as its codes
+                end = "output" if side == "head" else "input"
+                io[end] = {**io[end], "uint8_grid": {**grid, "value": "scale * (code - zero_point)"}}
+            files.append({"file": path.name, "needs": [path.name], "side": side, "k": k, **io})
     return files, checked
 
 
@@ -188,36 +192,54 @@ def export(
     the manifest (None: not measured)."""
     if precision == "bf16":
         raise ExportError("bf16 is a runtime setting, not a weights format: export fp32 and run it in bf16")
+    if out.exists() and not out.is_dir():
+        raise ExportError(f"--out {out} is a file: give a folder (made if missing)")
     out.mkdir(parents=True, exist_ok=True)
-    # An earlier export in the same folder: its halves go (a folder holds one export, all of it listed)
-    for stale in [*out.glob("head_*.*"), *out.glob("tail_*.*"), out / "manifest.json"]:
-        if stale.is_file() and stale.suffix in {".onnx", ".data", ".xml", ".bin", ".json"}:
-            stale.unlink()
-    checked: dict[str, Any] = {}
-    if fmt == "onnx" and precision == "int8":
-        files, checked = _export_onnx_int8(load_model(weights), out, cuts, calibration, evaluation, calibration_source)
-    elif fmt == "onnx":
-        files = _export_onnx(load_model(weights), out, cuts)
-    elif precision == "int8":
-        files = _export_openvino(variant_path(weights, "int8"), out, cuts)
-    else:
-        with tempfile.TemporaryDirectory() as tmp, quiet_exporter():
-            ir = export_ir(AllCuts(load_model(weights).to(memory_format=torch.contiguous_format)), Path(tmp))  # type: ignore[call-overload]
-            files = _export_openvino(ir, out, cuts)
-    manifest = out / "manifest.json"
-    manifest.write_text(
-        json.dumps(
-            {
-                "version": "splittag/export-manifest/v1",
-                "format": fmt,
-                "precision": precision,
-                "weights": str(weights),
-                "contract": data_contract(),
-                **({"openvino_compile": COMPILE_CONFIG} if fmt == "openvino" else {}),  # (an IR cannot carry them)
-                **checked,
-                "files": files,
-            },
-            indent=2,
+    # Written to a folder of its own inside `out` first: an export that fails leaves the earlier one as
+    # it was (a trial's failed export had deleted it), one that succeeds replaces it whole.
+    with tempfile.TemporaryDirectory(dir=out, prefix=".export-") as staging_dir:
+        staging = Path(staging_dir)
+        checked: dict[str, Any] = {}
+        if fmt == "onnx" and precision == "int8":
+            net = load_model(weights)
+            files, checked = _export_onnx_int8(net, staging, cuts, calibration, evaluation, calibration_source)
+        elif fmt == "onnx":
+            files = _export_onnx(load_model(weights), staging, cuts)
+        elif precision == "int8":
+            files = _export_openvino(variant_path(weights, "int8"), staging, cuts)
+        else:
+            with tempfile.TemporaryDirectory() as tmp, quiet_exporter():
+                ir = export_ir(AllCuts(load_model(weights).to(memory_format=torch.contiguous_format)), Path(tmp))  # type: ignore[call-overload]
+                files = _export_openvino(ir, staging, cuts)
+        (staging / "manifest.json").write_text(
+            json.dumps(
+                {
+                    "version": "splittag/export-manifest/v1",
+                    "format": fmt,
+                    "precision": precision,
+                    "weights": str(weights),
+                    "contract": data_contract(),
+                    **({"openvino_compile": COMPILE_CONFIG} if fmt == "openvino" else {}),  # (an IR cannot carry them)
+                    **checked,
+                    "files": files,
+                },
+                indent=2,
+            )
         )
-    )
-    return manifest
+        replaced = stale_export_files(out)
+        for path in replaced:
+            path.unlink()
+        for path in staging.iterdir():
+            path.replace(out / path.name)
+    return out / "manifest.json"
+
+
+def stale_export_files(out: Path) -> list[Path]:
+    """An earlier export's files in `out` (its halves, their weights, its manifest): a folder holds one
+    export, all of it listed; other files stay."""
+    halves = [*out.glob("head_*.*"), *out.glob("tail_*.*")]
+    return [
+        p
+        for p in [*halves, out / "manifest.json"]
+        if p.is_file() and p.suffix in {".onnx", ".data", ".xml", ".bin", ".json"}
+    ]

@@ -102,17 +102,49 @@ def _quantize_static(fp32_path: Path, int8_path: Path, reader: Any, exclude: lis
     )
 
 
-def cut(all_cuts: Path, out: Path, side: str, k: int) -> None:
+def cut(all_cuts: Path, out: Path, side: str, k: int) -> dict[str, float] | None:
     """head_k (roi -> cut k, or keypoints at k = 7) or tail_k (cut k, or roi at k = 0 -> keypoints),
-    extracted by tensor name from the all-cuts graph."""
+    extracted by tensor name from the all-cuts graph. Returns the cut tensor's uint8 grid (scale, zero
+    point) where it is quantised, else None."""
     import onnx
+    from onnx import helper
+    from onnx.numpy_helper import to_array
     from onnx.utils import Extractor
 
     model = onnx.load(str(all_cuts))
     source = "roi" if side == "head" or k == 0 else f"cut{k}"
     target = "keypoints" if side == "tail" or k == N_CUTS - 1 else f"cut{k}"
     half = Extractor(model).extract_model([source], [target])
+    grid = None
+    producer = {o: n for n in model.graph.node for o in n.output}.get(f"cut{k}")
+    if producer is not None and producer.op_type == "DequantizeLinear":
+        # The head ends on the cut's uint8 grid (quantise, dequantise); the tail must start on it again,
+        # or its first convolution takes the float tensor and runs in fp32 (a trial: tail_3 1.8x slower,
+        # and a rounding step from the whole graph). With the pair at its input it is the whole graph's.
+        scale_name, zero_name = producer.input[1], producer.input[2]
+        initialisers = {i.name: i for i in model.graph.initializer}
+        grid = {
+            "scale": float(to_array(initialisers[scale_name])),
+            "zero_point": int(to_array(initialisers[zero_name])),
+        }
+        if side == "tail":
+            quantised, restored = f"cut{k}_quantised", f"cut{k}_on_grid"
+            for node in half.graph.node:
+                for i, name in enumerate(node.input):
+                    if name == source:
+                        node.input[i] = restored
+            pair = [
+                helper.make_node("QuantizeLinear", [source, scale_name, zero_name], [quantised]),
+                helper.make_node("DequantizeLinear", [quantised, scale_name, zero_name], [restored]),
+            ]
+            nodes = [*pair, *half.graph.node]
+            del half.graph.node[:]
+            half.graph.node.extend(nodes)
+            have = {i.name for i in half.graph.initializer}
+            half.graph.initializer.extend(initialisers[n] for n in (scale_name, zero_name) if n not in have)
+            onnx.checker.check_model(half)
     onnx.save_model(half, str(out), save_as_external_data=False)
+    return grid
 
 
 def keypoints_of(path: Path, rois: NDArray[np.uint8]) -> NDArray[np.float32]:
@@ -134,6 +166,7 @@ def accuracy(
     moved = e_px(int8, ref)
     fp32_err, int8_err = float(e_px(ref, keypoints).mean()), float(e_px(int8, keypoints).mean())
     return {
+        "units": "ROI px (the ROI is 256 px wide), each ROI's mean over its 16 keypoints",
         "samples": len(rois),
         "e_px_fp32": round(fp32_err, 4),
         "e_px_int8": round(int8_err, 4),

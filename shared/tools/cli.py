@@ -389,26 +389,36 @@ def _cmd_export(args: argparse.Namespace) -> int:
     calibration = evaluation = None
     source = ""
     int8_onnx = args.format == "onnx" and args.precision == "int8"
-    if not int8_onnx and args.calibration_data is not None:
-        print("splittag export: --calibration-data is for --format onnx --precision int8", file=sys.stderr)
+    int8_only = {"--calibration-data": args.calibration_data, "--calibration-samples": args.calibration_samples}
+    int8_only["--evaluation-samples"] = args.evaluation_samples
+    if not int8_onnx and (given := [name for name, value in int8_only.items() if value is not None]):
+        print(f"splittag export: {', '.join(given)}: for --format onnx --precision int8 only", file=sys.stderr)
         return 2
+    n_calibration = 300 if args.calibration_samples is None else args.calibration_samples
+    n_evaluation = 200 if args.evaluation_samples is None else args.evaluation_samples
     if int8_onnx:
         print("quantising for ONNX Runtime: calibration and a check on held-out ROIs (about a minute)", flush=True)
         if args.calibration_data is not None:
             from shared.datasets.shards import load_dataset
 
             data = load_dataset(args.calibration_data)
-            calibration = data.arrays["roi"][data.split("train")[: args.calibration_samples]]
-            test = data.split("test")[: args.evaluation_samples]
+            calibration = data.arrays["roi"][data.split("train")[:n_calibration]]
+            test = data.split("test")[:n_evaluation]
             evaluation = (data.arrays["roi"][test], data.arrays["keypoints"][test])
             source = f"{args.calibration_data}: its train split (checked on its test split)"
         else:
             from shared.datasets.synth import CALIBRATION_SEED, EVALUATION_SEED, generated_rois
 
-            calibration, _ = generated_rois(args.calibration_samples, CALIBRATION_SEED)
-            if args.evaluation_samples > 0:
-                evaluation = generated_rois(args.evaluation_samples, EVALUATION_SEED)
-            source = f"the training generator at seed {CALIBRATION_SEED} (checked at seed {EVALUATION_SEED})"
+            calibration, _ = generated_rois(n_calibration, CALIBRATION_SEED)
+            if n_evaluation > 0:
+                evaluation = generated_rois(n_evaluation, EVALUATION_SEED)
+            source = (
+                f"the training generator with its default settings (`splittag data synth`) at seed {CALIBRATION_SEED} "
+                f"(checked at seed {EVALUATION_SEED})"
+            )
+    from shared.model.export import stale_export_files
+
+    held = stale_export_files(args.out) if args.out.is_dir() else []
     manifest = export(
         args.weights,
         args.out,
@@ -420,7 +430,8 @@ def _cmd_export(args: argparse.Namespace) -> int:
         calibration_source=source,
     )
     doc = json.loads(manifest.read_text())
-    print(f"wrote {len(doc['files'])} graphs for k = {', '.join(map(str, cuts))} and {manifest}")
+    replaced = f" (replacing the {len(held)} files of the export it held)" if held else ""
+    print(f"wrote {len(doc['files'])} graphs for k = {', '.join(map(str, cuts))} and {manifest}{replaced}")
     if "accuracy" in doc:
         a = doc["accuracy"]
         print(
@@ -1036,9 +1047,9 @@ def _add_model_commands(sub: Any) -> None:
         help="onnx int8: a training data set (`splittag data synth`) to calibrate on (its train split) and "
         "check on (its test split); default: ROIs of the training generator at seeds no shipped set used",
     )
-    p.add_argument("--calibration-samples", type=_positive_int, default=300, help="onnx int8: ROIs to calibrate on")
+    p.add_argument("--calibration-samples", type=_positive_int, help="onnx int8: ROIs to calibrate on (default 300)")
     p.add_argument(
-        "--evaluation-samples", type=_non_negative_int, default=200, help="onnx int8: held-out ROIs to check (0: none)"
+        "--evaluation-samples", type=_non_negative_int, help="onnx int8: held-out ROIs to check (default 200; 0: none)"
     )
     p.add_argument(
         "--ks", type=int, nargs="+", choices=range(N_CUTS), metavar="K", help="only these cuts (default: 0..7)"
@@ -1173,6 +1184,7 @@ def _user_errors(command: str) -> tuple[tuple[type[BaseException], ...], tuple[t
 
     if command in LIGHT_COMMANDS:
         return (FileNotFoundError,), (SplitQueryError, ReaderError, zenoh.ZError)
+    from shared.datasets.shards import DatasetError
     from shared.runtime.settings import ConfigurationError
     from shared.tools.fleet import FleetConfigError
     from shared.tools.launch import LaunchError
@@ -1181,6 +1193,7 @@ def _user_errors(command: str) -> tuple[tuple[type[BaseException], ...], tuple[t
     from shared.vision.tagmap import TagMapError
 
     usage = (
+        DatasetError,
         FleetConfigError,
         LinkProfileError,
         LinkEmulationUnavailable,
