@@ -219,8 +219,9 @@ def test_a_link_in_use_is_never_torn_down_by_a_probe_that_refuses(
         pytest.skip(reason)
     import subprocess
     import sys
+    import time
 
-    from shared.tools.linkemu import LinkEmulator, LinkEmulatorSettings
+    from shared.tools.linkemu import LinkEmulator, LinkEmulatorSettings, netns_pids
 
     prefix = "stq"
     emu = LinkEmulator(LinkEmulatorSettings(prefix=prefix))
@@ -239,14 +240,80 @@ def test_a_link_in_use_is_never_torn_down_by_a_probe_that_refuses(
         err = capsys.readouterr().err
         assert f"the emulated link with prefix '{prefix}' is up, held by pid {holder.pid}" in err, err
         assert emu.is_up() and holder.poll() is None  # untouched
+        # A deployment's process in the link's namespace: `link down` refuses (a trial's blinded a demo)
+        user = subprocess.Popen(["ip", "netns", "exec", f"{prefix}-robot", "sleep", "60"])
+        try:
+            deadline = time.monotonic() + 10
+            while not emu.services_inside() and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert main(["link", "down", "--prefix", prefix]) == 1
+            assert "in use by a running deployment" in capsys.readouterr().err
+            assert emu.is_up()
+        finally:
+            user.kill()
+            user.wait()
         assert main(["link", "down", "--prefix", prefix]) == 0
         assert capsys.readouterr().out.strip() == f"link {prefix} down"
         assert holder.wait(timeout=10) == 1
         assert holder.stderr is not None and "was removed by another process" in holder.stderr.read()
         assert main(["link", "down", "--prefix", prefix]) == 0
         assert capsys.readouterr().out.strip() == f"no emulated link with prefix '{prefix}' was up"
+        # A `link up` killed outright leaves its link and delay line: `link down` removes both (the
+        # delay line used to outlive the namespaces, in none, found by nothing: a trial)
+        killed = subprocess.Popen(
+            [sys.executable, "-m", "shared.tools.cli", "link", "up", "--profile", "5g", "--prefix", prefix],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        assert killed.stdout is not None and killed.stdout.readline().startswith("link up:")
+        delay_lines = [
+            p for p in netns_pids(f"{prefix}-robot") if b"delayline" in Path(f"/proc/{p}/cmdline").read_bytes()
+        ]
+        killed.kill()
+        killed.wait()
+        assert delay_lines and emu.is_up()
+        assert main(["link", "down", "--prefix", prefix]) == 0
+        time.sleep(0.2)
+        assert not any(
+            Path(f"/proc/{p}").exists() and b"delayline" in Path(f"/proc/{p}/cmdline").read_bytes() for p in delay_lines
+        )
     finally:
         if holder.poll() is None:
             holder.terminate()
             holder.wait(timeout=10)
+        emu.down()
+
+
+@pytest.mark.multiprocess
+def test_down_after_a_dead_launcher_removes_its_emulated_link(tmp_path: Path) -> None:
+    """A trial SIGKILLed a `--link` launcher; `splittag down` finished the run but left the namespaces and
+    the delay line. Now the run's link goes too, unless something alive holds it."""
+    reason = unavailable_reason()
+    if reason is not None:
+        pytest.skip(reason)
+    import subprocess
+    import sys
+
+    from shared.tools.launch import finish_orphaned_run
+    from shared.tools.linkemu import EVENTS_FILE, LinkEmulator, LinkEmulatorSettings
+
+    emu = LinkEmulator(LinkEmulatorSettings())  # the launcher's link (the default prefix)
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / EVENTS_FILE).write_text("")  # (the run had an emulated link)
+    holder = subprocess.Popen(
+        [sys.executable, "-m", "shared.tools.cli", "link", "up", "--profile", "5g"], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().startswith("link up:")
+        live = finish_orphaned_run(run_dir, [])
+        assert live["emulated_link"].startswith("left up") and emu.is_up()  # its owner runs: not ours to remove
+        holder.kill()  # the owner dies as a killed launcher does
+        holder.wait()
+        orphaned = finish_orphaned_run(run_dir, [])
+        assert orphaned["emulated_link"] == "removed by `splittag down`" and not emu.is_up()
+    finally:
+        if holder.poll() is None:
+            holder.kill()
+            holder.wait()
         emu.down()

@@ -502,6 +502,9 @@ def test_a_reader_that_cannot_connect_is_told_where_the_run_listens(tmp_path: Pa
     config = runs / "current" / "config.toml"
     config.write_text('[monitor]\nconnect = ["tcp/10.78.0.2:7447"]\n')
     assert _endpoint_hint(args, runs) == ""  # just written: its launcher may still be starting
+    (runs / "current" / "summary.json").write_text("{}")  # ... unless it has finished (a trial waited 2 minutes)
+    assert _endpoint_hint(args, runs) == "; no deployment is running here (the last one, current, has ended)"
+    (runs / "current" / "summary.json").unlink()
     old = time.time() - 600
     os.utime(config, (old, old))
     # A run that has ended: its address is not where to go (two trials were sent to a finished run's)

@@ -569,6 +569,14 @@ def _cmd_link_down(args: argparse.Namespace) -> int:
     from shared.tools.linkemu import LinkEmulator, LinkEmulatorSettings
 
     emu = LinkEmulator(LinkEmulatorSettings(prefix=args.prefix))
+    inside = emu.services_inside()
+    if inside and not args.force:  # (a trial's `link down` blinded a running demo, and nothing said so)
+        print(
+            f"splittag link down: the link is in use by a running deployment (pids {' '.join(map(str, inside))}): "
+            "stop it first (`splittag down`: its launcher removes the link), or --force",
+            file=sys.stderr,
+        )
+        return 1
     was_up = emu.is_up()
     emu.down()
     print(f"link {args.prefix} down" if was_up else f"no emulated link with prefix {args.prefix!r} was up")
@@ -912,8 +920,9 @@ def _add_link_commands(sub: Any) -> None:
     p.add_argument("profile")
     p.add_argument("--prefix", default="st")
     p.set_defaults(func=_cmd_link_set)
-    p = link.add_parser("down", help="remove the emulated link")
+    p = link.add_parser("down", help="remove the emulated link (not while a deployment uses it)")
     p.add_argument("--prefix", default="st")
+    p.add_argument("--force", action="store_true", help="remove it even while a deployment's processes use it")
     p.set_defaults(func=_cmd_link_down)
     p = link.add_parser("probe", help="fit RTT = t0 + beta*S from probes at every split point's payload")
     where = p.add_mutually_exclusive_group()
@@ -1140,7 +1149,9 @@ def _endpoint_hint(args: argparse.Namespace, runs: Path = Path("runs")) -> str:
         return "; no deployment is running here (`splittag up` or `make demo` starts one)" if local else ""
     endpoints = [str(e) for e in doc.get("monitor", {}).get("connect", [])]
     if not _run_is_live(current):  # (two trials were pointed at the address of a run that had ended)
-        starting = time.time() - written < 120  # (its launcher may not have written its pid yet)
+        # (a run without a summary, written in the last two minutes, may be starting: its launcher has not
+        # written its pid yet)
+        starting = not (current / "summary.json").is_file() and time.time() - written < 120
         if starting or not (local or set(tried) & set(endpoints)):
             return ""
         return f"; no deployment is running here (the last one, {current.resolve().name}, has ended)"

@@ -974,6 +974,23 @@ def _service_of_token(robot_id: str, services: tuple[str, ...], key: str) -> str
     return None
 
 
+def _remove_orphaned_link() -> str:
+    """The emulated link of a run whose launcher died (its namespaces and delay line stayed: a trial):
+    removed as the launcher would have, unless something else now uses it."""
+    from shared.tools.linkemu import LinkEmulator, LinkEmulatorSettings, delay_line_owner, netns_pids
+
+    emu = LinkEmulator(LinkEmulatorSettings())
+    s = emu.settings
+    owners = [o for ns in (s.robot_ns, s.edge_ns) for p in netns_pids(ns) if (o := delay_line_owner(p)) is not None]
+    if emu.services_inside() or owners:
+        return "left up: another deployment or `link up` uses it now"
+    if not emu.is_up():
+        return "already gone"
+    emu.down()
+    print("removed the run's emulated link (its launcher had died)", flush=True)
+    return "removed by `splittag down`"
+
+
 def finish_orphaned_run(run_dir: Path, stopped: list[str], *, still_running: list[str] | None = None) -> dict[str, Any]:
     """What the launcher would have done at the end, for a run whose launcher died (`splittag down`
     stopped its services): pid files gone, the recording parts merged, and a summary.json that says so,
@@ -990,6 +1007,10 @@ def finish_orphaned_run(run_dir: Path, stopped: list[str], *, still_running: lis
         "launcher": "died before the run ended; `splittag down` stopped the services and wrote this summary",
         "stopped_by_down": stopped,
     }
+    from shared.tools.linkemu import EVENTS_FILE
+
+    if (run_dir / EVENTS_FILE).is_file() and not still_running:  # (the run had an emulated link)
+        summary["emulated_link"] = _remove_orphaned_link()
     for name in ("frames.csv", *sorted(p.name for p in run_dir.glob("frames_*.csv"))):
         if (run_dir / name).is_file():
             with (run_dir / name).open() as f:
@@ -1159,7 +1180,9 @@ def frame_rows(
                 "payload_bytes": r["payload_bytes"],
                 "tags": r["tags"],
                 "robot_ms": r["robot_ms"],
-                "transport_ms": r["transport_ms"],
+                # computed on board (no send): nothing crossed the link (a trial's rows read 0.0 and pulled
+                # its statistics down)
+                "transport_ms": r["transport_ms"] if sent is not None else None,
                 "edge_ms": r["edge_ms"],
                 "e2e_ms": r["e2e_ms"],
                 "frame_age_ms": nan_to_none["before_robot_ms"],

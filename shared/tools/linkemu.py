@@ -302,7 +302,7 @@ class LinkEmulator:
             held = "; ".join(f"{ns}: pids {' '.join(map(str, p))}" for ns, p in services.items() if p)
             raise LinkEmulationUnavailable(
                 f"the emulated link's namespaces are in use by a running deployment ({held}): stop it first "
-                "(`splittag down`), or give this emulation another prefix and addresses"
+                "(`splittag down`)"
             )
         # A delay line whose starter still runs is a link in use (`splittag link up`, a launcher, a
         # bench): a probe took it for a leftover, and the live link vanished under its owner (a trial).
@@ -312,8 +312,8 @@ class LinkEmulator:
             holders = "; ".join(map(_describe, sorted(owners)))
             raise LinkEmulationUnavailable(
                 f"the emulated link with prefix {s.prefix!r} is up, held by {holders}: "
-                "use it as it is (`splittag link set PROFILE` switches it), stop that process or remove the "
-                "link (`splittag link down`), or give this emulation another prefix and addresses"
+                "stop that process or remove the link (`splittag link down`) first; `splittag link set "
+                "PROFILE` switches it as it is"
             )
         return [p for pids in users.values() for p in pids]
 
@@ -452,6 +452,13 @@ class LinkEmulator:
             raise LinkEmulationUnavailable(
                 f"no emulated link with prefix {s.prefix!r} is up (start one with `splittag link up`)"
             )
+        delay_lines = [p for ns in (s.robot_ns, s.edge_ns) for p in netns_pids(ns) if _is_delay_line(p)]
+        if delay_lines and self._delay is None and all(delay_line_owner(p) is None for p in delay_lines):
+            log.warning(
+                "the emulated link with prefix %r has no owner any more (its `link up` or launcher was killed): "
+                "switched all the same; `splittag link down` removes it",
+                s.prefix,
+            )
         if p.rate_mbit is None:
             _run(in_netns(s.robot_ns, ["tc", "qdisc", "del", "dev", s.uplink_dev, "root"]), check=False)
         else:
@@ -489,8 +496,14 @@ class LinkEmulator:
         rate = f"{p.rate_mbit} Mbit/s" if p.rate_mbit else "unshaped"
         log.info("link profile %s: rate %s, delay %.1f ms", p.name, rate, p.delay_ms)
 
+    def services_inside(self) -> list[int]:
+        """The processes in this link's namespaces other than its delay line: a deployment using it."""
+        s = self.settings
+        return [p for ns in (s.robot_ns, s.edge_ns) for p in netns_pids(ns) if not _is_delay_line(p)]
+
     def down(self) -> None:
-        """Remove everything (idempotent)."""
+        """Remove everything (idempotent), another process's delay line included (a link whose `link up`
+        or launcher was killed: its delay line outlived the namespaces, in none, found by nothing)."""
         s = self.settings
         if self._delay is not None and self._delay.poll() is None:
             os.killpg(self._delay.pid, 15)
@@ -500,6 +513,11 @@ class LinkEmulator:
                 os.killpg(self._delay.pid, 9)
                 self._delay.wait()
         self._delay = None
+        for ns in (s.robot_ns, s.edge_ns):
+            for pid in netns_pids(ns):
+                if _is_delay_line(pid):
+                    with contextlib.suppress(OSError):
+                        os.kill(pid, 9)
         for ns in (s.robot_ns, s.edge_ns):
             _run(["ip", "netns", "del", ns], check=False)
         _run(["ip", "link", "del", f"{s.prefix}-mr"], check=False)
