@@ -307,3 +307,19 @@ def test_int8_onnx_halves_for_onnx_runtime_are_one_quantised_graph_cut_at_k(tmp_
     codes = np.round(z / grid["scale"]) + grid["zero_point"]  # it may travel as its uint8 codes, exactly
     assert codes.min() >= 0 and codes.max() <= 255
     np.testing.assert_allclose(grid["scale"] * (codes - grid["zero_point"]), z, atol=1e-6)
+
+
+@pytest.mark.parametrize("precision", ["fp32", "int8"])
+def test_the_split_api_refuses_float_rois_and_another_cuts_tensor(precision: str) -> None:
+    """A trial: `head(rois / 255, 3)` was taken silently and gave a cut tensor 7 away from the right one,
+    and `tail(cut3, 5)` came back as the runtime's raw shape error. Both are refused, saying what fits."""
+    net = load_split_net(MODELS, precision)  # type: ignore[arg-type]
+    rois = _rois(2, seed=7)
+    with pytest.raises(TypeError, match="head takes uint8 ROIs"):
+        net.head(rois.astype(np.float32) / 255, 3)
+    with pytest.raises(ValueError, match=r"head takes ROIs \(N, 256, 256\), got \[2, 128, 128\]"):
+        net.head(rois[:, ::2, ::2], 3)
+    z3 = net.head(rois, 3)
+    with pytest.raises(ValueError, match=r"tail at k=5 \(block5\) takes \(N, 256, 8, 8\)"):
+        net.tail(z3, 5)
+    assert net.tail(z3, 3).shape == (2, 16, 2) and net.tail(rois, 0).shape == (2, 16, 2)

@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from shared.model.precision import ModelFileError
-from shared.wire.cuts import N_CUTS, check_cut
+from shared.wire.cuts import N_CUTS, check_cut, check_net_cut, check_net_rois
 
 INT8_FOLDER: Final[str] = "int8"
 IR_NAME: Final[str] = "model.xml"
@@ -174,6 +174,7 @@ class OpenVINOSplitNet:
     def head(self, rois_u8: NDArray[np.uint8], k: int) -> NDArray[np.float32]:
         """Cut-k tensors (N, ...) float32 for uint8 ROIs; k = 0 is the normalised ROI."""
         check_cut(k)
+        check_net_rois(np.asarray(rois_u8))
         x = normalise(rois_u8)
         if k == 0:
             return x
@@ -182,6 +183,7 @@ class OpenVINOSplitNet:
     def tail(self, z: NDArray[np.floating[Any]], k: int) -> NDArray[np.float32]:
         """Normalised keypoints (N,16,2) from cut-k tensors (k = 0: uint8 ROIs or normalised floats)."""
         check_cut(k)
+        check_net_cut(np.asarray(z), k)
         if k == N_CUTS - 1:
             return np.asarray(z, np.float32).reshape(-1, 16, 2)
         x = normalise(z) if (k == 0 and np.asarray(z).dtype == np.uint8) else np.asarray(z, np.float32)

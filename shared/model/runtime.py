@@ -25,7 +25,7 @@ from shared.model.net import SplitKeypointNet
 from shared.model.openvino_net import OpenVINOSplitNet, variant_path
 from shared.model.precision import Precision, PrecisionChoice, resolve_for_folder
 from shared.model.weights import load_model
-from shared.wire.cuts import CUTS, INPUT_SIZE
+from shared.wire.cuts import CUTS, INPUT_SIZE, check_net_cut, check_net_rois
 
 
 class SplitNet(Protocol):
@@ -50,10 +50,12 @@ class TorchSplitNet:
         self._bf16 = bf16
 
     def head(self, rois_u8: NDArray[np.uint8], k: int) -> NDArray[np.float32]:
+        check_net_rois(np.asarray(rois_u8))
         x = torch.from_numpy(np.ascontiguousarray(rois_u8).reshape(-1, 1, INPUT_SIZE, INPUT_SIZE))
         return run_head(self.model, x, k, bf16=self._bf16).contiguous().numpy()
 
     def tail(self, z: NDArray[Any], k: int) -> NDArray[np.float32]:
+        check_net_cut(np.asarray(z), k)
         x = torch.from_numpy(np.asarray(z, np.uint8 if k == 0 else np.float32))
         if k == 0:
             x = x.reshape(-1, 1, INPUT_SIZE, INPUT_SIZE)

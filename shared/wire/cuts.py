@@ -93,3 +93,23 @@ def check_tensor(tensor: np.ndarray, k: int, codec: CodecName) -> None:
             f"tensor {tensor.dtype}{list(tensor.shape)} does not match k={k} ({CUTS[k].name}), "
             f"which needs {want_dtype}{list(want_shape)} with codec {codec}"
         )
+
+
+def check_net_rois(rois: np.ndarray) -> None:
+    """The split API's head takes uint8 ROIs, (N, 256, 256) or (N, 1, 256, 256), and normalises them
+    itself: a float ROI, already normalised or not, was taken silently and gave garbage (a trial)."""
+    if rois.dtype != np.uint8:
+        raise TypeError(f"head takes uint8 ROIs (N, 256, 256), not {rois.dtype}: it normalises them itself")
+    side = CUTS[0].shape[-1]
+    if rois.ndim not in (3, 4) or rois.shape[-2:] != (side, side) or (rois.ndim == 4 and rois.shape[1] != 1):
+        raise ValueError(f"head takes ROIs (N, {side}, {side}), got {list(rois.shape)}")
+
+
+def check_net_cut(z: np.ndarray, k: int) -> None:
+    """tail(z, k) takes cut k's tensor: (N, *CUTS[k].shape) (k = 0: the ROIs). A tensor of another cut
+    went to the runtime and came back as its raw shape error (a trial)."""
+    if k == 0:
+        return check_net_rois(z) if z.dtype == np.uint8 else None
+    want = CUTS[k].shape
+    if z.ndim != len(want) + 1 or tuple(z.shape[1:]) != want:
+        raise ValueError(f"tail at k={k} ({CUTS[k].name}) takes (N, {', '.join(map(str, want))}), got {list(z.shape)}")
