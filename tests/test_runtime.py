@@ -247,6 +247,7 @@ def test_the_export_command_makes_int8_onnx_and_says_what_it_cost(
     assert "wrote 1 graphs for k = 7" in out and "int8 on 8 held-out ROIs: e_px" in out, out
     doc = json.loads((tmp_path / "manifest.json").read_text())
     assert doc["calibration"]["samples"] == 8 and "seed 9001" in doc["calibration"]["source"]
+    assert len(doc["weights"]["sha256"]["model.safetensors"]) == 64 and "pyrDown" in doc["roi"]["warp"]
     assert doc["accuracy"]["samples"] == 8 and [f["file"] for f in doc["files"]] == ["head_7.onnx"]
     with pytest.raises(SystemExit):
         main([*argv, "--calibration-samples", "0"])
@@ -316,7 +317,7 @@ def test_the_split_api_refuses_float_rois_and_another_cuts_tensor(precision: str
     net = load_split_net(MODELS, precision)  # type: ignore[arg-type]
     rois = _rois(2, seed=7)
     with pytest.raises(TypeError, match="head takes uint8 ROIs"):
-        net.head(rois.astype(np.float32) / 255, 3)
+        net.head(rois.astype(np.float32) / 255, 3)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match=r"head takes ROIs \(N, 256, 256\), got \[2, 128, 128\]"):
         net.head(rois[:, ::2, ::2], 3)
     z3 = net.head(rois, 3)

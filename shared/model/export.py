@@ -217,8 +217,9 @@ def export(
                     "version": "splittag/export-manifest/v1",
                     "format": fmt,
                     "precision": precision,
-                    "weights": str(weights),
+                    "weights": {"folder": str(weights), "sha256": _weights_digests(weights, fmt, precision)},
                     "contract": data_contract(),
+                    "roi": ROI_WARP,
                     **({"openvino_compile": COMPILE_CONFIG} if fmt == "openvino" else {}),  # (an IR cannot carry them)
                     **checked,
                     "files": files,
@@ -232,6 +233,33 @@ def export(
         for path in staging.iterdir():
             path.replace(out / path.name)
     return out / "manifest.json"
+
+
+# How the services cut the ROI out of the image (`shared.vision.geometry.warp_roi`, docs/geometry.md):
+# what a robot of another runtime must do alike to feed the exported head (a trial found it in the code).
+ROI_WARP = {
+    "image": "grayscale uint8, the camera's own pixels (undistorted when the camera has distortion)",
+    "quad": "the tag's 4 outer black corners (TL, TR, BR, BL in the tag's frame), OpenCV pixel centres",
+    "homography": "image -> ROI pixels mapping the quad to the square [margin, 1 - margin] in normalised ROI "
+    "coordinates ((u + 0.5) / input_size), margin = contract.roi_margin",
+    "warp": "cv2.warpPerspective, INTER_LINEAR, BORDER_REPLICATE; while the mapping shrinks the image more "
+    "than 2x around the ROI's centre, the image is first halved with cv2.pyrDown (and the homography with it)",
+    "keypoints_to_image": "the inverse homography of the network's keypoints x input_size - 0.5",
+}
+
+
+def _weights_digests(weights: Path, fmt: str, precision: str) -> dict[str, str]:
+    """SHA-256 of the weights file(s) the export was made from: which weights these graphs are."""
+    import hashlib
+
+    files = [weights / "model.safetensors"]
+    if precision == "int8" and fmt == "openvino":
+        files = [variant_path(weights, "int8"), variant_path(weights, "int8").with_suffix(".bin")]
+    out = {}
+    for path in files:
+        if path.is_file():
+            out[str(path.relative_to(weights))] = hashlib.sha256(path.read_bytes()).hexdigest()
+    return out
 
 
 def stale_export_files(out: Path) -> list[Path]:
