@@ -60,3 +60,32 @@ def test_detect_says_in_one_line_what_is_wrong_with_a_camera_file(
         err = capsys.readouterr().err
         assert code == 2 and "Traceback" not in err, err
         assert f"camera file {tmp_path / name}" in err, err
+
+
+def test_detect_without_a_camera_file_assumes_one_and_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A trial had to write a camera file by hand before detect would look at three photos of unknown
+    cameras. Without one each image gets an assumed pinhole camera, said on stderr and in the JSON; the
+    keypoints are the same as with the true camera (they do not depend on it)."""
+    cam = default_camera()
+    pose = make_pose(np.eye(3), [0.1, -0.05, 1.5])
+    canvas = np.full((cam.height, cam.width), 0.55, np.float32)
+    h = cam.matrix() @ np.column_stack([pose[:3, 0], pose[:3, 1], pose[:3, 3]])
+    render_tag(canvas, tag_id=17, tag_size_m=0.2, tag_plane_to_image=h)
+    cv2.imwrite(str(tmp_path / "tag.png"), to_uint8(canvas))
+    (tmp_path / "cam.yaml").write_text(camera_to_yaml(cam))
+    known, assumed = tmp_path / "known.json", tmp_path / "assumed.json"
+    assert (
+        main(["detect", str(tmp_path / "tag.png"), "--camera", str(tmp_path / "cam.yaml"), "--json", str(known)]) == 0
+    )
+    capsys.readouterr()
+    assert main(["detect", str(tmp_path / "tag.png"), "--json", str(assumed)]) == 0
+    assert "no --camera: each image is solved with an assumed pinhole camera" in capsys.readouterr().err
+    doc = json.loads(assumed.read_text())
+    (image,) = doc["images"]
+    assert doc["camera"] is None and image["assumed_camera"]["fx"] == cam.width
+    (with_camera,) = json.loads(known.read_text())["images"][0]["tags"]
+    (tag,) = image["tags"]
+    assert tag["id"] == 17
+    np.testing.assert_allclose(tag["keypoints_px"], with_camera["keypoints_px"], atol=1e-6)

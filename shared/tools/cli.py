@@ -1088,7 +1088,12 @@ def _add_model_commands(sub: Any) -> None:
 
     p = sub.add_parser("detect", help="stage 1 + network + PnP on image files or folders")
     p.add_argument("paths", type=Path, nargs="+")
-    p.add_argument("--camera", type=Path, required=True, help="ROS camera_info YAML")
+    p.add_argument(
+        "--camera",
+        type=Path,
+        help="ROS camera_info YAML (without it: an assumed pinhole camera per image, said on stderr; the poses' "
+        "distance and tilt then depend on that guess, the keypoints do not)",
+    )
     g = p.add_mutually_exclusive_group()
     g.add_argument(
         "--tag-size",
