@@ -14,15 +14,21 @@ from shared.vision.geometry import camera_to_yaml, default_camera, make_pose
 from shared.vision.tags import render_tag, to_uint8
 
 
-def test_detect_reports_keypoints_poses_and_bad_files(tmp_path: Path) -> None:
+def _tag_image(folder: Path) -> np.ndarray:
+    """tag.png: tag 17 (0.2 m) 1.5 m before the default camera, and cam.yaml; returns the tag's pose."""
     cam = default_camera()
     pose = make_pose(np.eye(3), [0.1, -0.05, 1.5])
     canvas = np.full((cam.height, cam.width), 0.55, np.float32)
     h = cam.matrix() @ np.column_stack([pose[:3, 0], pose[:3, 1], pose[:3, 3]])
     render_tag(canvas, tag_id=17, tag_size_m=0.2, tag_plane_to_image=h)
-    cv2.imwrite(str(tmp_path / "tag.png"), to_uint8(canvas))
+    cv2.imwrite(str(folder / "tag.png"), to_uint8(canvas))
+    (folder / "cam.yaml").write_text(camera_to_yaml(cam))
+    return pose
+
+
+def test_detect_reports_keypoints_poses_and_bad_files(tmp_path: Path) -> None:
+    pose = _tag_image(tmp_path)
     (tmp_path / "broken.png").write_text("not an image")
-    (tmp_path / "cam.yaml").write_text(camera_to_yaml(cam))
     out = tmp_path / "out.json"
     code = main(
         ["detect", str(tmp_path), "--camera", str(tmp_path / "cam.yaml"), "--tag-size", "0.2", "--json", str(out)]
@@ -68,13 +74,8 @@ def test_detect_without_a_camera_file_assumes_one_and_says_so(
     """A trial had to write a camera file by hand before detect would look at three photos of unknown
     cameras. Without one each image gets an assumed pinhole camera, said on stderr and in the JSON; the
     keypoints are the same as with the true camera (they do not depend on it)."""
+    _tag_image(tmp_path)
     cam = default_camera()
-    pose = make_pose(np.eye(3), [0.1, -0.05, 1.5])
-    canvas = np.full((cam.height, cam.width), 0.55, np.float32)
-    h = cam.matrix() @ np.column_stack([pose[:3, 0], pose[:3, 1], pose[:3, 3]])
-    render_tag(canvas, tag_id=17, tag_size_m=0.2, tag_plane_to_image=h)
-    cv2.imwrite(str(tmp_path / "tag.png"), to_uint8(canvas))
-    (tmp_path / "cam.yaml").write_text(camera_to_yaml(cam))
     known, assumed = tmp_path / "known.json", tmp_path / "assumed.json"
     assert (
         main(["detect", str(tmp_path / "tag.png"), "--camera", str(tmp_path / "cam.yaml"), "--json", str(known)]) == 0

@@ -125,10 +125,13 @@ def _export_onnx_int8(
         onnx_int8.quantise(fp32, int8, calibration)
         if len(evaluation[0]):
             checked["accuracy"] = onnx_int8.accuracy(fp32, int8, *evaluation)
+        import onnx
+
+        graph = onnx.load(str(int8))
         files = []
         for side, k in _halves(cuts):
             path = out / f"{side}_{k}.onnx"
-            grid = onnx_int8.cut(int8, path, side, k)
+            grid = onnx_int8.cut(graph, path, side, k)
             io = _io(k, side)
             if grid is not None:  # the cut's values lie on a uint8 grid: it may travel as its codes
                 end = "output" if side == "head" else "input"

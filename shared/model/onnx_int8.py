@@ -102,16 +102,15 @@ def _quantize_static(fp32_path: Path, int8_path: Path, reader: Any, exclude: lis
     )
 
 
-def cut(all_cuts: Path, out: Path, side: str, k: int) -> dict[str, float] | None:
+def cut(model: Any, out: Path, side: str, k: int) -> dict[str, float] | None:
     """head_k (roi -> cut k, or keypoints at k = 7) or tail_k (cut k, or roi at k = 0 -> keypoints),
-    extracted by tensor name from the all-cuts graph. Returns the cut tensor's uint8 grid (scale, zero
-    point) where it is quantised, else None."""
+    extracted by tensor name from the all-cuts graph (`model`, loaded once for every half). Returns the
+    cut tensor's uint8 grid (scale, zero point) where it is quantised, else None."""
     import onnx
     from onnx import helper
     from onnx.numpy_helper import to_array
     from onnx.utils import Extractor
 
-    model = onnx.load(str(all_cuts))
     source = "roi" if side == "head" or k == 0 else f"cut{k}"
     target = "keypoints" if side == "tail" or k == N_CUTS - 1 else f"cut{k}"
     half = Extractor(model).extract_model([source], [target])

@@ -91,14 +91,7 @@ def _cmd_down(args: argparse.Namespace) -> int:
     if not pids.is_file():
         print(f"no running deployment ({pids} not found)")
         return 1
-    # Only processes that are still ours: a pid written by a run that ended without removing its files
-    # (killed) may belong to anything by now.
-    services = [(name, int(p)) for name, p in (line.split() for line in pids.read_text().splitlines() if line.strip())]
-    services = [(name, p) for name, p in services if _running(p) and "services." in _cmdline(p)]
-    launcher = run / "launcher.pid"
-    pid = int(launcher.read_text()) if launcher.is_file() else None
-    if pid is not None and not (_running(pid) and any(s in _cmdline(pid) for s in ("splittag", "shared.tools"))):
-        pid = None
+    pid, services = _live_run_processes(run)
     if pid is None and not services:
         print(f"no running deployment in {run.resolve()} (its processes have ended)")
         _finish_orphaned(run, [])
@@ -1165,21 +1158,28 @@ def _endpoint_hint(args: argparse.Namespace, runs: Path = Path("runs")) -> str:
     return f"; the deployment in {runs}/current listens at {endpoints[0]} (--connect {endpoints[0]})"
 
 
-def _run_is_live(run: Path) -> bool:
-    """Whether the run folder's launcher, or any of its services, still runs (as `splittag down` judges)."""
-    launcher = run / "launcher.pid"
+def _live_run_processes(run: Path) -> tuple[int | None, list[tuple[str, int]]]:
+    """The run folder's launcher pid (None when it is gone) and its services (name, pid) still running.
+    Only processes that are still ours: a pid written by a run that ended without removing its files
+    (killed) may belong to anything by now."""
     try:
-        pid = int(launcher.read_text())
+        pid: int | None = int((run / "launcher.pid").read_text())
     except (OSError, ValueError):
         pid = None
-    if pid is not None and _running(pid) and any(s in _cmdline(pid) for s in ("splittag", "shared.tools")):
-        return True
+    if pid is not None and not (_running(pid) and any(s in _cmdline(pid) for s in ("splittag", "shared.tools"))):
+        pid = None
     try:
         lines = (run / "pids").read_text().splitlines()
     except OSError:
-        return False
-    pids = [int(f[1]) for line in lines if len(f := line.split()) == 2 and f[1].isdigit()]
-    return any(_running(p) and "services." in _cmdline(p) for p in pids)
+        lines = []
+    listed = [(f[0], int(f[1])) for line in lines if len(f := line.split()) == 2 and f[1].isdigit()]
+    return pid, [(name, p) for name, p in listed if _running(p) and "services." in _cmdline(p)]
+
+
+def _run_is_live(run: Path) -> bool:
+    """Whether the run folder's launcher, or any of its services, still runs (as `splittag down` judges)."""
+    pid, services = _live_run_processes(run)
+    return pid is not None or bool(services)
 
 
 # The commands a light client runs (README *Reading poses from your own process*): they, their errors
