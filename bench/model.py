@@ -217,11 +217,11 @@ def main() -> None:
         columns["OpenVINO int8 (ref)"] = _ov_cumulative_ms(reference, args.repetitions)
         onnx_folders: dict[str, Path] = {}
         if args.onnx:
-            from shared.datasets.synth import CALIBRATION_SEED, generated_rois
+            from shared.datasets.synth import CALIBRATION_SEED, mixed_rois
             from shared.model.export import export
 
             if calibration is None:
-                calibration, _ = generated_rois(300, CALIBRATION_SEED)
+                calibration, _ = mixed_rois(300, CALIBRATION_SEED)  # what `splittag export` calibrates on
             for precision in ("fp32", "int8"):
                 folder = Path(tmp) / f"onnx_{precision}"
                 export(args.weights, folder, fmt="onnx", precision=precision, calibration=calibration)

@@ -7,7 +7,8 @@
 #   SPLITTAG_CERT_NAMES="slam edge1 robot1 robot1-camera operator" deploy/make-certs.sh certs   # other names
 #
 # (`splittag fleet --config F --make-certs` issues a fleet's names, one per process: see docs/fleet.md.)
-# OUT_DIR defaults to certs/. Every certificate is valid for localhost and 127.0.0.1 plus each
+# OUT_DIR defaults to certs/. Every certificate is valid for localhost, 127.0.0.1 and the emulated
+# link's edge addresses (10.77.0.2, 10.78.0.2: `splittag up --link`) plus each
 # EXTRA_SAN (an IP address or a DNS name: the edge's and the robot's addresses when robot and edge
 # are two hosts; slam reaches the robot's router too, as its second endpoint).
 # Keep ca.key offline after use: whoever holds it can mint identities.
@@ -23,7 +24,9 @@ days=${SPLITTAG_CERT_DAYS:-825}
 
 mkdir -p "$out"
 umask 077
-san="DNS:localhost,IP:127.0.0.1"
+# plus the emulated link's addresses of the edge (`splittag up --config deploy/secure.toml --link 5g`:
+# the robot dials the edge at 10.77.0.2 across the shaped link, the tools at 10.78.0.2)
+san="DNS:localhost,IP:127.0.0.1,IP:10.77.0.2,IP:10.78.0.2"
 for extra in "$@"; do
   if [[ $extra =~ ^[0-9.]+$ || $extra == *:* ]]; then san+=",IP:$extra"; else san+=",DNS:$extra"; fi
 done

@@ -170,6 +170,11 @@ def test_down_finishes_a_run_whose_launcher_died(tmp_path: Path) -> None:
         assert summary["launcher"].startswith("died") and sorted(summary["stopped_by_down"]) == sorted(SERVICES)
         # the rows written before the launcher died are kept, and counted
         assert summary["frames_csv_rows"] == rows() > 0 and "slam" in summary  # slam wrote its outputs as it stopped
+        # what frames.csv and the run folder still tell (a trial: no frames, e2e, link or refusal figures)
+        assert summary["frames"] == rows() and summary["e2e_ms_p50"] > 0 and summary["frames_by_k"], summary
+        inputs = summary["inputs"]
+        assert {"robot_infer", "edge_infer", "slam"} <= set(inputs), inputs
+        assert inputs["robot_infer"]["processes"] == 1 and inputs["slam"]["accepted"] > 0, inputs
         assert not (run / "pids").exists() and not (run / "launcher.pid").exists()
         again = d.down()
         assert again.returncode == 1 and "no running deployment" in again.stdout
@@ -438,6 +443,10 @@ def test_up_restarts_a_killed_service(tmp_path: Path) -> None:
         # processes', and nothing in the run folder told of the kills).
         summary = json.loads((d.runs / "current" / "summary.json").read_text())
         assert summary["restarts"] == {"edge_infer": 1, "robot_infer": 1} and summary["exits"] == 2, summary
+        # every process's input counts, the killed ones' included (each kept them in the run folder)
+        inputs = summary["inputs"]
+        assert inputs["edge_infer"]["processes"] == 2 and inputs["robot_infer"]["processes"] == 2, inputs
+        assert inputs["slam"]["processes"] == 1 and inputs["robot_infer"]["accepted"] > 0, inputs
         incidents = [json.loads(line) for line in Path(summary["incidents"]).read_text().splitlines()]
         assert [(i["event"], i["name"], i.get("code")) for i in incidents if i["event"] != "ready"] == [
             ("exited", "edge_infer", -9),
@@ -466,3 +475,64 @@ def test_up_restarts_a_killed_service(tmp_path: Path) -> None:
             during = [t for t in stamps if gone + 0.5 < t < back - 0.5]
             assert len(during) >= 3, f"{name}: {len(during)} poses in the {back - gone:.1f} s without the edge"
         assert "slam and the monitor fail over to the robot's router" in d.log_path.read_text()
+
+
+def test_a_secure_config_stays_tls_across_the_emulated_link(tmp_path: Path) -> None:
+    """A trial's `up --config deploy/secure.toml --link 5g` rewrote every endpoint to plain tcp/ while
+    access control stayed on: no process had an identity, nothing connected, the camera restarted for
+    ever. The link's endpoints keep the config's protocol, the certificates name the link's addresses,
+    and an edge certificate made without them is refused before anything starts, saying how to fix it."""
+    from shared.tools.launch import LaunchError, _placement, link_certificate_problem
+    from shared.tools.linkemu import LinkEmulatorSettings
+
+    certs = tmp_path / "certs"
+    made = subprocess.run(["bash", "deploy/make-certs.sh", str(certs)], cwd=REPO, capture_output=True, text=True)
+    assert made.returncode == 0, made.stderr
+    config = tmp_path / "secure.toml"
+    config.write_text((REPO / "deploy" / "secure.toml").read_text().replace('"certs/', f'"{certs}/'))
+    link = LinkEmulatorSettings()
+    topology, _, emu = _placement(config, ("camera", "robot_infer", "edge_infer", "slam"), "5g")
+    assert emu is not None and topology.protocol == "tls"
+    tables = topology.zenoh_tables()
+    assert tables["robot_infer"]["zenoh"]["connect"] == [f"tls/{link.edge_addr}:7447"]
+    assert tables["edge_infer"]["zenoh"]["listen"] == ["tls/0.0.0.0:7447"]
+    assert tables["monitor"]["connect"][0] == f"tls/{link.mgmt_edge_addr}:7447"
+    assert link_certificate_problem(config, (link.edge_addr, link.mgmt_edge_addr)) is None
+    # Certificates made before the link's addresses were named: refused, with the command that fixes it.
+    old = tmp_path / "old"
+    old.mkdir()
+    subprocess.run(
+        ["openssl", "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes", "-days", "2",
+         "-subj", "/CN=edge", "-addext", "subjectAltName=DNS:localhost,IP:127.0.0.1",
+         "-keyout", str(old / "edge.key"), "-out", str(old / "edge.pem")],
+        check=True, capture_output=True,
+    )  # fmt: skip
+    config.write_text(config.read_text().replace(f'"{certs}/edge.', f'"{old}/edge.'))
+    with pytest.raises(LaunchError) as refused:
+        _placement(config, ("camera", "robot_infer", "edge_infer", "slam"), "5g")
+    assert refused.value.exit_code == 2
+    assert f"does not name {link.edge_addr}, {link.mgmt_edge_addr}" in str(refused.value)
+    assert "deploy/make-certs.sh" in str(refused.value)
+
+
+def test_a_reader_with_a_certificate_of_another_ca_is_told_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A trial's operator certificate from another CA: `splittag split get` said only zenoh's "Unable to
+    connect ... Timeout!". The readers now find what the services find (`certificate_problem`)."""
+    from shared.tools.cli import main
+    from shared.transport.session import TlsSettings, free_tcp_port
+
+    ours, theirs = tmp_path / "ours", tmp_path / "theirs"
+    for out in (ours, theirs):
+        made = subprocess.run(["bash", "deploy/make-certs.sh", str(out)], cwd=REPO, capture_output=True, text=True)
+        assert made.returncode == 0, made.stderr
+    endpoint = f"tls/127.0.0.1:{free_tcp_port()}"
+    router = open_session(ZenohSettings(mode="router", listen=[endpoint], tls=TlsSettings.from_dir(ours, "edge")))
+    try:
+        assert main(["split", "get", "--connect", endpoint, "--certs", str(theirs)]) == 1
+    finally:
+        router.close()
+    err = capsys.readouterr().err
+    assert "splittag split: Zenoh: " in err and "its certificate is refused here" in err, err
+    assert len(err.strip().splitlines()) == 1, err

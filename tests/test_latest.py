@@ -3,12 +3,16 @@ the good one waiting; the consumer gets the newest good one."""
 
 from __future__ import annotations
 
+import logging
 import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from shared.runtime.guard import InputGuard
+from shared.runtime.guard import InputGuard, input_counts_summary
 from shared.transport.latest import LatestValid, fresh_wait_secs
 from shared.wire.messages import Frame, decode, encode
 from tests.examples import example_messages
@@ -133,3 +137,71 @@ def test_take_does_not_wait_when_the_next_frame_is_far_or_never_comes() -> None:
     threading.Timer(0.05, stop.set).start()
     taken = slot.take(stop, poll_secs=0.01, fresh_fraction=1 / 3)
     assert taken is not None and taken.seq == 5 and slot.fresh_waits == 2
+
+
+def test_a_burst_of_bad_inputs_is_summed_up_once_its_interval_ends(caplog: pytest.LogCaptureFixture) -> None:
+    """A trial's burst of 10 bad frames showed in robot_infer.log as "rejected frame #1" alone (the "+N
+    not logged" waited for a next rejection that never came). The rest is said in one line when the
+    interval ends, by reason with the newest text, and at shutdown; the rate stays one line a second."""
+    now = [0.0]
+    due: list[tuple[float, Callable[[], None]]] = []
+    guard = InputGuard("robot_infer", clock=lambda: now[0], schedule=lambda secs, call: due.append((secs, call)))
+
+    def bad(what: str, why: str) -> None:
+        guard.run(what, 7, lambda: (_ for _ in ()).throw(ValueError(why)))
+
+    with caplog.at_level(logging.WARNING, logger="shared.runtime.guard"):
+        for i in range(10):
+            now[0] = 0.05 * i
+            bad("frame" if i < 8 else "frame_stamp", f"bad {i}")
+        assert len(caplog.records) == 1 and "rejected frame #1" in caplog.text
+        assert [secs for secs, _ in due] == [pytest.approx(0.95)]  # one flush, when the interval ends (t = 1 s)
+        now[0] = 1.0
+        due.pop()[1]()
+        assert len(caplog.records) == 2
+        line = caplog.records[1].getMessage()
+        assert "rejected 9 more inputs not logged one by one (10 in all)" in line, line
+        assert "frame: ValueError x7, frame_stamp: ValueError x2" in line and "bad 7 (7 bytes)" in line, line
+        assert "bad 9 (7 bytes)" in line, line
+        guard.flush()  # nothing left: nothing said
+        assert len(caplog.records) == 2
+        now[0] = 1.5
+        bad("frame", "late")  # within the interval of the summary: counted, said at shutdown
+        assert len(caplog.records) == 2 and len(due) == 1
+        guard.flush()
+        assert len(caplog.records) == 3 and "rejected 1 more inputs" in caplog.records[2].getMessage()
+    assert guard.stats()["rejected"] == 11
+
+
+def test_input_counts_outlive_their_process_in_the_run_folder(tmp_path: Path) -> None:
+    """A trial's end-of-run lines said 0 rejected after two SIGKILL restarts that had refused 19 and 10.
+    Each process keeps its counts in the run folder as they change (and at close); the summary adds up
+    every process's per service. A file cut short is skipped; without a run folder nothing is written."""
+    first = InputGuard("edge_infer", schedule=lambda secs, call: None)
+    first.persist(tmp_path / "inputs" / "edge_infer.101.json", every_secs=3600)
+    first.run("features", 8, lambda: (_ for _ in ()).throw(ValueError("bad")))
+    first.run("features", 8, lambda: None)
+    first.close()
+    second = InputGuard("edge_infer", schedule=lambda secs, call: None)
+    second.persist(tmp_path / "inputs" / "edge_infer.102.json", every_secs=0.01)
+    for _ in range(3):
+        second.run("probe", 8, lambda: (_ for _ in ()).throw(KeyError("x")))
+    deadline = time.monotonic() + 10  # killed without close: what the last periodic write held
+    while (
+        time.monotonic() < deadline and '"rejected": 3' not in (tmp_path / "inputs" / "edge_infer.102.json").read_text()
+    ):
+        time.sleep(0.01)
+    (tmp_path / "inputs" / "slam.103.json").write_text('{"service": "slam", "accep')  # cut short
+    summary = input_counts_summary(tmp_path)
+    assert summary == {
+        "edge_infer": {
+            "processes": 2,
+            "accepted": 1,
+            "rejected": 4,
+            "rejected_by_reason": {"features: ValueError": 1, "probe: KeyError": 3},
+        }
+    }
+    alone = InputGuard("slam")
+    alone.persist(tmp_path / "no such run" / "inputs" / "slam.1.json")
+    alone.close()
+    assert not (tmp_path / "no such run").exists()

@@ -246,7 +246,7 @@ def test_the_export_command_makes_int8_onnx_and_says_what_it_cost(
     out = capsys.readouterr().out
     assert "wrote 1 graphs for k = 7" in out and "int8 on 8 held-out ROIs: e_px" in out, out
     doc = json.loads((tmp_path / "manifest.json").read_text())
-    assert doc["calibration"]["samples"] == 8 and "seed 9001" in doc["calibration"]["source"]
+    assert doc["calibration"]["samples"] == 8 and "seeds 9001 + 100 i" in doc["calibration"]["source"]
     assert len(doc["weights"]["sha256"]["model.safetensors"]) == 64 and "pyrDown" in doc["roi"]["warp"]
     assert doc["accuracy"]["samples"] == 8 and [f["file"] for f in doc["files"]] == ["head_7.onnx"]
     with pytest.raises(SystemExit):
@@ -270,16 +270,17 @@ def test_the_export_command_makes_int8_onnx_and_says_what_it_cost(
 
 def test_int8_onnx_halves_for_onnx_runtime_are_one_quantised_graph_cut_at_k(tmp_path: Path) -> None:
     """A trial's robot ran ONNX Runtime and found no int8 graph for it. Quantised here (every Conv but the
-    first, calibrated on ROIs of the training generator), cut at k by tensor name: head 3 then tail 3 is
-    the whole int8 graph (tail 0), and the manifest gives what int8 costs on held-out ROIs."""
+    first, each with its ReLU, calibrated on ROIs of the training generator), cut at k by tensor name:
+    head 3 then tail 3 is the whole int8 graph (tail 0), and the manifest gives what int8 costs on
+    held-out ROIs."""
     import onnx
     import onnxruntime as ort
 
-    from shared.datasets.synth import CALIBRATION_SEED, EVALUATION_SEED, generated_rois
+    from shared.datasets.synth import CALIBRATION_SEED, EVALUATION_SEED, mixed_rois
     from shared.model.export import export
 
-    calibration, _ = generated_rois(16, CALIBRATION_SEED)
-    held_out = generated_rois(16, EVALUATION_SEED)
+    calibration, _ = mixed_rois(16, CALIBRATION_SEED)
+    held_out = mixed_rois(16, EVALUATION_SEED)
     doc = json.loads(
         export(
             MODELS, tmp_path, fmt="onnx", precision="int8", cuts=(0, 3), calibration=calibration, evaluation=held_out
@@ -293,6 +294,16 @@ def test_int8_onnx_halves_for_onnx_runtime_are_one_quantised_graph_cut_at_k(tmp_
     convs = [n for n in graph.node if n.op_type == "Conv"]
     quantised = {o for n in graph.node if n.op_type == "DequantizeLinear" for o in n.output}
     assert not set(convs[0].input) & quantised and all(set(c.input) & quantised for c in convs[1:])
+    # Each quantised convolution's ReLU is folded into its output grid (zero point 0), not rounded once on
+    # a grid spanning the negative values it then zeroes and again after it (0.0615 -> 0.0356 px moved on
+    # the real photos): no ReLU is left behind a dequantised tensor.
+    relus = [n for n in graph.node if n.op_type == "Relu"]
+    assert relus and not any(set(n.input) & quantised for n in relus)
+    after_conv = {o for c in convs[1:] for o in c.output}
+    conv_grids = [n for n in graph.node if n.op_type == "QuantizeLinear" and n.input[0] in after_conv]
+    zero_points = {i.name: i for i in graph.initializer}
+    assert len(conv_grids) == len(convs) - 1
+    assert all(int(onnx.numpy_helper.to_array(zero_points[n.input[2]])) == 0 for n in conv_grids)
     head, tail, whole = (ort.InferenceSession(str(tmp_path / f)) for f in ("head_3.onnx", "tail_3.onnx", "tail_0.onnx"))
     rois = held_out[0][:4]
     z = head.run(None, {"roi": rois[:, None]})[0]

@@ -30,6 +30,7 @@ pytestmark = pytest.mark.multiprocess
 ROBOT = "secure1"
 SERVICES = ("camera", "robot_infer", "edge_infer", "slam")
 IDENTITY = {"edge_infer": "edge", "robot_infer": "robot", "camera": "camera", "slam": "slam"}
+ACL_LOG = "error,zenoh::net::routing::interceptor::access_control=trace"
 
 
 @pytest.fixture(scope="module")
@@ -76,6 +77,7 @@ def secure_deployment(tmp_path: Path, certs: Path) -> Iterator[tuple[Topology, z
             stdout=log,
             stderr=subprocess.STDOUT,
             start_new_session=True,
+            env={**os.environ, "RUST_LOG": ACL_LOG},  # zenoh's refusals in the routers' logs (docs/security.md)
         )
         operator = _session(topology, certs, "operator")
         failed = True
@@ -139,6 +141,15 @@ def test_only_authorised_identities_steer_and_publish(tmp_path: Path, certs: Pat
             with pytest.raises(SplitQueryError, match="access control does not let 'camera' ask it"):
                 query_split(camera, ROBOT, params="k=2", timeout_secs=2, identity="camera")
             assert query_split(operator, ROBOT, timeout_secs=10).k == 5
+            # The refusal leaves a trace where an operator looks (a trial found none): the edge router's
+            # log, with zenoh's access-control log on (RUST_LOG), names the identity, the act and the key.
+            (edge_log,) = {p.resolve() for p in (tmp_path / "runs").glob("*/edge_infer.log")}  # (and runs/current)
+            refused = [
+                line
+                for line in edge_log.read_text(errors="replace").splitlines()
+                if "is unauthorized to Query" in line and keys.split(ROBOT) in line
+            ]
+            assert refused and "camera" in refused[0] and "\x1b[" not in refused[0], refused
 
             # Nor query (or save) the map, which the operator may (the rule once named an old map key);
             # the camera's queries do reach other queryables (a positive control from the same session).

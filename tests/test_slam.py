@@ -552,30 +552,41 @@ def test_a_killed_slam_loses_none_of_the_poses_it_placed_after_its_last_checkpoi
     """A trial SIGKILLed slam: the 19 poses it had published since its last checkpoint were missing from
     the final trajectory.tum (a 6.4 s hole). Each pose goes to a journal as it is placed; the restarted
     slam appends what the journal holds after its trajectory's last stamp, and a checkpoint empties it.
-    Killed again before its own first checkpoint, the next process still finds them."""
+    Killed again before its own first checkpoint, the next process still finds them, and their ground
+    truth with them (a trial: groundtruth.tum lacked the journal's 10 poses, ATE over 175 of 185)."""
     settings = SlamServiceSettings(run_dir=tmp_path)
     first = SlamNode(settings)
     poses = _constant_velocity(40)
+    truth = {1_000 + i: poses[i] for i in range(40)}
+
+    def place(node: SlamNode, i: int) -> np.ndarray:
+        node.on_ground_truth(1_000 + i, truth[1_000 + i])
+        return node.on_poses(_tag_poses(i, 1_000 + i, poses[i]))[0].world_from_camera
+
     for i in range(10):
-        first.on_poses(_tag_poses(i, 1_000 + i, poses[i]))
+        place(first, i)
     first.write_outputs(tmp_path)  # the last checkpoint
     assert not (tmp_path / "trajectory.tum.journal.old").exists()
     published = {}
     for i in range(10, 17):  # placed and published, then SIGKILL: no checkpoint, no close
-        published[1_000 + i] = first.on_poses(_tag_poses(i, 1_000 + i, poses[i]))[0].world_from_camera
+        published[1_000 + i] = place(first, i)
     assert len(read_tum(tmp_path / "trajectory.tum")) == 10
     second = SlamNode(settings)
     for i in range(20, 25):
-        published[1_000 + i] = second.on_poses(_tag_poses(i, 1_000 + i, poses[i]))[0].world_from_camera
+        published[1_000 + i] = place(second, i)
     third = SlamNode(settings)  # the second killed before its first checkpoint too
     for i in range(30, 35):
-        third.on_poses(_tag_poses(i, 1_000 + i, poses[i]))
+        place(third, i)
     stats = third.write_outputs(tmp_path)
     rows = read_tum(tmp_path / "trajectory.tum")
     stamps = [round(t * 1e9) for t, _ in rows]
     expected = [1_000 + i for i in [*range(17), *range(20, 25), *range(30, 35)]]
     assert stamps == expected, stamps
     assert stats["poses"] == len(expected) and stats["resumed_poses"] == 22, stats
+    truths = read_tum(tmp_path / "groundtruth.tum")
+    assert [round(t * 1e9) for t, _ in truths] == expected and stats["ate_frames"] == len(expected), stats
+    for t, pose in truths:
+        np.testing.assert_allclose(pose, truth[round(t * 1e9)], atol=1e-6)
     for stamp, (_, pose) in zip(stamps, rows, strict=True):
         if stamp in published:  # the journal's poses are the ones published
             np.testing.assert_allclose(pose, published[stamp], atol=1e-6)

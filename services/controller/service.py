@@ -22,7 +22,7 @@ import zenoh
 
 from services.controller.settings import ControllerSettings
 from shared.control.controller import SplitController
-from shared.runtime.guard import InputGuard, serve_stats
+from shared.runtime.guard import InputGuard, input_counts_path, serve_stats
 from shared.transport.probe import ProbeError, Prober
 from shared.transport.session import encoding_for
 from shared.transport.split_client import SplitQueryError, query_split
@@ -173,6 +173,7 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
     core = SplitController(settings)
     lock = threading.Lock()
     guard = InputGuard("controller")
+    guard.persist(input_counts_path(settings.run_dir, "controller"))
     stats = serve_stats(session, keys.stats(rid, "controller"), guard)
 
     def subscribe(key: str, schema: type[M], handle: Callable[[M], None]) -> zenoh.Subscriber[None]:
@@ -246,6 +247,7 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
         prober.close()
         viz.close()
         stats.undeclare()
+        guard.close()  # the last interval's rejections said, the counts written
         log.info(
             "controller: %d switches, %d vetoed by the frames measured at both cuts; %d link samples left out as "
             "stamped at once after a stall of this process or the edge's; inputs %s",

@@ -21,13 +21,13 @@ from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import zenoh
 
 from services.slam.settings import SlamServiceSettings
-from shared.runtime.guard import InputGuard, serve_stats
+from shared.runtime.guard import InputGuard, input_counts_path, serve_stats
 from shared.runtime.memory import release_free_memory
 from shared.slam.marker_slam import (
     FrameIndexer,
@@ -57,13 +57,26 @@ MAX_RESIZED_WARNINGS = 64  # tags whose size mismatch is said (each once)
 GT_WAITING_FRAMES = 1024  # ground truth held for frames whose TagPoses have not come yet
 
 
+class JournalRead(NamedTuple):
+    """What a journal holds, sorted by stamp: the poses, and the ground truth of those that had one."""
+
+    stamps_nanos: np.ndarray
+    poses: np.ndarray
+    truth_stamps_nanos: np.ndarray
+    truths: np.ndarray
+
+
 class PoseJournal:
     """The poses slam placed since its last checkpoint, one line each as they come (capture time, the
-    data set's stamp or -1, the 3x4 world_from_camera): a slam killed between checkpoints (every few
-    seconds) lost those poses from trajectory.tum although it had published them (a trial: 19 poses,
-    a 6.4 s hole after a SIGKILL). A checkpoint rotates it (`rotate`, then `drop_rotated` once
-    trajectory.tum holds what it had); a restarted slam appends what both files hold after its
-    trajectory's last stamp (`read`). Each line is written through to the OS: it survives the process."""
+    data set's stamp or -1, the 3x4 world_from_camera, then the frame's 3x4 ground truth when it had
+    one): a slam killed between checkpoints (every few seconds) lost those poses from trajectory.tum
+    although it had published them (a trial: 19 poses, a 6.4 s hole after a SIGKILL), and their ground
+    truth from groundtruth.tum (a trial: ATE over 175 of 185 poses). A checkpoint rotates it (`rotate`,
+    then `drop_rotated` once trajectory.tum holds what it had); a restarted slam appends what both files
+    hold after its trajectory's last stamp (`read`). Each line is written through to the OS: it survives
+    the process."""
+
+    WITHOUT_TRUTH, WITH_TRUTH = 14, 26  # numbers on a line
 
     def __init__(self, path: Path) -> None:
         self.path = path
@@ -71,12 +84,19 @@ class PoseJournal:
         self._file: Any = None
         self.failed = False
 
-    def append(self, capture_nanos: int, source_nanos: int | None, world_from_camera: np.ndarray) -> None:
-        """One placed pose (a write that fails, a full disk say, is said once and the journal stops:
-        the poses are published all the same)."""
+    def append(
+        self,
+        capture_nanos: int,
+        source_nanos: int | None,
+        world_from_camera: np.ndarray,
+        truth: np.ndarray | None = None,
+    ) -> None:
+        """One placed pose, and its frame's ground truth if it had one (a write that fails, a full disk
+        say, is said once and the journal stops: the poses are published all the same)."""
         if self.failed:
             return
-        values = " ".join(f"{v:.9f}" for v in np.asarray(world_from_camera, np.float64)[:3].ravel())
+        rows = [world_from_camera] if truth is None else [world_from_camera, truth]
+        values = " ".join(f"{v:.9f}" for m in rows for v in np.asarray(m, np.float64)[:3].ravel())
         try:
             if self._file is None:
                 if not self.path.parent.is_dir():
@@ -117,10 +137,12 @@ class PoseJournal:
         """The checkpoint holds what the rotated file had."""
         self.rotated.unlink(missing_ok=True)
 
-    def read(self, *, source_time: bool) -> tuple[np.ndarray, np.ndarray]:
-        """(stamps ns, poses 4x4) of both files, in the data set's time (lines without a data-set stamp
-        left out) or capture time, sorted; a line cut short by the kill is skipped."""
-        stamps: dict[int, np.ndarray] = {}
+    def read(self, *, source_time: bool) -> JournalRead:
+        """The poses of both files and the ground truth of those that had one, in the data set's time
+        (lines without a data-set stamp left out) or capture time, sorted; a line cut short by the kill
+        is skipped."""
+        poses: dict[int, np.ndarray] = {}
+        truths: dict[int, np.ndarray] = {}
         for path in (self.rotated, self.path):
             try:
                 lines = path.read_text().splitlines()
@@ -128,19 +150,31 @@ class PoseJournal:
                 continue
             for line in lines:
                 parts = line.split()
-                if len(parts) != 14:
+                if len(parts) not in (self.WITHOUT_TRUTH, self.WITH_TRUTH):
                     continue
                 try:
                     capture, source = int(parts[0]), int(parts[1])
-                    rows = np.array([float(v) for v in parts[2:]], np.float64).reshape(3, 4)
+                    rows = np.array([float(v) for v in parts[2:]], np.float64).reshape(-1, 3, 4)
                 except ValueError:
                     continue
                 stamp = source if source_time else capture
                 if stamp < 0:
                     continue
-                stamps[stamp] = np.vstack([rows, [0.0, 0.0, 0.0, 1.0]])
-        order = sorted(stamps)
-        return np.array(order, np.int64), np.array([stamps[t] for t in order], np.float64).reshape(-1, 4, 4)
+                poses[stamp] = _homogeneous(rows[0])
+                if len(rows) == 2:
+                    truths[stamp] = _homogeneous(rows[1])
+                else:
+                    truths.pop(stamp, None)
+
+        def arrays(by_stamp: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+            order = sorted(by_stamp)
+            return np.array(order, np.int64), np.array([by_stamp[t] for t in order], np.float64).reshape(-1, 4, 4)
+
+        return JournalRead(*arrays(poses), *arrays(truths))
+
+
+def _homogeneous(rows: np.ndarray) -> np.ndarray:
+    return np.vstack([rows, [0.0, 0.0, 0.0, 1.0]])
 
 
 @dataclass
@@ -280,9 +314,12 @@ class SlamNode:
                 if self.resumed.anchor_tag_id is None and not self.world_tags:
                     journal.discard("the checkpoint names no anchor: their world may not be this one")
                 else:  # what the killed process placed after its last checkpoint
-                    stamps, poses = journal.read(source_time=run.previous_time != "capture")
+                    stamps, poses, truth_stamps, truths = journal.read(source_time=run.previous_time != "capture")
                     run.previous_stamps_nanos, run.previous_poses = _after(
                         run.previous_stamps_nanos, run.previous_poses, stamps, poses
+                    )
+                    run.previous_gt_stamps_nanos, run.previous_gt_poses = _after(
+                        run.previous_gt_stamps_nanos, run.previous_gt_poses, truth_stamps, truths
                     )
                     if len(stamps):
                         log.info(
@@ -351,7 +388,7 @@ class SlamNode:
             if res.world_from_camera is not None:
                 run.last_pose = res.world_from_camera
                 if run.journal is not None:
-                    run.journal.append(msg.capture_nanos, source_nanos, res.world_from_camera)
+                    run.journal.append(msg.capture_nanos, source_nanos, res.world_from_camera, truth)
             pose = run.last_pose if run.last_pose is not None else np.eye(4)
             cam = CameraPose(
                 robot_id=msg.robot_id,
@@ -724,6 +761,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
         return cam_pubs[robot], map_pubs[robot]
 
     guard = InputGuard("slam")
+    guard.persist(input_counts_path(settings.run_dir, "slam"))
 
     def robot_of(sample_key: object) -> str:
         robot = keys.robot_of(str(sample_key))
@@ -874,7 +912,8 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
         gt_sub.undeclare()
         stamp_sub.undeclare()
         summary = guard.run("final save", 0, lambda: node.write_outputs(settings.run_dir))
-        log.info("slam outputs in %s: %s", settings.run_dir, summary)
+        guard.close()  # the last interval's rejections said, the counts written
+        log.info("slam outputs in %s: %s (inputs: %s)", settings.run_dir, summary, guard.stats())
         viz.close()
 
 

@@ -5,12 +5,17 @@ static quantisation (QDQ, per-channel int8 weights, uint8 activations, min-max c
 ROIs), and then cut into head_k / tail_k by tensor name, so every half of every k is the same
 quantised graph, as the services' OpenVINO variant is.
 
-What is quantised was chosen by measurement (2 threads, 400 held-out ROIs of the training generator,
-session 30, *AMD EPYC family 25 model 17*):
+What is quantised was chosen by measurement (ROIs of the training generator and the 45 tags of the
+three real photos in bench/data/apriltag_photos, against the fp32 graph; *AMD EPYC family 25 model 17*):
 - every convolution but the first: its input is the image, whose 256 levels no int8 grid holds;
+- with the ReLU after it folded into its output grid (ONNX Runtime quantises Relu by removing it: the
+  grid then starts at 0, which clips exactly as the ReLU did). With convolutions alone each one's
+  output was rounded on a grid spanning its negative values too, half of it spent on what the ReLU
+  then zeroes, and rounded again after the ReLU (session 31, calibrated on `TRAINING_MIX`: the real
+  photos' keypoints moved 0.0615 -> 0.0356 px mean from the fp32 graph, the services' OpenVINO int8
+  0.0462);
 - nothing else. Quantising every op ONNX Runtime can (pools, the keypoint head's adds and multiplies)
-  put the keypoints themselves on a 1/255 grid: +0.31 px, against +0.004 px for the convolutions alone
-  (e_px 0.2065 -> 0.2105), at 21.4 ms per ROI on one thread (fp32 ONNX 65.2 ms).
+  put the keypoints themselves on a 1/255 grid: +0.31 px (session 30).
 Each export measures its own cost on held-out ROIs and writes it into the manifest (`accuracy`).
 """
 
@@ -61,7 +66,8 @@ def export_all_cuts(net: SplitKeypointNet, path: Path) -> None:
 
 
 def quantise(fp32_path: Path, int8_path: Path, calibration: NDArray[np.uint8]) -> None:
-    """ONNX Runtime static quantisation of the all-cuts graph: every Conv but the first (see above)."""
+    """ONNX Runtime static quantisation of the all-cuts graph: every Conv but the first, each with
+    the ReLU after it (see above)."""
     import onnx
     from onnxruntime.quantization import CalibrationDataReader
 
@@ -96,7 +102,7 @@ def _quantize_static(fp32_path: Path, int8_path: Path, reader: Any, exclude: lis
         per_channel=True,
         activation_type=QuantType.QUInt8,
         weight_type=QuantType.QInt8,
-        op_types_to_quantize=["Conv"],
+        op_types_to_quantize=["Conv", "Relu"],  # a Relu after a quantised Conv is folded into its grid
         nodes_to_exclude=exclude,
         calibrate_method=CalibrationMethod.MinMax,
     )

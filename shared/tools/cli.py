@@ -400,14 +400,15 @@ def _cmd_export(args: argparse.Namespace) -> int:
             evaluation = (data.arrays["roi"][test], data.arrays["keypoints"][test])
             source = f"{args.calibration_data}: its train split (checked on its test split)"
         else:
-            from shared.datasets.synth import CALIBRATION_SEED, EVALUATION_SEED, generated_rois
+            from shared.datasets.synth import CALIBRATION_SEED, EVALUATION_SEED, mixed_rois
 
-            calibration, _ = generated_rois(n_calibration, CALIBRATION_SEED)
+            calibration, _ = mixed_rois(n_calibration, CALIBRATION_SEED)
             if n_evaluation > 0:
-                evaluation = generated_rois(n_evaluation, EVALUATION_SEED)
+                evaluation = mixed_rois(n_evaluation, EVALUATION_SEED)
             source = (
-                f"the training generator with its default settings (`splittag data synth`) at seed {CALIBRATION_SEED} "
-                f"(checked at seed {EVALUATION_SEED})"
+                "the training generator (`splittag data synth`), a third each with its default settings, small "
+                "far tags in heavy blur and sRGB-like tone curves (shared.datasets.synth.TRAINING_MIX), at seeds "
+                f"{CALIBRATION_SEED} + 100 i (checked at {EVALUATION_SEED} + 100 i)"
             )
     from shared.model.export import stale_export_files
 
@@ -1158,6 +1159,26 @@ def _endpoint_hint(args: argparse.Namespace, runs: Path = Path("runs")) -> str:
     return f"; the deployment in {runs}/current listens at {endpoints[0]} (--connect {endpoints[0]})"
 
 
+def _certificate_hint(args: argparse.Namespace) -> str:
+    """What is wrong with the certificates between a reader and a tls/ endpoint it could not connect to
+    (zenoh only says it timed out: a trial's operator certificate from another CA), found as the
+    services find it (`certificate_problem`); "" when nothing is, or the reader uses no certificates."""
+    certs = getattr(args, "certs", None)
+    if not certs or not hasattr(args, "identity"):
+        return ""
+    from shared.transport.session import TlsSettings, certificate_problem
+
+    try:
+        tls = TlsSettings.from_dir(certs, args.identity)
+    except (OSError, ValueError):
+        return ""
+    for endpoint in split_endpoint(args.connect, tls=True):
+        problem = certificate_problem(endpoint, tls)
+        if problem is not None:
+            return f"; {problem}"
+    return ""
+
+
 def _live_run_processes(run: Path) -> tuple[int | None, list[tuple[str, int]]]:
     """The run folder's launcher pid (None when it is gone) and its services (name, pid) still running.
     Only processes that are still ours: a pid written by a run that ended without removing its files
@@ -1286,7 +1307,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not (settings or isinstance(exc, usage + failed)) or os.environ.get("SPLITTAG_TRACEBACK"):
             raise
         what = "Zenoh: " if type(exc).__module__.startswith("zenoh") else ""
-        hint = _endpoint_hint(args) if what and "Unable to connect" in str(exc) else ""
+        hint = _certificate_hint(args) or _endpoint_hint(args) if what and "Unable to connect" in str(exc) else ""
         print(f"splittag {args.command}: {what}{one_line_error(exc)}{hint}", file=sys.stderr)
         return 2 if settings or isinstance(exc, usage) else int(getattr(exc, "exit_code", 1))
     return code

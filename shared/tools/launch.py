@@ -29,6 +29,7 @@ import numpy as np
 import yaml
 import zenoh
 
+from shared.runtime.guard import input_counts_summary
 from shared.runtime.settings import CONFIG_EXIT, CURRENT_RUN
 from shared.runtime.sources import demo_scene
 from shared.tools.supervise import Supervisor, incidents_file
@@ -1014,7 +1015,22 @@ def finish_orphaned_run(run_dir: Path, stopped: list[str], *, still_running: lis
     for name in ("frames.csv", *sorted(p.name for p in run_dir.glob("frames_*.csv"))):
         if (run_dir / name).is_file():
             with (run_dir / name).open() as f:
-                summary[f"{name.removesuffix('.csv')}_csv_rows"] = sum(1 for _ in csv.DictReader(f))
+                rows = list(csv.DictReader(f))
+            summary[f"{name.removesuffix('.csv')}_csv_rows"] = len(rows)
+            e2e = [float(r["e2e_ms"]) for r in rows if r.get("e2e_ms")]
+            if name == "frames.csv" and e2e:  # (the monitor's figures died with it; frames.csv has each frame's)
+                summary |= {
+                    "frames": len(rows),
+                    "e2e_ms_p50": float(np.percentile(e2e, 50)),
+                    "e2e_ms_p99": float(np.percentile(e2e, 99)),
+                    "frames_by_k": {k: n for k, n in sorted(Counter(r["k"] for r in rows).items())},
+                }
+    from shared.tools.linkemu import read_events
+
+    if events := read_events(run_dir):
+        summary["link_profiles"] = events
+    if inputs := input_counts_summary(run_dir):  # every process's refusals (the launcher counted its own)
+        summary["inputs"] = inputs
     incidents = run_dir / "incidents.jsonl"
     if incidents.is_file():
         summary |= {**summarise_incidents(read_incidents(incidents)), "incidents": str(incidents)}
@@ -1109,13 +1125,49 @@ def _placement(
     """Where the services run: loopback per the config, or both sides of an emulated uplink."""
     from shared.tools.linkemu import LinkEmulator, LinkEmulatorSettings, in_netns
 
+    own = Topology.from_config(config)
     if link is None:
-        return Topology.from_config(config), {}, None
+        return own, {}, None
     emu = LinkEmulator(LinkEmulatorSettings())
     s = emu.settings
-    topology = Topology.emulated_link(edge_addr=s.edge_addr, mgmt_edge_addr=s.mgmt_edge_addr)
+    topology = Topology.emulated_link(edge_addr=s.edge_addr, mgmt_edge_addr=s.mgmt_edge_addr, protocol=own.protocol)
+    if own.protocol == "tls":
+        problem = link_certificate_problem(config, (s.edge_addr, s.mgmt_edge_addr))
+        if problem is not None:
+            raise LaunchError(problem, exit_code=2)
     side = {"camera": s.robot_ns, "robot_infer": s.robot_ns, "controller": s.robot_ns}
     return topology, {name: in_netns(side.get(name, s.edge_ns), []) for name in services}, emu
+
+
+def link_certificate_problem(config: Path, addresses: tuple[str, ...]) -> str | None:
+    """Under --link the robot dials the edge's router at the link's address and tools at the management
+    one: the edge's certificate must name both (TLS checks the address dialled). What is missing, said
+    with the command that makes such certificates; None when it names them (or openssl cannot tell)."""
+    doc = tomllib.loads(config.read_text())
+    tls = doc.get("edge_infer", {}).get("zenoh", {}).get("tls", {})
+    certificate = tls.get("certificate")
+    if not certificate:
+        return None
+    try:  # (paths in a config are the services' own: relative to where the deployment starts)
+        shown = subprocess.run(
+            ["openssl", "x509", "-noout", "-ext", "subjectAltName", "-in", str(certificate)],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        ).stdout
+    except (OSError, subprocess.SubprocessError):
+        return None  # (no openssl, or no such file: the edge's own start says what is wrong)
+    named = set(re.findall(r"IP Address:([0-9A-Fa-f.:]+)", shown))
+    missing = [a for a in addresses if a not in named]
+    if not missing:
+        return None
+    return (
+        f"--link with TLS: the edge's certificate {certificate} does not name {', '.join(missing)}, the emulated "
+        f"link's addresses at which the robot and the tools reach the edge; make the certificates again with "
+        f"deploy/make-certs.sh (it names them since session 31), or add them: "
+        f"deploy/make-certs.sh DIR {' '.join(missing)}"
+    )
 
 
 FRAME_COLUMNS: tuple[str, ...] = (
@@ -1350,6 +1402,9 @@ def _summarise_run(
     summary = {**monitor.summary(), **incidents_summary(run_dir, codes, supervisor), "run_dir": str(run_dir)}
     if stopped_by is not None:
         summary["stopped_by"] = stopped_by
+    inputs = input_counts_summary(run_dir)
+    if inputs:  # every process's, restarted ones included (each service's stats key has only its own)
+        summary["inputs"] = inputs
     logged = logged_problems(run_dir)
     if logged:
         summary["logged"] = logged
@@ -1423,9 +1478,12 @@ def run_pipeline(
         emu.log_dir = run_dir
         emu.up(initial or profile("5g"))
         cli = Path(sys.executable).parent / "splittag"
+        # (a secure deployment's operator shows its certificate: the monitor's folder holds the operator's)
+        certs = f" --certs {Path(zs.tls.certificate).parent}" if zs.tls is not None else ""
         print(
             f"emulated link up: profile {link}; `sudo {cli} link set PROFILE` switches it live; the edge's router "
-            f"is {zs.connect[0]}: `{cli} split get --connect {zs.connect[0]}` (and set, release) steers the split",
+            f"is {zs.connect[0]}: `{cli} split get --connect {zs.connect[0]}{certs}` (and set, release) steers the "
+            "split",
             flush=True,
         )
     stop = threading.Event()

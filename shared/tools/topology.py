@@ -48,10 +48,11 @@ class Topology:
         return cls(edge_port=free_tcp_port(), robot_port=free_tcp_port(), protocol=protocol)
 
     @classmethod
-    def emulated_link(cls, *, edge_addr: str, mgmt_edge_addr: str) -> Topology:
+    def emulated_link(cls, *, edge_addr: str, mgmt_edge_addr: str, protocol: str = "tcp") -> Topology:
         """Robot and edge sides in the emulated uplink's namespaces (shared.tools.linkemu): the robot
-        reaches the edge over the shaped veth, tools over the management veth."""
-        return cls(edge_bind="0.0.0.0", edge_from_robot=edge_addr, edge_from_tools=mgmt_edge_addr)
+        reaches the edge over the shaped veth, tools over the management veth, in the config's
+        `protocol` (a secure config's tls/ stays TLS: a trial's went plain tcp/ and nothing connected)."""
+        return cls(edge_bind="0.0.0.0", edge_from_robot=edge_addr, edge_from_tools=mgmt_edge_addr, protocol=protocol)
 
     @classmethod
     def from_config(cls, config: Path) -> Topology:
