@@ -256,8 +256,9 @@ def _assert_equal(x: object, y: object, path: str) -> None:
         assert x == y and type(x) is type(y), (path, x, y)
 
 
-def injected_tag_poses(robot_id: str, seq: int) -> bytes:
-    """Wire bytes of a schema-valid TagPoses with no tags: what an intruder would send (access tests)."""
+def injected_tag_poses(robot_id: str, seq: int, capture_nanos: int | None = None) -> bytes:
+    """Wire bytes of a schema-valid TagPoses with no tags: what an intruder would send (access tests), or
+    a stand-in pipeline's answer to a frame (`capture_nanos`: the frame's)."""
     import time
 
     from shared.vision.geometry import default_camera
@@ -267,7 +268,7 @@ def injected_tag_poses(robot_id: str, seq: int) -> bytes:
     message = TagPoses(
         robot_id=robot_id,
         seq=seq,
-        capture_nanos=time.time_ns(),
+        capture_nanos=time.time_ns() if capture_nanos is None else capture_nanos,
         split_k=7,
         payload_bytes=1,
         intrinsics=default_camera(),

@@ -519,3 +519,63 @@ def test_a_progress_file_that_is_not_this_data_sets_is_ignored(tmp_path: Path) -
     progress.write(1, 2, 5)
     other = FolderProgress(progress.path, source.files[:2])  # a listing of two images
     assert other.read() is None
+
+
+def test_a_data_set_paced_by_its_poses_is_played_frame_by_frame(tmp_path: Path) -> None:
+    """A trial could not make the pipeline process every frame of its data set: at 5 fps the robot skipped
+    27 of 200, at 3 fps 7, and it had to guess. `pace = "poses"`: each frame goes out once the previous
+    frame's TagPoses came back (fps stays the upper bound); a frame whose TagPoses never come is waited
+    for `poses_timeout_secs`, said, and the data set goes on. A stand-in pipeline answers every frame
+    but the third, 50 ms after it came."""
+    import time
+
+    from tests.examples import injected_tag_poses
+
+    folder, info, _ = _folder(tmp_path, n=6)
+    settings = CameraSettings(
+        robot_id="paced1",
+        source="folder",
+        path=str(folder),
+        camera_info=info,
+        fps=1000.0,
+        pace="poses",
+        poses_timeout_secs=0.6,
+        run_dir=tmp_path,
+        wait_for=[],
+    )
+    port = free_tcp_port()
+    hub = open_session(ZenohSettings(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
+    arrived: list[tuple[int, float]] = []  # (seq, when)
+    answered: dict[int, float] = {}
+    answers: list[threading.Timer] = []
+
+    def answer(frame: Frame) -> None:
+        answered[frame.seq] = time.monotonic()
+        hub.put(keys.tag_poses("paced1"), injected_tag_poses("paced1", frame.seq, frame.capture_nanos))
+
+    def on_frame(sample: object) -> None:
+        frame = decode(sample.payload.to_bytes(), Frame)  # type: ignore[attr-defined]
+        arrived.append((frame.seq, time.monotonic()))
+        if frame.seq != 2:  # (the third frame is refused on the way: no TagPoses)
+            answers.append(timer := threading.Timer(0.05, answer, (frame,)))
+            timer.start()
+
+    sub = hub.declare_subscriber(keys.frames("paced1"), on_frame)
+    cam_session = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
+    try:
+        time.sleep(0.5)  # (the hub's subscriber is known to the camera's session)
+        published = run_camera(settings, session=cam_session, stop=threading.Event())
+        deadline = time.monotonic() + 5
+        while len(arrived) < 6 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        for timer in answers:
+            timer.join()
+        cam_session.close()
+        sub.undeclare()
+        hub.close()
+    assert published == 6 and [s for s, _ in arrived] == list(range(6)), arrived
+    when = dict(arrived)
+    for seq in (1, 2, 4, 5):  # each went out after the previous frame's poses, never before
+        assert when[seq] >= answered[seq - 1], (seq, when, answered)
+    assert when[3] - when[2] >= 0.6  # the unanswered frame's timeout, then on

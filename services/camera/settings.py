@@ -22,6 +22,12 @@ class CameraSettings(ServiceSettings):
     camera_info: Path | None = None  # ROS camera_info YAML (required for folder, video, v4l2)
     groundtruth: Path | None = None  # optional TUM file for the folder source
     fps: float = Field(default=15.0, gt=0)  # publishing rate (a folder or video is paced to it)
+    # "fps": frames go out at `fps` whatever the pipeline takes (a robot slower than the camera skips
+    # frames, as a live camera's would); "poses": each frame waits, also, for the previous frame's
+    # TagPoses, so a data set is played frame by frame and none is skipped (`fps` stays the upper bound),
+    # or for `poses_timeout_secs` when they do not come (a frame refused on the way: said, counted).
+    pace: Literal["fps", "poses"] = "fps"
+    poses_timeout_secs: float = Field(default=10.0, gt=0)  # pace = "poses": the longest wait for a frame's TagPoses
     # None (default): loop the demo scene, play any other source once (a data set replayed in a loop
     # would fold its trajectory onto itself). A looped source that has data-set stamps (rgb.txt) is
     # stamped forward on every new pass (pass n: + n x its span), so time never runs backwards.
