@@ -174,7 +174,7 @@ def test_down_finishes_a_run_whose_launcher_died(tmp_path: Path) -> None:
         assert summary["frames"] == rows() and summary["e2e_ms_p50"] > 0 and summary["frames_by_k"], summary
         inputs = summary["inputs"]
         assert {"robot_infer", "edge_infer", "slam"} <= set(inputs), inputs
-        assert inputs["robot_infer"]["processes"] == 1 and inputs["slam"]["accepted"] > 0, inputs
+        assert inputs["robot_infer"]["processes"] == 1 and inputs["slam"]["accepted_by_input"]["tag_poses"] > 0, inputs
         assert not (run / "pids").exists() and not (run / "launcher.pid").exists()
         again = d.down()
         assert again.returncode == 1 and "no running deployment" in again.stdout
@@ -446,7 +446,7 @@ def test_up_restarts_a_killed_service(tmp_path: Path) -> None:
         # every process's input counts, the killed ones' included (each kept them in the run folder)
         inputs = summary["inputs"]
         assert inputs["edge_infer"]["processes"] == 2 and inputs["robot_infer"]["processes"] == 2, inputs
-        assert inputs["slam"]["processes"] == 1 and inputs["robot_infer"]["accepted"] > 0, inputs
+        assert inputs["slam"]["processes"] == 1 and inputs["robot_infer"]["accepted_by_input"]["frame"] > 0, inputs
         incidents = [json.loads(line) for line in Path(summary["incidents"]).read_text().splitlines()]
         assert [(i["event"], i["name"], i.get("code")) for i in incidents if i["event"] != "ready"] == [
             ("exited", "edge_infer", -9),

@@ -176,31 +176,41 @@ def test_a_burst_of_bad_inputs_is_summed_up_once_its_interval_ends(caplog: pytes
 def test_input_counts_outlive_their_process_in_the_run_folder(tmp_path: Path) -> None:
     """A trial's end-of-run lines said 0 rejected after two SIGKILL restarts that had refused 19 and 10.
     Each process keeps its counts in the run folder as they change (and at close); the summary adds up
-    every process's per service. A file cut short is skipped; without a run folder nothing is written."""
+    every process's per service, or per label where a service's processes name several (a fleet's
+    workers). A file cut short is skipped; without a run folder nothing is written."""
     first = InputGuard("edge_infer", schedule=lambda secs, call: None)
-    first.persist(tmp_path / "inputs" / "edge_infer.101.json", every_secs=3600)
+    first.persist(tmp_path / "inputs" / "edge_infer.101.json", label="edge1", every_secs=3600)
     first.run("features", 8, lambda: (_ for _ in ()).throw(ValueError("bad")))
     first.run("features", 8, lambda: None)
     first.close()
     second = InputGuard("edge_infer", schedule=lambda secs, call: None)
-    second.persist(tmp_path / "inputs" / "edge_infer.102.json", every_secs=0.01)
-    for _ in range(3):
-        second.run("probe", 8, lambda: (_ for _ in ()).throw(KeyError("x")))
-    deadline = time.monotonic() + 10  # killed without close: what the last periodic write held
-    while (
-        time.monotonic() < deadline and '"rejected": 3' not in (tmp_path / "inputs" / "edge_infer.102.json").read_text()
-    ):
-        time.sleep(0.01)
-    (tmp_path / "inputs" / "slam.103.json").write_text('{"service": "slam", "accep')  # cut short
-    summary = input_counts_summary(tmp_path)
-    assert summary == {
-        "edge_infer": {
-            "processes": 2,
-            "accepted": 1,
-            "rejected": 4,
-            "rejected_by_reason": {"features: ValueError": 1, "probe: KeyError": 3},
+    second.persist(tmp_path / "inputs" / "edge_infer.102.json", label="edge1", every_secs=0.01)
+    try:
+        for _ in range(3):
+            second.run("probe", 8, lambda: (_ for _ in ()).throw(KeyError("x")))
+        counts = tmp_path / "inputs" / "edge_infer.102.json"
+        deadline = time.monotonic() + 10  # killed without close: what the last periodic write held
+        while time.monotonic() < deadline and '"rejected": 3' not in counts.read_text():
+            time.sleep(0.01)
+        (tmp_path / "inputs" / "slam.103.json").write_text('{"service": "slam", "accep')  # cut short
+        assert input_counts_summary(tmp_path) == {
+            "edge_infer": {
+                "processes": 2,
+                "accepted": 1,
+                "accepted_by_input": {"features": 1},
+                "rejected": 4,
+                "rejected_by_reason": {"features: ValueError": 1, "probe: KeyError": 3},
+            }
         }
-    }
+    finally:
+        second.close()
+    other = InputGuard("edge_infer", schedule=lambda secs, call: None)  # a fleet's second worker
+    other.persist(tmp_path / "inputs" / "edge_infer.104.json", label="edge2", every_secs=3600)
+    other.run("features", 8, lambda: None)
+    other.close()
+    summary = input_counts_summary(tmp_path)
+    assert set(summary) == {"edge_infer@edge1", "edge_infer@edge2"}
+    assert summary["edge_infer@edge1"]["processes"] == 2 and summary["edge_infer@edge2"]["accepted"] == 1
     alone = InputGuard("slam")
     alone.persist(tmp_path / "no such run" / "inputs" / "slam.1.json")
     alone.close()

@@ -470,9 +470,12 @@ def test_framing2_bad_input_gives_typed_errors(payload: bytes, error: type[WireE
         unpack(payload)
 
 
-def test_a_non_finite_split_tensor_is_refused_by_the_edge_not_the_wire() -> None:
-    """Decoding is O(header): a NaN in a megabyte feature map passes the wire; the edge's tail turns it
-    into non-finite keypoints and refuses the frame with a message naming the tag and the cut."""
+@pytest.mark.parametrize("precision", ["fp32", "int8"])
+def test_a_non_finite_split_tensor_is_refused_by_the_edge_not_the_wire(precision: str) -> None:
+    """Decoding is O(header): a NaN in a megabyte feature map passes the wire; the edge refuses the frame
+    with a message naming the tag and the cut. An fp32 tail turns the NaN into non-finite keypoints; an
+    int8 tail quantises it into finite, plausible ones (a trial found it in the exported int8 tails; the
+    services' int8 did the same), so at int8 the edge checks the cut tensor before the tail."""
     from shared.model.runtime import load_split_net
     from shared.perception.split import edge_step
     from shared.vision.tagmap import TagMapFile
@@ -490,7 +493,7 @@ def test_a_non_finite_split_tensor_is_refused_by_the_edge_not_the_wire() -> None
     with pytest.raises(FeatureShapeError, match=rf"tag\(s\) \[{tag.tag_id}\].*cut-{msg.split_k}"):
         edge_step(
             received,
-            net=load_split_net(Path(__file__).resolve().parent.parent / "models", "fp32"),
+            net=load_split_net(Path(__file__).resolve().parent.parent / "models", precision),  # type: ignore[arg-type]
             tag_map=TagMapFile(default_size_m=0.2),
             receive_nanos=1,
             previous_receive_nanos=0,

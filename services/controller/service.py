@@ -22,7 +22,7 @@ import zenoh
 
 from services.controller.settings import ControllerSettings
 from shared.control.controller import SplitController
-from shared.runtime.guard import InputGuard, input_counts_path, serve_stats
+from shared.runtime.guard import InputGuard, persist_input_counts, serve_stats
 from shared.transport.probe import ProbeError, Prober
 from shared.transport.session import encoding_for
 from shared.transport.split_client import SplitQueryError, query_split
@@ -173,7 +173,7 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
     core = SplitController(settings)
     lock = threading.Lock()
     guard = InputGuard("controller")
-    guard.persist(input_counts_path(settings.run_dir, "controller"))
+    persist_input_counts(guard, settings.run_dir, label=settings.robot_id)
     stats = serve_stats(session, keys.stats(rid, "controller"), guard)
 
     def subscribe(key: str, schema: type[M], handle: Callable[[M], None]) -> zenoh.Subscriber[None]:

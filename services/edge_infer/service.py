@@ -29,7 +29,7 @@ from shared.model.runtime import calibrate_tail_ms, load_split_net
 from shared.model.views import with_views
 from shared.model.weights import load_keypoint_fusion
 from shared.perception.split import EdgeInput, check_features, edge_batch
-from shared.runtime.guard import InputGuard, input_counts_path, serve_stats
+from shared.runtime.guard import InputGuard, persist_input_counts, serve_stats
 from shared.transport.fleet import FleetView
 from shared.transport.probe import ArrivalClock, serve_echo
 from shared.transport.session import declare_tensor_publisher, encoding_for
@@ -128,7 +128,7 @@ class EdgeInfer:
         self.inbox: queue.Queue[_Item] = queue.Queue(maxsize=s.queue_depth * served)
         self.lanes: dict[str, Lane] = {}
         self.guard = InputGuard("edge_infer")
-        self.guard.persist(input_counts_path(s.run_dir, "edge_infer"))
+        persist_input_counts(self.guard, s.run_dir, label=s.worker_id)
         self.viz = make_viz(s.rerun, service="edge_infer", run_dir=s.run_dir)
         self.dropped_unassigned = 0
         self.batches = 0

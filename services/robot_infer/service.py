@@ -19,7 +19,7 @@ from shared.model.runtime import calibrate_cumulative_ms, load_split_net
 from shared.model.views import with_views
 from shared.model.weights import load_keypoint_fusion
 from shared.perception.split import RobotTimings, Stage1Output, edge_step, robot_head, robot_stage1
-from shared.runtime.guard import InputGuard, input_counts_path, serve_stats
+from shared.runtime.guard import InputGuard, persist_input_counts, serve_stats
 from shared.runtime.service_main import started_by_run_launcher
 from shared.runtime.waiting import result_of
 from shared.transport.flow import (
@@ -133,7 +133,7 @@ class RobotInfer:
         self.pacer = EdgePacer(uplink=uplink, stale_secs=s.in_flight_timeout_secs) if paced else None
         self.watch = EdgeWatch(answer_timeout_secs=s.edge_answer_timeout_secs)
         self.guard = InputGuard("robot_infer")
-        self.guard.persist(input_counts_path(s.run_dir, "robot_infer"))
+        persist_input_counts(self.guard, s.run_dir, label=s.robot_id)
         # stage 1 of the next frame while the network runs (settings.overlap_stage1)
         # Not with tracking (its prediction needs the frame before's network output) nor when emulating
         # another CPU (the emulation pads the whole frame's compute on this thread).

@@ -27,7 +27,7 @@ import numpy as np
 import zenoh
 
 from services.slam.settings import SlamServiceSettings
-from shared.runtime.guard import InputGuard, input_counts_path, serve_stats
+from shared.runtime.guard import InputGuard, persist_input_counts, serve_stats
 from shared.runtime.memory import release_free_memory
 from shared.slam.marker_slam import (
     FrameIndexer,
@@ -761,7 +761,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
         return cam_pubs[robot], map_pubs[robot]
 
     guard = InputGuard("slam")
-    guard.persist(input_counts_path(settings.run_dir, "slam"))
+    persist_input_counts(guard, settings.run_dir)
 
     def robot_of(sample_key: object) -> str:
         robot = keys.robot_of(str(sample_key))

@@ -20,7 +20,7 @@ from __future__ import annotations
 import json
 import tempfile
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Final, Literal
 
 import numpy as np
 import torch
@@ -223,6 +223,7 @@ def export(
                     "weights": {"folder": str(weights), "sha256": _weights_digests(weights, fmt, precision)},
                     "contract": data_contract(),
                     "roi": ROI_WARP,
+                    **({"onnx": _onnx_versions(staging, files)} if fmt == "onnx" else {}),
                     **({"openvino_compile": COMPILE_CONFIG} if fmt == "openvino" else {}),  # (an IR cannot carry them)
                     **checked,
                     "files": files,
@@ -242,13 +243,36 @@ def export(
 # what a robot of another runtime must do alike to feed the exported head (a trial found it in the code).
 ROI_WARP = {
     "image": "grayscale uint8, the camera's own pixels (undistorted when the camera has distortion)",
-    "quad": "the tag's 4 outer black corners (TL, TR, BR, BL in the tag's frame), OpenCV pixel centres",
+    "quad": "the tag's 4 outer black corners (TL, TR, BR, BL in the tag's frame), OpenCV pixel centres; from "
+    "pupil-apriltags (or AprilTag's C library): corners[[3, 2, 1, 0]] - 0.5 (it gives BL, BR, TR, TL with pixel "
+    "centres at +0.5: a trial found both only in docs/geometry.md; in its order the keypoints come back with "
+    "their rows flipped, unshifted 0.06 px off)",
     "homography": "image -> ROI pixels mapping the quad to the square [margin, 1 - margin] in normalised ROI "
     "coordinates ((u + 0.5) / input_size), margin = contract.roi_margin",
     "warp": "cv2.warpPerspective, INTER_LINEAR, BORDER_REPLICATE; while the mapping shrinks the image more "
     "than 2x around the ROI's centre, the image is first halved with cv2.pyrDown (and the homography with it)",
     "keypoints_to_image": "the inverse homography of the network's keypoints x input_size - 0.5",
+    "checks": "the network has no confidence output: a ROI without a tag gives lattice-like keypoints, so a tag "
+    "is what stage 1 decoded; an int8 tail maps a non-finite cut tensor to finite keypoints (its first step "
+    "quantises), so check the cut is finite before the tail, as edge_infer does",
 }
+
+
+def _onnx_versions(folder: Path, files: list[dict[str, Any]]) -> dict[str, Any]:
+    """The ONNX files' IR version and opset, and the oldest ONNX Runtime they were run on (a trial's
+    robot pinned to 1.16 found out by a load error)."""
+    import onnx
+
+    models = [onnx.load(str(folder / f["file"]), load_external_data=False) for f in files]
+    return {
+        "ir_version": max(m.ir_version for m in models),
+        "opset": max(o.version for m in models for o in m.opset_import if o.domain in ("", "ai.onnx")),
+        "onnxruntime": f"{OLDEST_ONNXRUNTIME} or later (the oldest with this opset; tested: the same keypoints "
+        "bit for bit as the newest)",
+    }
+
+
+OLDEST_ONNXRUNTIME: Final = "1.17.3"
 
 
 def _weights_digests(weights: Path, fmt: str, precision: str) -> dict[str, str]:

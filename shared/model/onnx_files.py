@@ -8,6 +8,7 @@ import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 _EXPORTER_LOGGERS = ("onnx_ir", "onnxscript", "torch.onnx", "torch.export", "torch._dynamo")
 
@@ -41,10 +42,22 @@ class DropAdvice(logging.Filter):
 
 def inline_weights(path: Path) -> None:
     """One self-contained .onnx per half: the exporter writes large weights beside it (`.onnx.data`),
-    which the manifest did not name and a copy of the listed files left behind (a trial)."""
+    which the manifest did not name and a copy of the listed files left behind (a trial). Saved at the
+    lowest IR version its opsets allow (`lowest_ir_version`)."""
     import onnx
 
     model = onnx.load(str(path))  # (reads the external data in)
+    lowest_ir_version(model)
     onnx.save_model(model, str(path), save_as_external_data=False)
     for side_file in path.parent.glob(f"{path.name}.data"):
         side_file.unlink()
+
+
+def lowest_ir_version(model: Any) -> None:
+    """Mark an ONNX model with the lowest IR version its opsets allow (opset 20: IR 9), not the newest
+    the exporter writes (IR 10), which ONNX Runtime before 1.18 refuses (a trial). ONNX Runtime 1.17.3,
+    the oldest with opset 20, loads IR 9 and gives the same keypoints bit for bit as 1.32 (session 31).
+    Nothing in the graphs needs IR 10 (its additions are 4-bit types)."""
+    from onnx.helper import find_min_ir_version_for
+
+    model.ir_version = min(model.ir_version, find_min_ir_version_for(list(model.opset_import)))

@@ -210,8 +210,18 @@ def edge_batch(
     keypoints: list[np.ndarray | None] = [None] * len(items)
     refused: dict[int, FeatureShapeError] = {}
     share_secs = [0.0] * len(items)
+    # An int8 tail quantises its input first, so NaN or inf in a cut tensor comes out as finite, plausible
+    # keypoints (an all-NaN cut 3: the first keypoint at (0.203, 0.196); a trial found it in the exported
+    # int8 tails, and the services' OpenVINO int8 does the same): its cut tensors are checked before it.
+    check_inputs = getattr(net, "precision", None) == "int8"
     for k in sorted({i.features.split_k for i in items}):
         members = [n for n, i in enumerate(items) if i.features.split_k == k and i.features.tags]
+        if check_inputs and k > 0:
+            for n in members:
+                bad = [t.tag_id for t in items[n].features.tags if not np.isfinite(t.tensor).all()]
+                if bad:
+                    refused[n] = _non_finite(bad, items[n].features.robot_id, k)
+            members = [n for n in members if n not in refused]
         if not members:
             continue
         t0 = time.perf_counter()
@@ -228,10 +238,7 @@ def edge_batch(
             share_secs[n] = tail_secs * len(tags) / len(z)
             if not np.isfinite(kp).all():
                 bad = [t.tag_id for t, p in zip(tags, kp, strict=True) if not np.isfinite(p).all()]
-                refused[n] = FeatureShapeError(
-                    f"non-finite keypoints for tag(s) {bad} of {items[n].features.robot_id}: their cut-{k} "
-                    "tensors carry NaN or inf"
-                )
+                refused[n] = _non_finite(bad, items[n].features.robot_id, k)
             else:
                 keypoints[n] = kp
     return [
@@ -242,6 +249,12 @@ def edge_batch(
         )
         for n, item in enumerate(items)
     ]
+
+
+def _non_finite(tag_ids: list[int], robot_id: str, k: int) -> FeatureShapeError:
+    return FeatureShapeError(
+        f"non-finite keypoints for tag(s) {tag_ids} of {robot_id}: their cut-{k} tensors carry NaN or inf"
+    )
 
 
 def _poses(

@@ -54,7 +54,10 @@ class InputGuard:
         self._pending: Counter[str] = Counter()  # rejected since the last line and not logged, by reason
         self._flush_due = False
         self._persist_path: Path | None = None
+        self._label: str | None = None
         self._persist_stop: threading.Event | None = None
+        self._persist_thread: threading.Thread | None = None
+        self._write_lock = threading.Lock()
         self._lock = threading.Lock()
         self.accepted = 0
         self.accepted_by_input: Counter[str] = Counter()  # slam takes TagPoses, ground truth, frame stamps...
@@ -137,32 +140,36 @@ class InputGuard:
             "; ".join(f"{reason}: {text}" for reason, text in newest.items()),
         )
 
-    def persist(self, path: Path, *, every_secs: float = 2.0) -> None:
+    def persist(self, path: Path, *, label: str | None = None, every_secs: float = 2.0) -> None:
         """Keep this process's counts in `path` (JSON, replaced whole): now, every `every_secs` while they
-        change, and at `close`. The launcher's summary adds up every process's file per service, so the
-        counts of a process that was killed and restarted are not lost (a trial: the end-of-run lines
-        said 0 rejected after the restarts, of 19 and 10 refused). Nothing without a run folder
-        (`path`'s grandparent: a service started on its own, runs/current not made)."""
+        change, and at `close`. The launcher's summary adds up every process's file per service (and
+        `label`: a fleet's robot or edge worker), so the counts of a process that was killed and
+        restarted are not lost (a trial: the end-of-run lines said 0 rejected after the restarts, of 19
+        and 10 refused). Nothing without a run folder (`path`'s grandparent)."""
         if not path.parent.parent.is_dir():
             return
-        self._persist_path = path
+        self._persist_path, self._label = path, label
+        written = self._change_count()
         self._write_counts()
         stop = self._persist_stop = threading.Event()
 
         def keep() -> None:
-            written = self._change_count()
+            last = written
             while not stop.wait(every_secs):
-                if self._change_count() != written:
-                    written = self._change_count()
+                if (now := self._change_count()) != last:
+                    last = now
                     self._write_counts()
 
-        threading.Thread(target=keep, name=f"{self.service}-counts", daemon=True).start()
+        self._persist_thread = threading.Thread(target=keep, name=f"{self.service}-counts", daemon=True)
+        self._persist_thread.start()
 
     def close(self) -> None:
-        """At shutdown: the last interval's rejections said (`flush`), the counts written a last time."""
+        """At shutdown: the last interval's rejections said (`flush`), the counts written a last time,
+        after the periodic writer has stopped (its older counts never replace these)."""
         self.flush()
-        if self._persist_stop is not None:
+        if self._persist_stop is not None and self._persist_thread is not None:
             self._persist_stop.set()
+            self._persist_thread.join()
             self._write_counts()
 
     def _change_count(self) -> int:
@@ -170,18 +177,19 @@ class InputGuard:
             return self.accepted + sum(self.rejected.values())
 
     def _write_counts(self) -> None:
-        path = self._persist_path
-        if path is None:
-            return
-        doc = {**self.stats(), "pid": os.getpid(), "unix_nanos": time.time_ns()}
-        try:
-            path.parent.mkdir(exist_ok=True)
-            partial = path.with_name(path.name + ".part")
-            partial.write_text(json.dumps(doc))
-            os.replace(partial, path)
-        except OSError as exc:  # (a full disk: the counts stay served on the stats key)
-            log.warning("%s: cannot write its input counts to %s: %s", self.service, path, exc)
-            self._persist_path = None
+        with self._write_lock:  # (the periodic writer and close share the file and its .part)
+            path = self._persist_path
+            if path is None:
+                return
+            doc = {**self.stats(), "label": self._label, "pid": os.getpid(), "unix_nanos": time.time_ns()}
+            try:
+                path.parent.mkdir(exist_ok=True)
+                partial = path.with_name(path.name + ".part")
+                partial.write_text(json.dumps(doc))
+                os.replace(partial, path)
+            except OSError as exc:  # (a full disk: the counts stay served on the stats key)
+                log.warning("%s: cannot write its input counts to %s: %s", self.service, path, exc)
+                self._persist_path = None
 
     def stats(self) -> dict[str, Any]:
         """accepted (in all and by input), rejected, rejected by reason and the newest rejection's text by
@@ -235,27 +243,51 @@ def service_stats(session: zenoh.Session, robot_id: str, service: str, *, timeou
     raise TimeoutError(f"no stats from {service} of {robot_id} within {timeout_secs} s")
 
 
-def input_counts_path(run_dir: Path, service: str) -> Path:
-    """Where a service process keeps its input counts (`InputGuard.persist`): one file per process."""
-    return run_dir / "inputs" / f"{service}.{os.getpid()}.json"
+def persist_input_counts(guard: InputGuard, run_dir: Path, *, label: str | None = None) -> None:
+    """`guard.persist` into the run folder (`inputs/<service>.<pid>.json`) when the run's launcher started
+    this process; a service started by hand keeps its counts to itself (its default run_dir,
+    runs/current, may be another run's, whose summary would count them)."""
+    from shared.runtime.service_main import started_by_run_launcher
+
+    if started_by_run_launcher(run_dir):
+        guard.persist(run_dir / "inputs" / f"{guard.service}.{os.getpid()}.json", label=label)
 
 
 def input_counts_summary(run_dir: Path) -> dict[str, dict[str, Any]]:
     """Every process's input counts in a run folder added up per service (restarted ones included):
-    processes, accepted, rejected, rejected by reason; a file cut short is skipped."""
-    out: dict[str, dict[str, Any]] = {}
+    processes, accepted (in all and by input), rejected (in all and by reason). A service whose
+    processes name several labels (a fleet's robots, edge workers) has one entry per label,
+    `<service>@<label>`; a file cut short is skipped."""
+    docs: list[dict[str, Any]] = []
     for path in sorted((run_dir / "inputs").glob("*.json")):
         try:
             doc = json.loads(path.read_text())
-            service = str(doc["service"])
-            accepted, rejected = int(doc["accepted"]), int(doc["rejected"])
-            reasons = {str(k): int(v) for k, v in doc["rejected_by_reason"].items()}
+            docs.append(
+                {
+                    "service": str(doc["service"]),
+                    "label": None if doc.get("label") is None else str(doc["label"]),
+                    "accepted": int(doc["accepted"]),
+                    "accepted_by_input": {str(k): int(v) for k, v in doc["accepted_by_input"].items()},
+                    "rejected": int(doc["rejected"]),
+                    "rejected_by_reason": {str(k): int(v) for k, v in doc["rejected_by_reason"].items()},
+                }
+            )
         except (OSError, ValueError, KeyError, TypeError, AttributeError):
             continue
-        entry = out.setdefault(service, {"processes": 0, "accepted": 0, "rejected": 0, "rejected_by_reason": {}})
+    labels: dict[str, set[str | None]] = {}
+    for doc in docs:
+        labels.setdefault(doc["service"], set()).add(doc["label"])
+    out: dict[str, dict[str, Any]] = {}
+    for doc in docs:
+        service = doc["service"]
+        key = service if len(labels[service]) == 1 else f"{service}@{doc['label']}"
+        entry = out.setdefault(
+            key, {"processes": 0, "accepted": 0, "accepted_by_input": {}, "rejected": 0, "rejected_by_reason": {}}
+        )
         entry["processes"] += 1
-        entry["accepted"] += accepted
-        entry["rejected"] += rejected
-        for reason, n in reasons.items():
-            entry["rejected_by_reason"][reason] = entry["rejected_by_reason"].get(reason, 0) + n
+        for total in ("accepted", "rejected"):
+            entry[total] += doc[total]
+        for counts in ("accepted_by_input", "rejected_by_reason"):
+            for name, n in doc[counts].items():
+                entry[counts][name] = entry[counts].get(name, 0) + n
     return out

@@ -22,7 +22,7 @@ from shared.runtime.cpus import CpuPlacementError, pin_cpus
 from shared.runtime.errors import one_line_error
 from shared.runtime.logs import setup_logging
 from shared.runtime.settings import CONFIG_EXIT, SOURCE_ENDED_EXIT, ConfigurationError, ServiceSettings
-from shared.transport.session import ZenohSettings, certificate_problem, open_session
+from shared.transport.session import ZenohSettings, certificate_problem, open_session, zenoh_log_from_env
 from shared.vision.files import atomic_write_text
 from shared.vision.geometry import CameraFileError
 from shared.vision.tagmap import TagMapError
@@ -119,6 +119,7 @@ def service_main(
         except CpuPlacementError as exc:
             log.error("%s: configuration error: cpus %s: %s", name, settings.cpus, exc)
             return CONFIG_EXIT
+    zenoh_log_from_env()  # (RUST_LOG: zenoh's own log in this service's, e.g. access control's refusals)
     try:
         # A certificate that is not there, tls/ endpoints without TLS settings: the settings' fault.
         session = open_session(settings.zenoh)

@@ -390,7 +390,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
     n_calibration = 300 if args.calibration_samples is None else args.calibration_samples
     n_evaluation = 200 if args.evaluation_samples is None else args.evaluation_samples
     if int8_onnx:
-        print("quantising for ONNX Runtime: calibration and a check on held-out ROIs (about a minute)", flush=True)
+        print("quantising for ONNX Runtime: calibration and a check on held-out ROIs (about two minutes)", flush=True)
         if args.calibration_data is not None:
             from shared.datasets.shards import load_dataset
 
@@ -406,8 +406,9 @@ def _cmd_export(args: argparse.Namespace) -> int:
             if n_evaluation > 0:
                 evaluation = mixed_rois(n_evaluation, EVALUATION_SEED)
             source = (
-                "the training generator (`splittag data synth`), a third each with its default settings, small "
-                "far tags in heavy blur and sRGB-like tone curves (shared.datasets.synth.TRAINING_MIX), at seeds "
+                "the training generator (`splittag data synth`), a third each: its default settings, small far "
+                "tags in heavy blur with sRGB-like tone curves, and the default settings with those tone curves "
+                "(shared.datasets.synth.TRAINING_MIX), at seeds "
                 f"{CALIBRATION_SEED} + 100 i (checked at {EVALUATION_SEED} + 100 i)"
             )
     from shared.model.export import stale_export_files

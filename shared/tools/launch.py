@@ -995,9 +995,10 @@ def _remove_orphaned_link() -> str:
 def finish_orphaned_run(run_dir: Path, stopped: list[str], *, still_running: list[str] | None = None) -> dict[str, Any]:
     """What the launcher would have done at the end, for a run whose launcher died (`splittag down`
     stopped its services): pid files gone, the recording parts merged, and a summary.json that says so,
-    with what the run folder still tells (frames.csv's rows, incidents, slam's outputs). The monitor's
-    figures died with the launcher. Services `still_running` (they did not stop in time) keep their
-    recording parts unmerged: they are still being written."""
+    with what the run folder still tells (frames.csv's rows and from them the frames, e2e and frames by k;
+    incidents, link profiles, every process's input counts, slam's outputs). The monitor's other figures
+    (slam's online error, the controller's decisions) died with the launcher. Services `still_running`
+    (they did not stop in time) keep their recording parts unmerged: they are still being written."""
     import csv
 
     from shared.tools.supervise import read_incidents, summarise_incidents
@@ -1029,7 +1030,7 @@ def finish_orphaned_run(run_dir: Path, stopped: list[str], *, still_running: lis
 
     if events := read_events(run_dir):
         summary["link_profiles"] = events
-    if inputs := input_counts_summary(run_dir):  # every process's refusals (the launcher counted its own)
+    if inputs := input_counts_summary(run_dir):  # every service process's input counts, restarts included
         summary["inputs"] = inputs
     incidents = run_dir / "incidents.jsonl"
     if incidents.is_file():
@@ -1144,29 +1145,29 @@ def link_certificate_problem(config: Path, addresses: tuple[str, ...]) -> str | 
     one: the edge's certificate must name both (TLS checks the address dialled). What is missing, said
     with the command that makes such certificates; None when it names them (or openssl cannot tell)."""
     doc = tomllib.loads(config.read_text())
-    tls = doc.get("edge_infer", {}).get("zenoh", {}).get("tls", {})
-    certificate = tls.get("certificate")
+    edge = merge(doc.get("common", {}), doc.get("edge_infer", {}))  # (as the edge's settings layer them)
+    certificate = edge.get("zenoh", {}).get("tls", {}).get("certificate")
     if not certificate:
         return None
-    try:  # (paths in a config are the services' own: relative to where the deployment starts)
+    try:
         shown = subprocess.run(
-            ["openssl", "x509", "-noout", "-ext", "subjectAltName", "-in", str(certificate)],
+            ["openssl", "x509", "-noout", "-ext", "subjectAltName", "-in", str(repo_path(certificate))],
             capture_output=True,
             text=True,
             timeout=10,
             check=True,
         ).stdout
-    except (OSError, subprocess.SubprocessError):
-        return None  # (no openssl, or no such file: the edge's own start says what is wrong)
+    except (OSError, subprocess.SubprocessError) as exc:  # (no openssl, or no such file: the edge says which)
+        log.warning("--link with TLS: cannot read the names of the edge's certificate %s: %s", certificate, exc)
+        return None
     named = set(re.findall(r"IP Address:([0-9A-Fa-f.:]+)", shown))
     missing = [a for a in addresses if a not in named]
     if not missing:
         return None
     return (
         f"--link with TLS: the edge's certificate {certificate} does not name {', '.join(missing)}, the emulated "
-        f"link's addresses at which the robot and the tools reach the edge; make the certificates again with "
-        f"deploy/make-certs.sh (it names them since session 31), or add them: "
-        f"deploy/make-certs.sh DIR {' '.join(missing)}"
+        f"link's addresses at which the robot and the tools reach the edge; make the certificates again: "
+        f"deploy/make-certs.sh {Path(certificate).parent} (it names them)"
     )
 
 

@@ -166,8 +166,9 @@ def zenoh_log_from_env() -> bool:
     """Zenoh's own log (off unless `RUST_LOG` is set, in its syntax) to this process's output, without
     colour codes: how an operator sees what Zenoh does not tell the application, such as access control
     refusing a message (zenoh 1.10 says each decision at trace level:
-    RUST_LOG="error,zenoh::net::routing::interceptor::access_control=trace", docs/security.md). Whether
-    it was turned on."""
+    RUST_LOG="error,zenoh::net::routing::interceptor::access_control=trace", docs/security.md). Called
+    by the services (service_main), whose output is their log; not by the command line tools, whose
+    output may be JSON. Whether it was turned on."""
     if not os.environ.get("RUST_LOG"):
         return False
     os.environ.setdefault("NO_COLOR", "1")  # (read when zenoh's log starts: a log file gets no escape codes)
@@ -181,7 +182,6 @@ def open_session(settings: ZenohSettings) -> zenoh.Session:
     another answers (a trial: slam and the monitor, whose second endpoint is the robot's router, could
     not start while the edge's was away), so the others are tried first in turn, each for
     `connect_timeout_secs`."""
-    zenoh_log_from_env()
     try:
         session = zenoh.open(build_config(settings))
     except zenoh.ZError:
