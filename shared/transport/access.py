@@ -113,7 +113,8 @@ class AccessControlSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     enabled: bool = False  # a router enforces the roles below on the sessions it serves (docs/security.md)
-    # identities allowed everything but a person's split key (the routers)
+    # identities allowed everything, both split keys included (the routers: they forward each other's
+    # queries, an operator's too; a split set under one pins as a person's does)
     trusted: list[str] = Field(default_factory=lambda: ["edge", "robot"])
     # Trusted like `trusted` but may not steer (neither split key): processes, not routers, that serve
     # every robot, such as a fleet's edge workers (they never set a split; a router's identity may not

@@ -108,6 +108,8 @@ class SplitState:
                 log.info("split set to k=%d codec=%s pinned=%s (%s)", new.k, new.codec, new.pinned, new.source)
                 if self._on_change is not None:
                     self._on_change(new)
+            elif source == "user":  # a person's set is in the log even when it changes nothing (a trial)
+                log.info("split set to k=%d codec=%s pinned=%s (user; as it was)", new.k, new.codec, new.pinned)
             return new
 
 
