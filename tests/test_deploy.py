@@ -536,3 +536,29 @@ def test_a_reader_with_a_certificate_of_another_ca_is_told_so(
     err = capsys.readouterr().err
     assert "splittag split: Zenoh: " in err and "its certificate is refused here" in err, err
     assert len(err.strip().splitlines()) == 1, err
+
+
+def test_a_reader_is_pointed_at_a_fleets_edge_router(tmp_path: Path) -> None:
+    """A fleet trial's `splittag stats` without --connect, while its fleet ran on port 7547, was told "no
+    deployment is running here": the hint read only runs/current/config.toml, and a fleet writes one
+    config per process. A fleet's edge router is slam's."""
+    import argparse
+
+    from shared.tools.cli import _endpoint_hint
+
+    run = tmp_path / "runs" / "20261127-000000-1"
+    run.mkdir(parents=True)
+    (run / "config_slam.toml").write_text('[slam.zenoh]\nmode = "router"\nlisten = ["tcp/0.0.0.0:7547"]\n')
+    (tmp_path / "runs" / "current").symlink_to(run.name)
+    import sys
+
+    launcher = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "shared.tools.fleet"])
+    try:  # (a live launcher: a process of ours whose command line says so)
+        (run / "launcher.pid").write_text(f"{launcher.pid}\n")
+        args = argparse.Namespace(identity="operator", connect=None, certs=None)
+        hint = _endpoint_hint(args, runs=tmp_path / "runs")
+    finally:
+        launcher.kill()
+        launcher.wait()
+    expected = "listens at tcp/127.0.0.1:7547 (--connect tcp/127.0.0.1:7547)"
+    assert hint == f"; the deployment in {tmp_path / 'runs'}/current {expected}", hint

@@ -505,3 +505,15 @@ def test_a_repeated_tag_poses_message_is_counted_not_recorded_again() -> None:
     summary = monitor.summary()
     assert (summary["frames"], summary["frames_total"], summary["repeated_messages"]) == (5, 5, 5)
     assert sorted(r["seq"] for r in monitor.records) == [0, 1, 2, 3, 4]
+
+
+def test_a_message_naming_another_robot_than_its_key_is_counted_bad_not_recorded() -> None:
+    """A fleet trial published robot2's TagPoses on robot1's key: slam, the controller and the edge refused
+    it, the launcher's monitor made it a robot1 frame (frames.csv, frames, repeated). Refused here too."""
+    poses = EXAMPLES[TagPoses.SCHEMA]
+    assert isinstance(poses, TagPoses)
+    monitor = Monitor(None, robot_id=poses.robot_id)
+    monitor.on_poses(encode(poses.model_copy(update={"robot_id": "someone_else"})))
+    assert monitor.bad == 1 and not monitor.records
+    monitor.on_poses(encode(poses))
+    assert monitor.bad == 1 and len(monitor.records) == 1

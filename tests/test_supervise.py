@@ -120,18 +120,29 @@ def test_comings_and_goings_say_who_is_back_and_which_robots_move() -> None:
     sup.exited(victim, -9)
     token(keys.edge_worker("fleet", victim), False)
     assert comings.lines() == [f"edge worker {victim} gone: robot1 -> {other}"]
+    # kept in the run's record too (a fleet trial found hand-overs only in the live lines)
+    assert sup.incidents[-1] == {
+        "unix_nanos": 0,
+        "event": "handover",
+        "name": victim,
+        "worker": "gone",
+        "moved": {"robot1": other},
+    }
     clock.now += 7.5
     token(keys.edge_worker("fleet", victim), True)
     assert comings.lines() == [
         f"{victim} is back: ready 7.5 s after it exited",
         f"edge worker {victim} up: robot1 -> {victim}",
     ]
-    assert sup.incidents[-1] == {"unix_nanos": 0, "event": "ready", "name": victim, "down_secs": 7.5}
+    assert sup.incidents[-2] == {"unix_nanos": 0, "event": "ready", "name": victim, "down_secs": 7.5}
+    assert sup.incidents[-1]["event"] == "handover" and sup.incidents[-1]["moved"] == {"robot1": victim}
     token(keys.alive("robot2", "camera"), True)  # a token that comes back without an exit (the network)
     assert comings.lines() == []
     token(keys.edge_worker("fleet", "edge1"), False)
     token(keys.edge_worker("fleet", "edge2"), False)
     assert comings.lines()[-1] == "edge worker edge2 gone: no edge worker left, every robot computes on board"
+    assert sup.incidents[-1]["moved"] == {"robot1": None, "robot2": None}  # (on board)
+    assert summarise_incidents(sup.incidents)["handovers"] == 4
 
 
 def test_an_incidents_file_that_cannot_be_written_does_not_stop_the_run(tmp_path: Path) -> None:

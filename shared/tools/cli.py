@@ -1143,11 +1143,15 @@ def _endpoint_hint(args: argparse.Namespace, runs: Path = Path("runs")) -> str:
     current = runs / "current"
     try:
         config = current / "config.toml"
+        if not config.is_file():  # a fleet's run: its edge router is slam's (a trial was told nothing ran)
+            config = current / "config_slam.toml"
         doc = tomllib.loads(config.read_text())
         written = config.stat().st_mtime
     except (OSError, ValueError):  # (a reader of another host's deployment: nothing to say about this one)
         return "; no deployment is running here (`splittag up` or `make demo` starts one)" if local else ""
-    endpoints = [str(e) for e in doc.get("monitor", {}).get("connect", [])]
+    endpoints = [str(e) for e in doc.get("monitor", {}).get("connect", [])] or [
+        str(e).replace("/0.0.0.0:", "/127.0.0.1:") for e in doc.get("slam", {}).get("zenoh", {}).get("listen", [])
+    ]
     if not _run_is_live(current):  # (two trials were pointed at the address of a run that had ended)
         # (a run without a summary, written in the last two minutes, may be starting: its launcher has not
         # written its pid yet)

@@ -521,6 +521,10 @@ def run_fleet(
             summary["robots"][robot]["frames_csv_missed"] = frames_csv.missed
     if (run_dir / "settings").is_dir():
         summary["settings"] = sorted(str(p) for p in (run_dir / "settings").glob("*.json"))
+    from shared.runtime.guard import input_counts_summary
+
+    if inputs := input_counts_summary(run_dir):  # every process's, per robot and edge worker, restarts included
+        summary["inputs"] = inputs
     slam_json = run_dir / "slam.json"
     if slam_json.is_file():
         summary["slam"] = json.loads(slam_json.read_text())

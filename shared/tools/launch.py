@@ -41,7 +41,15 @@ from shared.vision.trajectory import format_stamp_nanos
 from shared.viz.recording import merge_recordings
 from shared.wire import keys
 from shared.wire.codec import WireError
-from shared.wire.messages import CameraPose, ControllerState, FrameStamp, Message, TagPoses, decode
+from shared.wire.messages import (
+    CameraPose,
+    ControllerState,
+    FrameStamp,
+    Message,
+    TagPoses,
+    decode,
+    decode_for_robot,
+)
 
 if TYPE_CHECKING:
     from shared.tools.linkemu import LinkEmulator
@@ -346,6 +354,7 @@ class Monitor:
     stamps_total: int = 0
     # listening at the robot's own router (a fleet's robot host), which sees the poses computed on board
     at_robot: bool = False
+    robot_id: str | None = None  # the robot whose keys it watches (attach_monitor sets it): others refused
     # What the split did over the whole run (a trial had to grep controller.log for it): frames per cut
     # and computed on board, and the controller's decisions, switches and decisions under a pin.
     frames_by_k: Counter[int] = field(default_factory=Counter)
@@ -367,8 +376,12 @@ class Monitor:
     controller_pinned: int = 0
 
     def _decode(self, payload: bytes, kind: type[M]) -> M | None:
-        """One message of `kind`, or None (counted in `bad`, logged) when the payload is not one."""
+        """One message of `kind`, or None (counted in `bad`, logged) when the payload is not one, or names
+        another robot than the one this monitor watches (a fleet trial's robot2 TagPoses published on
+        robot1's key became a robot1 frame here, while slam and the edge refused it)."""
         try:
+            if self.robot_id is not None:
+                return decode_for_robot(payload, kind, self.robot_id)
             return cast(M, decode(payload, kind))
         except WireError as exc:
             with self._lock:
@@ -677,7 +690,9 @@ class Monitor:
 
 
 def attach_monitor(session: zenoh.Session, robot_id: str, monitor: Monitor) -> list[Any]:
-    """Subscribe the monitor (callbacks) to TagPoses, SLAM poses, the controller and ground truth."""
+    """Subscribe the monitor (callbacks) to TagPoses, SLAM poses, the controller and ground truth of
+    `robot_id` (a message naming another robot is counted as bad, as the services count it)."""
+    monitor.robot_id = robot_id
     return [
         session.declare_subscriber(keys.ground_truth(robot_id), lambda s: monitor.on_gt(s.payload.to_bytes())),
         session.declare_subscriber(keys.camera_pose(robot_id), lambda s: monitor.on_camera(s.payload.to_bytes())),
@@ -961,6 +976,9 @@ class ComingsAndGoings:
         self.workers = self.workers | {worker} if up else self.workers - {worker}
         after = assign(self.robots, self.workers)
         what = "up" if up else "gone"
+        moved = {r: after.get(r) for r in self.robots if before.get(r) != after.get(r)}
+        if moved:
+            self.supervisor.handover(worker, up=up, moved=moved)
         if not after:
             return [f"edge worker {worker} {what}: no edge worker left, every robot computes on board"]
         moves = [f"{r} -> {after[r]}" for r in self.robots if before.get(r) != after.get(r)]
@@ -1019,13 +1037,17 @@ def finish_orphaned_run(run_dir: Path, stopped: list[str], *, still_running: lis
                 rows = list(csv.DictReader(f))
             summary[f"{name.removesuffix('.csv')}_csv_rows"] = len(rows)
             e2e = [float(r["e2e_ms"]) for r in rows if r.get("e2e_ms")]
-            if name == "frames.csv" and e2e:  # (the monitor's figures died with it; frames.csv has each frame's)
-                summary |= {
+            if e2e:  # (the monitor's figures died with it; frames.csv has each frame's; a fleet's, per robot)
+                figures = {
                     "frames": len(rows),
                     "e2e_ms_p50": float(np.percentile(e2e, 50)),
                     "e2e_ms_p99": float(np.percentile(e2e, 99)),
                     "frames_by_k": {k: n for k, n in sorted(Counter(r["k"] for r in rows).items())},
                 }
+                if name == "frames.csv":
+                    summary |= figures
+                else:
+                    summary.setdefault("robots", {})[name.removeprefix("frames_").removesuffix(".csv")] = figures
     from shared.tools.linkemu import read_events
 
     if events := read_events(run_dir):

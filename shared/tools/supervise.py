@@ -62,6 +62,12 @@ class Supervisor:
         self._note({"event": "ready", "name": name, "down_secs": down_secs})
         return down_secs
 
+    def handover(self, worker: str, *, up: bool, moved: dict[str, str | None]) -> None:
+        """A fleet's edge worker came or went and robots moved (`moved`: robot -> its new worker, None:
+        computed on board): an incident, so the run's record keeps it (a fleet trial found hand-overs
+        only in the launcher's live lines)."""
+        self._note({"event": "handover", "name": worker, "worker": "up" if up else "gone", "moved": moved})
+
     def down(self) -> list[str]:
         """The processes that exited and are not ready again (restarting), by name."""
         return sorted(self._down_since)
@@ -114,7 +120,10 @@ def summarise_incidents(incidents: list[dict[str, Any]]) -> dict[str, Any]:
     for i in exits:
         if "restart" in i:
             restarts[str(i.get("name"))] = restarts.get(str(i.get("name")), 0) + 1
-    return {"restarts": restarts, "exits": len(exits)}
+    out: dict[str, Any] = {"restarts": restarts, "exits": len(exits)}
+    if handovers := [i for i in incidents if i.get("event") == "handover"]:
+        out["handovers"] = len(handovers)
+    return out
 
 
 def read_incidents(path: Path) -> list[dict[str, Any]]:
