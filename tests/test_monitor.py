@@ -517,3 +517,30 @@ def test_a_message_naming_another_robot_than_its_key_is_counted_bad_not_recorded
     assert monitor.bad == 1 and not monitor.records
     monitor.on_poses(encode(poses))
     assert monitor.bad == 1 and len(monitor.records) == 1
+
+
+def test_every_controller_state_is_kept_in_the_run_folder(tmp_path: Path) -> None:
+    """A researcher's trial had to record the controller's stream itself: C(k), E(k), S(k), the reason,
+    the pin were only live. controller.jsonl has every state, one JSON line each, as they come (the
+    bounded history's dropped ones aside), each once."""
+    import json
+
+    from shared.tools.launch import FramesCsv
+    from shared.wire.messages import ControllerState
+
+    state = EXAMPLES[ControllerState.SCHEMA]
+    assert isinstance(state, ControllerState)
+    monitor = Monitor(None)
+    path = tmp_path / "controller.jsonl"
+    frames_csv = FramesCsv(tmp_path / "frames.csv", monitor, lag_secs=10.0, controller_path=path)
+    for i in range(3):
+        monitor.on_controller(encode(state.model_copy(update={"stamp_nanos": 1_000 + i, "chosen_k": i})))
+    frames_csv.flush()  # (states need no lag: written at once)
+    frames_csv.flush()
+    monitor.on_controller(encode(state.model_copy(update={"stamp_nanos": 2_000, "reason": "pinned"})))
+    frames_csv.flush(final=True)
+    lines = [json.loads(line) for line in path.read_text().splitlines()]
+    assert [line["stamp_nanos"] for line in lines] == [1_000, 1_001, 1_002, 2_000] and frames_csv.controller_lines == 4
+    assert [line["chosen_k"] for line in lines[:3]] == [0, 1, 2] and lines[3]["reason"] == "pinned"
+    assert set(lines[0]) >= {"robot_ms_by_k", "edge_ms_by_k", "payload_kB_by_k", "predicted_ms_by_k", "pinned", "t0_ms"}
+    assert ControllerState.model_validate(lines[0]) == state.model_copy(update={"stamp_nanos": 1_000, "chosen_k": 0})

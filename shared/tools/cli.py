@@ -663,6 +663,7 @@ def _cmd_link_cost(args: argparse.Namespace) -> int:
 
     import torch
 
+    from shared.control.compute import head_per_tag_ms, tail_per_tag_ms
     from shared.model.profile import calibrate_pnp_ms
     from shared.model.runtime import calibrate_cumulative_ms, calibrate_tail_ms, load_split_net
     from shared.tools.linkprobe import cost_table, link_fit_of, plot_costs
@@ -671,10 +672,13 @@ def _cmd_link_cost(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     fit = link_fit_of(json.loads(args.link.read_text()))
     net = load_split_net(args.weights, args.precision, threads=args.threads)
-    cumulative = calibrate_cumulative_ms(net, repetitions=args.repetitions)
+    # The same bounds the services put on their timings (a head cannot be cheaper than an earlier cut's,
+    # a tail than a later one's): a researcher's trial under load read C(5) 69.6, C(6) 55.9, C(7) 71.1 ms
+    # here and a starred k = 6 that was noise, while the controller clamped them.
+    cumulative = head_per_tag_ms(calibrate_cumulative_ms(net, repetitions=args.repetitions))
     pnp = calibrate_pnp_ms()
     compute = [args.stage1_ms + args.tags * c for c in cumulative]
-    edge = [args.tags * (t + pnp) for t in calibrate_tail_ms(net, repetitions=args.repetitions)]
+    edge = [args.tags * t for t in tail_per_tag_ms(calibrate_tail_ms(net, repetitions=args.repetitions), pnp)]
     payload = [args.tags * tensor_bytes(c.k, "fp16") / 1024 for c in CUTS]
     table = cost_table(compute_ms=compute, edge_ms=edge, payload_kB=payload, fit=fit, gammas=args.gamma)
     table.update({"precision": net.precision, "tags": args.tags, "stage1_ms": args.stage1_ms})

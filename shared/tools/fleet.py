@@ -454,7 +454,14 @@ def run_fleet(
         if only in (None, "edge", r)
     }
     # Every frame's timings, per robot, written as the run goes (as `splittag up`'s frames.csv).
-    frames_csvs = {r: FramesCsv(run_dir / f"frames_{r}.csv", m) for r, m in monitors.items()}
+    frames_csvs = {
+        r: FramesCsv(
+            run_dir / f"frames_{r}.csv",
+            m,
+            controller_path=run_dir / f"controller_{r}.jsonl" if plan.controller else None,
+        )
+        for r, m in monitors.items()
+    }
 
     def write_frames() -> None:
         for frames_csv in frames_csvs.values():

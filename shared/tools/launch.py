@@ -335,6 +335,11 @@ class Monitor:
     # The controller's predictions by decision time (stamp, T(k) per k, best k, t0, beta): a bounded
     # history (10 decisions a second: 2.8 hours), joined to the frames at the end of the run.
     predictions: deque[Prediction] = field(default_factory=lambda: deque(maxlen=100_000))
+    # Every controller state as it came (for controller.jsonl: a researcher's trial had to record the
+    # stream itself for C(k), E(k), S(k), the reason and the pin), bounded as the predictions are;
+    # `controller_states_total` counts them all.
+    controller_states: deque[ControllerState] = field(default_factory=lambda: deque(maxlen=100_000))
+    controller_states_total: int = 0
     slam_status: dict[str, int] = field(default_factory=dict)  # CameraPose status -> frames
     _recent: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=400))
     _slam_recent: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=400))
@@ -455,6 +460,8 @@ class Monitor:
             return
         self.controller = state
         with self._lock:
+            self.controller_states.append(state)
+            self.controller_states_total += 1
             self.controller_decisions += 1
             self.controller_switches += int(state.applied)
             self.controller_pinned += int(state.pinned)
@@ -463,6 +470,13 @@ class Monitor:
                 self.predictions.append(
                     (state.stamp_nanos, tuple(state.predicted_ms_by_k), state.best_k, state.t0_ms, state.beta_ms_per_kB)
                 )
+
+    def controller_states_since(self, first: int) -> tuple[int, list[ControllerState]]:
+        """The run's controller states from its `first`-th on, with the index of the first returned (past
+        `first` when the bounded history had dropped those)."""
+        with self._lock:
+            start = self.controller_states_total - len(self.controller_states)
+            return max(first, start), list(self.controller_states)[max(first, start) - start :]
 
     def records_since(self, first: int, arrived_by: float | None) -> tuple[int, list[dict[str, Any]], list[Prediction]]:
         """The records of the run's `first`-th frame on (counting every frame, as `frames_total`) that
@@ -1301,8 +1315,14 @@ class FramesCsv:
         events: Callable[[], list[dict[str, Any]]] = list,
         *,
         lag_secs: float = 10.0,
+        controller_path: Path | None = None,
     ) -> None:
         self.path, self.monitor, self.events, self.lag_secs = path, monitor, events, lag_secs
+        # Every controller state, one JSON line each, as they come (`controller.jsonl`): what it knew
+        # (t0, beta, C(k), E(k), S(k)), predicted, chose and why, stamped on the robot's clock.
+        self.controller_path = controller_path
+        self.next_state = 0
+        self.controller_lines = 0
         self.next_frame = 0  # the run's first frame not yet written (Monitor.frames_total counts them)
         self.rows = 0
         self.missed = 0  # frames never written: the monitor dropped them first (it outgrew its cap), or a write failed
@@ -1327,6 +1347,25 @@ class FramesCsv:
         self.missed += (first - self.next_frame) + (len(records) - written)
         self.next_frame = first + len(records)
         self.rows += written
+        self._write_controller_states()
+
+    def _write_controller_states(self) -> None:
+        if self.controller_path is None:
+            return
+        first, states = self.monitor.controller_states_since(self.next_state)
+        if not states:
+            return
+        lines = "".join(json.dumps(s.model_dump(mode="json")) + "\n" for s in states)
+        try:
+            with self.controller_path.open("a") as f:
+                f.write(lines)
+        except OSError as exc:  # (a side record, as frames.csv: said once, the run goes on)
+            if self.controller_path is not None:
+                log.warning("cannot write %s (%s): the controller's states are not kept", self.controller_path, exc)
+            self.controller_path = None
+            return
+        self.next_state = first + len(states)
+        self.controller_lines += len(states)
 
 
 class LinkEventsTail:
@@ -1514,7 +1553,12 @@ def run_pipeline(
     from shared.tools.linkemu import read_events
 
     monitor = Monitor(run_tags, max_records=200_000, at_robot=only == "robot")  # a deployment may run for days
-    frames_csv = FramesCsv(run_dir / "frames.csv", monitor, lambda: read_events(run_dir))
+    frames_csv = FramesCsv(
+        run_dir / "frames.csv",
+        monitor,
+        lambda: read_events(run_dir),
+        controller_path=run_dir / "controller.jsonl" if "controller" in services else None,
+    )
     running = _Services(run_config, run_dir, wrappers, only=only)
     comings = ComingsAndGoings(running.supervisor, partial(_service_of_token, robot_id, services))
 
