@@ -557,8 +557,9 @@ def test_a_data_set_paced_by_its_poses_is_played_frame_by_frame(tmp_path: Path) 
         frame = decode(sample.payload.to_bytes(), Frame)  # type: ignore[attr-defined]
         arrived.append((frame.seq, time.monotonic()))
         if frame.seq != 2:  # (the third frame is refused on the way: no TagPoses)
-            answers.append(timer := threading.Timer(0.05, answer, (frame,)))
-            timer.start()
+            timer = threading.Timer(0.05, answer, (frame,))
+            timer.start()  # (then listed: the test joins only started timers)
+            answers.append(timer)
 
     sub = hub.declare_subscriber(keys.frames("paced1"), on_frame)
     cam_session = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
@@ -579,3 +580,59 @@ def test_a_data_set_paced_by_its_poses_is_played_frame_by_frame(tmp_path: Path) 
     for seq in (1, 2, 4, 5):  # each went out after the previous frame's poses, never before
         assert when[seq] >= answered[seq - 1], (seq, when, answered)
     assert when[3] - when[2] >= 0.6  # the unanswered frame's timeout, then on
+
+
+def test_a_data_set_paced_by_its_poses_never_goes_faster_than_its_fps(tmp_path: Path) -> None:
+    """A review: after a long wait for poses the next frame went out at once and the one after it too
+    (the live camera's catch-up slack): at fps 5, gaps of 50 ms. Paced by poses, fps is the upper bound.
+    The stand-in pipeline answers slowly (0.3 s) and quickly (0.01 s) in turn; the last frame's poses
+    are waited for before the camera ends."""
+    import time
+
+    from tests.examples import injected_tag_poses
+
+    folder, info, _ = _folder(tmp_path, n=5)
+    fps = 10.0
+    settings = CameraSettings(
+        robot_id="paced2",
+        source="folder",
+        path=str(folder),
+        camera_info=info,
+        fps=fps,
+        pace="poses",
+        poses_timeout_secs=5.0,
+        run_dir=tmp_path,
+        wait_for=[],
+    )
+    port = free_tcp_port()
+    hub = open_session(ZenohSettings(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
+    arrived: list[float] = []
+    answered: list[float] = []
+    answers: list[threading.Timer] = []
+
+    def answer(frame: Frame) -> None:
+        answered.append(time.monotonic())
+        hub.put(keys.tag_poses("paced2"), injected_tag_poses("paced2", frame.seq, frame.capture_nanos))
+
+    def on_frame(sample: object) -> None:
+        frame = decode(sample.payload.to_bytes(), Frame)  # type: ignore[attr-defined]
+        arrived.append(time.monotonic())
+        timer = threading.Timer(0.3 if frame.seq % 2 == 0 else 0.01, answer, (frame,))
+        timer.start()  # (then listed: the test joins only started timers)
+        answers.append(timer)
+
+    sub = hub.declare_subscriber(keys.frames("paced2"), on_frame)
+    cam_session = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
+    try:
+        time.sleep(0.5)  # (the hub's subscriber is known to the camera's session)
+        assert run_camera(settings, session=cam_session, stop=threading.Event()) == 5
+        ended = time.monotonic()
+    finally:
+        for timer in answers:
+            timer.join()
+        cam_session.close()
+        sub.undeclare()
+        hub.close()
+    gaps = [b - a for a, b in itertools.pairwise(arrived)]
+    assert len(arrived) == 5 and min(gaps) >= 0.9 / fps, gaps  # (10 % for the clocks of two threads)
+    assert len(answered) == 5 and ended >= answered[-1]  # the camera waited for the last frame's poses

@@ -114,7 +114,6 @@ def run(
         congestion_control=zenoh.CongestionControl.BLOCK,
     )
     token = session.liveliness().declare_token(keys.alive(settings.robot_id, "camera"))
-    posed = PosesPacer(session, settings.robot_id) if settings.pace == "poses" else None
     if settings.wait_for:
 
         def stopped_meanwhile() -> None:  # a run stopped before robot_infer was up: go, don't wait it out
@@ -131,6 +130,7 @@ def run(
         except _Stopped:
             token.undeclare()
             return 0
+    posed = PosesPacer(session, settings.robot_id) if settings.pace == "poses" else None
     viz = make_viz(settings.rerun, service="camera", run_dir=settings.run_dir)
     gt_keypoints = source.gt_keypoints if isinstance(source, DemoSource) else None
     period = 1.0 / settings.fps
@@ -172,7 +172,10 @@ def run(
                 now = time.monotonic()
                 if now < next_t and stop.wait(next_t - now):
                     return published
-                next_t = max(next_t + period, time.monotonic() - period)
+                # (a live camera catches up one period after a late frame; paced by poses, fps is the
+                # upper bound: the next frame a period after this one at the earliest, however long this
+                # one waited for poses; a review found two frames 50 ms apart at fps 5)
+                next_t = max(next_t + period, time.monotonic() + (period if posed is not None else -period))
                 capture = time.time_ns()
                 if posed is not None:
                     posed.sent(seq, capture)
@@ -221,6 +224,8 @@ def run(
                     progress.write(passes, position + 1, published)
                 if settings.max_frames and published >= settings.max_frames:
                     log.info("published %d frames (max_frames)", published)
+                    if posed is not None:  # the last frame's poses too, before the run may stop
+                        posed.wait(stop, settings.poses_timeout_secs)
                     return published
                 if stop.is_set():
                     return published
@@ -233,6 +238,8 @@ def run(
             first = 0  # later passes start at the beginning
             if not settings.loops:
                 log.info("source ended after %d frames", published)
+                if posed is not None:  # the last frame's poses too, before the run may stop
+                    posed.wait(stop, settings.poses_timeout_secs)
                 return published
             passes += 1
             if not continuous:

@@ -264,15 +264,21 @@ def _onnx_versions(folder: Path, files: list[dict[str, Any]]) -> dict[str, Any]:
     import onnx
 
     models = [onnx.load(str(folder / f["file"]), load_external_data=False) for f in files]
+    opset = max(o.version for m in models for o in m.opset_import if o.domain in ("", "ai.onnx"))
+    oldest = OLDEST_ONNXRUNTIME.get(opset)
     return {
         "ir_version": max(m.ir_version for m in models),
-        "opset": max(o.version for m in models for o in m.opset_import if o.domain in ("", "ai.onnx")),
-        "onnxruntime": f"{OLDEST_ONNXRUNTIME} or later (the oldest with this opset; tested: the same keypoints "
-        "bit for bit as the newest)",
+        "opset": opset,
+        "onnxruntime": f"{oldest} or later (the oldest with opset {opset}; tested: the same keypoints bit for bit as "
+        "the newest)"
+        if oldest
+        else f"one that runs opset {opset} (not tested on an older one)",
     }
 
 
-OLDEST_ONNXRUNTIME: Final = "1.17.3"
+# The oldest ONNX Runtime each exported opset was run on (the same keypoints bit for bit as the newest):
+# ONNX Runtime's own table gives the first release of each opset.
+OLDEST_ONNXRUNTIME: Final = {20: "1.17.3"}
 
 
 def _weights_digests(weights: Path, fmt: str, precision: str) -> dict[str, str]:

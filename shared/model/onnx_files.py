@@ -60,4 +60,5 @@ def lowest_ir_version(model: Any) -> None:
     Nothing in the graphs needs IR 10 (its additions are 4-bit types)."""
     from onnx.helper import find_min_ir_version_for
 
-    model.ir_version = min(model.ir_version, find_min_ir_version_for(list(model.opset_import)))
+    lowest = find_min_ir_version_for(list(model.opset_import), ignore_unknown=True)
+    model.ir_version = min(model.ir_version, lowest)

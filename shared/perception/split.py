@@ -220,7 +220,10 @@ def edge_batch(
             for n in members:
                 bad = [t.tag_id for t in items[n].features.tags if not np.isfinite(t.tensor).all()]
                 if bad:
-                    refused[n] = _non_finite(bad, items[n].features.robot_id, k)
+                    refused[n] = FeatureShapeError(
+                        f"tag(s) {bad} of {items[n].features.robot_id}: their cut-{k} tensors carry NaN or inf "
+                        "(refused before the int8 tail, which would make finite keypoints of them)"
+                    )
             members = [n for n in members if n not in refused]
         if not members:
             continue

@@ -524,6 +524,8 @@ def run_fleet(
         frames_csv.flush(final=True)
         summary["robots"][robot]["frames_csv"] = str(frames_csv.path)
         summary["robots"][robot]["frames_csv_rows"] = frames_csv.rows
+        if frames_csv.controller_lines:
+            summary["robots"][robot]["controller_jsonl_lines"] = frames_csv.controller_lines
         if frames_csv.missed:
             summary["robots"][robot]["frames_csv_missed"] = frames_csv.missed
     if (run_dir / "settings").is_dir():

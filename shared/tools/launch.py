@@ -335,11 +335,11 @@ class Monitor:
     # The controller's predictions by decision time (stamp, T(k) per k, best k, t0, beta): a bounded
     # history (10 decisions a second: 2.8 hours), joined to the frames at the end of the run.
     predictions: deque[Prediction] = field(default_factory=lambda: deque(maxlen=100_000))
-    # Every controller state as it came (for controller.jsonl: a researcher's trial had to record the
-    # stream itself for C(k), E(k), S(k), the reason and the pin), bounded as the predictions are;
-    # `controller_states_total` counts them all.
-    controller_states: deque[ControllerState] = field(default_factory=lambda: deque(maxlen=100_000))
-    controller_states_total: int = 0
+    # The controller states not yet written to controller.jsonl (a researcher's trial had to record the
+    # stream itself for C(k), E(k), S(k), the reason and the pin): drained by the writer every second,
+    # bounded (~2.6 kB each: a review), the ones it had to drop counted.
+    controller_states: deque[ControllerState] = field(default_factory=lambda: deque(maxlen=5_000))
+    controller_states_dropped: int = 0
     slam_status: dict[str, int] = field(default_factory=dict)  # CameraPose status -> frames
     _recent: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=400))
     _slam_recent: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=400))
@@ -460,8 +460,9 @@ class Monitor:
             return
         self.controller = state
         with self._lock:
+            if len(self.controller_states) == self.controller_states.maxlen:
+                self.controller_states_dropped += 1
             self.controller_states.append(state)
-            self.controller_states_total += 1
             self.controller_decisions += 1
             self.controller_switches += int(state.applied)
             self.controller_pinned += int(state.pinned)
@@ -471,12 +472,12 @@ class Monitor:
                     (state.stamp_nanos, tuple(state.predicted_ms_by_k), state.best_k, state.t0_ms, state.beta_ms_per_kB)
                 )
 
-    def controller_states_since(self, first: int) -> tuple[int, list[ControllerState]]:
-        """The run's controller states from its `first`-th on, with the index of the first returned (past
-        `first` when the bounded history had dropped those)."""
+    def take_controller_states(self) -> list[ControllerState]:
+        """The controller states that came since the last call (they are no longer kept here)."""
         with self._lock:
-            start = self.controller_states_total - len(self.controller_states)
-            return max(first, start), list(self.controller_states)[max(first, start) - start :]
+            states = list(self.controller_states)
+            self.controller_states.clear()
+            return states
 
     def records_since(self, first: int, arrived_by: float | None) -> tuple[int, list[dict[str, Any]], list[Prediction]]:
         """The records of the run's `first`-th frame on (counting every frame, as `frames_total`) that
@@ -1202,8 +1203,10 @@ def link_certificate_problem(config: Path, addresses: tuple[str, ...]) -> str | 
         return None
     return (
         f"--link with TLS: the edge's certificate {certificate} does not name {', '.join(missing)}, the emulated "
-        f"link's addresses at which the robot and the tools reach the edge; make the certificates again: "
-        f"deploy/make-certs.sh {Path(certificate).parent} (it names them)"
+        f"link's addresses at which the robot and the tools reach the edge; make its certificates again with "
+        f"those names, e.g. SPLITTAG_CERT_NAMES={Path(certificate).stem} deploy/make-certs.sh "
+        f"{Path(certificate).parent} {' '.join(missing)} (plus any other names it had; deploy/make-certs.sh adds "
+        "them itself to a certificate named edge)"
     )
 
 
@@ -1321,7 +1324,7 @@ class FramesCsv:
         # Every controller state, one JSON line each, as they come (`controller.jsonl`): what it knew
         # (t0, beta, C(k), E(k), S(k)), predicted, chose and why, stamped on the robot's clock.
         self.controller_path = controller_path
-        self.next_state = 0
+        self.keeps_controller_states = controller_path is not None
         self.controller_lines = 0
         self.next_frame = 0  # the run's first frame not yet written (Monitor.frames_total counts them)
         self.rows = 0
@@ -1352,7 +1355,7 @@ class FramesCsv:
     def _write_controller_states(self) -> None:
         if self.controller_path is None:
             return
-        first, states = self.monitor.controller_states_since(self.next_state)
+        states = self.monitor.take_controller_states()
         if not states:
             return
         lines = "".join(json.dumps(s.model_dump(mode="json")) + "\n" for s in states)
@@ -1364,7 +1367,6 @@ class FramesCsv:
                 log.warning("cannot write %s (%s): the controller's states are not kept", self.controller_path, exc)
             self.controller_path = None
             return
-        self.next_state = first + len(states)
         self.controller_lines += len(states)
 
 
@@ -1476,6 +1478,10 @@ def _summarise_run(
     frames_csv.flush(final=True)
     summary["frames_csv"] = str(frames_csv.path)
     summary["frames_csv_rows"] = frames_csv.rows
+    if frames_csv.controller_lines:
+        summary["controller_jsonl_lines"] = frames_csv.controller_lines
+    if frames_csv.keeps_controller_states and monitor.controller_states_dropped:  # (5,000 behind: a stalled disk)
+        summary["controller_jsonl_missed"] = monitor.controller_states_dropped
     if frames_csv.missed:
         summary["frames_csv_missed"] = frames_csv.missed
     settings_dir = run_dir / "settings"
