@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -521,53 +522,55 @@ def test_a_progress_file_that_is_not_this_data_sets_is_ignored(tmp_path: Path) -
     assert other.read() is None
 
 
-def test_a_data_set_paced_by_its_poses_is_played_frame_by_frame(tmp_path: Path) -> None:
-    """A trial could not make the pipeline process every frame of its data set: at 5 fps the robot skipped
-    27 of 200, at 3 fps 7, and it had to guess. `pace = "poses"`: each frame goes out once the previous
-    frame's TagPoses came back (fps stays the upper bound); a frame whose TagPoses never come is waited
-    for `poses_timeout_secs`, said, and the data set goes on. A stand-in pipeline answers every frame
-    but the third, 50 ms after it came."""
+def _run_paced(
+    tmp_path: Path, robot: str, *, n: int, fps: float, timeout_secs: float, delay_secs: Callable[[int], float | None]
+) -> tuple[int, list[tuple[int, float]], dict[int, float], float]:
+    """Run the camera with `pace = "poses"` on _folder's n frames against a stand-in pipeline that answers
+    frame seq with its TagPoses `delay_secs(seq)` after it came (None: never). Returns what the camera
+    published, each frame's (seq, arrival), each answer's time by seq, and when the camera ended."""
     import time
 
     from tests.examples import injected_tag_poses
 
-    folder, info, _ = _folder(tmp_path, n=6)
+    folder, info, _ = _folder(tmp_path, n=n)
     settings = CameraSettings(
-        robot_id="paced1",
+        robot_id=robot,
         source="folder",
         path=str(folder),
         camera_info=info,
-        fps=1000.0,
+        fps=fps,
         pace="poses",
-        poses_timeout_secs=0.6,
+        poses_timeout_secs=timeout_secs,
         run_dir=tmp_path,
         wait_for=[],
     )
     port = free_tcp_port()
     hub = open_session(ZenohSettings(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
-    arrived: list[tuple[int, float]] = []  # (seq, when)
+    arrived: list[tuple[int, float]] = []
     answered: dict[int, float] = {}
     answers: list[threading.Timer] = []
 
     def answer(frame: Frame) -> None:
         answered[frame.seq] = time.monotonic()
-        hub.put(keys.tag_poses("paced1"), injected_tag_poses("paced1", frame.seq, frame.capture_nanos))
+        hub.put(keys.tag_poses(robot), injected_tag_poses(robot, frame.seq, frame.capture_nanos))
 
     def on_frame(sample: object) -> None:
         frame = decode(sample.payload.to_bytes(), Frame)  # type: ignore[attr-defined]
         arrived.append((frame.seq, time.monotonic()))
-        if frame.seq != 2:  # (the third frame is refused on the way: no TagPoses)
-            timer = threading.Timer(0.05, answer, (frame,))
-            timer.start()  # (then listed: the test joins only started timers)
+        delay = delay_secs(frame.seq)
+        if delay is not None:
+            timer = threading.Timer(delay, answer, (frame,))
+            timer.start()  # (then listed: only started timers are joined)
             answers.append(timer)
 
-    sub = hub.declare_subscriber(keys.frames("paced1"), on_frame)
+    sub = hub.declare_subscriber(keys.frames(robot), on_frame)
     cam_session = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
     try:
         time.sleep(0.5)  # (the hub's subscriber is known to the camera's session)
         published = run_camera(settings, session=cam_session, stop=threading.Event())
+        ended = time.monotonic()
         deadline = time.monotonic() + 5
-        while len(arrived) < 6 and time.monotonic() < deadline:
+        while len(arrived) < published and time.monotonic() < deadline:
             time.sleep(0.01)
     finally:
         for timer in answers:
@@ -575,6 +578,18 @@ def test_a_data_set_paced_by_its_poses_is_played_frame_by_frame(tmp_path: Path) 
         cam_session.close()
         sub.undeclare()
         hub.close()
+    return published, arrived, answered, ended
+
+
+def test_a_data_set_paced_by_its_poses_is_played_frame_by_frame(tmp_path: Path) -> None:
+    """A trial could not make the pipeline process every frame of its data set: at 5 fps the robot skipped
+    27 of 200, at 3 fps 7, and it had to guess. `pace = "poses"`: each frame goes out once the previous
+    frame's TagPoses came back; a frame whose TagPoses never come is waited for `poses_timeout_secs`,
+    said, and the data set goes on. The stand-in pipeline answers every frame but the third (refused on
+    the way), 50 ms after it came."""
+    published, arrived, answered, _ = _run_paced(
+        tmp_path, "paced1", n=6, fps=1000.0, timeout_secs=0.6, delay_secs=lambda seq: None if seq == 2 else 0.05
+    )
     assert published == 6 and [s for s, _ in arrived] == list(range(6)), arrived
     when = dict(arrived)
     for seq in (1, 2, 4, 5):  # each went out after the previous frame's poses, never before
@@ -587,52 +602,10 @@ def test_a_data_set_paced_by_its_poses_never_goes_faster_than_its_fps(tmp_path: 
     (the live camera's catch-up slack): at fps 5, gaps of 50 ms. Paced by poses, fps is the upper bound.
     The stand-in pipeline answers slowly (0.3 s) and quickly (0.01 s) in turn; the last frame's poses
     are waited for before the camera ends."""
-    import time
-
-    from tests.examples import injected_tag_poses
-
-    folder, info, _ = _folder(tmp_path, n=5)
     fps = 10.0
-    settings = CameraSettings(
-        robot_id="paced2",
-        source="folder",
-        path=str(folder),
-        camera_info=info,
-        fps=fps,
-        pace="poses",
-        poses_timeout_secs=5.0,
-        run_dir=tmp_path,
-        wait_for=[],
+    published, arrived, answered, ended = _run_paced(
+        tmp_path, "paced2", n=5, fps=fps, timeout_secs=5.0, delay_secs=lambda seq: 0.3 if seq % 2 == 0 else 0.01
     )
-    port = free_tcp_port()
-    hub = open_session(ZenohSettings(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
-    arrived: list[float] = []
-    answered: list[float] = []
-    answers: list[threading.Timer] = []
-
-    def answer(frame: Frame) -> None:
-        answered.append(time.monotonic())
-        hub.put(keys.tag_poses("paced2"), injected_tag_poses("paced2", frame.seq, frame.capture_nanos))
-
-    def on_frame(sample: object) -> None:
-        frame = decode(sample.payload.to_bytes(), Frame)  # type: ignore[attr-defined]
-        arrived.append(time.monotonic())
-        timer = threading.Timer(0.3 if frame.seq % 2 == 0 else 0.01, answer, (frame,))
-        timer.start()  # (then listed: the test joins only started timers)
-        answers.append(timer)
-
-    sub = hub.declare_subscriber(keys.frames("paced2"), on_frame)
-    cam_session = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
-    try:
-        time.sleep(0.5)  # (the hub's subscriber is known to the camera's session)
-        assert run_camera(settings, session=cam_session, stop=threading.Event()) == 5
-        ended = time.monotonic()
-    finally:
-        for timer in answers:
-            timer.join()
-        cam_session.close()
-        sub.undeclare()
-        hub.close()
-    gaps = [b - a for a, b in itertools.pairwise(arrived)]
-    assert len(arrived) == 5 and min(gaps) >= 0.9 / fps, gaps  # (10 % for the clocks of two threads)
-    assert len(answered) == 5 and ended >= answered[-1]  # the camera waited for the last frame's poses
+    gaps = [b - a for (_, a), (_, b) in itertools.pairwise(arrived)]
+    assert published == 5 and len(arrived) == 5 and min(gaps) >= 0.9 / fps, gaps  # (10 %: two threads' clocks)
+    assert len(answered) == 5 and ended >= max(answered.values())  # it waited for the last frame's poses
