@@ -36,10 +36,13 @@ class ControllerTuning(BaseModel):
     dwell: int = Field(default=2, ge=1)  # consecutive decisions that must agree before a switch
     half_life_samples: float = Field(default=40.0, gt=1)  # forgetting of the link estimator
     change_threshold: float = Field(default=5.0, gt=0)  # CUSUM threshold (robust sigmas) for a link change
+    # The change detector normalises residuals by no less than this: smaller shifts cannot change a
+    # decision, and a quiet link's sub-millisecond scale made them alarms (each forgets the fit)
+    change_floor_ms: float = Field(default=2.0, ge=0)
     # A switch the model asks for is vetoed while the frames measured at both cuts within this many
-    # seconds (and since the last link change) say the new cut is no faster: where two cuts nearly tie
-    # and the model is biased (a loaded link's queue, each side slower when it does the work), a trial's
-    # controller went 0 -> 7 -> 0 -> 7 -> 0 within 9 s. 0 turns the check off.
+    # seconds (on the link the model now predicts for them) say the new cut is no faster: where two cuts
+    # nearly tie and the model is biased (a loaded link's queue, each side slower when it does the work),
+    # a trial's controller went 0 -> 7 -> 0 -> 7 -> 0 within 9 s. 0 turns the check off.
     measured_window_secs: float = Field(default=20.0, ge=0)
     codec: CodecName = "fp16"  # the codec robot_infer uses at cuts 1..6 (payload sizes)
 
@@ -52,7 +55,9 @@ class SplitController:
     ) -> None:
         self.settings = settings or ControllerTuning()
         self.link = OnlineLinkEstimator(
-            half_life=self.settings.half_life_samples, cusum_threshold=self.settings.change_threshold
+            half_life=self.settings.half_life_samples,
+            cusum_threshold=self.settings.change_threshold,
+            change_floor_ms=self.settings.change_floor_ms,
         )
         self.chooser = HysteresisChooser(
             min_gain_ms=self.settings.min_gain_ms, min_gain_rel=self.settings.min_gain_rel, dwell=self.settings.dwell
@@ -62,9 +67,9 @@ class SplitController:
         self.edge: ComputeProfile | None = None
         self._clock = clock
         self.last_sizes: dict[int, float] = {}  # payload bucket (log2 kB) -> when last seen
-        # each cut's measured frames (when, ms, tags): robot + link + edge compute, what T(k) predicts
-        self.measured: dict[int, deque[tuple[float, float, int]]] = {k: deque(maxlen=120) for k in range(N_CUTS)}
-        self._link_changed_at = -math.inf
+        # each cut's measured frames (when, ms, tags, the link time the model predicted for them then):
+        # robot + link + edge compute, what T(k) predicts
+        self.measured: dict[int, deque[tuple[float, float, int, float]]] = {k: deque(maxlen=120) for k in range(N_CUTS)}
         self.vetoed = 0  # switches the measured frame times vetoed
 
     # -- evidence ----------------------------------------------------------------------------------
@@ -72,39 +77,47 @@ class SplitController:
         """A latency sample of a message that found the link idle (a probe's RTT without stamps)."""
         if ms <= 0 or not np.isfinite(ms):
             return
-        changes = self.link.changes
         self.link.add(payload_bytes / 1024.0, ms)
-        self._note_change(changes)
         self.last_sizes[self._bucket(payload_bytes)] = self._clock()
 
     def add_crossing(self, payload_bytes: int, link: LinkStamps) -> None:
         """A frame's or probe's crossing of the uplink, with what was ahead of it (queue-aware)."""
-        changes = self.link.changes
         self.link.add_crossing(
             size_kB=payload_bytes / 1024.0,
             sent_ms=link.sent_nanos / 1e6,
             received_ms=link.received_nanos / 1e6,
             previous_received_ms=link.previous_received_nanos / 1e6 if link.previous_received_nanos else None,
         )
-        self._note_change(changes)
         self.last_sizes[self._bucket(payload_bytes)] = self._clock()
 
-    def _note_change(self, changes_before: int) -> None:
-        if self.link.changes != changes_before:  # the link changed now: what was measured is the old link's
-            self._link_changed_at = self._clock()
+    def _link_ms(self, k: int, tags: int) -> float:
+        """The link time the model predicts now for a frame of `tags` tags at cut k."""
+        size_kB = features_payload_bytes(tags, k, self.settings.codec) / 1024.0
+        return self.link.t0_ms + self.link.beta_ms_per_kB * size_kB
 
     def add_measured(self, k: int, frame_ms: float, tags: int) -> None:
         """A frame of `tags` tags posed at cut k took frame_ms of robot compute + link + edge compute (what
         T(k) predicts). Frames without tags say nothing of the network's cost: left out."""
         if 0 <= k < N_CUTS and tags > 0 and math.isfinite(frame_ms) and frame_ms > 0:
-            self.measured[k].append((self._clock(), frame_ms, tags))
+            self.measured[k].append((self._clock(), frame_ms, tags, self._link_ms(k, tags)))
 
     def measured_ms(self, k: int, *, min_frames: int = 3) -> float | None:
         """The median measured time at cut k of frames with as many tags as the prediction is for, within
-        the window and since the last link change (None: too few such frames)."""
+        the window, measured on the link the model predicts now (None: too few such frames).
+
+        A frame is compared while the link time the model predicted for it then is within the chooser's
+        smallest gain of what it predicts now (max(min_gain_ms, min_gain_rel of it)): once the link has
+        changed, a frame timed on the old one says nothing of the cut. Before, every frame measured before
+        the last alarm of the change detector was dropped, and under CPU load the detector fired on a
+        steady link every 15 s or so: the veto rarely had its frames (a trial: 11 switches in 97 s, none
+        vetoed)."""
         start = self._clock() - self.settings.measured_window_secs
         tags = self.tags()
-        recent = [ms for t, ms, n in self.measured[k] if n == tags and t >= start and t > self._link_changed_at]
+        now = self._link_ms(k, tags)
+        tolerance = max(self.settings.min_gain_ms, self.settings.min_gain_rel * now)
+        recent = [
+            ms for t, ms, n, then in self.measured[k] if n == tags and t >= start and abs(then - now) <= tolerance
+        ]
         return float(np.median(recent)) if len(recent) >= min_frames else None
 
     def frame_sent(self, msg: FrameSent) -> None:
