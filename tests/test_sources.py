@@ -20,7 +20,7 @@ from shared.vision.geometry import GeometryError, camera_to_yaml, default_camera
 from shared.vision.tags import render_tag, to_uint8
 from shared.vision.trajectory import read_tum, write_tum
 from shared.wire import keys
-from shared.wire.messages import CameraPose, Frame, FrameStamp, decode
+from shared.wire.messages import CameraPose, Frame, FrameStamp, decode, encode
 
 CAM = default_camera()
 
@@ -609,3 +609,45 @@ def test_a_data_set_paced_by_its_poses_never_goes_faster_than_its_fps(tmp_path: 
     gaps = [b - a for (_, a), (_, b) in itertools.pairwise(arrived)]
     assert published == 5 and len(arrived) == 5 and min(gaps) >= 0.9 / fps, gaps  # (10 %: two threads' clocks)
     assert len(answered) == 5 and ended >= max(answered.values())  # it waited for the last frame's poses
+
+
+def test_poses_that_do_not_decode_are_counted_and_do_not_release_or_stall_the_paced_camera() -> None:
+    """Paced by poses, the camera reads each TagPoses' capture stamp on Zenoh's thread. Bytes that are
+    not a TagPoses (a truncated message, another schema on the key) are counted and said once; they
+    neither count as the awaited frame's poses nor keep the good answer after them from releasing it."""
+    import time
+
+    from services.camera.service import PosesPacer
+    from tests.examples import injected_tag_poses
+
+    robot = "pacedbad"
+    port = free_tcp_port()
+    hub = open_session(ZenohSettings(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
+    cam_session = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
+    pacer = PosesPacer(cam_session, robot)
+    stop = threading.Event()
+    try:
+        time.sleep(0.5)  # (the camera's subscriber is known to the hub's session)
+        capture = time.time_ns()
+        pacer.sent(0, capture)
+        good = injected_tag_poses(robot, 0, capture)
+        stamp = encode(FrameStamp(robot_id=robot, seq=0, capture_nanos=capture, source_stamp_nanos=1))
+        for bad in (b"", b"\x00" * 7, good[: len(good) // 2], stamp):  # (the last: another schema)
+            hub.put(keys.tag_poses(robot), bad)
+        deadline = time.monotonic() + 5
+        while pacer.bad < 4 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert pacer.bad == 4
+        assert pacer.wait(stop, 0.3)
+        assert pacer.timeouts == 1  # the bad bytes did not release the frame: its timeout did
+
+        capture = time.time_ns()
+        pacer.sent(1, capture)
+        hub.put(keys.tag_poses(robot), b"\xff\xfe")
+        hub.put(keys.tag_poses(robot), injected_tag_poses(robot, 1, capture))
+        assert pacer.wait(stop, 5.0)
+        assert pacer.timeouts == 1 and pacer.bad == 5  # released by the good answer behind the bad one
+    finally:
+        pacer.close()
+        cam_session.close()
+        hub.close()

@@ -18,6 +18,7 @@ from typing import Any, TypeVar
 import zenoh
 
 from shared.transport.query import get_until_answered
+from shared.vision.files import atomic_write_text
 from shared.wire import keys
 
 T = TypeVar("T")
@@ -177,16 +178,14 @@ class InputGuard:
             return self.accepted + sum(self.rejected.values())
 
     def _write_counts(self) -> None:
-        with self._write_lock:  # (the periodic writer and close share the file and its .part)
+        with self._write_lock:  # (the periodic writer and close share the file and its temporary)
             path = self._persist_path
             if path is None:
                 return
             doc = {**self.stats(), "label": self._label, "pid": os.getpid(), "unix_nanos": time.time_ns()}
             try:
                 path.parent.mkdir(exist_ok=True)
-                partial = path.with_name(path.name + ".part")
-                partial.write_text(json.dumps(doc))
-                os.replace(partial, path)
+                atomic_write_text(path, json.dumps(doc))
             except OSError as exc:  # (a full disk: the counts stay served on the stats key)
                 log.warning("%s: cannot write its input counts to %s: %s", self.service, path, exc)
                 self._persist_path = None
