@@ -130,3 +130,18 @@ def simulate(
             in_flight -= 1
             robot_try(now)
     return out
+
+
+def late_stamps(crossings: list[Crossing], *, fraction: float, mean_ms: float, seed: int = 0) -> list[Crossing]:
+    """The receiver under CPU load: every stamp is late by an exponential 0.3 ms, and `fraction` of them
+    by an exponential `mean_ms` more (the scheduler ran something else first). A process stamps in
+    order, so a stamp is never before the one ahead of it; each message's previous stamp follows."""
+    rng = np.random.default_rng(seed)
+    out: list[Crossing] = []
+    previous: float | None = None
+    for c in crossings:
+        late = rng.exponential(0.3) + (rng.exponential(mean_ms) if rng.random() < fraction else 0.0)
+        stamp = c.received_ms + late if previous is None else max(c.received_ms + late, previous + 0.02)
+        out.append(Crossing(c.payload_bytes, c.sent_ms, stamp, previous, c.kind))
+        previous = stamp
+    return out
