@@ -186,7 +186,8 @@ def test_late_stamps_of_a_loaded_receiver_take_no_change_and_keep_the_fit(frames
     Every alarm used to reset the fit, and right after it one late sample carried beta: seeds 0-5, these
     three mixes, 40-79 alarms per run, beta 0.0-8.2 ms/kB, 2.7-22 % of the samples more than 25 % off.
     An alarm now starts a challenger that must predict the next samples better before it takes over:
-    0 changes taken, 28-59 alarms dismissed, beta 0.092-0.281, 0-7.8 % more than 25 % off (seed 0 here)."""
+    0-2 changes taken a run (10 in the 18), 28-62 alarms dismissed, beta 0.0-0.40, 0-7.8 % of the
+    samples more than 25 % off (seed 0 here: no change taken)."""
     crossings = simulate(
         floor_ms=40.7, beta_ms_per_kB=0.18, window=2, frame_bytes=frames, fps=10.0, duration_ms=600_000.0, seed=0
     )
@@ -205,9 +206,9 @@ def test_late_stamps_of_a_loaded_receiver_take_no_change_and_keep_the_fit(frames
 
 @pytest.mark.parametrize("frames", [[ROI_3_TAGS], [ROI_3_TAGS, KEYPOINTS, KEYPOINTS]], ids=["k0", "mixed"])
 def test_a_real_change_is_taken_through_late_stamps(frames: list[int]) -> None:
-    """The same late stamps, and the link turns into 5g-pre-tdd after a minute: the challenger wins
-    (within 2.4 s in the simulations of seeds 0-2) and the fit stays within 25 % of the new slope from
-    5 s after the change on."""
+    """The same late stamps, and the link turns into 5g-pre-tdd after a minute: a challenger wins and
+    the fit stays within 25 % of the new slope from 5 s after the change on (in ad-hoc runs of seeds
+    0-2 with these mixes, within 0.4-2.4 s of the change)."""
 
     def link(beta: float, seed: int, offset_ms: float) -> list[Crossing]:
         crossings = simulate(

@@ -35,9 +35,9 @@ class ControllerTuning(BaseModel):
     min_gain_rel: float = Field(default=0.05, ge=0)  # ... and this fraction of T(current)
     dwell: int = Field(default=2, ge=1)  # consecutive decisions that must agree before a switch
     half_life_samples: float = Field(default=40.0, gt=1)  # forgetting of the link estimator
-    change_threshold: float = Field(default=5.0, gt=0)  # CUSUM threshold (robust sigmas) for a link change
+    change_threshold: float = Field(default=5.0, gt=0)  # CUSUM threshold (robust sigmas) for a link alarm
     # The change detector normalises residuals by no less than this: smaller shifts cannot change a
-    # decision, and a quiet link's sub-millisecond scale made them alarms (each forgets the fit)
+    # decision, and a quiet link's sub-millisecond scale made them alarms (each starts a challenger fit)
     change_floor_ms: float = Field(default=2.0, ge=0)
     # A switch the model asks for is vetoed while the frames measured at both cuts within this many
     # seconds (on the link the model now predicts for them) say the new cut is no faster: where two cuts

@@ -67,23 +67,32 @@ class OnlineLinkEstimator:
     arrive t0 is unobserved: its variance grows with the forgetting but is capped at the prior's.
 
     An alarm is a question, not an answer: it starts a **challenger**, a fit that forgot everything
-    (covariance reset) and has taken the alarm's sample, beside the current one, which goes on as
-    before. Both predict each following sample before fusing it; the challenger takes over (`changes`
-    rises) once its predictions beat the current fit's by `challenge_margin` (squared errors in robust
-    scales, each clipped at `gate`: two samples the current fit misses by `gate` or more that the
-    challenger explains), and is dropped (`dismissed`) once the current fit leads by as much or after
-    `challenge_samples` samples. While one is pending `alarm_level` is 1 (the controller then probes at
-    once, which settles it). Before, every alarm reset the fit at once: under CPU load the receiver
-    stamps some messages late (simulated: a fifth of them by an exponential 20 ms; a trial on this
-    2-core machine fired ~11 alarms in 170 s on a steady link), runs of late stamps fired the detector
-    44-82 times in ten minutes, and right after each reset one late sample carried the fit (beta 0 to
-    6.7 ms/kB on a 0.18 link, over 25 % off in 7.6 % of the samples).
+    (covariance reset) and was fitted to the samples that raised the alarm, beside the current fit,
+    which goes on as before. Both predict each following sample before fusing it (squared errors in
+    robust scales, each clipped at `challenge_clip`). The challenger takes over (`changes` rises) once
+    it has predicted two samples clearly better (by 3) and leads by `challenge_margin` (27), or one
+    sample and leads by 64 (a miss of 8 scales that it explains: a change to 5g-pre-tdd does that at
+    64 kB on a quiet link). It is dropped (`dismissed`) once it trails by the margin while the current
+    fit explains the latest sample, or after `challenge_samples` samples. It fuses its first samples at
+    full weight, as a first fit does. While one is pending `alarm_level` is 1, and the controller probes
+    every size at the alarm and then the largest at once, which settles it. Before, every alarm reset
+    the fit at once: under CPU load the receiver stamps some messages late (a trial on this 2-core
+    machine: ~11 alarms in 170 s on a steady link), and in ten simulated minutes with a fifth of the
+    stamps late by an exponential 20 ms (`tests/linksim.py`, seeds 0-5, k = 0, 7 and both) the detector
+    fired 40-79 times a run, and right after each reset one late sample carried the fit (beta 0.0-8.2
+    ms/kB on a 0.18 link, more than 25 % off in 2.7-22 % of the samples). Now 0-2 changes are taken a
+    run (10 in the 18; 28-62 alarms dismissed), beta reads 0.0-0.40 and is more than 25 % off in 0-7.8 %
+    of the samples.
     """
 
     RESET_VARIANCE = (400.0, 0.25)  # after a change: t0 within ~20 ms, beta within ~0.5 ms/kB
     BUNCHED_FRACTION = 0.2  # a busy sample under this fraction of beta S was stamped late, not carried fast
     PRIOR_VARIANCE = (1e4, 1.0)
     RUN_SAMPLES = 16  # an alarm's challenger is fitted to at most this many of its latest samples
+    CHALLENGE_WINS = 2  # samples a challenger must predict clearly better to take over ...
+    CHALLENGE_WIN = 3.0  # ... by this much of squared error, in robust scales squared
+    CHALLENGE_STRONG = 64.0  # ... or one such sample, when the lead is this large (a miss of 8 scales)
+    CHALLENGE_FRESH = 10  # a challenger's samples fused at full weight (as a first fit's)
 
     def __init__(
         self,
@@ -93,7 +102,8 @@ class OnlineLinkEstimator:
         cusum_drift: float = 0.5,
         cusum_threshold: float = 8.0,
         change_floor_ms: float = 2.0,
-        challenge_margin: float = 18.0,
+        challenge_margin: float = 27.0,
+        challenge_clip: float = 100.0,
         challenge_samples: int = 30,
         prior_t0_ms: float = 40.0,
         prior_beta: float = 0.2,
@@ -102,7 +112,8 @@ class OnlineLinkEstimator:
         self.gate = gate
         self.drift, self.threshold = cusum_drift, cusum_threshold
         self.change_floor_ms = change_floor_ms
-        self.challenge_margin, self.challenge_samples = challenge_margin, challenge_samples
+        self.challenge_margin, self.challenge_clip = challenge_margin, challenge_clip
+        self.challenge_samples = challenge_samples
         self.theta = np.array([prior_t0_ms, prior_beta])
         self.p = np.diag(list(self.PRIOR_VARIANCE))
         self.scale = 5.0  # robust residual scale, ms
@@ -116,11 +127,12 @@ class OnlineLinkEstimator:
         self._g_pos = self._g_neg = 0.0
         # the pending challenger after an alarm: (theta, P, samples since, current fit's and its own
         # clipped squared errors on them, in robust scales)
-        self._challenger: tuple[np.ndarray, np.ndarray, int, float, float] | None = None
+        self._challenger: tuple[np.ndarray, np.ndarray, int, int, float, float] | None = None
         # the samples each side of the CUSUM has summed since it was last at zero: an alarm's evidence,
         # replayed into its challenger (which then predicts from the first sample after the alarm)
         self._runs: tuple[list[tuple[np.ndarray, float]], list[tuple[np.ndarray, float]]] = ([], [])
         self.changes = 0  # link changes taken (only ever rises: one that a stall's rollback undid stays counted)
+        self.alarms = 0  # alarms raised, each a challenger (taken: `changes`; not: `dismissed`)
         self.dismissed = 0  # alarms whose challenger did not predict better: no change
         self.resets = 0  # covariances found no longer positive definite and reset (rounding; never seen)
 
@@ -177,7 +189,7 @@ class OnlineLinkEstimator:
         return (self.theta.copy(), self.p.copy(), self.scale, self.n, self.busy, self._g_pos, self._g_neg, ch, runs)
 
     def _restore(self, state: tuple[Any, ...]) -> None:
-        # (`changes` and `dismissed` stay: they count, and readers act on each rise once)
+        # (`alarms`, `changes` and `dismissed` stay: they count, and readers act on each rise once)
         theta, p, self.scale, self.n, self.busy, self._g_pos, self._g_neg, ch, runs = state
         self.theta, self.p = theta.copy(), p.copy()
         self._runs = (list(runs[0]), list(runs[1]))
@@ -194,19 +206,20 @@ class OnlineLinkEstimator:
             zc = max(-self.gate, min(self.gate, resid / scale))
             self._g_pos = max(0.0, self._g_pos + zc - self.drift)
             self._g_neg = max(0.0, self._g_neg - zc - self.drift)
-            for g, run in zip((self._g_pos, self._g_neg), self._runs, strict=True):
-                if g > 0.0:
+            for g, run, push in zip((self._g_pos, self._g_neg), self._runs, (zc, -zc), strict=True):
+                if g <= 0.0:
+                    run.clear()
+                elif push > self.drift:  # (a sample that raised it: one the link as it was does not explain)
                     run.append((x, y_ms))
                     del run[: -self.RUN_SAMPLES]
-                else:
-                    run.clear()
             if max(self._g_pos, self._g_neg) > self.threshold:
                 alarm = True
         if alarm:  # a fit that forgot everything, fitted to the alarm's samples, challenges the current one
             theta, p = self.theta, np.diag(list(self.RESET_VARIANCE))
             for xs, ys in self._runs[0 if self._g_pos >= self._g_neg else 1]:
                 theta, p = self._step(theta, p, xs, ys - float(xs @ theta), 1.0)
-            self._challenger = (theta, p, 0, 0.0, 0.0)
+            self._challenger = (theta, p, 0, 0, 0.0, 0.0)
+            self.alarms += 1
             self._g_pos = self._g_neg = 0.0
             self._runs = ([], [])
         self.theta, self.p = self._step(self.theta, self.p, x, resid, self._huber(resid))
@@ -216,22 +229,32 @@ class OnlineLinkEstimator:
         """Score both fits on this sample (before either fuses it), fuse it into the challenger, and
         decide: True when the challenger took over (it has fused the sample for both)."""
         assert self._challenger is not None
-        theta, p, n, err_current, err_challenger = self._challenger
+        theta, p, n, wins, err_current, err_challenger = self._challenger
         resid_c = y_ms - float(x @ theta)
-        clip = self.gate**2
-        err_current += min((resid / scale) ** 2, clip)
-        err_challenger += min((resid_c / scale) ** 2, clip)
-        theta, p = self._step(theta, p, x, resid_c, self._huber(resid_c))
-        if err_current - err_challenger >= self.challenge_margin:  # the link changed
+        current = min((resid / scale) ** 2, self.challenge_clip)
+        challenger = min((resid_c / scale) ** 2, self.challenge_clip)
+        err_current, err_challenger = err_current + current, err_challenger + challenger
+        wins += current - challenger >= self.CHALLENGE_WIN  # (a sample it predicts clearly better)
+        # (a fresh fit: not down-weighted by the scale of residuals about the other fit until it has seen
+        # as many samples as a first fit is given; a bench run's challenger crept towards the new link
+        # for seven samples and took over half-way, t0 45.8 ms, beta 0.31 on a 39.9 / 0.577 link)
+        weight = 1.0 if n + 1 < self.CHALLENGE_FRESH else self._huber(resid_c)
+        theta, p = self._step(theta, p, x, resid_c, weight)
+        lead = err_current - err_challenger
+        if (wins >= self.CHALLENGE_WINS and lead >= self.challenge_margin) or (wins and lead >= self.CHALLENGE_STRONG):
             self.theta, self.p, self._challenger = theta, p, None
             self.changes += 1
             self._update_scale(resid_c)
             return True
-        if err_challenger - err_current >= self.challenge_margin or n + 1 >= self.challenge_samples:
+        # Dismissed when it trails by as much and the current fit explains the latest sample: right after
+        # a change neither fit may predict well yet (a challenger fitted to four samples can mistake a
+        # steeper slope for a higher floor), and the current one must not win by being less wrong.
+        behind = err_challenger - err_current >= self.challenge_margin and current <= self.gate**2
+        if behind or n + 1 >= self.challenge_samples:
             self._challenger = None  # late stamps, not the link: the current fit stands
             self.dismissed += 1
         else:
-            self._challenger = (theta, p, n + 1, err_current, err_challenger)
+            self._challenger = (theta, p, n + 1, wins, err_current, err_challenger)
         return False
 
     def _huber(self, resid: float) -> float:
