@@ -611,7 +611,9 @@ def test_a_data_set_paced_by_its_poses_never_goes_faster_than_its_fps(tmp_path: 
     assert len(answered) == 5 and ended >= max(answered.values())  # it waited for the last frame's poses
 
 
-def test_poses_that_do_not_decode_are_counted_and_do_not_release_or_stall_the_paced_camera() -> None:
+def test_poses_that_do_not_decode_are_counted_and_do_not_release_or_stall_the_paced_camera(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     """Paced by poses, the camera reads each TagPoses' capture stamp on Zenoh's thread. Bytes that are
     not a TagPoses (a truncated message, another schema on the key) are counted and said once; they
     neither count as the awaited frame's poses nor keep the good answer after them from releasing it."""
@@ -647,6 +649,8 @@ def test_poses_that_do_not_decode_are_counted_and_do_not_release_or_stall_the_pa
         hub.put(keys.tag_poses(robot), injected_tag_poses(robot, 1, capture))
         assert pacer.wait(stop, 5.0)
         assert pacer.timeouts == 1 and pacer.bad == 5  # released by the good answer behind the bad one
+        said = [r for r in caplog.records if "does not decode" in r.getMessage()]
+        assert len(said) == 1 and said[0].levelname == "WARNING"  # said once, not five times
     finally:
         pacer.close()
         cam_session.close()

@@ -69,7 +69,8 @@ class OnlineLinkEstimator:
     An alarm is a question, not an answer: it starts a **challenger**, a fit that forgot everything
     (covariance reset) and was fitted to the samples that raised the alarm, beside the current fit,
     which goes on as before. Both predict each following sample before fusing it (squared errors in
-    robust scales, each clipped at `challenge_clip`). The challenger takes over (`changes` rises) once
+    robust scales, the scale no less than `change_floor_ms` as for the CUSUM, each clipped at
+    `challenge_clip`). The challenger takes over (`changes` rises) once
     it has predicted two samples clearly better (by 3) and leads by `challenge_margin` (27), or one
     sample and leads by 64 (a miss of 8 scales that it explains: a change to 5g-pre-tdd does that at
     64 kB on a quiet link). It is dropped (`dismissed`) once it trails by the margin while the current
@@ -81,7 +82,7 @@ class OnlineLinkEstimator:
     stamps late by an exponential 20 ms (`tests/linksim.py`, seeds 0-5, k = 0, 7 and both) the detector
     fired 40-79 times a run, and right after each reset one late sample carried the fit (beta 0.0-8.2
     ms/kB on a 0.18 link, more than 25 % off in 2.7-22 % of the samples). Now 0-2 changes are taken a
-    run (10 in the 18; 28-62 alarms dismissed), beta reads 0.0-0.40 and is more than 25 % off in 0-7.8 %
+    run (10 in the 18; 34-69 alarms dismissed), beta reads 0.0-0.40 and is more than 25 % off in 0-7.8 %
     of the samples.
     """
 
@@ -92,7 +93,7 @@ class OnlineLinkEstimator:
     CHALLENGE_WINS = 2  # samples a challenger must predict clearly better to take over ...
     CHALLENGE_WIN = 3.0  # ... by this much of squared error, in robust scales squared
     CHALLENGE_STRONG = 64.0  # ... or one such sample, when the lead is this large (a miss of 8 scales)
-    CHALLENGE_FRESH = 10  # a challenger's samples fused at full weight (as a first fit's)
+    CHALLENGE_FRESH = 10  # a challenger fuses its replayed samples and its next 9 at full weight
 
     def __init__(
         self,
@@ -125,15 +126,19 @@ class OnlineLinkEstimator:
         self._last_fused: tuple[float, tuple[Any, ...]] | None = None
         self._burst_heads: deque[float] = deque(maxlen=32)  # stamps at a stall's end not yet seen
         self._g_pos = self._g_neg = 0.0
-        # the pending challenger after an alarm: (theta, P, samples since, current fit's and its own
-        # clipped squared errors on them, in robust scales)
-        self._challenger: tuple[np.ndarray, np.ndarray, int, int, float, float] | None = None
+        # the pending challenger after an alarm: (theta, P, samples since, clear wins, current fit's and
+        # its own clipped squared errors on them, in robust scales, its alarm's number)
+        self._challenger: tuple[np.ndarray, np.ndarray, int, int, float, float, int] | None = None
+        self._counted = 0  # the last alarm counted as a change or dismissed (each is counted once)
         # the samples each side of the CUSUM has summed since it was last at zero: an alarm's evidence,
         # replayed into its challenger (which then predicts from the first sample after the alarm)
         self._runs: tuple[list[tuple[np.ndarray, float]], list[tuple[np.ndarray, float]]] = ([], [])
-        self.changes = 0  # link changes taken (only ever rises: one that a stall's rollback undid stays counted)
-        self.alarms = 0  # alarms raised, each a challenger (taken: `changes`; not: `dismissed`)
-        self.dismissed = 0  # alarms whose challenger did not predict better: no change
+        # Counters only ever rise, and each alarm ends up in exactly one of `changes` and `dismissed` (or is
+        # pending): a stall's rollback that undoes a take-over or a dismissal does not count it again, and
+        # one that undoes the alarm itself counts it dismissed.
+        self.alarms = 0  # alarms raised, each a challenger
+        self.changes = 0  # alarms whose challenger took over: link changes
+        self.dismissed = 0  # alarms whose challenger did not predict better (or was undone): no change
         self.resets = 0  # covariances found no longer positive definite and reset (rounding; never seen)
 
     def add(self, size_kB: float, rtt_ms: float) -> None:
@@ -193,7 +198,17 @@ class OnlineLinkEstimator:
         theta, p, self.scale, self.n, self.busy, self._g_pos, self._g_neg, ch, runs = state
         self.theta, self.p = theta.copy(), p.copy()
         self._runs = (list(runs[0]), list(runs[1]))
+        if self._challenger is not None and ch is None:  # the alarm itself was undone
+            self._count(self._challenger[6], changed=False)
         self._challenger = None if ch is None else (ch[0].copy(), ch[1].copy(), *ch[2:])
+
+    def _count(self, alarm: int, *, changed: bool) -> None:
+        if alarm > self._counted:
+            self._counted = alarm
+            if changed:
+                self.changes += 1
+            else:
+                self.dismissed += 1
 
     def _fuse(self, x: np.ndarray, y_ms: float) -> None:
         resid = y_ms - float(x @ self.theta)
@@ -218,8 +233,8 @@ class OnlineLinkEstimator:
             theta, p = self.theta, np.diag(list(self.RESET_VARIANCE))
             for xs, ys in self._runs[0 if self._g_pos >= self._g_neg else 1]:
                 theta, p = self._step(theta, p, xs, ys - float(xs @ theta), 1.0)
-            self._challenger = (theta, p, 0, 0, 0.0, 0.0)
             self.alarms += 1
+            self._challenger = (theta, p, 0, 0, 0.0, 0.0, self.alarms)
             self._g_pos = self._g_neg = 0.0
             self._runs = ([], [])
         self.theta, self.p = self._step(self.theta, self.p, x, resid, self._huber(resid))
@@ -229,7 +244,7 @@ class OnlineLinkEstimator:
         """Score both fits on this sample (before either fuses it), fuse it into the challenger, and
         decide: True when the challenger took over (it has fused the sample for both)."""
         assert self._challenger is not None
-        theta, p, n, wins, err_current, err_challenger = self._challenger
+        theta, p, n, wins, err_current, err_challenger, alarm = self._challenger
         resid_c = y_ms - float(x @ theta)
         current = min((resid / scale) ** 2, self.challenge_clip)
         challenger = min((resid_c / scale) ** 2, self.challenge_clip)
@@ -243,7 +258,7 @@ class OnlineLinkEstimator:
         lead = err_current - err_challenger
         if (wins >= self.CHALLENGE_WINS and lead >= self.challenge_margin) or (wins and lead >= self.CHALLENGE_STRONG):
             self.theta, self.p, self._challenger = theta, p, None
-            self.changes += 1
+            self._count(alarm, changed=True)
             self._update_scale(resid_c)
             return True
         # Dismissed when it trails by as much and the current fit explains the latest sample: right after
@@ -252,9 +267,9 @@ class OnlineLinkEstimator:
         behind = err_challenger - err_current >= self.challenge_margin and current <= self.gate**2
         if behind or n + 1 >= self.challenge_samples:
             self._challenger = None  # late stamps, not the link: the current fit stands
-            self.dismissed += 1
+            self._count(alarm, changed=False)
         else:
-            self._challenger = (theta, p, n + 1, wins, err_current, err_challenger)
+            self._challenger = (theta, p, n + 1, wins, err_current, err_challenger, alarm)
         return False
 
     def _huber(self, resid: float) -> float:
@@ -300,9 +315,15 @@ class OnlineLinkEstimator:
         return new, p * np.outer(cap, cap)
 
     @property
+    def judging(self) -> bool:
+        """An alarm's challenger is pending (alarms = changes + dismissed + this)."""
+        return self._challenger is not None
+
+    @property
     def alarm_level(self) -> float:
-        """How close the change detector is to firing: 0 (quiet) .. 1 (fired: a challenger is pending)."""
-        if self._challenger is not None:
+        """How close the change detector is to firing: 0 (quiet) .. 1 (at its threshold, or fired: a
+        challenger is pending)."""
+        if self.judging:
             return 1.0
         return max(self._g_pos, self._g_neg) / self.threshold
 
