@@ -629,7 +629,14 @@ def test_poses_that_do_not_decode_are_counted_and_do_not_release_or_stall_the_pa
     pacer = PosesPacer(cam_session, robot)
     stop = threading.Event()
     try:
-        time.sleep(0.5)  # (the camera's subscriber is known to the hub's session)
+        deadline = time.monotonic() + 10
+        while pacer.bad == 0 and time.monotonic() < deadline:  # until the camera's subscriber hears the hub:
+            hub.put(keys.tag_poses(robot), b"")  # one empty message at a time, each given 0.5 s to come
+            wait_until = time.monotonic() + 0.5
+            while pacer.bad == 0 and time.monotonic() < wait_until:
+                time.sleep(0.01)
+        first = pacer.bad
+        assert first >= 1
         capture = time.time_ns()
         pacer.sent(0, capture)
         good = injected_tag_poses(robot, 0, capture)
@@ -637,9 +644,9 @@ def test_poses_that_do_not_decode_are_counted_and_do_not_release_or_stall_the_pa
         for bad in (b"", b"\x00" * 7, good[: len(good) // 2], stamp):  # (the last: another schema)
             hub.put(keys.tag_poses(robot), bad)
         deadline = time.monotonic() + 5
-        while pacer.bad < 4 and time.monotonic() < deadline:
+        while pacer.bad < first + 4 and time.monotonic() < deadline:
             time.sleep(0.01)
-        assert pacer.bad == 4
+        assert pacer.bad == first + 4
         assert pacer.wait(stop, 0.3)
         assert pacer.timeouts == 1  # the bad bytes did not release the frame: its timeout did
 
@@ -648,7 +655,7 @@ def test_poses_that_do_not_decode_are_counted_and_do_not_release_or_stall_the_pa
         hub.put(keys.tag_poses(robot), b"\xff\xfe")
         hub.put(keys.tag_poses(robot), injected_tag_poses(robot, 1, capture))
         assert pacer.wait(stop, 5.0)
-        assert pacer.timeouts == 1 and pacer.bad == 5  # released by the good answer behind the bad one
+        assert pacer.timeouts == 1 and pacer.bad == first + 5  # released by the good answer behind the bad one
         said = [r for r in caplog.records if "does not decode" in r.getMessage()]
         assert len(said) == 1 and said[0].levelname == "WARNING"  # said once, not five times
     finally:

@@ -43,6 +43,13 @@ def fit_link(sizes_kB: Sequence[float], rtts_ms: Sequence[float]) -> LinkFit:
     return LinkFit(float(t0), float(beta), floor, rmse, len(s))
 
 
+def _capped(p: np.ndarray, variances: tuple[float, float]) -> np.ndarray:
+    """P with each variance at most `variances`' (its row and column scaled together: P stays positive
+    definite)."""
+    cap = np.sqrt(np.minimum(1.0, np.asarray(variances) / np.maximum(np.diag(p), 1e-300)))
+    return p * np.outer(cap, cap)
+
+
 class OnlineLinkEstimator:
     """Robust recursive least squares for the uplink's floor t0 and slope beta, with forgetting.
 
@@ -278,11 +285,8 @@ class OnlineLinkEstimator:
         return False
 
     def _loosened(self, p: np.ndarray) -> np.ndarray:
-        """A covariance TAKEOVER_LOOSEN times wider, no variance above the reset's (row and column
-        scaled together: it stays positive definite)."""
-        p = p * self.TAKEOVER_LOOSEN
-        cap = np.sqrt(np.minimum(1.0, np.asarray(self.RESET_VARIANCE) / np.maximum(np.diag(p), 1e-300)))
-        return p * np.outer(cap, cap)
+        """A covariance TAKEOVER_LOOSEN times wider, no variance above the reset's."""
+        return _capped(p * self.TAKEOVER_LOOSEN, self.RESET_VARIANCE)
 
     def _huber(self, resid: float) -> float:
         z = abs(resid) / max(self.scale, 1e-3)
@@ -322,9 +326,7 @@ class OnlineLinkEstimator:
         if not (p[0, 0] > 0.0 and p[1, 1] > 0.0 and p[0, 0] * p[1, 1] > p[0, 1] * p[1, 0]):
             self.resets += 1  # (not seen with the symmetric update; a guard, counted)
             p = np.diag(list(self.RESET_VARIANCE))
-        # Cap each variance at the prior's (scaling its row and column keeps P positive definite).
-        cap = np.sqrt(np.minimum(1.0, np.asarray(self.PRIOR_VARIANCE) / np.maximum(np.diag(p), 1e-300)))
-        return new, p * np.outer(cap, cap)
+        return new, _capped(p, self.PRIOR_VARIANCE)
 
     @property
     def judging(self) -> bool:
