@@ -409,6 +409,36 @@ def test_demo_cameras_starting_together_render_the_cache_once(tmp_path: Path) ->
     assert not list(folder.glob("*tmp*")) and (folder / "scene.json").is_file()
 
 
+def test_the_demo_source_serves_its_renders_decoded_once(tmp_path: Path) -> None:
+    """The demo's renders are decoded once into a raw file that every later run maps: each frame is the
+    PNG's pixels exactly, read-only (the camera only encodes it), without a decode per frame; a decoded
+    file of the wrong size (a copy cut short) is rebuilt, not read."""
+    import cv2
+
+    from shared.runtime.sources import DemoSource
+
+    small = type(CAM).model_validate(
+        CAM.model_dump() | {"width": 160, "height": 120, "fx": 130.0, "fy": 130.0, "cx": 79.5, "cy": 59.5}
+    )
+    source = DemoSource(n_frames=3, cache_dir=tmp_path, camera=small)
+    decoded = source.cache / "decoded-3x120x160.u8"
+    assert decoded.stat().st_size == 3 * 120 * 160
+    frames = list(source.frames())
+    for i, frame in enumerate(frames):
+        png = cv2.imread(str(source.cache / f"{i:05d}.png"), cv2.IMREAD_GRAYSCALE)
+        assert png is not None
+        assert type(frame.image) is np.ndarray and frame.image.flags.c_contiguous and not frame.image.flags.writeable
+        assert frame.image.shape == (120, 160) and np.array_equal(frame.image, png)
+    assert len({f.image.tobytes() for f in frames}) == 3  # three different views, not one frame thrice
+    decoded.write_bytes(decoded.read_bytes()[:30000])  # cut short: a running camera says so, a new one rebuilds
+    with pytest.raises(OSError, match="cut short"):
+        list(source.frames())
+    again = DemoSource(n_frames=3, cache_dir=tmp_path, camera=small)
+    assert decoded.stat().st_size == 3 * 120 * 160
+    assert all(np.array_equal(a.image, b.image) for a, b in zip(frames, again.frames(), strict=True))
+    assert not list(source.cache.glob("*tmp*"))
+
+
 def test_the_camera_says_by_its_exit_code_whether_its_source_ended(tmp_path: Path) -> None:
     """A source that ended (the run is complete) exits SOURCE_ENDED_EXIT; a camera stopped by a signal
     exits 0, which the launcher, had it not asked, restarts: a trial's SIGTERM to the demo camera was
