@@ -4,6 +4,7 @@ set's own time of the frame when it has one)."""
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import hashlib
 import json
@@ -168,16 +169,17 @@ class DemoSource:
             return path
         try:
             with open(self.cache / ".render.lock", "a") as lock:
-                try:
+                with contextlib.suppress(OSError):  # (no locks on this file system: the rename is still atomic)
                     fcntl.flock(lock, fcntl.LOCK_EX)
-                except OSError:
-                    pass  # (no locks on this file system: the rename below is still atomic)
                 if not (path.is_file() and path.stat().st_size == n * h * w):
-                    tmp = self.cache / f"{path.name}.{os.getpid()}.tmp"
-                    with open(tmp, "wb") as out:
-                        for i in range(n):
-                            out.write(self._read_png(i).tobytes())
-                    tmp.replace(path)
+                    tmp = self.cache / f"{path.name}.tmp.{os.getpid()}"
+                    try:
+                        with open(tmp, "wb") as out:
+                            for i in range(n):
+                                out.write(self._read_png(i).tobytes())
+                        tmp.replace(path)
+                    finally:
+                        tmp.unlink(missing_ok=True)
         except OSError as exc:
             log.warning("demo frames decoded per frame: no decoded cache in %s (%s)", self.cache, exc)
             return None
