@@ -281,3 +281,23 @@ def test_out_of_range_soft_decode_settings_are_refused(field: str) -> None:
         BlindDecodeSettings(**{field: bad})
     with pytest.raises(pydantic.ValidationError, match="soft"):
         LineQuadSettings(soft={field: bad})
+
+
+def test_tags_another_proposer_found_are_not_refined_again() -> None:
+    """A tag stage 1 already has (`others`: the same id where the line quad lies) comes back with its
+    corners as the line quads read them, not refined (Stage1Detector drops it as a duplicate: refining
+    it was 1.9 ms of a demo frame); another id there, or the same id elsewhere, leaves it refined."""
+    from shared.vision.detector import Detection
+    from shared.vision.linequads import refine_corners
+
+    image = _draw(None, 117)
+    (refined,) = LineQuadProposer().detect(image)
+    same = Detection(117, 50.0, 0, refined.corners_px + 0.7, "apriltag")
+    (raw,) = LineQuadProposer().detect(image, others=[same])
+    assert not np.allclose(raw.corners_px, refined.corners_px, atol=1e-6)  # (refining moves them)
+    np.testing.assert_allclose(refine_corners(image, raw.corners_px), refined.corners_px)
+    assert raw.tag_id == 117 and raw.proposer == "lines"
+    elsewhere = replace(same, corners_px=same.corners_px + 400.0)
+    for other in (replace(same, tag_id=118), elsewhere):
+        (kept,) = LineQuadProposer().detect(image, others=[other])
+        np.testing.assert_allclose(kept.corners_px, refined.corners_px)

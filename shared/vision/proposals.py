@@ -255,7 +255,7 @@ class Stage1Detector:
             # its own decode is its gate (shared.vision.linequads: <= max_hamming bit errors and both
             # rings, or the blind soft decode's); quads inside tags already found are not soft-decoded
             soft_before = self._lines.soft_decoded
-            lines = self._lines.detect(img, known=[d.corners_px for d in found])
+            lines = self._lines.detect(img, others=found, same_tag_fraction=self.settings.same_tag_fraction)
             self.counts.lines_soft += self._lines.soft_decoded - soft_before
             new, duplicates = merge_proposals(found, lines, same_tag_fraction=self.settings.same_tag_fraction)
             self.counts.lines_merged += len(duplicates)
