@@ -410,9 +410,10 @@ def test_demo_cameras_starting_together_render_the_cache_once(tmp_path: Path) ->
 
 
 def test_the_demo_source_serves_its_renders_decoded_once(tmp_path: Path) -> None:
-    """The demo's renders are decoded once into a raw file that every later run maps: each frame is the
+    """The demo's renders are decoded once into a raw file that every later run reads: each frame is the
     PNG's pixels exactly, read-only (the camera only encodes it), without a decode per frame; a decoded
-    file of the wrong size (a copy cut short) is rebuilt, not read."""
+    file of the wrong size (a copy cut short) or older than a render is rebuilt, not read, and what a
+    camera killed while writing it left is removed."""
     import cv2
 
     from shared.runtime.sources import DemoSource
@@ -436,6 +437,16 @@ def test_the_demo_source_serves_its_renders_decoded_once(tmp_path: Path) -> None
     again = DemoSource(n_frames=3, cache_dir=tmp_path, camera=small)
     assert decoded.stat().st_size == 3 * 120 * 160
     assert all(np.array_equal(a.image, b.image) for a, b in zip(frames, again.frames(), strict=True))
+    # a render made again (here: another picture) after the decoded file: the file follows it
+    import os
+
+    flipped = np.ascontiguousarray(frames[1].image[::-1])
+    cv2.imwrite(str(source.cache / "00001.png"), flipped)
+    made = decoded.stat().st_mtime_ns
+    os.utime(source.cache / "00001.png", ns=(made + 10**9, made + 10**9))
+    (source.cache / "decoded-3x120x160.u8.tmp.99999").write_bytes(b"left by a killed camera")
+    redone = list(DemoSource(n_frames=3, cache_dir=tmp_path, camera=small).frames())
+    assert np.array_equal(redone[1].image, flipped) and np.array_equal(redone[0].image, frames[0].image)
     assert not list(source.cache.glob("*tmp*"))
 
 

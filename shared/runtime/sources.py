@@ -4,7 +4,6 @@ set's own time of the frame when it has one)."""
 
 from __future__ import annotations
 
-import contextlib
 import fcntl
 import hashlib
 import json
@@ -160,18 +159,31 @@ class DemoSource:
         """Every render decoded once into one raw file beside them (`decoded-<n>x<h>x<w>.u8`): a frame is
         then one read from the page cache, as a camera driver hands over its buffer. Decoding a 1280x720
         PNG per frame took 5.7 ms, 17 % of a core at 30 fps on the robot's host, a cost no real camera
-        has. Written once, atomically (a new file renamed over), under the render lock; None (decode per
-        frame, as before) where it cannot be written. Read, not mapped: a mapped file cut short under a
-        running camera would kill it (SIGBUS), a short read is an error that names the file."""
+        has. Written once, atomically (a new file renamed over), under the render lock, and written again
+        when its size is wrong or a render is newer; None (decode per frame, as before) where it cannot
+        be written. Read, not mapped: a mapped file cut short under a running camera would kill it
+        (SIGBUS), a short read is an error that names the file."""
         n, h, w = len(self.trajectory), self.camera.height, self.camera.width
         path = self.cache / f"decoded-{n}x{h}x{w}.u8"
-        if path.is_file() and path.stat().st_size == n * h * w:
-            return path
+
+        def current() -> bool:
+            if not path.is_file() or path.stat().st_size != n * h * w:
+                return False
+            made = path.stat().st_mtime_ns
+            return all((self.cache / f"{i:05d}.png").stat().st_mtime_ns <= made for i in range(n))
+
         try:
+            if current():
+                return path
             with open(self.cache / ".render.lock", "a") as lock:
-                with contextlib.suppress(OSError):  # (no locks on this file system: the rename is still atomic)
+                try:
                     fcntl.flock(lock, fcntl.LOCK_EX)
-                if not (path.is_file() and path.stat().st_size == n * h * w):
+                except OSError:  # no locks on this file system: the rename below is still atomic
+                    pass
+                else:  # the lock holder's: what a camera killed while writing it left (138 MB each)
+                    for stale in self.cache.glob("decoded-*.tmp.*"):
+                        stale.unlink(missing_ok=True)
+                if not current():
                     tmp = self.cache / f"{path.name}.tmp.{os.getpid()}"
                     try:
                         with open(tmp, "wb") as out:
@@ -180,7 +192,7 @@ class DemoSource:
                         tmp.replace(path)
                     finally:
                         tmp.unlink(missing_ok=True)
-        except OSError as exc:
+        except (OSError, ValueError) as exc:
             log.warning("demo frames decoded per frame: no decoded cache in %s (%s)", self.cache, exc)
             return None
         return path
@@ -212,7 +224,7 @@ class DemoSource:
                 yield SourceFrame(self._read_png(i), pose)
             return
         h, w = self.camera.height, self.camera.width
-        with open(self._decoded, "rb", buffering=0) as f:
+        with open(self._decoded, "rb") as f:  # (buffered: readinto fills the array or meets the end)
             for i, pose in enumerate(self.trajectory):
                 img = np.empty((h, w), np.uint8)
                 if f.readinto(img.data) != h * w:

@@ -513,9 +513,10 @@ class LineQuadProposer:
         """Decoded tags of one grayscale image, sorted by id (decision_margin = ring contrast). `known`:
         quads of tags already found (another proposer's); quads centred inside one are not soft-decoded.
         `others`: tags another proposer found (their quads count as `known` too); a tag read here that is
-        one of them (`merge_proposals`' test at `same_tag_fraction`) comes back with its corners as read,
-        not refined: the caller keeps its own (refining them took 1.9 ms of a 1280x720 demo frame's ~23 ms
-        stage 1, for tags AprilTag had already found)."""
+        clearly one of them (`merge_proposals`' test at half `same_tag_fraction`, the caller's: refined or
+        not, the caller then finds it a duplicate) comes back with its corners as read, not refined: the
+        caller keeps its own (refining them took 1.9 ms of a 1280x720 demo frame's ~23 ms stage 1, for tags
+        AprilTag had already found)."""
         s = self.settings
         known = [*known, *(d.corners_px for d in others)]
         img = np.ascontiguousarray(check_image(image))
@@ -556,7 +557,7 @@ class LineQuadProposer:
         self.soft_decoded += len(read)
         best = hard + read
         if s.refine_corners:
-            new, _ = merge_proposals(list(others), best, same_tag_fraction=same_tag_fraction)
+            new, _ = merge_proposals(list(others), best, same_tag_fraction=same_tag_fraction / 2)
             fresh = {id(d) for d in new}
             best = [replace(d, corners_px=refine_corners(img, d.corners_px)) if id(d) in fresh else d for d in best]
         return sorted(best, key=lambda d: d.tag_id)
