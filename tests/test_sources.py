@@ -450,6 +450,32 @@ def test_the_demo_source_serves_its_renders_decoded_once(tmp_path: Path) -> None
     assert not list(source.cache.glob("*tmp*"))
 
 
+def test_a_damaged_demo_render_is_named_not_sent(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A render that no longer reads (a disk error, a file cut short) or is not the camera's size: no
+    decoded file is made from it (said once), and the frame is refused by name, never sent as garbage."""
+    from shared.runtime.sources import DemoSource
+
+    small = type(CAM).model_validate(
+        CAM.model_dump() | {"width": 160, "height": 120, "fx": 130.0, "fy": 130.0, "cx": 79.5, "cy": 59.5}
+    )
+    cache = DemoSource.cache_folder(tmp_path, n_frames=3, camera=small)
+    DemoSource(n_frames=3, cache_dir=tmp_path, camera=small)
+    for damage, error, what in (
+        (b"not a png", OSError, "demo cache frame 1 unreadable"),
+        (cv2.imencode(".png", np.zeros((60, 80), np.uint8))[1].tobytes(), ValueError, "demo cache frame 1 is 80x60"),
+    ):
+        (cache / "decoded-3x120x160.u8").unlink(missing_ok=True)
+        (cache / "00001.png").write_bytes(damage)
+        caplog.clear()
+        source = DemoSource(n_frames=3, cache_dir=tmp_path, camera=small)
+        assert "decoded per frame" in caplog.text and what in caplog.text
+        assert not (cache / "decoded-3x120x160.u8").exists() and not list(cache.glob("*tmp*"))
+        frames = source.frames()
+        assert next(frames).image.shape == (120, 160)
+        with pytest.raises(error, match=what):
+            next(frames)
+
+
 def test_the_camera_says_by_its_exit_code_whether_its_source_ended(tmp_path: Path) -> None:
     """A source that ended (the run is complete) exits SOURCE_ENDED_EXIT; a camera stopped by a signal
     exits 0, which the launcher, had it not asked, restarts: a trial's SIGTERM to the demo camera was

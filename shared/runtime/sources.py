@@ -4,6 +4,7 @@ set's own time of the frame when it has one)."""
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import hashlib
 import json
@@ -132,14 +133,7 @@ class DemoSource:
         from shared.sim.scene import SceneRenderer
 
         self.cache.mkdir(parents=True, exist_ok=True)
-        with open(self.cache / ".render.lock", "a") as lock:
-            try:
-                fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes, or the process dies
-            except OSError as exc:  # a file system without locks (some NFS, CIFS, FUSE mounts)
-                log.warning("%s: no lock (%s): rendering alongside any other camera", self.cache, exc)
-            else:  # the lock holder's: what a renderer killed mid-frame left
-                for stale in self.cache.glob("*.tmp.*"):
-                    stale.unlink(missing_ok=True)
+        with self._cache_lock():
             missing = self._missing()  # what another camera left, if it rendered meanwhile
             if not missing:
                 return
@@ -155,6 +149,20 @@ class DemoSource:
             tmp.write_text(self.scene.model_dump_json(indent=2))
             tmp.replace(self.cache / "scene.json")
 
+    @contextlib.contextmanager
+    def _cache_lock(self) -> Iterator[None]:
+        """The cache's lock (one process writes it at a time; released when the file closes, or the
+        process dies); its holder first removes what a writer killed mid-file left (`*.tmp.*`)."""
+        with open(self.cache / ".render.lock", "a") as lock:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX)
+            except OSError as exc:  # a file system without locks (some NFS, CIFS, FUSE mounts)
+                log.warning("%s: no lock (%s): writing alongside any other camera", self.cache, exc)
+            else:
+                for stale in self.cache.glob("*.tmp.*"):
+                    stale.unlink(missing_ok=True)
+            yield
+
     def _decoded_frames(self) -> Path | None:
         """Every render decoded once into one raw file beside them (`decoded-<n>x<h>x<w>.u8`): a frame is
         then one read from the page cache, as a camera driver hands over its buffer. Decoding a 1280x720
@@ -167,22 +175,14 @@ class DemoSource:
         path = self.cache / f"decoded-{n}x{h}x{w}.u8"
 
         def current() -> bool:
-            if not path.is_file() or path.stat().st_size != n * h * w:
+            if not path.is_file() or (made := path.stat()).st_size != n * h * w:
                 return False
-            made = path.stat().st_mtime_ns
-            return all((self.cache / f"{i:05d}.png").stat().st_mtime_ns <= made for i in range(n))
+            return all((self.cache / f"{i:05d}.png").stat().st_mtime_ns <= made.st_mtime_ns for i in range(n))
 
         try:
             if current():
                 return path
-            with open(self.cache / ".render.lock", "a") as lock:
-                try:
-                    fcntl.flock(lock, fcntl.LOCK_EX)
-                except OSError:  # no locks on this file system: the rename below is still atomic
-                    pass
-                else:  # the lock holder's: what a camera killed while writing it left (138 MB each)
-                    for stale in self.cache.glob("decoded-*.tmp.*"):
-                        stale.unlink(missing_ok=True)
+            with self._cache_lock():  # (its holder removes what a camera killed while writing left: 138 MB)
                 if not current():
                     tmp = self.cache / f"{path.name}.tmp.{os.getpid()}"
                     try:
