@@ -5,7 +5,8 @@ Starts edge_infer, robot_infer and the demo camera (15 fps, 3-4 tags in view) as
 processes, then for each k sets the split through the Zenoh query, waits for the change to take
 effect, and measures capture->pose latency over a window.
 
-    .venv/bin/python -m bench.pipeline [--fps 15] [--window-secs 10] [--tracking off|on|both]
+    .venv/bin/python -m bench.pipeline [--fps 15] [--window-secs 10] [--ks 0 5 7] [--auto]
+        [--tracking off|on|both]
         [--precision fp32|bf16|int8] [--pace on|off|both] [--aruco on|off|both]
         [--lines on|off|both] [--overlap on|off|both] [--fresh 0 0.33 ...]
 
@@ -14,15 +15,25 @@ effect, and measures capture->pose latency over a window.
 with its line-quad proposer (shared.vision.linequads), `--overlap both` with robot_infer's stage 1 of the
 next frame running alongside the network (`overlap_stage1`); `--fresh` takes one or more values of
 robot_infer's `fresh_frame_fraction` (0 = take the newest frame at once), a table each.
+`--auto` also runs the adaptive split controller (services/controller) and, after the fixed cuts (each
+a person's pinned setting, which the controller may not change), sets k = `--auto-from` (0), releases
+the pin and measures a row `auto` where the controller chooses k: the row's `k` column is the cut most
+of its frames took, `k share` says how many did, and `switch` how often the split changed in the
+window; a line after the table gives the controller's last predicted T(k) and its reason.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import tempfile
 import time
+from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import psutil
@@ -35,7 +46,7 @@ from shared.tools.launch import Monitor, attach_monitor, demo_tag_map, loopback_
 from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
 from shared.transport.split_client import query_split
 from shared.wire import keys
-from shared.wire.cuts import CUTS, CutInfo
+from shared.wire.cuts import CUTS
 
 ROBOT = "bench"
 
@@ -47,6 +58,11 @@ def main() -> None:
     ap.add_argument("--window-secs", type=float, default=10.0)
     ap.add_argument("--settle-secs", type=float, default=2.0)
     ap.add_argument("--ks", type=int, nargs="*", default=[c.k for c in CUTS])
+    ap.add_argument("--auto", action="store_true", help="add a row where the adaptive split controller chooses k")
+    ap.add_argument(
+        "--auto-settle-secs", type=float, default=8.0, help="after releasing the pin, before the auto row's window"
+    )
+    ap.add_argument("--auto-from", type=int, default=0, help="the cut the auto row starts from (pinned, then released)")
     ap.add_argument("--rerun", action="store_true", help="log everything to Rerun (to measure its cost)")
     ap.add_argument("--rerun-image-every", type=int, default=1)
     ap.add_argument("--tracking", choices=("off", "on", "both"), default="off")
@@ -79,9 +95,14 @@ def main() -> None:
         for overlap in modes[args.overlap]
         for fresh in args.fresh
     ]
-    tables = [(mode, measure(args, mode)) for mode in runs]
-    for mode, rows in tables:
+    tables = []
+    for mode in runs:
+        notes: list[str] = []
+        tables.append((mode, measure(args, mode, notes), notes))
+    for mode, rows, notes in tables:
         print_table(args, rows, mode)
+        for note in notes:
+            print(note)
 
 
 @dataclass(frozen=True)
@@ -96,7 +117,28 @@ class Mode:
     fresh: float = 0.5
 
 
-Row = tuple[CutInfo, float, float, float, float, float, float, float, float, float, float, dict[str, float]]
+@dataclass(frozen=True)
+class Row:
+    """One window's figures: medians unless named otherwise, latencies in ms."""
+
+    label: str  # the cut's k, or AUTO
+    k: int  # the cut (for AUTO: the one most of the window's frames took)
+    k_share: float  # the share of the window's frames at k (1.0 for a fixed cut)
+    switches: int  # split changes seen in the window's frames (0 for a fixed cut)
+    fps: float
+    e2e_p50: float
+    e2e_p99: float
+    robot: float
+    link: float
+    edge: float
+    tags: float  # mean
+    payload_bytes: float
+    age: float
+    edge_q: float
+    cpu: dict[str, float]  # % of one core per process, and "host"
+
+
+AUTO = "auto"  # the row's label when the controller chose k
 CPU_OF = ("robot_infer", "edge_infer", "camera", "bench")  # the processes whose CPU time a table shows
 
 
@@ -105,8 +147,40 @@ def _cpu_secs(procs: dict[str, psutil.Process]) -> dict[str, float]:
     return {name: sum(p.cpu_times()[:2]) for name, p in procs.items()}
 
 
-def measure(args: argparse.Namespace, mode: Mode) -> list[Row]:
-    """Start the services (robot_infer's tracking, pacing and stage-1 proposers on or off), sweep k, stop them."""
+def _row(label: str, recs: list[dict[str, Any]], elapsed: float, cpu: dict[str, float]) -> Row:
+    """The figures of one window's frames (in the order they were posed)."""
+    if not recs:
+        raise SystemExit(f"no frame was posed in the {label} window: is the demo camera in view of its tags?")
+    ks = [int(r["k"]) for r in recs]
+    k, n_at_k = Counter(ks).most_common(1)[0]
+    e2e = np.array([r["e2e_ms"] for r in recs])
+    return Row(
+        label=label,
+        k=k,
+        k_share=n_at_k / len(ks),
+        switches=sum(a != b for a, b in itertools.pairwise(ks)),
+        fps=len(recs) / elapsed,
+        e2e_p50=float(np.percentile(e2e, 50)),
+        e2e_p99=float(np.percentile(e2e, 99)),
+        robot=float(np.median([r["robot_ms"] for r in recs])),
+        link=float(np.median([r["transport_ms"] for r in recs])),
+        edge=float(np.median([r["edge_ms"] for r in recs])),
+        tags=float(np.mean([r["tags"] for r in recs])),
+        payload_bytes=float(np.median([r["payload_bytes"] for r in recs])),
+        age=float(np.nanmedian([r["before_robot_ms"] for r in recs])),
+        edge_q=float(np.nanmedian([r["at_edge_ms"] for r in recs])),
+        cpu=cpu,
+    )
+
+
+def _at_k(k: int, record: dict[str, Any]) -> bool:
+    return bool(record["k"] == k)
+
+
+def measure(args: argparse.Namespace, mode: Mode, notes: list[str]) -> list[Row]:
+    """Start the services (robot_infer's tracking, pacing and stage-1 proposers on or off; with `--auto`
+    the controller), sweep k, then (`--auto`) release the pin and let the controller choose; stop them.
+    `notes` gets what the controller last predicted and chose (`--auto`)."""
     tmp = Path(tempfile.mkdtemp(prefix="splittag-bench-"))
     cfg, topology = loopback_config(
         tmp, robot_id=ROBOT, rerun=args.rerun, image_every=args.rerun_image_every, fps=args.fps
@@ -121,44 +195,45 @@ def measure(args: argparse.Namespace, mode: Mode) -> list[Row]:
         "SPLITTAG_ROBOT_INFER_PRECISION": args.precision,
         "SPLITTAG_EDGE_INFER_PRECISION": args.precision,
     }
-    services = [start_service(n, cfg, tmp, env) for n in ("edge_infer", "robot_infer", "camera")]
+    names = ("edge_infer", "robot_infer", "camera") + (("controller",) if args.auto else ())
+    services = [start_service(n, cfg, tmp, env) for n in names]
     rows: list[Row] = []
     try:
         session = open_session(ZenohSettings(mode="client", connect=[topology.robot_router]))
         monitor = Monitor(demo_tag_map())
         subs = attach_monitor(session, ROBOT, monitor)
-        wait_for_liveliness(
-            session, [keys.alive(ROBOT, s) for s in ("edge_infer", "robot_infer", "camera")], timeout_secs=120
-        )
+        wait_for_liveliness(session, [keys.alive(ROBOT, s) for s in names], timeout_secs=120)
         procs = {s.name: psutil.Process(s.popen.pid) for s in services} | {"bench": psutil.Process()}
-        for cut in (CUTS[k] for k in args.ks):
-            query_split(session, ROBOT, params=f"k={cut.k}")
-            time.sleep(args.settle_secs)
+
+        def window(label: str, keep: Callable[[dict[str, Any]], bool]) -> Row:
             start = len(monitor.records)
             t0, cpu0 = time.monotonic(), _cpu_secs(procs)
             psutil.cpu_percent()  # the host's busy share from here on
             time.sleep(args.window_secs)
-            recs = [r for r in monitor.records[start:] if r["k"] == cut.k]
+            recs = [r for r in monitor.records[start:] if keep(r)]
             elapsed, cpu1 = time.monotonic() - t0, _cpu_secs(procs)
             cpu = {name: 100 * (cpu1[name] - cpu0[name]) / elapsed for name in procs}
             cpu["host"] = psutil.cpu_percent()  # every process on the machine, % of all its CPUs
-            e2e = np.array([r["e2e_ms"] for r in recs])
-            rows.append(
-                (
-                    cut,
-                    len(recs) / elapsed,
-                    np.percentile(e2e, 50),
-                    np.percentile(e2e, 99),
-                    np.median([r["robot_ms"] for r in recs]),
-                    np.median([r["transport_ms"] for r in recs]),
-                    np.median([r["edge_ms"] for r in recs]),
-                    np.mean([r["tags"] for r in recs]),
-                    np.median([r["payload_bytes"] for r in recs]),
-                    float(np.nanmedian([r["before_robot_ms"] for r in recs])),
-                    float(np.nanmedian([r["at_edge_ms"] for r in recs])),
-                    cpu,
+            return _row(label, recs, elapsed, cpu)
+
+        for cut in (CUTS[k] for k in args.ks):
+            query_split(session, ROBOT, params=f"k={cut.k}")  # a person's setting: pinned
+            time.sleep(args.settle_secs)
+            rows.append(window(str(cut.k), partial(_at_k, cut.k)))
+        if args.auto:
+            # From a given cut (not whichever fixed one ran last), so the row shows the controller choosing.
+            query_split(session, ROBOT, params=f"k={args.auto_from}")
+            time.sleep(args.settle_secs)
+            query_split(session, ROBOT, params="release=1")  # the controller's from here on
+            time.sleep(args.auto_settle_secs)
+            rows.append(window(AUTO, lambda r: True))
+            state = monitor.controller
+            if state is not None and state.has_prediction:
+                predicted = " ".join(f"{k}:{t:.0f}" for k, t in enumerate(state.predicted_ms_by_k))
+                notes.append(
+                    f"controller (auto row, from k = {args.auto_from}): predicted ms by k {predicted}; "
+                    f"chose k = {state.chosen_k} ({state.reason})"
                 )
-            )
         for s in subs:
             s.undeclare()
         session.close()
@@ -177,7 +252,8 @@ def print_table(args: argparse.Namespace, rows: list[Row], mode: Mode) -> None:
     (queueing at the edge); medians. `cpu %`: each process's CPU time over the window (all its threads;
     100 = one core; `bench` is this process, the monitor), `4 procs` = their sum / the CPUs this run may
     use, `host` = the whole machine's busy share (anything else running shows as host - 4 procs): near
-    1.0 the services wait for a core, not for each other."""
+    1.0 the services wait for a core, not for each other. The `auto` row (`--auto`): the controller
+    chose k; `k share` = its frames at the `k` shown, `switch` = split changes among them."""
     print(
         f"camera {args.fps} fps, window {args.window_secs} s per k, loopback, 2-core CPU, {args.precision}, rerun "
         f"{'on' if args.rerun else 'off'}, tracking {'on' if mode.tracking else 'off'}, "
@@ -187,21 +263,25 @@ def print_table(args: argparse.Namespace, rows: list[Row], mode: Mode) -> None:
         "latencies in ms"
     )
     print(
-        f"{'k':>2} {'cut':<10} {'fps':>6} {'e2e p50':>8} {'e2e p99':>8} {'robot':>7} {'link':>6} {'edge':>6} "
+        f"{'row':>4} {'k':>2} {'cut':<10} {'k share':>7} {'switch':>6} {'fps':>6} {'e2e p50':>8} {'e2e p99':>8} "
+        f"{'robot':>7} {'link':>6} {'edge':>6} "
         f"{'path':>6} {'e2e/path':>9} {'age':>6} {'edge q':>7} {'fps x slowest':>14} {'fps/cap':>8} {'tags':>5} "
         f"{'msg kB':>8} {'cpu % ' + '/'.join(n.removesuffix('_infer') for n in CPU_OF):>31} {'4 procs':>7} "
         f"{'host':>5}"
     )
     cores = len(allowed_cpus())
-    for cut, fps, p50, p99, rb, tr, ed, tags, size, age, edge_q, cpu in rows:
-        path = rb + tr + ed
-        cap = min(args.fps, 1e3 / max(rb, ed))
+    for r in rows:
+        path = r.robot + r.link + r.edge
+        slower = max(r.robot, r.edge)
+        cap = min(args.fps, 1e3 / slower)
+        # (the controller only runs with --auto; its CPU is not among the four)
         print(
-            f"{cut.k:>2} {cut.name:<10} {fps:>6.1f} {p50:>8.1f} {p99:>8.1f} {rb:>7.1f} {tr:>6.1f} {ed:>6.1f} "
-            f"{path:>6.1f} {p50 / path:>9.2f} {age:>6.1f} {edge_q:>7.1f} {fps * max(rb, ed) / 1e3:>14.2f} "
-            f"{fps / cap:>8.2f} {tags:>5.1f} {size / 1024:>8.1f} "
-            f"{'/'.join(f'{cpu[n]:.0f}' for n in CPU_OF):>31} {sum(cpu[n] for n in CPU_OF) / (100 * cores):>7.2f} "
-            f"{cpu['host'] / 100:>5.2f}"
+            f"{r.label:>4} {r.k:>2} {CUTS[r.k].name:<10} {r.k_share:>7.2f} {r.switches:>6d} {r.fps:>6.1f} "
+            f"{r.e2e_p50:>8.1f} {r.e2e_p99:>8.1f} {r.robot:>7.1f} {r.link:>6.1f} {r.edge:>6.1f} "
+            f"{path:>6.1f} {r.e2e_p50 / path:>9.2f} {r.age:>6.1f} {r.edge_q:>7.1f} {r.fps * slower / 1e3:>14.2f} "
+            f"{r.fps / cap:>8.2f} {r.tags:>5.1f} {r.payload_bytes / 1024:>8.1f} "
+            f"{'/'.join(f'{r.cpu[n]:.0f}' for n in CPU_OF):>31} "
+            f"{sum(r.cpu[n] for n in CPU_OF) / (100 * cores):>7.2f} {r.cpu['host'] / 100:>5.2f}"
         )
 
 
