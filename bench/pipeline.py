@@ -5,7 +5,8 @@ Starts edge_infer, robot_infer and the demo camera (15 fps, 3-4 tags in view) as
 processes, then for each k sets the split through the Zenoh query, waits for the change to take
 effect, and measures capture->pose latency over a window.
 
-    .venv/bin/python -m bench.pipeline [--fps 15] [--window-secs 10] [--ks 0 5 7] [--auto]
+    .venv/bin/python -m bench.pipeline [--fps 15] [--window-secs 10] [--ks 0 5 7]
+        [--auto [--auto-from 0] [--auto-settle-secs 10]]
         [--tracking off|on|both]
         [--precision fp32|bf16|int8] [--pace on|off|both] [--aruco on|off|both]
         [--lines on|off|both] [--overlap on|off|both] [--fresh 0 0.33 ...]
@@ -15,12 +16,15 @@ effect, and measures capture->pose latency over a window.
 with its line-quad proposer (shared.vision.linequads), `--overlap both` with robot_infer's stage 1 of the
 next frame running alongside the network (`overlap_stage1`); `--fresh` takes one or more values of
 robot_infer's `fresh_frame_fraction` (0 = take the newest frame at once), a table each.
-`--auto` also runs the adaptive split controller (services/controller) and, after the fixed cuts (each
-a person's pinned setting, which the controller may not change), sets k = `--auto-from` (0), releases
-the pin and measures a row `auto` where the controller chooses k: the row's `k` column is the cut most
-of its frames took, `k share` says how many did, and `switch` how often the split changed in the
-window (its latencies and compute times are those of the frames at that cut, its fps that of all);
-a line after the table gives the controller's last predicted T(k) and its reason.
+`--auto` adds a row where the adaptive split controller chooses k: after the fixed cuts (each a
+person's pinned setting) it sets k = `--auto-from` (0), starts the controller (services/controller; a
+fresh one, so the pinned rows neither feed its estimates nor carry its probes), releases the pin, waits
+`--auto-settle-secs` and measures a row `auto`. Its `k` column is the cut most of its frames took, `k
+share` says how many did and `switch` how often the split changed in the window; its figures are those
+frames' (fps over the share of the window's time spent at that cut). A line after the table gives the
+frames per cut, the controller's last predicted T(k), its current and chosen k and its reason, and says
+when the row is not the controller's choice (no prediction, still pinned, exited, or the window ended at
+another cut).
 """
 
 from __future__ import annotations
@@ -38,16 +42,26 @@ from typing import Any
 
 import numpy as np
 import psutil
+import zenoh
 
 from bench.machine import cpu_label
 from services.robot_infer.settings import RobotInferSettings
 from shared.model.precision import resolve_for_folder
 from shared.runtime.cpus import allowed_cpus
-from shared.tools.launch import Monitor, attach_monitor, demo_tag_map, loopback_config, start_service, stop_services
+from shared.tools.launch import (
+    Monitor,
+    Service,
+    attach_monitor,
+    demo_tag_map,
+    loopback_config,
+    start_service,
+    stop_services,
+)
 from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
 from shared.transport.split_client import query_split
 from shared.wire import keys
 from shared.wire.cuts import CUTS
+from shared.wire.messages import ControllerState
 
 ROBOT = "bench"
 
@@ -149,32 +163,38 @@ def _cpu_secs(procs: dict[str, psutil.Process]) -> dict[str, float]:
 
 
 def _row(label: str, recs: list[dict[str, Any]], elapsed: float, cpu: dict[str, float]) -> Row:
-    """The figures of one window's frames (in the order they were posed): throughput over all of them,
-    everything else over the frames at the cut most of them took (a window where the controller
-    switched would otherwise mix two cuts' compute times into one critical path)."""
+    """The figures of one window's frames at the cut most of them took (a window where the controller
+    switched would otherwise mix two cuts' compute times into one critical path). Their throughput is
+    their count over the share of the window's time spent at that cut (from the capture stamps: the gap
+    after each frame counts for that frame's cut); the CPU columns stay the whole window's."""
     if not recs:
-        raise SystemExit(f"no frame was posed in the {label} window: is the demo camera in view of its tags?")
+        raise SystemExit(
+            f"no frame was posed in the {label} window: the pipeline stalled, or the split never took the cut"
+        )
+    recs = sorted(recs, key=lambda r: int(r["capture_nanos"]))
     ks = [int(r["k"]) for r in recs]
     k, n_at_k = Counter(ks).most_common(1)[0]
-    fps = len(recs) / elapsed
+    gaps = np.diff([int(r["capture_nanos"]) for r in recs]).astype(float)
+    total = float(gaps.sum())
+    time_share = float(gaps[np.array(ks[:-1]) == k].sum()) / total if total > 0 else n_at_k / len(ks)
     switches = sum(a != b for a, b in itertools.pairwise(ks))
-    recs = [r for r in recs if r["k"] == k]
-    e2e = np.array([r["e2e_ms"] for r in recs])
+    at_k = [r for r in recs if r["k"] == k]
+    e2e = np.array([r["e2e_ms"] for r in at_k])
     return Row(
         label=label,
         k=k,
         k_share=n_at_k / len(ks),
         switches=switches,
-        fps=fps,
+        fps=n_at_k / (elapsed * time_share) if time_share > 0 else len(recs) / elapsed,
         e2e_p50=float(np.percentile(e2e, 50)),
         e2e_p99=float(np.percentile(e2e, 99)),
-        robot=float(np.median([r["robot_ms"] for r in recs])),
-        link=float(np.median([r["transport_ms"] for r in recs])),
-        edge=float(np.median([r["edge_ms"] for r in recs])),
-        tags=float(np.mean([r["tags"] for r in recs])),
-        payload_bytes=float(np.median([r["payload_bytes"] for r in recs])),
-        age=float(np.nanmedian([r["before_robot_ms"] for r in recs])),
-        edge_q=float(np.nanmedian([r["at_edge_ms"] for r in recs])),
+        robot=float(np.median([r["robot_ms"] for r in at_k])),
+        link=float(np.median([r["transport_ms"] for r in at_k])),
+        edge=float(np.median([r["edge_ms"] for r in at_k])),
+        tags=float(np.mean([r["tags"] for r in at_k])),
+        payload_bytes=float(np.median([r["payload_bytes"] for r in at_k])),
+        age=float(np.nanmedian([r["before_robot_ms"] for r in at_k])),
+        edge_q=float(np.nanmedian([r["at_edge_ms"] for r in at_k])),
         cpu=cpu,
     )
 
@@ -183,10 +203,43 @@ def _at_k(k: int, record: dict[str, Any]) -> bool:
     return bool(record["k"] == k)
 
 
+def _any(record: dict[str, Any]) -> bool:
+    return True
+
+
+def _controller_note(
+    state: ControllerState | None, controller: Service, recs: list[dict[str, Any]], auto_from: int
+) -> str:
+    """What the controller believed at the end of the auto row's window, and whether the row is its choice."""
+    counts = ", ".join(f"k = {k}: {n}" for k, n in sorted(Counter(int(r["k"]) for r in recs).items()))
+    head = f"controller (auto row, from k = {auto_from}; frames in the window {counts or 'none'}): "
+    if controller.popen.poll() is not None:
+        return head + f"EXITED with code {controller.popen.returncode}: the row is not the controller's choice"
+    if state is None:
+        return head + "no ControllerState arrived: the row is not the controller's choice"
+    if not state.has_prediction:
+        return head + f"no prediction yet ({state.reason}): the row is not the controller's choice"
+    age_s = (time.time_ns() - state.stamp_nanos) / 1e9
+    predicted = " ".join(f"{k}:{t:.0f}" for k, t in enumerate(state.predicted_ms_by_k))
+    flags = []
+    if state.pinned:
+        flags.append("the split is PINNED: the row is not the controller's choice")
+    if age_s > 2.0:
+        flags.append(f"its last state is {age_s:.1f} s old")
+    dominant = Counter(int(r["k"]) for r in recs).most_common(1)[0][0] if recs else None
+    if dominant is not None and dominant != state.current_k:
+        flags.append(f"the split ended the window at k = {state.current_k}, not the row's k = {dominant}")
+    return (
+        head
+        + f"predicted ms by k {predicted}; at k = {state.current_k}, chose k = {state.chosen_k} ({state.reason})"
+        + ("; " + "; ".join(flags) if flags else "")
+    )
+
+
 def measure(args: argparse.Namespace, mode: Mode, notes: list[str]) -> list[Row]:
-    """Start the services (robot_infer's tracking, pacing and stage-1 proposers on or off; with `--auto`
-    the controller), sweep k, then (`--auto`) release the pin and let the controller choose; stop them.
-    `notes` gets what the controller last predicted and chose (`--auto`)."""
+    """Start the services (robot_infer's tracking, pacing and stage-1 proposers on or off), sweep k, then
+    (`--auto`) start the controller, pin k = --auto-from, release the pin and let the controller choose;
+    stop them. `notes` gets what the controller last predicted and chose (`--auto`)."""
     tmp = Path(tempfile.mkdtemp(prefix="splittag-bench-"))
     cfg, topology = loopback_config(
         tmp, robot_id=ROBOT, rerun=args.rerun, image_every=args.rerun_image_every, fps=args.fps
@@ -200,18 +253,23 @@ def measure(args: argparse.Namespace, mode: Mode, notes: list[str]) -> list[Row]
         "SPLITTAG_ROBOT_INFER_FRESH_FRAME_FRACTION": str(mode.fresh),
         "SPLITTAG_ROBOT_INFER_PRECISION": args.precision,
         "SPLITTAG_EDGE_INFER_PRECISION": args.precision,
+        "SPLITTAG_CONTROLLER_ENABLED": "true",  # (not an observer inherited from the caller's environment)
     }
-    names = ("edge_infer", "robot_infer", "camera") + (("controller",) if args.auto else ())
-    services = [start_service(n, cfg, tmp, env) for n in names]
+    services: list[Service] = []
     rows: list[Row] = []
+    session: zenoh.Session | None = None
     try:
+        for name in ("edge_infer", "robot_infer", "camera"):
+            services.append(start_service(name, cfg, tmp, env))
         session = open_session(ZenohSettings(mode="client", connect=[topology.robot_router]))
         monitor = Monitor(demo_tag_map())
-        subs = attach_monitor(session, ROBOT, monitor)
-        wait_for_liveliness(session, [keys.alive(ROBOT, s) for s in names], timeout_secs=120)
+        attach_monitor(session, ROBOT, monitor)
+        wait_for_liveliness(
+            session, [keys.alive(ROBOT, s) for s in ("edge_infer", "robot_infer", "camera")], timeout_secs=120
+        )
         procs = {s.name: psutil.Process(s.popen.pid) for s in services} | {"bench": psutil.Process()}
 
-        def window(label: str, keep: Callable[[dict[str, Any]], bool]) -> Row:
+        def window(label: str, keep: Callable[[dict[str, Any]], bool]) -> tuple[Row, list[dict[str, Any]]]:
             start = len(monitor.records)
             t0, cpu0 = time.monotonic(), _cpu_secs(procs)
             psutil.cpu_percent()  # the host's busy share from here on
@@ -220,30 +278,32 @@ def measure(args: argparse.Namespace, mode: Mode, notes: list[str]) -> list[Row]
             elapsed, cpu1 = time.monotonic() - t0, _cpu_secs(procs)
             cpu = {name: 100 * (cpu1[name] - cpu0[name]) / elapsed for name in procs}
             cpu["host"] = psutil.cpu_percent()  # every process on the machine, % of all its CPUs
-            return _row(label, recs, elapsed, cpu)
+            return _row(label, recs, elapsed, cpu), recs
 
         for cut in (CUTS[k] for k in args.ks):
             query_split(session, ROBOT, params=f"k={cut.k}")  # a person's setting: pinned
             time.sleep(args.settle_secs)
-            rows.append(window(str(cut.k), partial(_at_k, cut.k)))
+            rows.append(window(str(cut.k), partial(_at_k, cut.k))[0])
         if args.auto:
-            # From a given cut (not whichever fixed one ran last), so the row shows the controller choosing.
+            # A controller started now (no memory of the pinned rows, none of its probes during them), from
+            # a given cut rather than whichever fixed one ran last, so the row shows it choosing.
             query_split(session, ROBOT, params=f"k={args.auto_from}")
+            controller = start_service("controller", cfg, tmp, env)
+            services.append(controller)
+            wait_for_liveliness(session, [keys.alive(ROBOT, "controller")], timeout_secs=120)
+            procs["controller"] = psutil.Process(controller.popen.pid)
             time.sleep(args.settle_secs)
             query_split(session, ROBOT, params="release=1")  # the controller's from here on
             time.sleep(args.auto_settle_secs)
-            rows.append(window(AUTO, lambda r: True))
-            state = monitor.controller
-            if state is not None and state.has_prediction:
-                predicted = " ".join(f"{k}:{t:.0f}" for k, t in enumerate(state.predicted_ms_by_k))
-                notes.append(
-                    f"controller (auto row, from k = {args.auto_from}): predicted ms by k {predicted}; "
-                    f"chose k = {state.chosen_k} ({state.reason})"
-                )
-        for s in subs:
-            s.undeclare()
-        session.close()
+            row, recs = window(AUTO, _any)
+            rows.append(row)
+            notes.append(
+                _controller_note(monitor.controller, controller, recs, args.auto_from)
+                + f"; its CPU {row.cpu['controller']:.0f} % of a core"
+            )
     finally:
+        if session is not None:
+            session.close()
         stop_services(services)
     return rows
 
@@ -259,7 +319,8 @@ def print_table(args: argparse.Namespace, rows: list[Row], mode: Mode) -> None:
     100 = one core; `bench` is this process, the monitor), `4 procs` = their sum / the CPUs this run may
     use, `host` = the whole machine's busy share (anything else running shows as host - 4 procs): near
     1.0 the services wait for a core, not for each other. The `auto` row (`--auto`): the controller
-    chose k; `k share` = its frames at the `k` shown, `switch` = split changes among them."""
+    chose k; `k share` = the window's frames at the `k` shown, `switch` = split changes among all the
+    window's frames; its latencies, compute times and fps are the frames' at that k (see _row)."""
     print(
         f"camera {args.fps} fps, window {args.window_secs} s per k, loopback, 2-core CPU, {args.precision}, rerun "
         f"{'on' if args.rerun else 'off'}, tracking {'on' if mode.tracking else 'off'}, "
