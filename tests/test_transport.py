@@ -405,3 +405,28 @@ def test_a_client_opens_on_its_second_endpoint_while_the_first_is_away() -> None
             )
     finally:
         router.close()
+
+
+def test_free_ports_are_outside_the_kernels_ephemeral_range(tmp_path: Path) -> None:
+    """A port from the range outgoing connections take their source ports from can be taken before its
+    listener binds it (a Zenoh client retrying that very port connects to itself): picked outside it."""
+    import socket
+
+    from shared.transport.session import ephemeral_port_range, free_tcp_port
+
+    ranges = tmp_path / "ip_local_port_range"
+    ranges.write_text("20000\t60999\n")
+    assert ephemeral_port_range(ranges) == (20000, 60999)
+    ranges.write_text("not numbers\n")
+    assert ephemeral_port_range(ranges) == (32768, 60999)  # unreadable: Linux's default
+    assert ephemeral_port_range(tmp_path / "missing") == (32768, 60999)
+
+    ports = [free_tcp_port(ephemeral=(20000, 60999)) for _ in range(100)]
+    assert all(10_000 <= p < 20000 or 60999 < p <= 65535 for p in ports)
+    assert len(set(ports)) == len(ports)  # a caller binding them all later gets no duplicate
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", ports[-1]))  # free indeed
+    # Nothing outside the range: the kernel's own pick, still a free port.
+    whole = free_tcp_port(ephemeral=(1024, 65535))
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", whole))

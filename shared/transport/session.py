@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import functools
 import json
 import logging
 import os
+import random
 import socket
 import ssl
 import threading
@@ -377,9 +379,44 @@ def wait_for_liveliness(
             s.undeclare()
 
 
-def free_tcp_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago (for tests and benchmarks)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
+EPHEMERAL_PORTS_FILE: Final[Path] = Path("/proc/sys/net/ipv4/ip_local_port_range")
+_LOWEST_PICKED_PORT: Final[int] = 10_000  # below: well-known and registered services more often listen
+_RECENT_PORTS: collections.deque[int] = collections.deque(maxlen=256)  # handed out, maybe not bound yet
+
+
+def ephemeral_port_range(path: Path = EPHEMERAL_PORTS_FILE) -> tuple[int, int]:
+    """The kernel's range for outgoing connections' source ports (Linux's default where it cannot be read)."""
+    try:
+        low, high = (int(v) for v in path.read_text().split())
+    except (OSError, ValueError):
+        return 32768, 60999
+    return low, high
+
+
+def free_tcp_port(*, ephemeral: tuple[int, int] | None = None, attempts: int = 200) -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (for tests and benchmarks), outside the kernel's
+    ephemeral range where one is free: a port from that range can be taken before its listener binds it by
+    any outgoing connection's source port, including a Zenoh client of that very port, retrying while its
+    router starts, that connects to itself (TCP simultaneous open; found when bench.pipeline's robot_infer
+    could not bind its router's port: "Address already in use"). Random, so parallel processes rarely meet;
+    never one of this process's last 256 answers (its callers bind them later, all at once)."""
+    low, high = ephemeral if ephemeral is not None else ephemeral_port_range()
+    candidates = [(_LOWEST_PICKED_PORT, low - 1), (high + 1, 65535)]
+    candidates = [(a, b) for a, b in candidates if b >= a]
+    rng = random.SystemRandom()
+    for _ in range(attempts if candidates else 0):
+        a, b = rng.choice(candidates)
+        port = rng.randint(a, b)
+        if port in _RECENT_PORTS:
+            continue
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+        _RECENT_PORTS.append(port)
         return port
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:  # nothing outside the range: the kernel's pick
+        s.bind(("127.0.0.1", 0))
+        chosen: int = s.getsockname()[1]
+        return chosen
