@@ -6,7 +6,7 @@ processes, then for each k sets the split through the Zenoh query, waits for the
 effect, and measures capture->pose latency over a window.
 
     .venv/bin/python -m bench.pipeline [--fps 15] [--window-secs 10] [--ks 0 5 7]
-        [--auto [--auto-from 0] [--auto-settle-secs 10]]
+        [--auto [--auto-from 0] [--auto-settle-secs 8]]
         [--tracking off|on|both]
         [--precision fp32|bf16|int8] [--pace on|off|both] [--aruco on|off|both]
         [--lines on|off|both] [--overlap on|off|both] [--fresh 0 0.33 ...]
@@ -34,9 +34,7 @@ import itertools
 import tempfile
 import time
 from collections import Counter
-from collections.abc import Callable
 from dataclasses import dataclass
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -72,12 +70,18 @@ def main() -> None:
     ap.add_argument("--fps", type=float, default=15.0)
     ap.add_argument("--window-secs", type=float, default=10.0)
     ap.add_argument("--settle-secs", type=float, default=2.0)
-    ap.add_argument("--ks", type=int, nargs="*", default=[c.k for c in CUTS])
+    ap.add_argument("--ks", type=int, nargs="*", choices=[c.k for c in CUTS], default=[c.k for c in CUTS])
     ap.add_argument("--auto", action="store_true", help="add a row where the adaptive split controller chooses k")
     ap.add_argument(
         "--auto-settle-secs", type=float, default=8.0, help="after releasing the pin, before the auto row's window"
     )
-    ap.add_argument("--auto-from", type=int, default=0, help="the cut the auto row starts from (pinned, then released)")
+    ap.add_argument(
+        "--auto-from",
+        type=int,
+        choices=[c.k for c in CUTS],
+        default=0,
+        help="the cut the auto row starts from (pinned, then released)",
+    )
     ap.add_argument("--rerun", action="store_true", help="log everything to Rerun (to measure its cost)")
     ap.add_argument("--rerun-image-every", type=int, default=1)
     ap.add_argument("--tracking", choices=("off", "on", "both"), default="off")
@@ -98,6 +102,9 @@ def main() -> None:
         help="robot_infer's fresh_frame_fraction (one table per value; default: the service's)",
     )
     args = ap.parse_args()
+    for name in ("window_secs", "settle_secs", "auto_settle_secs"):
+        if getattr(args, name) < 0 or (name == "window_secs" and args.window_secs == 0):
+            ap.error(f"--{name.replace('_', '-')} must be {'positive' if name == 'window_secs' else '0 or more'}")
     args.precision = resolve_for_folder(args.precision, Path("models"))  # what auto stands for here
     print(f"CPU: {cpu_label()}", flush=True)
     modes = {"off": [False], "on": [True], "both": [False, True]}
@@ -138,8 +145,8 @@ class Row:
 
     label: str  # the cut's k, or AUTO
     k: int  # the cut (for AUTO: the one most of the window's frames took)
-    k_share: float  # the share of the window's frames at k (1.0 for a fixed cut)
-    switches: int  # split changes seen in the window's frames (0 for a fixed cut)
+    k_share: float  # the share of the window's frames at k (below 1.0 for a fixed cut: its pin took late)
+    switches: int  # split changes seen in the window's frames
     fps: float
     e2e_p50: float
     e2e_p99: float
@@ -199,18 +206,11 @@ def _row(label: str, recs: list[dict[str, Any]], elapsed: float, cpu: dict[str, 
     )
 
 
-def _at_k(k: int, record: dict[str, Any]) -> bool:
-    return bool(record["k"] == k)
-
-
-def _any(record: dict[str, Any]) -> bool:
-    return True
-
-
 def _controller_note(
-    state: ControllerState | None, controller: Service, recs: list[dict[str, Any]], auto_from: int
+    state: ControllerState | None, controller: Service, recs: list[dict[str, Any]], row: Row, auto_from: int
 ) -> str:
-    """What the controller believed at the end of the auto row's window, and whether the row is its choice."""
+    """What the controller believed at the end of the auto row's window (`recs`, summed up in `row`), and
+    whether the row is its choice."""
     counts = ", ".join(f"k = {k}: {n}" for k, n in sorted(Counter(int(r["k"]) for r in recs).items()))
     head = f"controller (auto row, from k = {auto_from}; frames in the window {counts or 'none'}): "
     if controller.popen.poll() is not None:
@@ -226,9 +226,8 @@ def _controller_note(
         flags.append("the split is PINNED: the row is not the controller's choice")
     if age_s > 2.0:
         flags.append(f"its last state is {age_s:.1f} s old")
-    dominant = Counter(int(r["k"]) for r in recs).most_common(1)[0][0] if recs else None
-    if dominant is not None and dominant != state.current_k:
-        flags.append(f"the split ended the window at k = {state.current_k}, not the row's k = {dominant}")
+    if row.k != state.current_k:
+        flags.append(f"the split ended the window at k = {state.current_k}, not the row's k = {row.k}")
     return (
         head
         + f"predicted ms by k {predicted}; at k = {state.current_k}, chose k = {state.chosen_k} ({state.reason})"
@@ -269,12 +268,13 @@ def measure(args: argparse.Namespace, mode: Mode, notes: list[str]) -> list[Row]
         )
         procs = {s.name: psutil.Process(s.popen.pid) for s in services} | {"bench": psutil.Process()}
 
-        def window(label: str, keep: Callable[[dict[str, Any]], bool]) -> tuple[Row, list[dict[str, Any]]]:
+        def window(label: str) -> tuple[Row, list[dict[str, Any]]]:
+            """Every frame posed in the window (a fixed row whose pin did not take shows it in `k share`)."""
             start = len(monitor.records)
             t0, cpu0 = time.monotonic(), _cpu_secs(procs)
             psutil.cpu_percent()  # the host's busy share from here on
             time.sleep(args.window_secs)
-            recs = [r for r in monitor.records[start:] if keep(r)]
+            recs = monitor.records[start:]
             elapsed, cpu1 = time.monotonic() - t0, _cpu_secs(procs)
             cpu = {name: 100 * (cpu1[name] - cpu0[name]) / elapsed for name in procs}
             cpu["host"] = psutil.cpu_percent()  # every process on the machine, % of all its CPUs
@@ -283,7 +283,7 @@ def measure(args: argparse.Namespace, mode: Mode, notes: list[str]) -> list[Row]
         for cut in (CUTS[k] for k in args.ks):
             query_split(session, ROBOT, params=f"k={cut.k}")  # a person's setting: pinned
             time.sleep(args.settle_secs)
-            rows.append(window(str(cut.k), partial(_at_k, cut.k))[0])
+            rows.append(window(str(cut.k))[0])
         if args.auto:
             # A controller started now (no memory of the pinned rows, none of its probes during them), from
             # a given cut rather than whichever fixed one ran last, so the row shows it choosing.
@@ -295,10 +295,10 @@ def measure(args: argparse.Namespace, mode: Mode, notes: list[str]) -> list[Row]
             time.sleep(args.settle_secs)
             query_split(session, ROBOT, params="release=1")  # the controller's from here on
             time.sleep(args.auto_settle_secs)
-            row, recs = window(AUTO, _any)
+            row, recs = window(AUTO)
             rows.append(row)
             notes.append(
-                _controller_note(monitor.controller, controller, recs, args.auto_from)
+                _controller_note(monitor.controller, controller, recs, row, args.auto_from)
                 + f"; its CPU {row.cpu['controller']:.0f} % of a core"
             )
     finally:
@@ -341,7 +341,6 @@ def print_table(args: argparse.Namespace, rows: list[Row], mode: Mode) -> None:
         path = r.robot + r.link + r.edge
         slower = max(r.robot, r.edge)
         cap = min(args.fps, 1e3 / slower)
-        # (the controller only runs with --auto; its CPU is not among the four)
         print(
             f"{r.label:>4} {r.k:>2} {CUTS[r.k].name:<10} {r.k_share:>7.2f} {r.switches:>6d} {r.fps:>6.1f} "
             f"{r.e2e_p50:>8.1f} {r.e2e_p99:>8.1f} {r.robot:>7.1f} {r.link:>6.1f} {r.edge:>6.1f} "
