@@ -228,9 +228,19 @@ def _controller_note(
         flags.append(f"its last state is {age_s:.1f} s old")
     if row.k != state.current_k:
         flags.append(f"the split ended the window at k = {state.current_k}, not the row's k = {row.k}")
+    throughput = ""
+    if state.period_ms_by_k is not None:
+        throughput = "; period ms by k " + " ".join(f"{k}:{t:.0f}" for k, t in enumerate(state.period_ms_by_k))
+    if state.achieved_ms_by_k is not None:
+        ran = [f"{k}:{t:.0f}" for k, t in enumerate(state.achieved_ms_by_k) if t is not None]
+        throughput += f"; achieved ms between frames {' '.join(ran) or 'none'}"
+    if state.frame_share_by_k is not None and state.min_frame_share is not None:
+        shares = " ".join(f"{k}:{v:.2f}" for k, v in enumerate(state.frame_share_by_k))
+        throughput += f"; frame share {shares} (keeps up: >= {state.min_frame_share:.2f})"
     return (
         head
-        + f"predicted ms by k {predicted}; at k = {state.current_k}, chose k = {state.chosen_k} ({state.reason})"
+        + f"predicted ms by k {predicted}{throughput}; at k = {state.current_k}, chose k = {state.chosen_k} "
+        + f"({state.reason})"
         + ("; " + "; ".join(flags) if flags else "")
     )
 

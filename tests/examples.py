@@ -193,6 +193,8 @@ def example_messages() -> dict[str, Message]:
         tags_per_frame=3.5,
         live_scale=1.08,
         ms_by_k=per_cut,
+        period_ms_by_k=[0.5, 1.0, 2.0, 4.0, 8.0, 8.0, 16.0, 32.0],
+        frame_interval_ms=33.3,
     )
     controller = ControllerState(
         robot_id="robot1",
@@ -211,6 +213,11 @@ def example_messages() -> dict[str, Message]:
         pinned=False,
         applied=False,
         reason="keep k=7: k=5 better by 15.0 ms (1/3)",
+        period_ms_by_k=[256.0, 4096.0, 2048.0, 1024.0, 512.0, 128.0, 32.0, 64.0],
+        achieved_ms_by_k=[None, None, None, None, None, 41.5, None, 33.4],
+        frame_interval_ms=33.3,
+        frame_share_by_k=[0.13, 0.01, 0.02, 0.03, 0.07, 0.8, 1.0, 1.0],
+        min_frame_share=0.9,
     )
     stamp = FrameStamp(
         robot_id="robot1", seq=3, capture_nanos=1_700_000_000_123_456_789, source_stamp_nanos=1_305_031_102_175_304_000

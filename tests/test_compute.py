@@ -22,6 +22,20 @@ def test_robot_scale_learnt_at_heavy_cuts_applies_to_all() -> None:
     assert ms[0] == pytest.approx(8.0 + 4 * 0.1 * 2.0)
 
 
+def test_the_period_is_the_whole_frame_or_with_overlap_the_longer_part() -> None:
+    est = ComputeEstimator(head_per_tag_ms(CUMULATIVE))
+    for _ in range(3 + 10):
+        est.observe(k=7, tags=1, network_ms=32.0, fixed_ms=25.0)
+    serial, overlapped = est.period_ms_by_k(overlapped=False), est.period_ms_by_k(overlapped=True)
+    assert serial == pytest.approx(est.ms_by_k())
+    assert overlapped[0] == pytest.approx(25.0)  # stage 1 alone: the head of k = 0 is nothing
+    assert overlapped[3] == pytest.approx(25.0)  # 22 ms of network beside 25 of stage 1
+    assert overlapped[7] == pytest.approx(32.0)  # the network is the longer part
+    msg = est.message(robot_id="r1", side="robot", stamp_nanos=1, factor=2.0, overlapped=True, frame_interval_ms=33.3)
+    assert msg.period_ms_by_k == pytest.approx([2.0 * v for v in overlapped])
+    assert msg.ms_by_k == pytest.approx([2.0 * v for v in serial]) and msg.frame_interval_ms == 33.3
+
+
 def test_light_cuts_teach_nothing_and_stale_scale_decays_to_calibration() -> None:
     est = ComputeEstimator(tail_per_tag_ms(TAILS, pnp_ms=0.1))  # edge: heavy at k = 0
     for _ in range(13):

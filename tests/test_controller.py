@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -14,7 +15,14 @@ from shared.wire.sizing import features_payload_bytes, probe_features
 from tests.fakes import FakeClock
 
 
-def _profile(side: str, ms: list[float], tags: float = 4.0) -> ComputeProfile:
+def _profile(
+    side: str,
+    ms: list[float],
+    tags: float = 4.0,
+    *,
+    period_ms: list[float] | None = None,
+    frame_interval_ms: float | None = None,
+) -> ComputeProfile:
     return ComputeProfile(
         robot_id="r1",
         side=side,  # type: ignore[arg-type]
@@ -23,7 +31,166 @@ def _profile(side: str, ms: list[float], tags: float = 4.0) -> ComputeProfile:
         tags_per_frame=tags,
         live_scale=1.0,
         ms_by_k=ms,
+        period_ms_by_k=period_ms,
+        frame_interval_ms=frame_interval_ms,
     )
+
+
+def _fast_link(core: SplitController, *, t0_ms: float = 10.0, beta_ms_per_kB: float = 0.01) -> None:
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        size = float(rng.choice([1024, 65536, 262144]))
+        core.add_link_sample(int(size), t0_ms + beta_ms_per_kB * size / 1024 + rng.normal(0, 0.2))
+
+
+# A robot whose stage 1 (29 ms) runs beside the head of the frame before, on a weaker CPU than the edge's:
+# the latency-best cut is k = 0, where the edge's 45 ms a frame cannot keep up with a 30 fps camera.
+STAGE1_MS = 29.0
+HEAD_MS = [0.0, 10.0, 20.0, 30.0, 38.0, 44.0, 46.0, 48.0]
+EDGE_MS = [45.0, 33.0, 26.0, 19.0, 13.0, 8.0, 5.0, 3.0]
+
+
+def _overlapped_robot(frame_interval_ms: float | None, *, slower: float = 1.0) -> ComputeProfile:
+    ms = [STAGE1_MS + slower * h for h in HEAD_MS]
+    period = [max(STAGE1_MS, slower * h) for h in HEAD_MS]
+    return _profile("robot", ms, 3.5, period_ms=period, frame_interval_ms=frame_interval_ms)
+
+
+def _core(**tuning: Any) -> tuple[SplitController, FakeClock]:
+    clock = FakeClock(100.0)
+    core = SplitController(ControllerTuning(dwell=1, **tuning), clock=clock)
+    core.add_compute(_profile("edge", EDGE_MS, 3.5))
+    _fast_link(core)
+    return core, clock
+
+
+def _posed(core: SplitController, clock: FakeClock, k: int, *, every_ms: float, frames: int = 20) -> None:
+    """`frames` frames posed at cut k, `every_ms` apart by their capture stamps and as they arrive."""
+    start = 10**12 + int(clock.now * 1e9)
+    for i in range(frames):
+        clock.now += every_ms / 1e3
+        core.add_posed(k, start + int(i * every_ms * 1e6))
+
+
+@pytest.mark.parametrize("interval_ms", [1000 / 30, 1000 / 15, None])
+def test_the_controller_chooses_the_fastest_cut_that_keeps_up_with_the_camera(interval_ms: float | None) -> None:
+    core, _ = _core()
+    core.add_compute(_overlapped_robot(interval_ms))
+    state = core.decide(robot_id="r1", current_k=0, pinned=False)
+    t = np.asarray(state.predicted_ms_by_k)
+    assert int(np.argmin(t)) == 0  # on latency alone k = 0 wins
+    assert state.frame_interval_ms == interval_ms
+    assert state.achieved_ms_by_k == [None] * 8  # no cut has run yet: the model's periods decide
+    if interval_ms is None:  # a robot that does not say the camera's rate (a v1 profile): latency alone
+        assert state.chosen_k == 0 and state.frame_share_by_k is None and state.min_frame_share is None
+        assert state.period_ms_by_k is not None  # still shown
+        return
+    period = np.asarray(state.period_ms_by_k)
+    assert period[0] == pytest.approx(45.0, abs=0.5)  # the edge's, k = 0
+    assert period[3] == pytest.approx(30.0, abs=0.5)  # the robot's head beside stage 1
+    share = np.asarray(state.frame_share_by_k)
+    assert share == pytest.approx(np.minimum(1.0, interval_ms / (1.1 * period)))  # untried: a 10 % margin
+    if interval_ms > 60:  # 15 fps: every cut keeps up
+        assert state.chosen_k == 0 and state.min_frame_share == 0.9
+        return
+    # 30 fps: k = 2 (29 ms a frame) and 3 (30 ms) keep up with the margin; k = 0 poses 67 % of the frames
+    keeps_up = [k for k in range(8) if share[k] >= 0.9]
+    assert keeps_up == [2, 3] and state.min_frame_share == 0.9
+    fastest = min(keeps_up, key=lambda k: t[k])  # k = 3: k = 2's payload is 4x larger
+    assert state.chosen_k == state.best_k == fastest
+    assert f"switch k=0->{fastest}: the fastest eligible cut (k=0 cannot keep up" in state.reason
+    assert "k=0 cannot keep up: needs 45 ms a frame at 33 ms between frames, 67% of them, 90% needed" in state.reason
+    # Pinned at k = 0, the controller says which cut it would choose.
+    pinned = core.decide(robot_id="r1", current_k=0, pinned=True)
+    assert pinned.chosen_k == 0 and f"best would be k={fastest}" in pinned.reason
+
+
+def test_what_a_cut_achieved_overrides_the_model_and_casts_doubt_on_its_neighbours() -> None:
+    """On a box where robot and edge share the cores, the model's periods are short: the frames posed at
+    a cut say what it achieves, and the cuts near it are taken to fall behind their model as much (the
+    controller stays with the best it knows instead of touring every cut), until the evidence ages."""
+    core, clock = _core()
+    core.add_compute(_overlapped_robot(1000 / 30))
+    assert core.decide(robot_id="r1", current_k=0, pinned=False).chosen_k == 3
+    _posed(core, clock, 3, every_ms=45.0)  # k = 3 runs at 45 ms a frame, 1.5x its model's 30
+    state = core.decide(robot_id="r1", current_k=3, pinned=False)
+    assert state.achieved_ms_by_k is not None and state.achieved_ms_by_k[3] == pytest.approx(45.0)
+    shares = np.asarray(state.frame_share_by_k)
+    assert shares[3] == pytest.approx(33.33 / 45, abs=0.01)
+    assert shares[2] == pytest.approx(33.33 / (1.5 * 1.1 * 29.0), abs=0.01)  # k = 2 doubted as much
+    # No cut keeps up now: the bar is the best share achieved less 20 %, and k = 3 holds it
+    assert shares.max() < 0.9 and state.min_frame_share == pytest.approx(0.8 * shares[3], abs=0.01)
+    assert state.chosen_k == 3 and "cannot keep up" in state.reason
+    _posed(core, clock, 3, every_ms=34.0, frames=200)  # ... then k = 3 keeps up after all: it stays
+    state = core.decide(robot_id="r1", current_k=3, pinned=False)
+    assert state.frame_share_by_k is not None and state.frame_share_by_k[3] > 0.9 and state.chosen_k == 3
+    # Two minutes on, what k = 3 achieved has aged out: the model speaks for it again.
+    clock.now += 121.0
+    state = core.decide(robot_id="r1", current_k=3, pinned=False)
+    assert state.achieved_ms_by_k == [None] * 8
+
+
+def test_an_untried_cut_that_keeps_up_by_the_model_is_tried_where_the_current_one_falls_behind() -> None:
+    """A slow robot on a slow uplink (README: the latency-best k = 7 ran at 2 fps where k = 0 ran at 5):
+    k = 7 achieves what its model says, longer than the camera's interval, and k = 0, whose period is
+    the uplink's, keeps up by the model with the margin to spare: the controller goes there."""
+    core, clock = _core()
+    _fast_link(core, t0_ms=40.0, beta_ms_per_kB=1.0)
+    link0 = 1.0 * features_payload_bytes(4, 0) / 1024  # ms on the uplink a frame at k = 0 (4 tags)
+    interval = 1.13 * link0  # the camera: k = 0's uplink keeps up with the 10 % margin
+    head7 = 1.14 * interval  # ... and with the robot's whole network k = 7 poses 76 % of the frames
+    ms = [50.0 + head7 * f for f in (0.0, 0.3, 0.5, 0.65, 0.8, 0.9, 0.97, 1.0)]
+    core.add_compute(_profile("robot", ms, 3.5, period_ms=ms, frame_interval_ms=interval))
+    core.add_compute(_profile("edge", [100.0, 80.0, 60.0, 40.0, 25.0, 10.0, 5.0, 3.0], 3.5))
+    t = core.decide(robot_id="r1", current_k=7, pinned=True).predicted_ms_by_k
+    assert int(np.argmin(t)) == 7  # on latency alone k = 7
+    _posed(core, clock, 7, every_ms=ms[7])
+    state = core.decide(robot_id="r1", current_k=7, pinned=False)
+    assert state.frame_share_by_k is not None and state.frame_share_by_k[7] == pytest.approx(interval / ms[7])
+    assert state.frame_share_by_k[0] == 1.0 and state.min_frame_share == 0.9
+    assert state.chosen_k == 0 and f"k=7 cannot keep up: ran at {ms[7]:.0f} ms a frame" in state.reason
+
+
+def test_throughput_does_not_flap_near_the_limit_and_can_be_turned_off() -> None:
+    core, _ = _core()
+    # The robot's head 16 % slower: k = 3 is expected to pose 87 % of the frames, below the 90 % a cut
+    # needs to be moved to, above the 85 % that keeps the cut in use.
+    core.add_compute(_overlapped_robot(1000 / 30, slower=1.16))
+    state = core.decide(robot_id="r1", current_k=3, pinned=False)
+    assert state.frame_share_by_k is not None and 0.85 < state.frame_share_by_k[3] < 0.9
+    assert state.chosen_k == 3  # kept: the latency-best of the cuts that keep up, itself included
+    state = core.decide(robot_id="r1", current_k=2, pinned=False)
+    assert state.chosen_k == 2 and "cannot keep up: k=0, 1, 3, 4" in state.reason  # ... nor one to move to
+    # min_frame_share 0: latency alone.
+    off, _ = _core(min_frame_share=0.0)
+    off.add_compute(_overlapped_robot(1000 / 30))
+    state = off.decide(robot_id="r1", current_k=0, pinned=False)
+    assert state.chosen_k == 0 and state.min_frame_share is None and state.frame_share_by_k is None
+
+
+def test_without_compute_keeps_up_only_the_uplink_counts() -> None:
+    core, _ = _core(compute_keeps_up=False)
+    core.add_compute(_overlapped_robot(1000 / 30))
+    state = core.decide(robot_id="r1", current_k=0, pinned=False)
+    assert state.period_ms_by_k is not None
+    link = state.beta_ms_per_kB * np.asarray(state.payload_kB_by_k)
+    assert np.allclose(state.period_ms_by_k, link)  # 0.01 ms/kB: k = 1's 4 MB take 40 ms, the rest < 21
+    assert state.chosen_k == 0 and state.reason.endswith("cannot keep up: k=1")
+
+
+def test_a_slow_uplink_is_a_period_too() -> None:
+    """beta S(k) occupies the uplink per frame: at 2 ms/kB the ROIs of k = 0 (64 kB a tag) cannot go out
+    30 times a second, however fast both sides compute."""
+    core = SplitController(ControllerTuning(dwell=1), clock=FakeClock(100.0))
+    flat = [1.0] * 8
+    core.add_compute(_profile("robot", flat, 1.0, period_ms=flat, frame_interval_ms=1000 / 30))
+    core.add_compute(_profile("edge", flat, 1.0, period_ms=flat))
+    _fast_link(core, t0_ms=5.0, beta_ms_per_kB=2.0)
+    state = core.decide(robot_id="r1", current_k=0, pinned=False)
+    assert state.period_ms_by_k is not None and state.frame_share_by_k is not None
+    assert state.period_ms_by_k[0] == pytest.approx(2.0 * state.payload_kB_by_k[0], rel=0.1)
+    assert state.period_ms_by_k[0] > 33.3
+    assert state.chosen_k != 0 and state.frame_share_by_k[state.chosen_k] >= 0.9
 
 
 def test_payload_bytes_are_exact_wire_sizes() -> None:
@@ -157,6 +324,17 @@ def test_the_recording_gets_no_prediction_before_both_compute_profiles() -> None
     _log_state(viz, core.decide(robot_id="r1", current_k=7, pinned=False))  # type: ignore[arg-type]
     assert {f"controller/predicted_ms/k{k}" for k in range(8)} <= set(viz.logged[-1])
     assert viz.logged[-1]["controller/t0_ms"] > 0
+    assert {f"controller/period_ms/k{k}" for k in range(8)} <= set(viz.logged[-1])
+    assert "controller/min_frame_share" not in viz.logged[-1]  # no camera rate: no shares to plot
+    core.add_compute(_profile("robot", [10.0 * k + 30 for k in range(8)], frame_interval_ms=200.0))
+    for i in range(20):  # frames posed at k = 7, 100 ms apart
+        core.add_posed(7, 10**12 + i * 100_000_000)
+    _log_state(viz, core.decide(robot_id="r1", current_k=7, pinned=False))  # type: ignore[arg-type]
+    assert viz.logged[-1]["controller/frame_interval_ms"] == 200.0
+    assert viz.logged[-1]["controller/min_frame_share"] == 0.9
+    assert viz.logged[-1]["controller/achieved_ms/k7"] == pytest.approx(100.0)
+    assert "controller/achieved_ms/k0" not in viz.logged[-1]  # k = 0 has not run
+    assert {f"controller/frame_share/k{k}" for k in range(8)} <= set(viz.logged[-1])
 
 
 def test_failed_probes_are_said_once_a_run_and_why(caplog: pytest.LogCaptureFixture) -> None:

@@ -478,6 +478,28 @@ def test_uplink_bounds_from_every_crossing() -> None:
     assert up.x_secs_per_kB is None and up.t0_secs is None
 
 
+def test_a_large_frame_that_crossed_fast_bounds_x_stretched_by_a_busy_receiver() -> None:
+    """Loopback (x ~ 2.3 us/kB, t0 1 ms, clocks 1000 s apart): 256 kB frames arrive 100 ms apart because
+    the receiver is busy, not the link, and read as held back (x <= 0.4 ms/kB); then a 4 MB frame crosses
+    in 10 ms. Before, t0 came out at -1.6 s and every start the pacer re-anchored was 1.6 s late."""
+    up = UplinkQueue()
+    for i in range(5):
+        sent = 0.2 * i
+        up.add(
+            size_kB=256.0,
+            sent_secs=sent,
+            received_secs=1000.0 + sent + 0.0016 + (0.1 if i else 0.0),
+            previous_received_secs=None if i == 0 else 1000.0 + 0.2 * (i - 1) + 0.0016 + (0.1 if i > 1 else 0.0),
+        )
+    assert up.x_secs_per_kB is not None and up.x_secs_per_kB > 1e-4  # the stretched spacing alone
+    up.add(size_kB=4096.0, sent_secs=2.0, received_secs=1002.010, previous_received_secs=1000.9016)
+    x, t0 = up.x_secs_per_kB, up.t0_secs
+    assert x is not None and t0 is not None
+    assert x == pytest.approx((0.010 - 0.0016) / (4096 - 256), rel=1e-6)  # the two crossings' difference
+    assert t0 == pytest.approx(1000.0016 - x * 256, abs=1e-6)  # the floor stays the floor
+    assert up.transit_secs(4096.0) == pytest.approx(1000.010, abs=1e-6)
+
+
 def test_credits_follow_the_time_in_flight_over_the_chains_period() -> None:
     assert credits_needed(cycle_secs=0.62, period_secs=0.3, floor=2, ceiling=6) == 3
     assert credits_needed(cycle_secs=0.6, period_secs=0.3, floor=2, ceiling=6) == 2  # exactly two periods

@@ -131,6 +131,10 @@ def test_text_lines_say_what_an_operator_needs() -> None:
     assert isinstance(state, ControllerState)
     text = controller_text(state)
     assert "k=7 best=5 chosen=7" in text and "5:90.0" in text and "t0 39.9 ms" in text
+    assert "frame share 0:0.13 " in text and "5:0.80* 6:1.00 7:1.00*" in text
+    assert "(keeps up: >= 0.90, camera every 33.3 ms; * measured)" in text
+    unknown = state.model_copy(update={"frame_interval_ms": None, "frame_share_by_k": None, "min_frame_share": None})
+    assert "camera's rate unknown: latency alone" in controller_text(unknown)
     waiting = state.model_copy(update={"reason": "waiting for the compute profiles of both sides"})
     assert "no prediction yet" in controller_text(waiting) and "0:" not in controller_text(waiting)
     tag_map = _messages()["TagMap"]
@@ -325,7 +329,7 @@ def test_watch_says_when_the_messages_stop() -> None:
         finally:
             publisher.undeclare()
     assert proc.returncode == 0 and out.startswith("robot1 k=7"), err
-    assert "nothing more on splittag/robot1/controller/v1 for 5 s: has the deployment stopped?" in err
+    assert "nothing more on splittag/robot1/controller/v2 for 5 s: has the deployment stopped?" in err
     assert "1 message, 0 refused" in err  # the summary, after SIGTERM
 
 
@@ -335,7 +339,7 @@ def test_watch_says_when_nothing_comes_and_exits_nonzero() -> None:
         proc = _light_cli("watch", "controller", "--connect", endpoint, "--duration", str(QUIET_HINT_SECS + 1))
         out, err = _finish(proc)
     assert proc.returncode == 1 and out == ""
-    assert "nothing on splittag/robot1/controller/v1 yet" in err and "0 messages" in err
+    assert "nothing on splittag/robot1/controller/v2 yet" in err and "0 messages" in err
 
 
 @pytest.mark.multiprocess

@@ -164,10 +164,19 @@ def _log_state(viz: Viz, state: ControllerState) -> None:
         if state.has_prediction
         else {}
     )
-    viz.scalars(
-        state.stamp_nanos,
-        {**link, "controller/chosen_k": float(state.chosen_k), "controller/best_k": float(state.best_k), **predicted},
-    )
+    throughput: dict[str, float] = {}
+    if state.has_prediction and state.period_ms_by_k is not None:
+        throughput = {f"controller/period_ms/k{k}": v for k, v in enumerate(state.period_ms_by_k)}
+    for k, ms in enumerate(state.achieved_ms_by_k or []):
+        if ms is not None:
+            throughput[f"controller/achieved_ms/k{k}"] = ms
+    if state.frame_share_by_k is not None and state.min_frame_share is not None:
+        throughput |= {f"controller/frame_share/k{k}": v for k, v in enumerate(state.frame_share_by_k)}
+        throughput["controller/min_frame_share"] = state.min_frame_share
+    if state.frame_interval_ms is not None:
+        throughput["controller/frame_interval_ms"] = state.frame_interval_ms
+    chosen = {"controller/chosen_k": float(state.chosen_k), "controller/best_k": float(state.best_k)}
+    viz.scalars(state.stamp_nanos, {**link, **chosen, **predicted, **throughput})
 
 
 def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading.Event) -> None:
@@ -196,6 +205,7 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
     def on_poses(m: TagPoses) -> None:
         if m.payload_bytes == 0:
             return  # computed on board while the edge was gone: nothing crossed the link
+        core.add_posed(m.split_k, m.capture_nanos)  # what the cut achieves between frames
         if m.link is not None:
             core.add_crossing(m.payload_bytes, m.link)
         else:  # from an edge that predates link stamps: right only on an idle link

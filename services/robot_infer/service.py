@@ -15,6 +15,7 @@ import zenoh
 
 from services.robot_infer.settings import RobotInferSettings
 from shared.control.compute import ComputeEstimator, head_per_tag_ms
+from shared.control.throughput import CameraInterval
 from shared.model.runtime import calibrate_cumulative_ms, load_split_net
 from shared.model.views import with_views
 from shared.model.weights import load_keypoint_fusion
@@ -153,9 +154,14 @@ class RobotInfer:
         # Frames are checked as they arrive: a bad one is counted and never displaces the good one waiting.
         max_bytes = s.max_payload_bytes
         ahead_nanos = round(s.max_capture_ahead_secs * 1e9)
-        self.frames: LatestValid[Frame] = LatestValid(
-            lambda b: checked_frame(b, rid, max_bytes=max_bytes, ahead_nanos=ahead_nanos), self.guard, "frame"
-        )
+        self.camera = CameraInterval()  # the camera's rate from its stamps, every good frame (ComputeProfile)
+
+        def check(payload: bytes) -> Frame:
+            frame = checked_frame(payload, rid, max_bytes=max_bytes, ahead_nanos=ahead_nanos)
+            self.camera.add(frame.seq, frame.capture_nanos)
+            return frame
+
+        self.frames: LatestValid[Frame] = LatestValid(check, self.guard, "frame")
         self.sub = declare_latest_valid(session, keys.frames(rid), self.frames)
         self.pub = declare_tensor_publisher(session, keys.features(rid), Features.SCHEMA)
         self.poses_pub = declare_tensor_publisher(session, keys.tag_poses(rid), TagPoses.SCHEMA)
@@ -369,7 +375,12 @@ class RobotInfer:
             return
         self.last_profile = time.monotonic()
         profile = self.estimator.message(
-            robot_id=self.settings.robot_id, side="robot", stamp_nanos=time.time_ns(), factor=self.settings.gamma
+            robot_id=self.settings.robot_id,
+            side="robot",
+            stamp_nanos=time.time_ns(),
+            factor=self.settings.gamma,
+            overlapped=self.ahead is not None,
+            frame_interval_ms=self.camera.interval_ms(),
         )
         self.compute_pub.put(encode(profile))
 

@@ -103,8 +103,28 @@ class ComputeEstimator:
         fixed = self._fixed.get(0.0)
         return [float(v) for v in fixed + n * self.per_tag_ms * self.live_scale]
 
-    def message(self, *, robot_id: str, side: str, stamp_nanos: int, factor: float = 1.0) -> ComputeProfile:
-        """The ComputeProfile to publish: ms per frame at every cut, times `factor` (robot: gamma)."""
+    def period_ms_by_k(self, *, overlapped: bool) -> list[float]:
+        """The time between frames this side needs at every cut when it never waits: the whole frame's
+        compute, or with `overlapped` (the fixed part of the next frame runs beside this frame's network,
+        on a thread of its own) the longer of the two."""
+        n = self.tags_per_frame
+        fixed = self._fixed.get(0.0)
+        network = n * self.per_tag_ms * self.live_scale
+        per_frame = np.maximum(fixed, network) if overlapped else fixed + network
+        return [float(v) for v in per_frame]
+
+    def message(
+        self,
+        *,
+        robot_id: str,
+        side: str,
+        stamp_nanos: int,
+        factor: float = 1.0,
+        overlapped: bool = False,
+        frame_interval_ms: float | None = None,
+    ) -> ComputeProfile:
+        """The ComputeProfile to publish: ms per frame and the period at every cut, times `factor` (robot:
+        gamma), and the camera's frame interval where this side sees the camera (the robot)."""
         return ComputeProfile(
             robot_id=robot_id,
             side=side,  # type: ignore[arg-type]
@@ -113,6 +133,8 @@ class ComputeEstimator:
             tags_per_frame=self.tags_per_frame,
             live_scale=self.live_scale,
             ms_by_k=[factor * v for v in self.ms_by_k()],
+            period_ms_by_k=[factor * v for v in self.period_ms_by_k(overlapped=overlapped)],
+            frame_interval_ms=frame_interval_ms,
         )
 
 

@@ -4,7 +4,11 @@ Evidence: every frame's and probe's one-way crossing of the uplink (send and arr
 arrival of the message ahead of it, so waiting in the queue is not mistaken for the link: see
 `OnlineLinkEstimator`), FrameSent notices (probes wait for an idle link), and the ComputeProfiles of
 robot_infer (C(k), gamma included: the slowdown is real) and edge_infer (E(k)).
-Decision: T(k) = C(k) + t0 + beta S(k) + E(k) for every k, argmin with hysteresis (HysteresisChooser).
+Decision: T(k) = C(k) + t0 + beta S(k) + E(k) for every k, argmin with hysteresis (HysteresisChooser)
+among the cuts that keep up with the camera: expected to pose at least min_frame_share of its frames,
+by what the cut achieved lately where it ran (AchievedIntervals, from the poses' capture stamps), else
+by its period, the time between frames the uplink and the slower side need (robot_infer's profile says
+the camera's rate; where no cut keeps up, those close to the best share).
 The floor t0 is the uplink's: the emulated link (like the paper's probes) delays only the uplink, and
 the pipeline's latency ends at the edge, so frames and probes are timed one way, on the same line.
 """
@@ -20,6 +24,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from shared.control.linkmodel import HysteresisChooser, LinkOccupancy, OnlineLinkEstimator, split_costs
+from shared.control.throughput import AchievedIntervals
 from shared.wire.cuts import N_CUTS, CodecName
 from shared.wire.messages import CONTROLLER_WAITING, ComputeProfile, ControllerState, FrameSent, LinkStamps
 from shared.wire.sizing import features_payload_bytes
@@ -45,10 +50,31 @@ class ControllerTuning(BaseModel):
     # a trial's controller went 0 -> 7 -> 0 -> 7 -> 0 within 9 s. 0 turns the check off.
     measured_window_secs: float = Field(default=20.0, ge=0)
     codec: CodecName = "fp16"  # the codec robot_infer uses at cuts 1..6 (payload sizes)
+    # Throughput: a cut keeps up with the camera when it is expected to pose at least this share of the
+    # camera's frames; the controller chooses the fastest cut among those that keep up (where none does,
+    # among those close to the best share). Expected: what the cut achieved lately where it ran
+    # (AchievedIntervals), else the camera's frame interval / the cut's period. On a 2-core box at 30 fps
+    # k = 0 left the edge 42 ms a frame for 33 ms between frames and posed a fifth fewer frames
+    # (bench.pipeline --auto, docs/link_and_controller.md). 0 turns the check off (latency alone).
+    min_frame_share: float = Field(default=0.9, ge=0, le=1)
+    # Where no cut keeps up, those within this fraction of the best share a cut achieved count as keeping
+    # up. On one 2-core box at 30 fps the cuts posed 45-73 % of the frames, a cut's share moving by 0.05-0.1
+    # from one visit to the next: at 0.1 the controller went 0 -> 3 -> 0 -> 3 on that noise.
+    throughput_slack_rel: float = Field(default=0.2, ge=0, lt=1)
+    # The cut in use stays eligible down to this much below the bar, so a share near it does not flap.
+    frame_share_hysteresis: float = Field(default=0.05, ge=0, lt=1)
+    # A cut's period is the uplink's (beta S(k)) and, with this on, the slower side's compute too (the
+    # profiles' periods); off: the uplink's alone.
+    compute_keeps_up: bool = True
+    # How long what a cut achieved stands for it; the model's period takes over after that (and a cut the
+    # model thinks keeps up is tried again).
+    throughput_window_secs: float = Field(default=120.0, gt=0)
 
 
 class SplitController:
     """Fuses evidence and decides; `clock` is injectable for tests."""
+
+    UNTRIED_MARGIN = 1.1  # a cut not run lately keeps up only with its period this much within the bar
 
     def __init__(
         self, settings: ControllerTuning | None = None, *, clock: Callable[[], float] = time.monotonic
@@ -71,6 +97,7 @@ class SplitController:
         # robot + link + edge compute, what T(k) predicts
         self.measured: dict[int, deque[tuple[float, float, int, float]]] = {k: deque(maxlen=120) for k in range(N_CUTS)}
         self.vetoed = 0  # switches the measured frame times vetoed
+        self.achieved = AchievedIntervals(window_secs=self.settings.throughput_window_secs, clock=clock)
 
     # -- evidence ----------------------------------------------------------------------------------
     def add_link_sample(self, payload_bytes: int, ms: float) -> None:
@@ -100,6 +127,11 @@ class SplitController:
         T(k) predicts). Frames without tags say nothing of the network's cost: left out."""
         if 0 <= k < N_CUTS and tags > 0 and math.isfinite(frame_ms) and frame_ms > 0:
             self.measured[k].append((self._clock(), frame_ms, tags, self._link_ms(k, tags)))
+
+    def add_posed(self, k: int, capture_nanos: int) -> None:
+        """A frame posed at cut k, with or without tags (in the order the poses arrive): what each cut
+        achieves."""
+        self.achieved.add(k, capture_nanos)
 
     def measured_ms(self, k: int, *, min_frames: int = 3) -> float | None:
         """The median measured time at cut k of frames with as many tags as the prediction is for, within
@@ -172,19 +204,110 @@ class SplitController:
             beta_ms_per_kB=self.link.beta_ms_per_kB,
         )
 
+    def frame_interval_ms(self) -> float | None:
+        """The camera's frame interval as robot_infer receives it (None: unknown)."""
+        ms = self.robot.frame_interval_ms if self.robot else None
+        return ms if ms is not None and ms > 0 else None
+
+    def periods(self) -> np.ndarray | None:
+        """The time between frames each cut needs: the uplink's (beta S(k): t0 delays but does not occupy
+        it) and, with compute_keeps_up, the slower side's, or None while a compute profile is missing. A
+        side whose profile predates periods is taken to overlap nothing (its ms per frame)."""
+        if self.robot is None or self.edge is None:
+            return None
+        link = self.link.beta_ms_per_kB * np.asarray(self.payload_kB(), np.float64)
+        if not self.settings.compute_keeps_up:
+            return link
+        robot = np.asarray(self.robot.period_ms_by_k or self.robot.ms_by_k, np.float64)
+        edge = np.asarray(self.edge.period_ms_by_k or self.edge.ms_by_k, np.float64)
+        return np.maximum.reduce([robot, edge, link])
+
+    def achieved_ms(self) -> list[float | None]:
+        """What each cut achieved lately between frames (None where it has not run for a while)."""
+        return [self.achieved.interval_ms(k) for k in range(N_CUTS)]
+
+    def frame_shares(self, periods: np.ndarray | None, achieved: list[float | None]) -> np.ndarray | None:
+        """The share of the camera's frames each cut is expected to pose, at most 1: interval / what it
+        achieved where it ran lately; elsewhere interval / its period, times how much longer than its
+        period the nearest cut that ran took (never less: evidence only corrects the model's optimism)
+        and UNTRIED_MARGIN (an untried cut must beat the bar by a margin to be believed).
+        None: not checked, for want of the camera's rate or with min_frame_share 0.
+
+        Uncorrected, the model's periods on one 2-core box were 1.1-1.7x short of what the cuts achieved
+        (the robot's look-ahead overlaps less than modelled beside the edge), each cut not yet tried
+        looked best in turn, and the controller toured all eight within seconds, once ending at k = 2
+        (2 MB a frame, the slowest but one by T(k)). The nearest cut, because neighbours share their
+        bottleneck (k = 0 the edge's, the later cuts the robot's)."""
+        interval = self.frame_interval_ms()
+        if periods is None or interval is None or self.settings.min_frame_share <= 0:
+            return None
+        ran = [k for k, a in enumerate(achieved) if a is not None]
+        margin = self.UNTRIED_MARGIN
+        expected = []
+        for k, (period, got) in enumerate(zip(periods, achieved, strict=True)):
+            if got is not None:
+                expected.append(got)
+                continue
+            ratio = 1.0
+            if ran:  # the nearest cut that ran (of two as near, the one that fell further behind its model)
+                near = min(abs(j - k) for j in ran)
+                ratios = [
+                    got_j / periods[j] for j in ran if abs(j - k) == near and (got_j := achieved[j]) and periods[j] > 0
+                ]
+                ratio = max(ratios, default=1.0)
+            expected.append(max(1.0, ratio) * margin * period)
+        return np.minimum(1.0, interval / np.maximum(np.asarray(expected, np.float64), 1e-6))
+
+    def min_share(self, shares: np.ndarray, achieved: list[float | None]) -> float:
+        """The share a cut must reach to count: min_frame_share where some cut gets there (by what it
+        achieved, or if it has not run lately by its period); else the best share a cut achieved, less
+        throughput_slack_rel of it. Only achieved shares set that bar: the model's are optimistic where
+        robot and edge share cores, and every cut it overrated would be tried in turn (a trial's
+        controller went to k = 1, the slowest by T(k), for 4 MB a frame at 4 fps); a cut not tried lately
+        is tried when its period promises at least that bar and its T(k) is the least."""
+        floor = self.settings.min_frame_share
+        if float(shares.max()) >= floor:
+            return floor
+        ran = [float(v) for v, got in zip(shares, achieved, strict=True) if got is not None]
+        return (1 - self.settings.throughput_slack_rel) * max(ran or [float(shares.max())])
+
+    def eligible(self, shares: np.ndarray, limit: float, current_k: int) -> np.ndarray:
+        """The cuts that keep up; the cut in use down to frame_share_hysteresis below the limit."""
+        ok = shares >= limit
+        ok[current_k] |= bool(shares[current_k] >= limit - self.settings.frame_share_hysteresis)
+        return ok
+
     def decide(self, *, robot_id: str, current_k: int, pinned: bool) -> ControllerState:
         """One decision; the caller applies chosen_k when it differs from current_k (and says so)."""
         t = self.predict()
+        periods = self.periods()
+        achieved = self.achieved_ms()
+        shares = self.frame_shares(periods, achieved)
+        limit = None if shares is None else self.min_share(shares, achieved)
+        ok = None if shares is None or limit is None else self.eligible(shares, limit, current_k)
         zeros = [0.0] * N_CUTS
         if t is None:
             chosen, best, reason, pred = current_k, current_k, CONTROLLER_WAITING, zeros
         elif pinned:
-            best = int(np.argmin(t))
+            best = int(np.argmin(t if ok is None else np.where(ok, t, np.inf)))
             chosen, reason, pred = current_k, f"pinned at k={current_k} by a user (best would be k={best})", list(t)
         else:
-            d = self.chooser.choose(t, current_k)
+            d = self.chooser.choose(t, current_k, ok)
             chosen, best, reason, pred = d.k, d.best_k, d.reason, list(d.predicted_ms)
-            if chosen != current_k and self.settings.measured_window_secs > 0:
+            forced = ok is not None and not ok[current_k]
+            if forced and shares is not None and limit is not None and periods is not None:
+                got = achieved[current_k]
+                how = (
+                    f"ran at {got:.0f} ms a frame" if got is not None else f"needs {periods[current_k]:.0f} ms a frame"
+                )
+                reason += (
+                    f" (k={current_k} cannot keep up: {how} at {self.frame_interval_ms():.0f} ms between frames, "
+                    f"{shares[current_k]:.0%} of them, {limit:.0%} needed)"
+                )
+            elif ok is not None and not ok.all():
+                slow = ", ".join(f"{k}" for k in np.flatnonzero(~ok))
+                reason += f"; cannot keep up: k={slow}"
+            if chosen != current_k and not forced and self.settings.measured_window_secs > 0:
                 there, here = self.measured_ms(chosen), self.measured_ms(current_k)
                 if there is not None and here is not None and there >= here:
                     self.vetoed += 1
@@ -211,4 +334,9 @@ class SplitController:
             pinned=pinned,
             applied=False,
             reason=reason,
+            period_ms_by_k=None if periods is None else [max(0.0, float(v)) for v in periods],
+            achieved_ms_by_k=None if t is None else achieved,
+            frame_interval_ms=self.frame_interval_ms(),
+            frame_share_by_k=None if shares is None else [float(v) for v in shares],
+            min_frame_share=limit,
         )

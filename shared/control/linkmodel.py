@@ -385,12 +385,17 @@ class HysteresisChooser:
         self._streak = 0
         self._candidate: int | None = None
 
-    def choose(self, costs: ArrayLike, current: int) -> Decision:
-        """One decision given the predicted T(k) and the k in effect."""
+    def choose(self, costs: ArrayLike, current: int, eligible: ArrayLike | None = None) -> Decision:
+        """One decision given the predicted T(k) and the k in effect, among the `eligible` cuts (all by
+        default). From a cut that is not eligible any eligible one is a gain (the dwell still applies)."""
         t = np.asarray(costs, np.float64)
-        best = int(np.argmin(t))
+        ok = np.ones(t.shape, bool) if eligible is None else np.asarray(eligible, bool)
+        if not ok.any():
+            raise ValueError("no eligible cut")
+        best = int(np.argmin(np.where(ok, t, np.inf)))
+        forced = not ok[current]
         gain = float(t[current] - t[best])
-        needed = max(self.min_gain_ms, self.min_gain_rel * float(t[current]))
+        needed = -np.inf if forced else max(self.min_gain_ms, self.min_gain_rel * float(t[current]))
         pred = tuple(float(v) for v in t)
         if best == current or gain <= needed:
             self._streak, self._candidate = 0, None
@@ -398,12 +403,12 @@ class HysteresisChooser:
             return Decision(current, best, pred, f"keep k={current}: {why}")
         self._streak = self._streak + 1 if self._candidate == best else 1
         self._candidate = best
+        better = "is eligible" if forced else f"better by {gain:.1f} ms"
         if self._streak < self.dwell:
-            return Decision(
-                current, best, pred, f"keep k={current}: k={best} better by {gain:.1f} ms ({self._streak}/{self.dwell})"
-            )
+            return Decision(current, best, pred, f"keep k={current}: k={best} {better} ({self._streak}/{self.dwell})")
         self._streak, self._candidate = 0, None
-        return Decision(best, best, pred, f"switch k={current}->{best}: predicted {gain:.1f} ms faster")
+        why = "the fastest eligible cut" if forced else f"predicted {gain:.1f} ms faster"
+        return Decision(best, best, pred, f"switch k={current}->{best}: {why}")
 
 
 class LinkOccupancy:

@@ -244,9 +244,21 @@ def controller_text(state: ControllerState) -> str:
         predicted, model = "-", "no prediction yet"
     pin = "  pinned" if state.pinned else ""
     applied = "  applied" if state.applied else ""
+    throughput = ""
+    if state.has_prediction and state.frame_share_by_k is not None and state.min_frame_share is not None:
+        achieved = state.achieved_ms_by_k or [None] * len(state.frame_share_by_k)
+        # a share measured at a cut that ran lately is marked *, the others are the model's
+        shares = " ".join(
+            f"{k}:{share:.2f}{'' if got is None else '*'}"
+            for k, (share, got) in enumerate(zip(state.frame_share_by_k, achieved, strict=True))
+        )
+        camera = f"camera every {state.frame_interval_ms or 0:.1f} ms"
+        throughput = f"  frame share {shares} (keeps up: >= {state.min_frame_share:.2f}, {camera}; * measured)"
+    elif state.has_prediction:
+        throughput = "  (camera's rate unknown: latency alone)"
     return (
         f"{state.robot_id} k={state.current_k} best={state.best_k} chosen={state.chosen_k}{pin}{applied}  "
-        f"T(k) ms {predicted}  {model}  ({state.reason})"
+        f"T(k) ms {predicted}{throughput}  {model}  ({state.reason})"
     )
 
 

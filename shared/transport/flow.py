@@ -290,8 +290,23 @@ class UplinkQueue:
     @property
     def x_secs_per_kB(self) -> float | None:
         """The link's time per kB, from the frames it held back among the last `window` (None: none was;
-        an old bound would keep an x the link has since outgrown, and a paced frame would never show it)."""
-        return min(bound for _, bound in self._spacing) if self._spacing else None
+        an old bound would keep an x the link has since outgrown, and a paced frame would never show it),
+        and at most what a larger frame's crossing allows after the fastest one's.
+
+        No frame crosses faster than a free link: t0 + x S <= a - s for each, with equality for the
+        fastest crossing (it found the link free), so a larger frame bounds x by the difference of the
+        two transits over the difference of their sizes (clock offsets cancel). Without that bound,
+        spacings stretched by a busy receiver rather than the link (a 2-core box, the controller trying
+        cuts of 0.26-4 MB a frame) read as 0.4 ms/kB; a 4 MB frame that crossed in 10 ms then put t0 at
+        -1.6 s, every re-anchored start 1.6-3 s late, and the robot posed 0.6 frames a second."""
+        if not self._spacing:
+            return None
+        x = min(bound for _, bound in self._spacing)
+        fastest, fastest_kB = min(self._transits)
+        for transit, kB in self._transits:
+            if kB > (1 + self.stretch_fraction) * fastest_kB:
+                x = min(x, (transit - fastest) / (kB - fastest_kB))
+        return max(0.0, x)
 
     @property
     def t0_secs(self) -> float | None:

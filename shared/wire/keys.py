@@ -71,15 +71,15 @@ def split_auto(robot_id: str) -> str:
 
 
 def compute(robot_id: str, side: str) -> str:
-    """ComputeProfile v1: robot_infer (side robot) and edge_infer (side edge) -> controller, ~1 Hz."""
+    """ComputeProfile v2: robot_infer (side robot) and edge_infer (side edge) -> controller, ~1 Hz."""
     if side not in ("robot", "edge"):
         raise ValueError(f"side must be robot or edge, not {side!r}")
-    return f"{ROOT}/{_check(robot_id, 'robot id')}/compute/{side}/v1"
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/compute/{side}/v2"
 
 
 def controller(robot_id: str) -> str:
-    """ControllerState v1: the adaptive split controller's estimates, predictions and decision."""
-    return f"{ROOT}/{_check(robot_id, 'robot id')}/controller/v1"
+    """ControllerState v2: the adaptive split controller's estimates, predictions and decision."""
+    return f"{ROOT}/{_check(robot_id, 'robot id')}/controller/v2"
 
 
 def echo(robot_id: str) -> str:

@@ -590,15 +590,12 @@ class FrameSent(Message):
 
 
 PerCut = Annotated[list[NonNegFloat], Field(min_length=N_CUTS, max_length=N_CUTS)]
+MaybePerCut = Annotated[list[NonNegFloat | None], Field(min_length=N_CUTS, max_length=N_CUTS)]
 
 
-class ComputeProfile(Message):
-    """One side's compute estimate for every split point, ms per frame at `tags_per_frame` tags.
-
-    robot: C(k), everything the robot computes when cutting at k (stage 1 + head), gamma included;
-    edge: E(k), everything the edge computes (tail + PnP). A start-up calibration per block, scaled by
-    the running median of live measurements at the k in use. Published at most once per second.
-    """
+class ComputeProfileV1(Message):
+    """ComputeProfile before the throughput fields; still decoded (as v2 with both None: the controller
+    then knows neither side's period nor the camera's rate, and decides on latency alone)."""
 
     SCHEMA: ClassVar[str] = "splittag/ComputeProfile/v1"
     robot_id: RobotId
@@ -609,13 +606,42 @@ class ComputeProfile(Message):
     live_scale: NonNegFloat  # live / calibrated time at current_k (1.0 until measured)
     ms_by_k: PerCut
 
+    def upgrade(self) -> ComputeProfile:
+        """The same content as the current schema."""
+        fields = {name: getattr(self, name) for name in ComputeProfileV1.model_fields}
+        return ComputeProfile(**fields, period_ms_by_k=None, frame_interval_ms=None)
+
+
+class ComputeProfile(Message):
+    """One side's compute estimate for every split point, ms per frame at `tags_per_frame` tags.
+
+    robot: C(k), everything the robot computes when cutting at k (stage 1 + head), gamma included;
+    edge: E(k), everything the edge computes (tail + PnP). A start-up calibration per block, scaled by
+    the running median of live measurements at the k in use. Published at most once per second.
+    `period_ms_by_k`: the time between frames this side needs at each cut when it never waits (its
+    throughput limit): `ms_by_k`, or less where parts overlap (the robot's stage 1 of the next frame
+    beside this frame's network). `frame_interval_ms`: the median time between the camera's frames as
+    the robot receives them (robot only; None where unknown or for the edge).
+    """
+
+    SCHEMA: ClassVar[str] = "splittag/ComputeProfile/v2"
+    robot_id: RobotId
+    side: Literal["robot", "edge"]
+    stamp_nanos: int = Field(ge=0)
+    current_k: SplitIndex
+    tags_per_frame: NonNegFloat
+    live_scale: NonNegFloat  # live / calibrated time at current_k (1.0 until measured)
+    ms_by_k: PerCut
+    period_ms_by_k: PerCut | None
+    frame_interval_ms: NonNegFloat | None
+
 
 # ControllerState.reason while the controller waits for both sides' ComputeProfiles (its T(k) are zeros then).
 CONTROLLER_WAITING: Final[str] = "waiting for the compute profiles of both sides"
 
 
-class ControllerState(Message):
-    """What the adaptive split controller believes, predicts and did (one per decision)."""
+class ControllerStateV1(Message):
+    """ControllerState before throughput; still decoded (as v2 with the throughput fields None)."""
 
     SCHEMA: ClassVar[str] = "splittag/ControllerState/v1"
     robot_id: RobotId
@@ -634,6 +660,53 @@ class ControllerState(Message):
     pinned: bool
     applied: bool  # True when this decision changed the split through the split query
     reason: str
+
+    def upgrade(self) -> ControllerState:
+        """The same content as the current schema."""
+        fields = {name: getattr(self, name) for name in ControllerStateV1.model_fields}
+        return ControllerState(
+            **fields,
+            period_ms_by_k=None,
+            achieved_ms_by_k=None,
+            frame_interval_ms=None,
+            frame_share_by_k=None,
+            min_frame_share=None,
+        )
+
+
+class ControllerState(Message):
+    """What the adaptive split controller believes, predicts and did (one per decision).
+
+    Throughput (None before both profiles, or where the camera's rate is unknown): `period_ms_by_k` is
+    the time between frames each cut needs by the model (the uplink's beta S(k); with
+    ControllerTuning.compute_keeps_up the slower side's too), `achieved_ms_by_k` what each cut achieved
+    lately between consecutive posed frames (None where it has not run), `frame_interval_ms` the
+    camera's, `frame_share_by_k` the share of the camera's frames each cut is expected to pose (by what
+    it achieved, else by its period), and a cut keeps up at `min_frame_share` or more: the controller
+    chooses among those."""
+
+    SCHEMA: ClassVar[str] = "splittag/ControllerState/v2"
+    robot_id: RobotId
+    stamp_nanos: int = Field(ge=0)
+    t0_ms: FiniteFloat
+    beta_ms_per_kB: FiniteFloat
+    link_samples: int = Field(ge=0)
+    link_changes: int = Field(ge=0)
+    robot_ms_by_k: PerCut
+    edge_ms_by_k: PerCut
+    payload_kB_by_k: PerCut
+    predicted_ms_by_k: PerCut
+    current_k: SplitIndex
+    best_k: SplitIndex
+    chosen_k: SplitIndex
+    pinned: bool
+    applied: bool  # True when this decision changed the split through the split query
+    reason: str
+    period_ms_by_k: PerCut | None
+    achieved_ms_by_k: MaybePerCut | None
+    frame_interval_ms: NonNegFloat | None
+    frame_share_by_k: PerCut | None
+    min_frame_share: NonNegFloat | None
 
     @property
     def has_prediction(self) -> bool:
@@ -664,6 +737,8 @@ LEGACY_SCHEMAS: Final[
         | type[TagPosesV2]
         | type[TagPosesV3]
         | type[ProbeAckV1]
+        | type[ComputeProfileV1]
+        | type[ControllerStateV1]
         | type[FeaturesV1]
         | type[FeaturesV2]
         | type[FeaturesV3]
@@ -679,6 +754,8 @@ LEGACY_SCHEMAS: Final[
         TagPosesV2,
         TagPosesV3,
         ProbeAckV1,
+        ComputeProfileV1,
+        ControllerStateV1,
         FeaturesV1,
         FeaturesV2,
         FeaturesV3,
