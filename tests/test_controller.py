@@ -130,6 +130,18 @@ def test_what_a_cut_achieved_overrides_the_model_and_casts_doubt_on_its_neighbou
     assert state.achieved_ms_by_k == [None] * 8
 
 
+def test_a_cut_that_keeps_up_says_nothing_of_the_others_periods() -> None:
+    """A cut that keeps up achieves the camera's interval whatever its period: at 2.5 fps k = 0's 400 ms
+    against a 45 ms period must not make every other cut look 9x slower (bench.controller: the
+    controller stayed at k = 0 after the link slowed, where T(k) wanted k = 7)."""
+    core, clock = _core()
+    core.add_compute(_overlapped_robot(400.0))
+    _posed(core, clock, 0, every_ms=400.0)
+    state = core.decide(robot_id="r1", current_k=0, pinned=False)
+    assert state.frame_share_by_k == [1.0] * 8  # every period is far below 400 ms, tried or not
+    assert state.min_frame_share == 0.9
+
+
 def test_an_untried_cut_that_keeps_up_by_the_model_is_tried_where_the_current_one_falls_behind() -> None:
     """A slow robot on a slow uplink (README: the latency-best k = 7 ran at 2 fps where k = 0 ran at 5):
     k = 7 achieves what its model says, longer than the camera's interval, and k = 0, whose period is

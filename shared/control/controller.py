@@ -229,7 +229,8 @@ class SplitController:
     def frame_shares(self, periods: np.ndarray | None, achieved: list[float | None]) -> np.ndarray | None:
         """The share of the camera's frames each cut is expected to pose, at most 1: interval / what it
         achieved where it ran lately; elsewhere interval / its period, times how much longer than its
-        period the nearest cut that ran took (never less: evidence only corrects the model's optimism)
+        period the nearest cut that fell behind the camera took (never less: evidence only corrects the
+        model's optimism)
         and UNTRIED_MARGIN (an untried cut must beat the bar by a margin to be believed).
         None: not checked, for want of the camera's rate or with min_frame_share 0.
 
@@ -241,7 +242,11 @@ class SplitController:
         interval = self.frame_interval_ms()
         if periods is None or interval is None or self.settings.min_frame_share <= 0:
             return None
-        ran = [k for k, a in enumerate(achieved) if a is not None]
+        # Only a cut that fell behind the camera tells how long its frames really take; one that kept up
+        # achieved the camera's interval, whatever its period (a 2.5 fps camera's 400 ms against k = 0's
+        # 100: taken as a ratio, every other cut was doubted 4x and the controller stayed at k = 0 on a
+        # slower link, where k = 7 was faster: bench.controller "reach never")
+        ran = [k for k, a in enumerate(achieved) if a is not None and interval / a < self.settings.min_frame_share]
         margin = self.UNTRIED_MARGIN
         expected = []
         for k, (period, got) in enumerate(zip(periods, achieved, strict=True)):
@@ -249,7 +254,7 @@ class SplitController:
                 expected.append(got)
                 continue
             ratio = 1.0
-            if ran:  # the nearest cut that ran (of two as near, the one that fell further behind its model)
+            if ran:  # the nearest cut that fell behind (of two as near, the one further behind its model)
                 near = min(abs(j - k) for j in ran)
                 ratios = [
                     got_j / periods[j] for j in ran if abs(j - k) == near and (got_j := achieved[j]) and periods[j] > 0
