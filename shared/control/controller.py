@@ -205,7 +205,7 @@ class SplitController:
         )
 
     def frame_interval_ms(self) -> float | None:
-        """The camera's frame interval as robot_infer receives it (None: unknown)."""
+        """The camera's frame interval from its stamps, as robot_infer's profile says (None: unknown)."""
         ms = self.robot.frame_interval_ms if self.robot else None
         return ms if ms is not None and ms > 0 else None
 
@@ -230,9 +230,8 @@ class SplitController:
         """The share of the camera's frames each cut is expected to pose, at most 1: interval / what it
         achieved where it ran lately; elsewhere interval / its period, times how much longer than its
         period the nearest cut that fell behind the camera took (never less: evidence only corrects the
-        model's optimism)
-        and UNTRIED_MARGIN (an untried cut must beat the bar by a margin to be believed).
-        None: not checked, for want of the camera's rate or with min_frame_share 0.
+        model's optimism) and UNTRIED_MARGIN (an untried cut must beat the bar by a margin to be
+        believed). None: not checked, for want of the camera's rate or with min_frame_share 0.
 
         Uncorrected, the model's periods on one 2-core box were 1.1-1.7x short of what the cuts achieved
         (the robot's look-ahead overlaps less than modelled beside the edge), each cut not yet tried
