@@ -99,11 +99,9 @@ def test_controller_follows_the_link_and_respects_pinning(emulator: LinkEmulator
         assert abs(st.t0_ms - p.delay_ms) <= 12.0, name
         # ... robot_infer says the camera's rate, and the uplink's period (beta S(k)) is checked against it
         assert st.frame_interval_ms is not None and abs(st.frame_interval_ms - 1e3 / FPS) <= 0.2e3 / FPS, name
-        assert st.period_ms_by_k is not None and st.frame_share_by_k is not None and st.min_frame_share is not None
-        link_period = st.beta_ms_per_kB * np.asarray(st.payload_kB_by_k)
-        assert np.all(np.asarray(st.period_ms_by_k) >= link_period - 1e-6), name
-        assert st.achieved_ms_by_k is not None and st.achieved_ms_by_k[st.chosen_k] is not None, name
-        assert st.frame_share_by_k[st.chosen_k] >= 0.9 * st.min_frame_share - 1e-6, name
+        # ... and at 2.5 fps every cut keeps up: the choice is T(k)'s (checked below), the bar the floor
+        assert st.frame_share_by_k is not None and st.min_frame_share == 0.9, name
+        assert st.frame_share_by_k[st.chosen_k] >= 0.9 - 0.05, name
         betas.append(st.beta_ms_per_kB)
         # ... and the controller sits at its own optimum, up to its hysteresis margin.
         t = np.asarray(st.predicted_ms_by_k)

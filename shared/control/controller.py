@@ -75,6 +75,8 @@ class SplitController:
     """Fuses evidence and decides; `clock` is injectable for tests."""
 
     UNTRIED_MARGIN = 1.1  # a cut not run lately keeps up only with its period this much within the bar
+    DOUBT_REACH = 2  # cuts at most this far from one that fell behind its model are doubted as much ...
+    MAX_DOUBT = 3.0  # ... by at most this factor
 
     def __init__(
         self, settings: ControllerTuning | None = None, *, clock: Callable[[], float] = time.monotonic
@@ -98,6 +100,8 @@ class SplitController:
         self.measured: dict[int, deque[tuple[float, float, int, float]]] = {k: deque(maxlen=120) for k in range(N_CUTS)}
         self.vetoed = 0  # switches the measured frame times vetoed
         self.achieved = AchievedIntervals(window_secs=self.settings.throughput_window_secs, clock=clock)
+        self.camera_interval_ms: float | None = None  # the last the robot said (kept while it says none)
+        self._achieved_at_ms: float | None = None  # the camera's interval what the cuts achieved was timed at
 
     # -- evidence ----------------------------------------------------------------------------------
     def add_link_sample(self, payload_bytes: int, ms: float) -> None:
@@ -166,6 +170,16 @@ class SplitController:
         """The latest ComputeProfile of either side."""
         if profile.side == "robot":
             self.robot = profile
+            # a restarted robot_infer says none for its first frames: the camera has not changed for that
+            ms = profile.frame_interval_ms
+            if ms is not None and ms > 0:
+                self.camera_interval_ms = ms
+                # what the cuts achieved at another camera rate says nothing of this one (a webcam that
+                # slows in the dark and recovers): forgotten when the rate moves by more than 15 %
+                then = self._achieved_at_ms
+                if then is None or abs(ms - then) > 0.15 * then:
+                    self.achieved.clear()
+                    self._achieved_at_ms = ms
         else:
             self.edge = profile
 
@@ -205,9 +219,8 @@ class SplitController:
         )
 
     def frame_interval_ms(self) -> float | None:
-        """The camera's frame interval from its stamps, as robot_infer's profile says (None: unknown)."""
-        ms = self.robot.frame_interval_ms if self.robot else None
-        return ms if ms is not None and ms > 0 else None
+        """The camera's frame interval from its stamps, as robot_infer's profile last said (None: never)."""
+        return self.camera_interval_ms
 
     def periods(self) -> np.ndarray | None:
         """The time between frames each cut needs: the uplink's (beta S(k): t0 delays but does not occupy
@@ -253,12 +266,12 @@ class SplitController:
                 expected.append(got)
                 continue
             ratio = 1.0
-            if ran:  # the nearest cut that fell behind (of two as near, the one further behind its model)
-                near = min(abs(j - k) for j in ran)
+            near = min((abs(j - k) for j in ran), default=N_CUTS)
+            if near <= self.DOUBT_REACH:  # the nearest cut that fell behind (of two, the one further behind)
                 ratios = [
                     got_j / periods[j] for j in ran if abs(j - k) == near and (got_j := achieved[j]) and periods[j] > 0
                 ]
-                ratio = max(ratios, default=1.0)
+                ratio = min(max(ratios, default=1.0), self.MAX_DOUBT)
             expected.append(max(1.0, ratio) * margin * period)
         return np.minimum(1.0, interval / np.maximum(np.asarray(expected, np.float64), 1e-6))
 

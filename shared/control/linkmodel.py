@@ -390,8 +390,8 @@ class HysteresisChooser:
         default). From a cut that is not eligible any eligible one is a gain (the dwell still applies)."""
         t = np.asarray(costs, np.float64)
         ok = np.ones(t.shape, bool) if eligible is None else np.asarray(eligible, bool)
-        if not ok.any():
-            raise ValueError("no eligible cut")
+        if not ok.any():  # (not from the controller's shares; a NaN somewhere): latency alone
+            ok = np.ones(t.shape, bool)
         best = int(np.argmin(np.where(ok, t, np.inf)))
         forced = not ok[current]
         gain = float(t[current] - t[best])

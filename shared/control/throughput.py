@@ -28,6 +28,13 @@ class AchievedIntervals:
     SKIP_AFTER_CHANGE = 3
     # A longer interval is a pause (the camera stopped, the edge gone), not the pipeline's rate.
     MAX_GAP_MS = 1000.0
+    MAX_GAPS = 60  # per cut: 2-4 s at 15-30 fps
+
+    def clear(self) -> None:
+        """Forget what every cut achieved (the camera's rate changed: intervals of the old rate say
+        nothing of the new)."""
+        for gaps in self._gaps.values():
+            gaps.clear()
 
     def __init__(self, *, window_secs: float, min_gaps: int = 8, clock: Callable[[], float] = time.monotonic) -> None:
         if window_secs <= 0 or min_gaps < 1:
@@ -37,7 +44,8 @@ class AchievedIntervals:
         self._clock = clock
         self._last: tuple[int, int] | None = None  # the last frame's (k, capture_nanos)
         self._run = 0  # intervals at the last frame's k since the cut changed
-        self._gaps: dict[int, deque[tuple[float, float]]] = {k: deque(maxlen=600) for k in range(N_CUTS)}
+        # the latest intervals only, so the cut in use shows a change within seconds at 30 fps
+        self._gaps: dict[int, deque[tuple[float, float]]] = {k: deque(maxlen=self.MAX_GAPS) for k in range(N_CUTS)}
 
     def add(self, k: int, capture_nanos: int) -> None:
         """A frame posed at cut k (in the order the poses arrive)."""
@@ -86,7 +94,9 @@ class CameraInterval:
             if last is None:
                 return
             frames, nanos = seq - last[0], capture_nanos - last[1]
-            if 0 < frames <= self.MAX_SKIPPED and nanos > 0:
+            if frames <= 0 or nanos <= 0:  # a camera restarted (perhaps at another rate): start afresh
+                self._intervals.clear()
+            elif frames <= self.MAX_SKIPPED:
                 self._intervals.append(nanos / 1e6 / frames)
 
     def interval_ms(self) -> float | None:

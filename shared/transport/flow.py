@@ -266,6 +266,8 @@ class UplinkQueue:
     without any, the latency stays what it was before the fall). Probing late would cost throughput
     wherever x is only a loose bound, as on an edge-bound cut. Pure."""
 
+    PAIR_ALLOWANCE_SECS = 0.005  # the fastest crossing's own wait or jitter, in the bound of x by a pair
+
     def __init__(
         self,
         *,
@@ -293,20 +295,25 @@ class UplinkQueue:
         an old bound would keep an x the link has since outgrown, and a paced frame would never show it),
         and at most what a larger frame's crossing allows after the fastest one's.
 
-        No frame crosses faster than a free link: t0 + x S <= a - s for each, with equality for the
-        fastest crossing (it found the link free), so a larger frame bounds x by the difference of the
-        two transits over the difference of their sizes (clock offsets cancel). Without that bound,
-        spacings stretched by a busy receiver rather than the link (a 2-core box, the controller trying
-        cuts of 0.26-4 MB a frame) read as 0.4 ms/kB; a 4 MB frame that crossed in 10 ms then put t0 at
-        -1.6 s, every re-anchored start 1.6-3 s late, and the robot posed 0.6 frames a second."""
+        No frame crosses faster than a free link: t0 + x S <= a - s for each, nearly equal for the
+        fastest crossing (it most likely found the link free), so a frame at least twice as large bounds
+        x by the difference of the two transits, plus PAIR_ALLOWANCE_SECS, over the difference of their
+        sizes (the clocks' offset cancels). This is the one bound on x not taken from held-back frames.
+        Without it, spacings stretched by a busy receiver rather than the link (a 2-core box, the
+        controller trying cuts of 0.26-4 MB a frame) read as 0.4 ms/kB; a 4 MB frame that crossed in
+        10 ms then put t0 at -1.6 s, every re-anchored start 1.6-3 s late, and the robot posed 0.6
+        frames a second. x <= 0 is unknown (None), as before any held-back frame."""
         if not self._spacing:
             return None
         x = min(bound for _, bound in self._spacing)
         fastest, fastest_kB = min(self._transits)
         for transit, kB in self._transits:
-            if kB > (1 + self.stretch_fraction) * fastest_kB:
-                x = min(x, (transit - fastest) / (kB - fastest_kB))
-        return max(0.0, x)
+            # only a frame at least twice as large, and with PAIR_ALLOWANCE_SECS for the fastest one's own
+            # wait or jitter (it need not have found the link quite free): a tighter pair bound would
+            # underestimate x, and a pacer with too small an x queues frames on the uplink
+            if kB >= 2 * fastest_kB and kB >= self.min_size_kB:
+                x = min(x, (transit - fastest + self.PAIR_ALLOWANCE_SECS) / (kB - fastest_kB))
+        return x if x > 0 else None
 
     @property
     def t0_secs(self) -> float | None:

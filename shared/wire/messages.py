@@ -594,8 +594,9 @@ MaybePerCut = Annotated[list[NonNegFloat | None], Field(min_length=N_CUTS, max_l
 
 
 class ComputeProfileV1(Message):
-    """ComputeProfile before the throughput fields; still decoded (as v2 with both None: the controller
-    then knows neither side's period nor the camera's rate, and decides on latency alone)."""
+    """ComputeProfile before the throughput fields; still decoded (as v2 with both None: a side's period
+    is then its ms per frame, and without the camera's rate the controller decides on latency alone).
+    Published on the v1 key, which the current controller does not read: recorded bytes decode."""
 
     SCHEMA: ClassVar[str] = "splittag/ComputeProfile/v1"
     robot_id: RobotId
