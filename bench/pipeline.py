@@ -245,6 +245,21 @@ def _controller_note(
     )
 
 
+def _against_pinned(auto: Row, pinned: list[Row]) -> str:
+    """The auto row against the best pinned rows of the same run, in the user's terms: frames a second
+    and median latency ('' without pinned rows). The pipeline goals are ratios to each row's own
+    critical path; this says whether the controller's cut was as good as the best fixed one."""
+    if not pinned:
+        return ""
+    most = max(pinned, key=lambda r: r.fps)
+    fastest = min(pinned, key=lambda r: r.e2e_p50)
+    return (
+        f"auto against the pinned rows: {auto.fps:.1f} fps = {auto.fps / most.fps:.2f} of the most (k = {most.k}, "
+        f"{most.fps:.1f}); e2e p50 {auto.e2e_p50:.1f} ms = {auto.e2e_p50 / fastest.e2e_p50:.2f} of the least "
+        f"(k = {fastest.k}, {fastest.e2e_p50:.1f} ms)"
+    )
+
+
 def measure(args: argparse.Namespace, mode: Mode, notes: list[str]) -> list[Row]:
     """Start the services (robot_infer's tracking, pacing and stage-1 proposers on or off), sweep k, then
     (`--auto`) start the controller, pin k = --auto-from, release the pin and let the controller choose;
@@ -311,6 +326,8 @@ def measure(args: argparse.Namespace, mode: Mode, notes: list[str]) -> list[Row]
                 _controller_note(monitor.controller, controller, recs, row, args.auto_from)
                 + f"; its CPU {row.cpu['controller']:.0f} % of a core"
             )
+            if against := _against_pinned(row, rows[:-1]):
+                notes.append(against)
     finally:
         if session is not None:
             session.close()

@@ -196,6 +196,23 @@ def test_throughput_does_not_flap_near_the_limit_and_can_be_turned_off() -> None
     assert state.chosen_k == 0 and state.min_frame_share is None and state.frame_share_by_k is None
 
 
+def test_the_bar_ramps_down_when_the_best_share_falls_below_the_floor() -> None:
+    """k = 3 at 0.91 of the frames: the bar is 0.9. At 0.89 it was 0.8 x 0.89 at once, and the controller
+    left k = 3 for k = 0 at 0.76 on latency; now the bar is 0.88 there and falls to 0.8 x the best as
+    the best share falls by 0.1."""
+    core, _ = _core()
+    core.add_compute(_overlapped_robot(1000 / 30))
+    zeros: list[float | None] = [None] * 8
+    assert core.min_share(np.array([0.76, 0.5, 0.5, 0.91, 0.5, 0.5, 0.5, 0.5]), zeros) == 0.9
+    ran: list[float | None] = [40.0, None, None, 40.0, None, None, None, None]
+    bar = core.min_share(np.array([0.76, 0.5, 0.5, 0.89, 0.5, 0.5, 0.5, 0.5]), ran)
+    assert 0.86 < bar <= 0.89  # 0.9 - 0.1 x (0.9 - 0.712)
+    bar = core.min_share(np.array([0.76, 0.5, 0.5, 0.79, 0.5, 0.5, 0.5, 0.5]), ran)
+    assert bar == pytest.approx(0.8 * 0.79)  # past the ramp: the lower bar
+    # never above the best share, so the best cut stays eligible
+    assert core.min_share(np.array([0.3] * 8), zeros) <= 0.3
+
+
 def test_without_compute_keeps_up_only_the_uplink_counts() -> None:
     core, _ = _core(compute_keeps_up=False)
     core.add_compute(_overlapped_robot(1000 / 30))

@@ -77,6 +77,7 @@ class SplitController:
     UNTRIED_MARGIN = 1.1  # a cut not run lately keeps up only with its period this much within the bar
     DOUBT_REACH = 2  # cuts at most this far from one that fell behind its model are doubted as much ...
     MAX_DOUBT = 3.0  # ... by at most this factor
+    BAR_RAMP = 0.1  # the bar goes from min_frame_share to its lower value as the best share falls this much
 
     def __init__(
         self, settings: ControllerTuning | None = None, *, clock: Callable[[], float] = time.monotonic
@@ -277,16 +278,23 @@ class SplitController:
 
     def min_share(self, shares: np.ndarray, achieved: list[float | None]) -> float:
         """The share a cut must reach to count: min_frame_share where some cut gets there (by what it
-        achieved, or if it has not run lately by its period); else the best share a cut achieved, less
-        throughput_slack_rel of it. Only achieved shares set that bar: the model's are optimistic where
-        robot and edge share cores, and every cut it overrated would be tried in turn (a trial's
-        controller went to k = 1, the slowest by T(k), for 4 MB a frame at 4 fps); a cut not tried lately
-        is tried when its period promises at least that bar and its T(k) is the least."""
+        achieved, or if it has not run lately by its period); where none does, the best share a cut
+        achieved, less throughput_slack_rel of it. Only achieved shares set that lower bar: the model's
+        are optimistic where robot and edge share cores, and every cut it overrated would be tried in
+        turn (a trial's controller went to k = 1, the slowest by T(k), for 4 MB a frame at 4 fps); a cut
+        not tried lately is tried when its period promises at least that bar and its T(k) is the least.
+
+        Between the two the bar ramps down over BAR_RAMP of the best share, never above it: a jump from
+        0.9 to 0.8 x the best when the best fell from 0.91 to 0.89 made a cut at 0.76 eligible at once,
+        and the controller left the one at 0.89 for it on latency (found in review)."""
         floor = self.settings.min_frame_share
-        if float(shares.max()) >= floor:
+        top = float(shares.max())
+        if top >= floor:
             return floor
         ran = [float(v) for v, got in zip(shares, achieved, strict=True) if got is not None]
-        return (1 - self.settings.throughput_slack_rel) * max(ran or [float(shares.max())])
+        low = (1 - self.settings.throughput_slack_rel) * max(ran or [top])
+        ramp = min(1.0, (floor - top) / self.BAR_RAMP)
+        return min(top, floor - ramp * (floor - low))
 
     def eligible(self, shares: np.ndarray, limit: float, current_k: int) -> np.ndarray:
         """The cuts that keep up; the cut in use down to frame_share_hysteresis below the limit."""
