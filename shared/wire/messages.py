@@ -593,12 +593,9 @@ PerCut = Annotated[list[NonNegFloat], Field(min_length=N_CUTS, max_length=N_CUTS
 MaybePerCut = Annotated[list[NonNegFloat | None], Field(min_length=N_CUTS, max_length=N_CUTS)]
 
 
-class ComputeProfileV1(Message):
-    """ComputeProfile before the throughput fields; still decoded (as v2 with both None: a side's period
-    is then its ms per frame, and without the camera's rate the controller decides on latency alone).
-    Published on the v1 key, which the current controller does not read: recorded bytes decode."""
+class _ComputeProfileFields(Message):
+    """The fields every version of ComputeProfile has, in wire order (no schema of its own)."""
 
-    SCHEMA: ClassVar[str] = "splittag/ComputeProfile/v1"
     robot_id: RobotId
     side: Literal["robot", "edge"]
     stamp_nanos: int = Field(ge=0)
@@ -606,6 +603,14 @@ class ComputeProfileV1(Message):
     tags_per_frame: NonNegFloat
     live_scale: NonNegFloat  # live / calibrated time at current_k (1.0 until measured)
     ms_by_k: PerCut
+
+
+class ComputeProfileV1(_ComputeProfileFields):
+    """ComputeProfile before the throughput fields; still decoded (as v2 with both None: a side's period
+    is then its ms per frame, and without the camera's rate the controller decides on latency alone).
+    Published on the v1 key, which the current controller does not read: recorded bytes decode."""
+
+    SCHEMA: ClassVar[str] = "splittag/ComputeProfile/v1"
 
     def upgrade(self) -> ComputeProfile:
         """The same content as the current schema."""
@@ -613,7 +618,7 @@ class ComputeProfileV1(Message):
         return ComputeProfile(**fields, period_ms_by_k=None, frame_interval_ms=None)
 
 
-class ComputeProfile(Message):
+class ComputeProfile(_ComputeProfileFields):
     """One side's compute estimate for every split point, ms per frame at `tags_per_frame` tags.
 
     robot: C(k), everything the robot computes when cutting at k (stage 1 + head), gamma included;
@@ -621,18 +626,11 @@ class ComputeProfile(Message):
     the running median of live measurements at the k in use. Published at most once per second.
     `period_ms_by_k`: the time between frames this side needs at each cut when it never waits (its
     throughput limit): `ms_by_k`, or less where parts overlap (the robot's stage 1 of the next frame
-    beside this frame's network). `frame_interval_ms`: the median time between the camera's frames as
-    the robot receives them (robot only; None where unknown or for the edge).
+    beside this frame's network). `frame_interval_ms`: the camera's interval from its capture stamps and
+    frame numbers, as the robot receives its frames (robot only; None where unknown or for the edge).
     """
 
     SCHEMA: ClassVar[str] = "splittag/ComputeProfile/v2"
-    robot_id: RobotId
-    side: Literal["robot", "edge"]
-    stamp_nanos: int = Field(ge=0)
-    current_k: SplitIndex
-    tags_per_frame: NonNegFloat
-    live_scale: NonNegFloat  # live / calibrated time at current_k (1.0 until measured)
-    ms_by_k: PerCut
     period_ms_by_k: PerCut | None
     frame_interval_ms: NonNegFloat | None
 
@@ -641,10 +639,9 @@ class ComputeProfile(Message):
 CONTROLLER_WAITING: Final[str] = "waiting for the compute profiles of both sides"
 
 
-class ControllerStateV1(Message):
-    """ControllerState before throughput; still decoded (as v2 with the throughput fields None)."""
+class _ControllerStateFields(Message):
+    """The fields every version of ControllerState has, in wire order (no schema of its own)."""
 
-    SCHEMA: ClassVar[str] = "splittag/ControllerState/v1"
     robot_id: RobotId
     stamp_nanos: int = Field(ge=0)
     t0_ms: FiniteFloat
@@ -661,6 +658,18 @@ class ControllerStateV1(Message):
     pinned: bool
     applied: bool  # True when this decision changed the split through the split query
     reason: str
+
+    @property
+    def has_prediction(self) -> bool:
+        """predicted_ms_by_k is a prediction: both sides' compute profiles had arrived (before that the
+        controller sends zeros there, with the reason CONTROLLER_WAITING)."""
+        return not self.reason.startswith(CONTROLLER_WAITING)
+
+
+class ControllerStateV1(_ControllerStateFields):
+    """ControllerState before throughput; still decoded (as v2 with the throughput fields None)."""
+
+    SCHEMA: ClassVar[str] = "splittag/ControllerState/v1"
 
     def upgrade(self) -> ControllerState:
         """The same content as the current schema."""
@@ -675,7 +684,7 @@ class ControllerStateV1(Message):
         )
 
 
-class ControllerState(Message):
+class ControllerState(_ControllerStateFields):
     """What the adaptive split controller believes, predicts and did (one per decision).
 
     Throughput (None before both profiles, or where the camera's rate is unknown): `period_ms_by_k` is
@@ -687,33 +696,11 @@ class ControllerState(Message):
     chooses among those."""
 
     SCHEMA: ClassVar[str] = "splittag/ControllerState/v2"
-    robot_id: RobotId
-    stamp_nanos: int = Field(ge=0)
-    t0_ms: FiniteFloat
-    beta_ms_per_kB: FiniteFloat
-    link_samples: int = Field(ge=0)
-    link_changes: int = Field(ge=0)
-    robot_ms_by_k: PerCut
-    edge_ms_by_k: PerCut
-    payload_kB_by_k: PerCut
-    predicted_ms_by_k: PerCut
-    current_k: SplitIndex
-    best_k: SplitIndex
-    chosen_k: SplitIndex
-    pinned: bool
-    applied: bool  # True when this decision changed the split through the split query
-    reason: str
     period_ms_by_k: PerCut | None
     achieved_ms_by_k: MaybePerCut | None
     frame_interval_ms: NonNegFloat | None
     frame_share_by_k: PerCut | None
     min_frame_share: NonNegFloat | None
-
-    @property
-    def has_prediction(self) -> bool:
-        """predicted_ms_by_k is a prediction: both sides' compute profiles had arrived (before that the
-        controller sends zeros there, with the reason CONTROLLER_WAITING)."""
-        return not self.reason.startswith(CONTROLLER_WAITING)
 
 
 MESSAGE_TYPES: Final[tuple[type[Message], ...]] = (
