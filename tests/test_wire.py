@@ -405,6 +405,28 @@ def test_an_impossible_shape_is_a_wire_error_not_a_crash(schema: str, path: tupl
         decode(msgpack.packb(doc, use_bin_type=True))
 
 
+@pytest.mark.parametrize(
+    ("schema", "field", "value"),
+    [
+        ("splittag/ComputeProfile/v2", "frame_interval_ms", float("nan")),
+        ("splittag/ComputeProfile/v2", "frame_interval_ms", -33.3),
+        ("splittag/ComputeProfile/v2", "frame_interval_ms", float("inf")),
+        ("splittag/ComputeProfile/v2", "period_ms_by_k", [1.0] * 7),
+        ("splittag/ComputeProfile/v2", "period_ms_by_k", [1.0] * 7 + [-1.0]),
+        ("splittag/ControllerState/v2", "achieved_ms_by_k", [None] * 7 + [float("nan")]),
+        ("splittag/ControllerState/v2", "frame_share_by_k", [0.5] * 9),
+        ("splittag/ControllerState/v2", "min_frame_share", -0.1),
+    ],
+)
+def test_impossible_throughput_fields_are_refused(schema: str, field: str, value: object) -> None:
+    """The camera's interval and the per-cut periods, shares and intervals the controller decides on:
+    finite, not negative, one per cut (what the controller would otherwise divide by or index)."""
+    doc = msgpack.unpackb(encode(EXAMPLES[schema], framing=1), raw=False)
+    doc["body"][field] = value
+    with pytest.raises(WireError, match=field):
+        decode(pack_framing1(doc))
+
+
 @pytest.mark.parametrize("width", [float("nan"), float("inf"), -1.0, 1e9])
 def test_an_impossible_edge_width_is_refused(width: float) -> None:
     """Features v2's per-tag edge width (the fusion's blur measure) must be finite and 0..1000 px."""

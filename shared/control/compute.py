@@ -99,19 +99,20 @@ class ComputeEstimator:
 
     def ms_by_k(self, tags: float | None = None) -> list[float]:
         """Estimated ms per frame at every cut for `tags` tags (default: the running median)."""
-        n = self.tags_per_frame if tags is None else tags
-        fixed = self._fixed.get(0.0)
-        return [float(v) for v in fixed + n * self.per_tag_ms * self.live_scale]
+        fixed, network = self._parts(tags)
+        return [float(v) for v in fixed + network]
 
     def period_ms_by_k(self, *, overlapped: bool) -> list[float]:
         """The time between frames this side needs at every cut when it never waits: the whole frame's
         compute, or with `overlapped` (the fixed part of the next frame runs beside this frame's network,
         on a thread of its own) the longer of the two."""
-        n = self.tags_per_frame
-        fixed = self._fixed.get(0.0)
-        network = n * self.per_tag_ms * self.live_scale
-        per_frame = np.maximum(fixed, network) if overlapped else fixed + network
-        return [float(v) for v in per_frame]
+        fixed, network = self._parts(None)
+        return [float(v) for v in (np.maximum(fixed, network) if overlapped else fixed + network)]
+
+    def _parts(self, tags: float | None) -> tuple[float, np.ndarray]:
+        """ms per frame outside the network, and in it at every cut, for `tags` (default: the median)."""
+        n = self.tags_per_frame if tags is None else tags
+        return self._fixed.get(0.0), n * self.per_tag_ms * self.live_scale
 
     def message(
         self,
