@@ -479,26 +479,48 @@ def test_uplink_bounds_from_every_crossing() -> None:
 
 
 def test_a_large_frame_that_crossed_fast_bounds_x_stretched_by_a_busy_receiver() -> None:
-    """Loopback (x ~ 2.3 us/kB, t0 1 ms, clocks 1000 s apart): 256 kB frames arrive 100 ms apart because
-    the receiver is busy, not the link, and read as held back (x <= 0.4 ms/kB); then a 4 MB frame crosses
-    in 10 ms. Before, t0 came out at -1.6 s and every start the pacer re-anchored was 1.6 s late."""
+    """Loopback (x ~ 2.3 us/kB, t0 1 ms, clocks 1000 s apart): 256 kB frames sent 200 ms apart arrive
+    300 ms apart because the receiver is busy, not the link, and read as held back (x <= 1.2 ms/kB,
+    consistent with a FIFO link as no two arrived closer); then a 4 MB frame crosses in 10 ms. (Had it
+    arrived sooner after the one ahead than 1.2 ms/kB allows, that alone would refute x: below.) Before,
+    t0 came out at -1.6 s and every start the pacer re-anchored was 1.6 s late."""
     up = UplinkQueue()
     for i in range(5):
-        sent = 0.2 * i
         up.add(
             size_kB=256.0,
-            sent_secs=sent,
-            received_secs=1000.0 + sent + 0.0016 + (0.1 if i else 0.0),
-            previous_received_secs=None if i == 0 else 1000.0 + 0.2 * (i - 1) + 0.0016 + (0.1 if i > 1 else 0.0),
+            sent_secs=0.2 * i,
+            received_secs=1000.0016 + 0.3 * i,
+            previous_received_secs=None if i == 0 else 1000.0016 + 0.3 * (i - 1),
         )
-    assert up.x_secs_per_kB is not None and up.x_secs_per_kB > 1e-4  # the stretched spacing alone
-    up.add(size_kB=4096.0, sent_secs=2.0, received_secs=1002.010, previous_received_secs=1000.9016)
+    assert up.x_secs_per_kB == pytest.approx(0.3 / 256)  # the stretched spacing alone
+    # (5 s later: a FIFO link that takes 1.2 ms/kB could have carried it; no closer arrival refutes that)
+    up.add(size_kB=4096.0, sent_secs=6.0, received_secs=1006.010, previous_received_secs=1001.2016)
     x, t0 = up.x_secs_per_kB, up.t0_secs
     assert x is not None and t0 is not None
     allowance = UplinkQueue.PAIR_ALLOWANCE_SECS  # for the fastest crossing's own wait or jitter
     assert x == pytest.approx((0.010 - 0.0016 + allowance) / (4096 - 256), rel=1e-6)  # the two crossings
     assert up.transit_secs(4096.0) == pytest.approx(1000.010, abs=0.006)
     assert -0.005 < t0 - 1000.0 < 0.002  # within the allowance of the floor, not seconds below it
+
+
+def test_a_receiver_stall_is_not_a_slow_link() -> None:
+    """An edge-bound cut on loopback (256 kB frames every 45 ms, x ~ 2.3 us/kB): the edge's callback
+    stamps a frame 10 ms late now and then (its Python busy). That frame read as held back, x as 55 ms
+    / 256 kB, and the pacer then held each frame for a link 55 ms busy, leaving the edge idle (18 % of
+    the time in a bench.pipeline run at k = 0, 30 fps). A FIFO link cannot have held it: the next frame
+    arrived 35 ms after it, so no 256 kB frame occupies the link for 55 ms."""
+    up = UplinkQueue()
+    arrivals = [0.0016 + 0.045 * i + (0.010 if i in (5, 12) else 0.0) for i in range(20)]
+    for i, a in enumerate(arrivals):
+        up.add(
+            size_kB=256.0,
+            sent_secs=0.045 * i,
+            received_secs=1000.0 + a,
+            previous_received_secs=None if i == 0 else 1000.0 + arrivals[i - 1],
+        )
+        if i > 5:
+            assert up.x_secs_per_kB is None, i
+    assert up.t0_secs == pytest.approx(1000.0016)
 
 
 @pytest.mark.parametrize("jitter_secs", [0.0005, 0.002])

@@ -284,7 +284,8 @@ class UplinkQueue:
         self.stretch_fraction = stretch_fraction
         self.min_size_kB = min_size_kB
         self.window = window
-        self._spacing: deque[tuple[int, float]] = deque()  # (frame, (a - a_prev) / S) of held-back frames
+        self._spacing: deque[tuple[int, float, float]] = deque()  # (frame, (a - a_prev) / S, S) of held-back frames
+        self._pairs: deque[tuple[int, float, float]] = deque()  # the same of every frame of at least min_size_kB
         self._transits: deque[tuple[float, float]] = deque(maxlen=window)  # (a - s, S): t0's, given x
         self._last: tuple[float, float] | None = None  # the previous frame's (sent, received)
         self._frames = 0
@@ -305,7 +306,17 @@ class UplinkQueue:
         frames a second. x <= 0 is unknown (None), as before any held-back frame."""
         if not self._spacing:
             return None
-        x = min(bound for _, bound in self._spacing)
+        # FIFO: every message's arrival is at least its own occupancy after the one ahead, so the
+        # closest arrivals of the window bound x for all; a frame held back took exactly its occupancy.
+        least = min(bound for _, bound, _ in self._pairs)
+        credible = [
+            bound
+            for _, bound, kB in self._spacing
+            if bound * kB <= (1 + self.stretch_fraction) * least * kB + self.PAIR_ALLOWANCE_SECS
+        ]
+        if not credible:
+            return None
+        x = min(credible)
         fastest, fastest_kB = min(self._transits)
         for transit, kB in self._transits:
             # only a frame at least twice as large, and with PAIR_ALLOWANCE_SECS for the fastest one's own
@@ -336,21 +347,26 @@ class UplinkQueue:
         if size_kB <= 0:
             return
         self._frames += 1
-        while self._spacing and self._spacing[0][0] <= self._frames - self.window:
-            self._spacing.popleft()
+        for bounds in (self._spacing, self._pairs):
+            while bounds and bounds[0][0] <= self._frames - self.window:
+                bounds.popleft()
         self._transits.append((received_secs - sent_secs, size_kB))
         last, self._last = self._last, (sent_secs, received_secs)
         if last is None or previous_received_secs is None or received_secs <= previous_received_secs:
             return
+        if size_kB < self.min_size_kB:  # a per-message cost over 1 kB at k = 7 would read as a link 1000x too slow at k = 3
+            return
+        bound = (received_secs - previous_received_secs) / size_kB
+        self._pairs.append((self._frames, bound, size_kB))
         sent_apart, arrived_apart = sent_secs - last[0], received_secs - last[1]
-        # held back: arrived further apart than sent, by a margin jitter does not reach; a payload of a
-        # real size (a per-message cost over 1 kB at k = 7 would read as a link 1000x too slow at k = 3)
-        if arrived_apart > (1 + self.stretch_fraction) * max(sent_apart, 0.0) and size_kB >= self.min_size_kB:
-            self._spacing.append((self._frames, (received_secs - previous_received_secs) / size_kB))
+        # held back: arrived further apart than sent, by a margin jitter does not reach
+        if arrived_apart > (1 + self.stretch_fraction) * max(sent_apart, 0.0):
+            self._spacing.append((self._frames, bound, size_kB))
 
     def reset(self) -> None:
         """Another edge (another receiver clock, another link perhaps): learn afresh."""
         self._spacing.clear()
+        self._pairs.clear()
         self._transits.clear()
         self._last = None
 
