@@ -157,6 +157,7 @@ class Row:
     payload_bytes: float
     age: float
     edge_q: float
+    edge_busy: float  # share of the frames' span the edge spent computing them (NaN: none split)
     cpu: dict[str, float]  # % of one core per process, and "host"
 
 
@@ -202,8 +203,27 @@ def _row(label: str, recs: list[dict[str, Any]], elapsed: float, cpu: dict[str, 
         payload_bytes=float(np.median([r["payload_bytes"] for r in at_k])),
         age=float(np.nanmedian([r["before_robot_ms"] for r in at_k])),
         edge_q=float(np.nanmedian([r["at_edge_ms"] for r in at_k])),
+        edge_busy=busy_share(
+            [(r["edge_done_nanos"] - 1e6 * r["edge_ms"], r["edge_done_nanos"]) for r in at_k if r.get("sent_nanos")]
+        ),
         cpu=cpu,
     )
+
+
+def busy_share(intervals: list[tuple[float, float]]) -> float:
+    """The share of the span from the first interval's start to the last one's end that the union of
+    the (start, end) intervals covers: how much of the time a server was busy (NaN for no interval)."""
+    if not intervals:
+        return float("nan")
+    intervals = sorted(intervals)
+    covered, end = 0.0, intervals[0][0]
+    for lo, hi in intervals:
+        lo = max(lo, end)
+        if hi > lo:
+            covered += hi - lo
+            end = hi
+    span = max(hi for _, hi in intervals) - intervals[0][0]
+    return covered / span if span > 0 else float("nan")
 
 
 def _controller_note(
@@ -342,12 +362,15 @@ def print_table(args: argparse.Namespace, rows: list[Row], mode: Mode) -> None:
     the frames the pipeline could have turned into poses (1.0 = nothing lost to waiting). Where the
     waiting is: `age` = capture -> sent minus the robot's compute (how old the frame was when the robot
     took it, and any wait inside the robot), `edge q` = received -> pose minus the edge's compute
-    (queueing at the edge); medians. `cpu %`: each process's CPU time over the window (all its threads;
-    100 = one core; `bench` is this process, the monitor), `4 procs` = their sum / the CPUs this run may
-    use, `host` = the whole machine's busy share (anything else running shows as host - 4 procs): near
-    1.0 the services wait for a core, not for each other. The `auto` row (`--auto`): the controller
-    chose k; `k share` = the window's frames at the `k` shown, `switch` = split changes among all the
-    window's frames; its latencies, compute times and fps are the frames' at that k (see _row)."""
+    (queueing at the edge); medians. `edge busy` = the share of the time from the row's first split
+    frame's edge start to its last one's end that the edge spent computing them (an edge-bound cut
+    below 1.0 waited for frames: the robot's or the pacer's doing). `cpu %`: each process's CPU time
+    over the window (all its threads; 100 = one core; `bench` is this process, the monitor), `4 procs` =
+    their sum / the CPUs this run may use, `host` = the whole machine's busy share (anything else running
+    shows as host - 4 procs): near 1.0 the services wait for a core, not for each other. The `auto` row
+    (`--auto`): the controller chose k; `k share` = the window's frames at the `k` shown, `switch` = split
+    changes among all the window's frames; its latencies, compute times and fps are the frames' at that k
+    (see _row)."""
     print(
         f"camera {args.fps} fps, window {args.window_secs} s per k, loopback, 2-core CPU, {args.precision}, rerun "
         f"{'on' if args.rerun else 'off'}, tracking {'on' if mode.tracking else 'off'}, "
@@ -359,7 +382,8 @@ def print_table(args: argparse.Namespace, rows: list[Row], mode: Mode) -> None:
     print(
         f"{'row':>4} {'k':>2} {'cut':<10} {'k share':>7} {'switch':>6} {'fps':>6} {'e2e p50':>8} {'e2e p99':>8} "
         f"{'robot':>7} {'link':>6} {'edge':>6} "
-        f"{'path':>6} {'e2e/path':>9} {'age':>6} {'edge q':>7} {'fps x slowest':>14} {'fps/cap':>8} {'tags':>5} "
+        f"{'path':>6} {'e2e/path':>9} {'age':>6} {'edge q':>7} {'edge busy':>9} {'fps x slowest':>14} "
+        f"{'fps/cap':>8} {'tags':>5} "
         f"{'msg kB':>8} {'cpu % ' + '/'.join(n.removesuffix('_infer') for n in CPU_OF):>31} {'4 procs':>7} "
         f"{'host':>5}"
     )
@@ -371,7 +395,8 @@ def print_table(args: argparse.Namespace, rows: list[Row], mode: Mode) -> None:
         print(
             f"{r.label:>4} {r.k:>2} {CUTS[r.k].name:<10} {r.k_share:>7.2f} {r.switches:>6d} {r.fps:>6.1f} "
             f"{r.e2e_p50:>8.1f} {r.e2e_p99:>8.1f} {r.robot:>7.1f} {r.link:>6.1f} {r.edge:>6.1f} "
-            f"{path:>6.1f} {r.e2e_p50 / path:>9.2f} {r.age:>6.1f} {r.edge_q:>7.1f} {r.fps * slower / 1e3:>14.2f} "
+            f"{path:>6.1f} {r.e2e_p50 / path:>9.2f} {r.age:>6.1f} {r.edge_q:>7.1f} {r.edge_busy:>9.2f} "
+            f"{r.fps * slower / 1e3:>14.2f} "
             f"{r.fps / cap:>8.2f} {r.tags:>5.1f} {r.payload_bytes / 1024:>8.1f} "
             f"{'/'.join(f'{r.cpu[n]:.0f}' for n in CPU_OF):>31} "
             f"{sum(r.cpu[n] for n in CPU_OF) / (100 * cores):>7.2f} {r.cpu['host'] / 100:>5.2f}"

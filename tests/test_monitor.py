@@ -121,6 +121,7 @@ def test_the_monitor_says_where_frames_wait_outside_their_compute() -> None:
     first, on_board = monitor.records
     assert abs(first["before_robot_ms"] - 10.0) < 1e-6 and abs(first["at_edge_ms"] - 3.0) < 1e-6
     assert np.isnan(on_board["before_robot_ms"]) and np.isnan(on_board["at_edge_ms"])
+    assert first["edge_done_nanos"] == c + 60 * ms and np.isnan(on_board["edge_done_nanos"])
     assert "capture->pose   60.0 ms (frame age 10.0)" in monitor.line(), monitor.line()
     summary = monitor.summary()
     assert abs(summary["frame_age_ms_p50"] - 10.0) < 1e-6 and abs(summary["edge_queue_ms_p50"] - 3.0) < 1e-6
@@ -544,3 +545,13 @@ def test_every_controller_state_is_kept_in_the_run_folder(tmp_path: Path) -> Non
     assert [line["chosen_k"] for line in lines[:3]] == [0, 1, 2] and lines[3]["reason"] == "pinned"
     assert set(lines[0]) >= {"robot_ms_by_k", "edge_ms_by_k", "payload_kB_by_k", "predicted_ms_by_k", "pinned", "t0_ms"}
     assert ControllerState.model_validate(lines[0]) == state.model_copy(update={"stamp_nanos": 1_000, "chosen_k": 0})
+
+
+def test_the_edges_busy_share_is_the_union_of_its_frames_compute_over_their_span() -> None:
+    """bench.pipeline's `edge busy`: frames computed 0-40 and 50-90 ms (idle 10 ms), one inside another's
+    interval not counted twice (a second robot's lane), span 0-100 ms with one more frame at 95-100."""
+    from bench.pipeline import busy_share
+
+    assert busy_share([(50.0, 90.0), (0.0, 40.0), (60.0, 70.0), (95.0, 100.0)]) == pytest.approx(0.85)
+    assert busy_share([(0.0, 10.0), (5.0, 20.0)]) == pytest.approx(1.0)
+    assert np.isnan(busy_share([]))

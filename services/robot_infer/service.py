@@ -131,7 +131,11 @@ class RobotInfer:
         self.window: InFlightWindow[Features] = InFlightWindow(s.max_in_flight, timeout_secs=s.in_flight_timeout_secs)
         uplink = UplinkQueue() if s.pace_to_link else None  # the uplink as a queue, not a delay
         paced = s.pace_to_edge and s.max_in_flight
-        self.pacer = EdgePacer(uplink=uplink, stale_secs=s.in_flight_timeout_secs) if paced else None
+        self.pacer = (
+            EdgePacer(uplink=uplink, stale_secs=s.in_flight_timeout_secs, margin_spreads=s.pace_margin_spreads)
+            if paced
+            else None
+        )
         self.watch = EdgeWatch(answer_timeout_secs=s.edge_answer_timeout_secs)
         self.guard = InputGuard("robot_infer")
         persist_input_counts(self.guard, s.run_dir, label=s.robot_id)

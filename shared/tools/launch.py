@@ -296,15 +296,17 @@ def _waits_ms(msg: TagPoses) -> dict[str, float]:
     """Where a frame waited outside the critical path (robot + link + edge compute), from its stamps:
     `before_robot_ms` = capture -> sent minus the robot's compute (the frame's age when the robot took it,
     plus any wait between its stage 1 and its network); `at_edge_ms` = received -> pose minus the edge's
-    compute (queueing behind earlier frames). NaN for a frame computed on board (no link stamps). Each
-    difference is on one clock (the robot's, the edge's)."""
+    compute (queueing behind earlier frames); `edge_done_nanos`: when the edge finished it (its clock).
+    NaN for a frame computed on board (no link stamps). Each difference is on one clock (the robot's,
+    the edge's)."""
     t, link = msg.timings, msg.link
     if link is None:
-        return {"before_robot_ms": float("nan"), "at_edge_ms": float("nan")}
+        return {"before_robot_ms": float("nan"), "at_edge_ms": float("nan"), "edge_done_nanos": float("nan")}
     done_nanos = msg.capture_nanos + t.capture_to_pose_secs * 1e9  # on the edge's clock
     return {
         "before_robot_ms": (link.sent_nanos - msg.capture_nanos) / 1e6 - 1e3 * t.robot_compute_secs,
         "at_edge_ms": (done_nanos - link.received_nanos) / 1e6 - 1e3 * t.edge_compute_secs,
+        "edge_done_nanos": done_nanos,
     }
 
 

@@ -256,7 +256,14 @@ class UplinkQueue:
     frame's link time early, which finds the link free (a smaller bound on x) or waits a little (x
     exactly). Only frames the link held back give bounds on x: frames that arrived more than
     `stretch_fraction` further apart than they were sent (margin over jitter), of at least
-    `min_size_kB`. Where the camera, the robot or the edge is slower, every spacing is theirs, a loose
+    `min_size_kB`, and only while no closer pair of arrivals in the window refutes it: in a FIFO every
+    arrival comes at least its own occupancy x S after the message ahead, so a held-back frame's
+    (a - a_prev) / S above (1 + `stretch_fraction`) times the window's least (a - a_prev) / S, plus
+    PAIR_ALLOWANCE_SECS of jitter, was not the link's doing. On loopback at k = 0 the edge's callback
+    stamped a frame 10 ms late now and then (its Python busy); the frame read as held back, x as 55 ms
+    per 256 kB, t0 as -54 ms, and the pacer held every frame for that link, leaving the edge idle 13-27 %
+    of the time (the next frame, arriving 35 ms after the late one, shows no link took 55 ms). Where the
+    camera, the robot or the edge is slower, every spacing is theirs, a loose
     bound that made the link look exactly as slow as the camera and held frames until the next one was
     due (a frame dropped from the latest-only ring at 2 fps: found by
     tests/test_pipeline_multiprocess.py); with no held-back frame in the window x is unknown and the
@@ -354,8 +361,8 @@ class UplinkQueue:
         last, self._last = self._last, (sent_secs, received_secs)
         if last is None or previous_received_secs is None or received_secs <= previous_received_secs:
             return
-        if size_kB < self.min_size_kB:  # a per-message cost over 1 kB at k = 7 would read as a link 1000x too slow at k = 3
-            return
+        if size_kB < self.min_size_kB:
+            return  # a per-message cost over 1 kB at k = 7 would read as a link 1000x too slow at k = 3
         bound = (received_secs - previous_received_secs) / size_kB
         self._pairs.append((self._frames, bound, size_kB))
         sent_apart, arrived_apart = sent_secs - last[0], received_secs - last[1]
@@ -387,6 +394,13 @@ class EdgePacer:
     robot's pacer, and each robot kept its whole window queued there: twice the latency for the same
     throughput. Thread-safe: answers arrive on Zenoh's threads. The in-flight window stays the hard cap.
 
+    R is a mean, and a frame whose stage 1 runs longer (more candidates, a core shared with the edge)
+    reaches the edge after it has freed: an edge-bound chain then idles by the overrun. With
+    `margin_spreads` m each frame starts m mean absolute deviations of the robot's compute earlier than
+    R alone says, so that most frames wait a little at the edge instead (k = 0 at 30 fps on a 2-core
+    box, three interleaved rounds: m = 0 / 1 / 2 kept the edge busy 0.86-0.87 / 0.90-0.91 / 0.90-0.91 of
+    the time, at 1.7-4.0 / 3.9-4.7 / 4.5-5.9 ms of edge queue; docs/pipeline.md).
+
     With an `uplink` (UplinkQueue, fed here with every answered frame's payload and link stamps) the
     link is a server too, not a delay: the pipe takes frame n without a wait from F_n = max(s_n,
     F_(n-1)) + x S_n on (robot clock), the frame arrives at F_n + t0 and L above becomes its transit on
@@ -403,15 +417,20 @@ class EdgePacer:
         clock: Callable[[], float] = time.monotonic,
         uplink: UplinkQueue | None = None,
         stale_secs: float = 2.0,
+        margin_spreads: float = 0.0,
     ) -> None:
         if not 0 < smoothing <= 1:
             raise ValueError("smoothing must be in (0, 1]")
+        if margin_spreads < 0:
+            raise ValueError("margin_spreads must be >= 0")
+        self._margin_spreads = margin_spreads
         self._stale_secs = stale_secs  # a frame unanswered this long is forgotten (its answer was lost)
         self._alpha = smoothing
         self._clock = clock
         self._lock = threading.Lock()
         self.uplink = uplink
         self.robot_secs = 0.0
+        self.robot_spread_secs = 0.0  # mean absolute deviation of the robot's compute from robot_secs
         self.link_secs = 0.0
         self.payload_kB = 0.0
         self.tags = 0.0
@@ -446,14 +465,15 @@ class EdgePacer:
         with self._lock:
             x = self._x()
             transit = None if self.uplink is None else self.uplink.transit_secs(self.payload_kB)
+            robot = self.robot_secs + self._margin_spreads * self.robot_spread_secs
             if self.uplink is None or x is None or transit is None:
-                start = self._last_done_at - self.robot_secs - self.link_secs
+                start = self._last_done_at - robot - self.link_secs
             else:
                 link_free = self._link_free_at
                 if self._frames_sent % self.uplink.probe_every == self.uplink.probe_every - 1:
                     link_free -= self.uplink.probe_fraction * x * self.payload_kB  # see UplinkQueue
                 # on the uplink as the frame ahead has crossed it, at the edge as the edge frees up
-                start = max(link_free, self._last_done_at - transit) - self.robot_secs
+                start = max(link_free, self._last_done_at - transit) - robot
             return max(0.0, start - self._clock())
 
     def sent(
@@ -466,6 +486,8 @@ class EdgePacer:
             now = self._clock() if sent_at is None else sent_at
             kB = payload_bytes / 1024.0
             self._frames_sent += 1
+            if self.robot_secs:
+                self.robot_spread_secs += self._alpha * (abs(robot_secs - self.robot_secs) - self.robot_spread_secs)
             self.robot_secs = self._avg(self.robot_secs, robot_secs)
             self.payload_kB = self._avg(self.payload_kB, kB)
             self.tags = self._avg(self.tags, float(tags))
