@@ -576,6 +576,20 @@ def test_the_pair_bound_does_not_take_x_far_below_the_links_under_arrival_jitter
     assert min(ratios) >= 0.9, sorted(ratios)[:5]
 
 
+def test_a_small_frames_stamp_jitter_does_not_refute_a_slow_links_held_back_frame() -> None:
+    """A slow FIFO link (t0 40 ms, 0.6 ms/kB): a 512 kB frame crosses free (307 ms); a 16 kB frame sent
+    7.2 ms later arrives right behind it, its stamp 2 ms early against the one ahead (9.6 ms of
+    occupancy read as 7.6, not stretched enough to count as held back); a 512 kB frame sent with it is
+    held back behind it, exactly 307.2 ms. The allowance for jitter is per pair of arrivals: compared
+    per kB, the small frame's 2 ms became 64 ms of a 512 kB frame's and refuted the exact bound (x
+    unknown)."""
+    up = UplinkQueue()
+    up.add(size_kB=512.0, sent_secs=0.0, received_secs=0.3472, previous_received_secs=None)
+    up.add(size_kB=16.0, sent_secs=0.0072, received_secs=0.3548, previous_received_secs=0.3472)
+    up.add(size_kB=512.0, sent_secs=0.0072, received_secs=0.6620, previous_received_secs=0.3548)
+    assert up.x_secs_per_kB == pytest.approx(0.3072 / 512)
+
+
 def test_credits_follow_the_time_in_flight_over_the_chains_period() -> None:
     assert credits_needed(cycle_secs=0.62, period_secs=0.3, floor=2, ceiling=6) == 3
     assert credits_needed(cycle_secs=0.6, period_secs=0.3, floor=2, ceiling=6) == 2  # exactly two periods

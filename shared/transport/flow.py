@@ -258,8 +258,8 @@ class UplinkQueue:
     `stretch_fraction` further apart than they were sent (margin over jitter), of at least
     `min_size_kB`, and only while no closer pair of arrivals in the window refutes it: in a FIFO every
     arrival comes at least its own occupancy x S after the message ahead, so a held-back frame's
-    (a - a_prev) / S above (1 + `stretch_fraction`) times the window's least (a - a_prev) / S, plus
-    PAIR_ALLOWANCE_SECS of jitter, was not the link's doing. On loopback at k = 0 the edge's callback
+    (a - a_prev) / S above any frame's ((1 + `stretch_fraction`) (a - a_prev) + PAIR_ALLOWANCE_SECS) / S
+    (the margin and the jitter allowance per pair) was not the link's doing. On loopback at k = 0 the edge's callback
     stamped a frame 10 ms late now and then (its Python busy); the frame read as held back, x as 55 ms
     per 256 kB, t0 as -54 ms, and the pacer held every frame for that link, leaving the edge idle 13-27 %
     of the time (the next frame, arriving 35 ms after the late one, shows no link took 55 ms). Where the
@@ -291,7 +291,7 @@ class UplinkQueue:
         self.stretch_fraction = stretch_fraction
         self.min_size_kB = min_size_kB
         self.window = window
-        self._spacing: deque[tuple[int, float, float]] = deque()  # (frame, (a - a_prev) / S, S) of held-back frames
+        self._spacing: deque[tuple[int, float, float]] = deque()  # (frame, a - a_prev, S) of held-back frames
         self._pairs: deque[tuple[int, float, float]] = deque()  # the same of every frame of at least min_size_kB
         self._transits: deque[tuple[float, float]] = deque(maxlen=window)  # (a - s, S): t0's, given x
         self._last: tuple[float, float] | None = None  # the previous frame's (sent, received)
@@ -313,14 +313,13 @@ class UplinkQueue:
         frames a second. x <= 0 is unknown (None), as before any held-back frame."""
         if not self._spacing:
             return None
-        # FIFO: every message's arrival is at least its own occupancy after the one ahead, so the
-        # closest arrivals of the window bound x for all; a frame held back took exactly its occupancy.
-        least = min(bound for _, bound, _ in self._pairs)
-        credible = [
-            bound
-            for _, bound, kB in self._spacing
-            if bound * kB <= (1 + self.stretch_fraction) * least * kB + self.PAIR_ALLOWANCE_SECS
-        ]
+        # FIFO: every message arrives at least its own occupancy x S after the one ahead, so each pair
+        # of arrivals in the window bounds x (with the held-back margin and a jitter allowance per pair);
+        # a frame held back took exactly its occupancy, and one whose bound breaks them was not.
+        limit = min(
+            ((1 + self.stretch_fraction) * apart + self.PAIR_ALLOWANCE_SECS) / kB for _, apart, kB in self._pairs
+        )
+        credible = [apart / kB for _, apart, kB in self._spacing if apart / kB <= limit]
         if not credible:
             return None
         x = min(credible)
@@ -363,12 +362,12 @@ class UplinkQueue:
             return
         if size_kB < self.min_size_kB:
             return  # a per-message cost over 1 kB at k = 7 would read as a link 1000x too slow at k = 3
-        bound = (received_secs - previous_received_secs) / size_kB
-        self._pairs.append((self._frames, bound, size_kB))
+        after_ahead = received_secs - previous_received_secs
+        self._pairs.append((self._frames, after_ahead, size_kB))
         sent_apart, arrived_apart = sent_secs - last[0], received_secs - last[1]
         # held back: arrived further apart than sent, by a margin jitter does not reach
         if arrived_apart > (1 + self.stretch_fraction) * max(sent_apart, 0.0):
-            self._spacing.append((self._frames, bound, size_kB))
+            self._spacing.append((self._frames, after_ahead, size_kB))
 
     def reset(self) -> None:
         """Another edge (another receiver clock, another link perhaps): learn afresh."""
