@@ -259,14 +259,14 @@ class UplinkQueue:
     `min_size_kB`, and only while no closer pair of arrivals in the window refutes it: in a FIFO every
     arrival comes at least its own occupancy x S after the message ahead, so a held-back frame's
     (a - a_prev) / S above any frame's ((1 + `stretch_fraction`) (a - a_prev) + PAIR_ALLOWANCE_SECS) / S
-    (the margin and the jitter allowance per pair) was not the link's doing. On loopback at k = 0 the edge's callback
-    stamped a frame 10 ms late now and then (its Python busy); the frame read as held back, x as 55 ms
-    per 256 kB, t0 as -54 ms, and the pacer held every frame for that link, leaving the edge idle 13-27 %
-    of the time (the next frame, arriving 35 ms after the late one, shows no link took 55 ms). Where the
-    camera, the robot or the edge is slower, every spacing is theirs, a loose
-    bound that made the link look exactly as slow as the camera and held frames until the next one was
-    due (a frame dropped from the latest-only ring at 2 fps: found by
-    tests/test_pipeline_multiprocess.py); with no held-back frame in the window x is unknown and the
+    (the margin and the jitter allowance per pair) was not the link's doing. On loopback at k = 0 the
+    edge's callback stamped a frame 10 ms late now and then (its Python busy); the frame read as held
+    back, x as 55 ms per 256 kB, t0 as -54 ms, and the pacer held every frame for that link, leaving the
+    edge idle 13-27 % of the time (the next frame, arriving 35 ms after the late one, shows no link took
+    55 ms). Where the camera, the robot or the edge is slower, every spacing is theirs, a loose bound
+    that made the link look exactly as slow as the camera and held frames until the next one was due (a
+    frame dropped from the latest-only ring at 2 fps: found by tests/test_pipeline_multiprocess.py);
+    with no held-back frame in the window x is unknown and the
     measured L stands in, as before. t0 is not probed: after the floor falls, frames paced on the old t0
     queue behind each other by the fall until one finds the link idle, which any lateness of a frame
     does (with 2 ms of arrival jitter the simulated chain is back at the new path's latency; on a link
