@@ -310,7 +310,12 @@ class UplinkQueue:
         Without it, spacings stretched by a busy receiver rather than the link (a 2-core box, the
         controller trying cuts of 0.26-4 MB a frame) read as 0.4 ms/kB; a 4 MB frame that crossed in
         10 ms then put t0 at -1.6 s, every re-anchored start 1.6-3 s late, and the robot posed 0.6
-        frames a second. x <= 0 is unknown (None), as before any held-back frame."""
+        frames a second. x <= 0 is unknown (None), as before any held-back frame.
+
+        Known limit: where every frame of the window queued (a saturated link, nothing paced), the
+        fastest crossing waited too, and this bound falls below x by its wait over the size difference
+        (a burst of 16-512 kB frames on a 0.6 ms/kB link read 0.11 ms/kB). Paced frames find the link
+        nearly free, so the pacer's own chains keep one."""
         if not self._spacing:
             return None
         # FIFO: every message arrives at least its own occupancy x S after the one ahead, so each pair
