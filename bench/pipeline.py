@@ -204,7 +204,11 @@ def _row(label: str, recs: list[dict[str, Any]], elapsed: float, cpu: dict[str, 
         age=float(np.nanmedian([r["before_robot_ms"] for r in at_k])),
         edge_q=float(np.nanmedian([r["at_edge_ms"] for r in at_k])),
         edge_busy=busy_share(
-            [(r["edge_done_nanos"] - 1e6 * r["edge_ms"], r["edge_done_nanos"]) for r in at_k if r.get("sent_nanos")]
+            [
+                (r["edge_done_nanos"] - 1e6 * r["edge_ms"], r["edge_done_nanos"])
+                for r in recs
+                if r["sent_nanos"] is not None
+            ]
         ),
         cpu=cpu,
     )
@@ -362,9 +366,11 @@ def print_table(args: argparse.Namespace, rows: list[Row], mode: Mode) -> None:
     the frames the pipeline could have turned into poses (1.0 = nothing lost to waiting). Where the
     waiting is: `age` = capture -> sent minus the robot's compute (how old the frame was when the robot
     took it, and any wait inside the robot), `edge q` = received -> pose minus the edge's compute
-    (queueing at the edge); medians. `edge busy` = the share of the time from the row's first split
-    frame's edge start to its last one's end that the edge spent computing them (an edge-bound cut
-    below 1.0 waited for frames: the robot's or the pacer's doing). `cpu %`: each process's CPU time
+    (queueing at the edge); medians. `edge busy` = the share of the time from the window's first split
+    frame's edge compute to its last one's end that the edge spent computing frames (any cut's; the
+    row's other columns are its main cut's): below 1.0 on an edge-bound cut the edge was not computing,
+    mostly waiting for frames (the robot's or the pacer's doing), partly its own decoding, checks and
+    publishing, which its compute time leaves out. `cpu %`: each process's CPU time
     over the window (all its threads; 100 = one core; `bench` is this process, the monitor), `4 procs` =
     their sum / the CPUs this run may use, `host` = the whole machine's busy share (anything else running
     shows as host - 4 procs): near 1.0 the services wait for a core, not for each other. The `auto` row

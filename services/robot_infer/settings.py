@@ -75,7 +75,8 @@ class RobotInferSettings(ServiceSettings):
     pace_to_link: bool = True
     # The pacer starts each frame this many mean absolute deviations of the robot's compute time earlier
     # than its mean alone says: a frame whose stage 1 runs long then still reaches an edge-bound chain's
-    # edge before it frees (EdgePacer). 0 = aim at the mean (the edge idles by every overrun).
+    # edge before it frees (EdgePacer); the price is that much wait at the edge, or on a link-bound
+    # chain's uplink. 0 = aim at the mean (the edge idles by every overrun).
     pace_margin_spreads: float = Field(default=1.0, ge=0.0)
     in_flight_timeout_secs: float = Field(default=2.0, gt=0)  # a frame never answered returns its credit
     # A frame captured further ahead of this host's clock is refused (a camera's clock set wrong): slam

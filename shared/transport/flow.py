@@ -256,17 +256,21 @@ class UplinkQueue:
     frame's link time early, which finds the link free (a smaller bound on x) or waits a little (x
     exactly). Only frames the link held back give bounds on x: frames that arrived more than
     `stretch_fraction` further apart than they were sent (margin over jitter), of at least
-    `min_size_kB`, and only while no closer pair of arrivals in the window refutes it: in a FIFO every
-    arrival comes at least its own occupancy x S after the message ahead, so a held-back frame's
-    (a - a_prev) / S above any frame's ((1 + `stretch_fraction`) (a - a_prev) + PAIR_ALLOWANCE_SECS) / S
-    (the margin and the jitter allowance per pair) was not the link's doing. On loopback at k = 0 the
-    edge's callback stamped a frame 10 ms late now and then (its Python busy); the frame read as held
-    back, x as 55 ms per 256 kB, t0 as -54 ms, and the pacer held every frame for that link, leaving the
-    edge idle 13-27 % of the time (the next frame, arriving 35 ms after the late one, shows no link took
-    55 ms). Where the camera, the robot or the edge is slower, every spacing is theirs, a loose bound
-    that made the link look exactly as slow as the camera and held frames until the next one was due (a
-    frame dropped from the latest-only ring at 2 fps: found by tests/test_pipeline_multiprocess.py);
-    with no held-back frame in the window x is unknown and the
+    `min_size_kB`, and only once the frame after it has been answered without refuting it: in a FIFO
+    every arrival comes at least its own occupancy x S after the message ahead, so where the next frame,
+    right behind a held-back one, arrived too soon after it for that bound (its gap a - a_prev, times 1
+    + `stretch_fraction`, plus PAIR_ALLOWANCE_SECS, shorter than the bound times its own size S), the
+    held-back one's stamp was late, not the link slow. On loopback at k = 0 the edge's callback stamped
+    a frame 10 ms late now and then (its Python busy); the frame read as held back, x as 55 ms per 256
+    kB, t0 as -54 ms, and the pacer held every frame for that link, leaving the edge idle 13-27 % of the
+    time (the next frame arrived 35 ms after the late one: no link took 55 ms). The check is the frame's
+    own successor only: a late stamp on a link that does hold frames back drops that one bound, not the
+    others (a review found a first version, which took the window's closest pair of arrivals against
+    every bound, losing x for 20 frames to one late stamp), and a message between the two (an echo
+    probe) leaves the bound unchecked. Where the camera, the robot or the edge is slower, every spacing
+    is theirs, a loose bound that made the link look exactly as slow as the camera and held frames until
+    the next one was due (a frame dropped from the latest-only ring at 2 fps: found by
+    tests/test_pipeline_multiprocess.py); with no held-back frame in the window x is unknown and the
     measured L stands in, as before. t0 is not probed: after the floor falls, frames paced on the old t0
     queue behind each other by the fall until one finds the link idle, which any lateness of a frame
     does (with 2 ms of arrival jitter the simulated chain is back at the new path's latency; on a link
@@ -291,8 +295,8 @@ class UplinkQueue:
         self.stretch_fraction = stretch_fraction
         self.min_size_kB = min_size_kB
         self.window = window
-        self._spacing: deque[tuple[int, float, float]] = deque()  # (frame, a - a_prev, S) of held-back frames
-        self._pairs: deque[tuple[int, float, float]] = deque()  # the same of every frame of at least min_size_kB
+        # per answered frame: (frame, a, a_prev (None: nothing ahead), a - a_prev (None: unknown), S, held back)
+        self._log: deque[tuple[int, float, float | None, float | None, float, bool]] = deque(maxlen=window)
         self._transits: deque[tuple[float, float]] = deque(maxlen=window)  # (a - s, S): t0's, given x
         self._last: tuple[float, float] | None = None  # the previous frame's (sent, received)
         self._frames = 0
@@ -316,18 +320,30 @@ class UplinkQueue:
         fastest crossing waited too, and this bound falls below x by its wait over the size difference
         (a burst of 16-512 kB frames on a 0.6 ms/kB link read 0.11 ms/kB). Paced frames find the link
         nearly free, so the pacer's own chains keep one."""
-        if not self._spacing:
+        # FIFO: every message arrives at least its own occupancy x S after the one ahead. A held-back
+        # frame took exactly its occupancy; if the next frame, right behind it, arrived sooner after it
+        # than that occupancy allows for its own size (with the held-back margin and a jitter allowance),
+        # the first one's stamp was late (a busy receiver), not the link slow. A bound counts once the
+        # frame after it has been answered: a late stamp is only told apart by what follows it.
+        log = self._log
+        bounds = []
+        for j in range(len(log) - 1):
+            _, received, _, after_ahead, kB, held = log[j]
+            if not held or after_ahead is None:  # (held implies a gap)
+                continue
+            _, _, next_ahead_at, next_after, next_kB, _ = log[j + 1]
+            bound = after_ahead / kB
+            if (
+                next_after is not None
+                and next_ahead_at is not None
+                and abs(next_ahead_at - received) < 1e-6  # the message ahead of it was this frame
+                and bound * next_kB > (1 + self.stretch_fraction) * next_after + self.PAIR_ALLOWANCE_SECS
+            ):
+                continue
+            bounds.append(bound)
+        if not bounds:
             return None
-        # FIFO: every message arrives at least its own occupancy x S after the one ahead, so each pair
-        # of arrivals in the window bounds x (with the held-back margin and a jitter allowance per pair);
-        # a frame held back took exactly its occupancy, and one whose bound breaks them was not.
-        limit = min(
-            ((1 + self.stretch_fraction) * apart + self.PAIR_ALLOWANCE_SECS) / kB for _, apart, kB in self._pairs
-        )
-        credible = [apart / kB for _, apart, kB in self._spacing if apart / kB <= limit]
-        if not credible:
-            return None
-        x = min(credible)
+        x = min(bounds)
         fastest, fastest_kB = min(self._transits)
         for transit, kB in self._transits:
             # only a frame at least twice as large, and with PAIR_ALLOWANCE_SECS for the fastest one's own
@@ -358,26 +374,21 @@ class UplinkQueue:
         if size_kB <= 0:
             return
         self._frames += 1
-        for bounds in (self._spacing, self._pairs):
-            while bounds and bounds[0][0] <= self._frames - self.window:
-                bounds.popleft()
         self._transits.append((received_secs - sent_secs, size_kB))
         last, self._last = self._last, (sent_secs, received_secs)
-        if last is None or previous_received_secs is None or received_secs <= previous_received_secs:
-            return
-        if size_kB < self.min_size_kB:
-            return  # a per-message cost over 1 kB at k = 7 would read as a link 1000x too slow at k = 3
-        after_ahead = received_secs - previous_received_secs
-        self._pairs.append((self._frames, after_ahead, size_kB))
-        sent_apart, arrived_apart = sent_secs - last[0], received_secs - last[1]
-        # held back: arrived further apart than sent, by a margin jitter does not reach
-        if arrived_apart > (1 + self.stretch_fraction) * max(sent_apart, 0.0):
-            self._spacing.append((self._frames, after_ahead, size_kB))
+        after_ahead = None
+        held = False
+        if last is not None and previous_received_secs is not None and received_secs > previous_received_secs:
+            after_ahead = received_secs - previous_received_secs
+            sent_apart, arrived_apart = sent_secs - last[0], received_secs - last[1]
+            # held back: arrived further apart than sent, by a margin jitter does not reach; a payload of a
+            # real size (a per-message cost over 1 kB at k = 7 would read as a link 1000x too slow at k = 3)
+            held = size_kB >= self.min_size_kB and arrived_apart > (1 + self.stretch_fraction) * max(sent_apart, 0.0)
+        self._log.append((self._frames, received_secs, previous_received_secs, after_ahead, size_kB, held))
 
     def reset(self) -> None:
         """Another edge (another receiver clock, another link perhaps): learn afresh."""
-        self._spacing.clear()
-        self._pairs.clear()
+        self._log.clear()
         self._transits.clear()
         self._last = None
 
@@ -402,8 +413,10 @@ class EdgePacer:
     reaches the edge after it has freed: an edge-bound chain then idles by the overrun. With
     `margin_spreads` m each frame starts m mean absolute deviations of the robot's compute earlier than
     R alone says, so that most frames wait a little at the edge instead (k = 0 at 30 fps on a 2-core
-    box, three interleaved rounds: m = 0 / 1 / 2 kept the edge busy 0.86-0.87 / 0.90-0.91 / 0.90-0.91 of
-    the time, at 1.7-4.0 / 3.9-4.7 / 4.5-5.9 ms of edge queue; docs/pipeline.md).
+    box, six interleaved rounds: m = 0 / 1 kept the edge busy 0.86-0.88 / 0.89-0.91 of the time, at
+    1.7-4.0 / 3.8-4.7 ms of edge queue; docs/pipeline.md). On a link-bound chain the same margin is a
+    wait on the uplink (the simulated 300 ms link of tests/test_flow.py: 393 -> 397 ms at m = 1), and
+    after a change of cut, while R moves to the new cut's time, the spread reads that move as well.
 
     With an `uplink` (UplinkQueue, fed here with every answered frame's payload and link stamps) the
     link is a server too, not a delay: the pipe takes frame n without a wait from F_n = max(s_n,
