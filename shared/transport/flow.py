@@ -17,12 +17,14 @@ the next one).
 
 from __future__ import annotations
 
+import itertools
 import math
 import statistics
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Generic, TypeVar
 
 from shared.wire.messages import LinkStamps
@@ -236,6 +238,19 @@ class EdgeWatch:
             return not self._alive or oldest_in_flight_secs > self.answer_timeout_secs
 
 
+@dataclass
+class _Crossing:
+    """One answered frame's crossing, as UplinkQueue keeps it: its arrival (receiver clock), size,
+    gap after the message ahead (None: unknown), and what that says."""
+
+    received: float
+    kB: float
+    after_ahead: float | None = None
+    held: bool = False  # arrived further apart from the frame before than it was sent
+    late: bool = False  # held back by its gap, but the frame right behind it came too soon: a late stamp
+    catch_up: bool = False  # right behind a late stamp: its gap is short by the lateness
+
+
 class UplinkQueue:
     """The uplink as the pacer needs it, from answered frames' link stamps alone: how long a frame of
     S kB occupies the link (x S) and its transit when it finds the link free (t0 + x S).
@@ -295,11 +310,9 @@ class UplinkQueue:
         self.stretch_fraction = stretch_fraction
         self.min_size_kB = min_size_kB
         self.window = window
-        # per answered frame: (frame, a, a_prev (None: nothing ahead), a - a_prev (None: unknown), S, held back)
-        self._log: deque[tuple[int, float, float | None, float | None, float, bool]] = deque(maxlen=window)
+        self._log: deque[_Crossing] = deque(maxlen=window)  # the answered frames' crossings, oldest first
         self._transits: deque[tuple[float, float]] = deque(maxlen=window)  # (a - s, S): t0's, given x
         self._last: tuple[float, float] | None = None  # the previous frame's (sent, received)
-        self._frames = 0
 
     @property
     def x_secs_per_kB(self) -> float | None:
@@ -320,27 +333,22 @@ class UplinkQueue:
         fastest crossing waited too, and this bound falls below x by its wait over the size difference
         (a burst of 16-512 kB frames on a 0.6 ms/kB link read 0.11 ms/kB). Paced frames find the link
         nearly free, so the pacer's own chains keep one."""
-        # FIFO: every message arrives at least its own occupancy x S after the one ahead. A held-back
-        # frame took exactly its occupancy; if the next frame, right behind it, arrived sooner after it
-        # than that occupancy allows for its own size (with the held-back margin and a jitter allowance),
-        # the first one's stamp was late (a busy receiver), not the link slow. A bound counts once the
-        # frame after it has been answered: a late stamp is only told apart by what follows it.
+        # FIFO: every message arrives at least its own occupancy x S after the one ahead, so every gap
+        # bounds x (with the held-back margin and a jitter allowance per gap), and a held-back frame took
+        # exactly its occupancy. A stamp that came late (a busy receiver) makes one gap too long, which
+        # reads as held back, and the next one too short (both marked in `add`, and left out here); the
+        # other bounds must agree with every other gap of the window. A bound counts once the frame after
+        # it has been answered: a late stamp is only told apart by what follows it.
         log = self._log
-        bounds = []
-        for j in range(len(log) - 1):
-            _, received, _, after_ahead, kB, held = log[j]
-            if not held or after_ahead is None:  # (held implies a gap)
-                continue
-            _, _, next_ahead_at, next_after, next_kB, _ = log[j + 1]
-            bound = after_ahead / kB
-            if (
-                next_after is not None
-                and next_ahead_at is not None
-                and abs(next_ahead_at - received) < 1e-6  # the message ahead of it was this frame
-                and bound * next_kB > (1 + self.stretch_fraction) * next_after + self.PAIR_ALLOWANCE_SECS
-            ):
-                continue
-            bounds.append(bound)
+        limit = min(
+            (self._slack(e.after_ahead) / e.kB for e in log if e.after_ahead is not None and not e.catch_up),
+            default=math.inf,
+        )
+        bounds = [
+            e.after_ahead / e.kB
+            for e in itertools.islice(log, max(0, len(log) - 1))
+            if e.held and not e.late and e.after_ahead is not None and e.after_ahead / e.kB <= limit
+        ]
         if not bounds:
             return None
         x = min(bounds)
@@ -352,6 +360,10 @@ class UplinkQueue:
             if kB >= 2 * fastest_kB and kB >= self.min_size_kB:
                 x = min(x, (transit - fastest + self.PAIR_ALLOWANCE_SECS) / (kB - fastest_kB))
         return x if x > 0 else None
+
+    def _slack(self, after_ahead_secs: float) -> float:
+        """The most occupancy a gap between two arrivals allows, with the held-back margin and jitter."""
+        return (1 + self.stretch_fraction) * after_ahead_secs + self.PAIR_ALLOWANCE_SECS
 
     @property
     def t0_secs(self) -> float | None:
@@ -373,18 +385,28 @@ class UplinkQueue:
         of it received (None: nothing ahead since the receiver started) on the receiver's."""
         if size_kB <= 0:
             return
-        self._frames += 1
         self._transits.append((received_secs - sent_secs, size_kB))
         last, self._last = self._last, (sent_secs, received_secs)
-        after_ahead = None
-        held = False
+        entry = _Crossing(received_secs, size_kB)
         if last is not None and previous_received_secs is not None and received_secs > previous_received_secs:
-            after_ahead = received_secs - previous_received_secs
+            entry.after_ahead = received_secs - previous_received_secs
             sent_apart, arrived_apart = sent_secs - last[0], received_secs - last[1]
             # held back: arrived further apart than sent, by a margin jitter does not reach; a payload of a
             # real size (a per-message cost over 1 kB at k = 7 would read as a link 1000x too slow at k = 3)
-            held = size_kB >= self.min_size_kB and arrived_apart > (1 + self.stretch_fraction) * max(sent_apart, 0.0)
-        self._log.append((self._frames, received_secs, previous_received_secs, after_ahead, size_kB, held))
+            entry.held = size_kB >= self.min_size_kB and arrived_apart > (1 + self.stretch_fraction) * max(
+                sent_apart, 0.0
+            )
+            ahead = self._log[-1] if self._log else None
+            if (
+                ahead is not None
+                and ahead.held
+                and ahead.after_ahead is not None
+                and abs(previous_received_secs - ahead.received) < 1e-6  # right behind it, nothing between
+                and ahead.after_ahead / ahead.kB * size_kB > self._slack(entry.after_ahead)
+            ):
+                ahead.late = True  # its bound is out: its stamp came late
+                entry.catch_up = True  # and this gap is short by as much
+        self._log.append(entry)
 
     def reset(self) -> None:
         """Another edge (another receiver clock, another link perhaps): learn afresh."""
