@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import threading
 from functools import partial
 from typing import Any
@@ -494,8 +495,16 @@ def test_pacer_starts_early_by_the_robots_spread_so_an_edge_bound_chain_stays_bu
     assert fps == pytest.approx(fps_mean, rel=1e-3) and latency == pytest.approx(latency_mean, rel=1e-3)
     assert fps >= 0.99 / (robot_bound["robot"] + 0.010)  # back to back
     assert latency <= robot_bound["robot"] + 0.020 + robot_bound["t0"] + robot_bound["edge"]  # no wait anywhere
-    with pytest.raises(ValueError):
-        EdgePacer(margin_spreads=-1.0)
+    for bad in (-1.0, math.inf, math.nan):
+        with pytest.raises(ValueError, match="margin_spreads"):
+            EdgePacer(margin_spreads=bad)
+    from pydantic import ValidationError
+
+    from services.robot_infer.settings import RobotInferSettings
+
+    for bad in (-0.5, math.inf, math.nan):
+        with pytest.raises(ValidationError, match="pace_margin_spreads"):
+            RobotInferSettings(pace_margin_spreads=bad)
 
 
 def test_uplink_bounds_from_every_crossing() -> None:

@@ -77,7 +77,7 @@ class RobotInferSettings(ServiceSettings):
     # than its mean alone says: a frame whose stage 1 runs long then still reaches an edge-bound chain's
     # edge before it frees (EdgePacer); the price is that much wait at the edge, or on a link-bound
     # chain's uplink. 0 = aim at the mean (the edge idles by every overrun).
-    pace_margin_spreads: float = Field(default=1.0, ge=0.0)
+    pace_margin_spreads: float = Field(default=1.0, ge=0.0, allow_inf_nan=False)
     in_flight_timeout_secs: float = Field(default=2.0, gt=0)  # a frame never answered returns its credit
     # A frame captured further ahead of this host's clock is refused (a camera's clock set wrong): slam
     # refuses its poses anyway, and its latencies read negative on the way there.

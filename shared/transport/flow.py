@@ -313,9 +313,14 @@ class UplinkQueue:
         self._log: deque[_Crossing] = deque(maxlen=window)  # the answered frames' crossings, oldest first
         self._transits: deque[tuple[float, float]] = deque(maxlen=window)  # (a - s, S): t0's, given x
         self._last: tuple[float, float] | None = None  # the previous frame's (sent, received)
+        self._x: float | None = None  # x_secs_per_kB, as of the latest answered frame
 
     @property
     def x_secs_per_kB(self) -> float | None:
+        """The link's time per kB (worked out by `add` once per answered frame: see `_x_from_window`)."""
+        return self._x
+
+    def _x_from_window(self) -> float | None:
         """The link's time per kB, from the frames it held back among the last `window` (None: none was;
         an old bound would keep an x the link has since outgrown, and a paced frame would never show it),
         and at most what a larger frame's crossing allows after the fastest one's.
@@ -407,12 +412,14 @@ class UplinkQueue:
                 ahead.late = True  # its bound is out: its stamp came late
                 entry.catch_up = True  # and this gap is short by as much
         self._log.append(entry)
+        self._x = self._x_from_window()
 
     def reset(self) -> None:
         """Another edge (another receiver clock, another link perhaps): learn afresh."""
         self._log.clear()
         self._transits.clear()
         self._last = None
+        self._x = None
 
 
 class EdgePacer:
@@ -437,8 +444,9 @@ class EdgePacer:
     R alone says, so that most frames wait a little at the edge instead (k = 0 at 30 fps on a 2-core
     box, six interleaved rounds: m = 0 / 1 kept the edge busy 0.86-0.88 / 0.89-0.91 of the time, at
     1.7-4.0 / 3.8-4.7 ms of edge queue; docs/pipeline.md). On a link-bound chain the same margin is a
-    wait on the uplink (the simulated 300 ms link of tests/test_flow.py: 393 -> 397 ms at m = 1), and
-    after a change of cut, while R moves to the new cut's time, the spread reads that move as well.
+    wait on the uplink (the simulated 300 ms link of tests/test_flow.py with 0-20 ms of robot jitter:
+    393 -> 397 ms at m = 1), and after a change of cut, while R moves to the new cut's time, the
+    spread reads that move as well.
 
     With an `uplink` (UplinkQueue, fed here with every answered frame's payload and link stamps) the
     link is a server too, not a delay: the pipe takes frame n without a wait from F_n = max(s_n,
@@ -460,8 +468,8 @@ class EdgePacer:
     ) -> None:
         if not 0 < smoothing <= 1:
             raise ValueError("smoothing must be in (0, 1]")
-        if margin_spreads < 0:
-            raise ValueError("margin_spreads must be >= 0")
+        if not 0 <= margin_spreads < math.inf:
+            raise ValueError(f"margin_spreads must be finite and >= 0, got {margin_spreads}")
         self._margin_spreads = margin_spreads
         self._stale_secs = stale_secs  # a frame unanswered this long is forgotten (its answer was lost)
         self._alpha = smoothing
