@@ -284,6 +284,21 @@ def _against_pinned(auto: Row, pinned: list[Row]) -> str:
     )
 
 
+def _model_against_pinned(state: ControllerState | None, pinned: list[Row]) -> str:
+    """The controller's predicted T(k) at the end of the auto row against each pinned row's measured
+    critical path (robot + link + edge medians) in the same run: how well its model of the cuts held
+    ('' without a prediction or pinned rows). The pinned rows ran earlier, under the same load."""
+    if state is None or not state.has_prediction or not pinned:
+        return ""
+    cells = [
+        f"k = {r.k} {state.predicted_ms_by_k[r.k]:.0f} / {r.robot + r.link + r.edge:.0f} ms = "
+        f"{state.predicted_ms_by_k[r.k] / (r.robot + r.link + r.edge):.2f}"
+        for r in sorted(pinned, key=lambda r: r.k)
+        if r.robot + r.link + r.edge > 0
+    ]
+    return "controller's T(k) against the pinned rows' path (predicted / measured): " + ", ".join(cells)
+
+
 def measure(args: argparse.Namespace, mode: Mode, notes: list[str]) -> list[Row]:
     """Start the services (robot_infer's tracking, pacing and stage-1 proposers on or off), sweep k, then
     (`--auto`) start the controller, pin k = --auto-from, release the pin and let the controller choose;
@@ -352,6 +367,8 @@ def measure(args: argparse.Namespace, mode: Mode, notes: list[str]) -> list[Row]
             )
             if against := _against_pinned(row, rows[:-1]):
                 notes.append(against)
+            if model := _model_against_pinned(monitor.controller, rows[:-1]):
+                notes.append(model)
     finally:
         if session is not None:
             session.close()

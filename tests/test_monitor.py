@@ -555,3 +555,21 @@ def test_the_edges_busy_share_is_the_union_of_its_frames_compute_over_their_span
     assert busy_share([(50.0, 90.0), (0.0, 40.0), (60.0, 70.0), (95.0, 100.0)]) == pytest.approx(0.85)
     assert busy_share([(0.0, 10.0), (5.0, 20.0)]) == pytest.approx(1.0)
     assert np.isnan(busy_share([]))
+
+
+def test_the_controllers_model_is_set_against_the_pinned_rows_paths() -> None:
+    """bench.pipeline's third auto line: predicted T(k) at the end of the auto row over each pinned row's
+    robot + link + edge; nothing without a prediction."""
+    from bench.pipeline import Row, _model_against_pinned
+    from shared.wire.messages import CONTROLLER_WAITING, ControllerState
+
+    state = example_messages()[ControllerState.SCHEMA]
+    assert isinstance(state, ControllerState)  # predicted 100 ms at k = 0, 90 at k = 5
+
+    def row(k: int, robot: float, link: float, edge: float) -> Row:
+        return Row(str(k), k, 1.0, 0, 15.0, 90.0, 120.0, robot, link, edge, 3.5, 1e3, 4.0, 0.5, 0.5, {})
+
+    line = _model_against_pinned(state, [row(5, 50.0, 5.0, 20.0), row(0, 30.0, 10.0, 40.0)])
+    assert line.endswith("k = 0 100 / 80 ms = 1.25, k = 5 90 / 75 ms = 1.20")
+    waiting = state.model_copy(update={"reason": CONTROLLER_WAITING})
+    assert _model_against_pinned(waiting, [row(0, 30.0, 10.0, 40.0)]) == "" == _model_against_pinned(state, [])
