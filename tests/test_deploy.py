@@ -355,6 +355,40 @@ def test_a_session_that_can_never_open_is_a_configuration_error(tmp_path: Path) 
     assert out.returncode == 1 and "cannot open its Zenoh session" in out.stderr, out.stderr
 
 
+def test_a_stop_while_the_session_opens_ends_the_service_at_once(tmp_path: Path) -> None:
+    """A launcher stopping the run while the router a service dials is not up (robot_infer refused its
+    settings, so the robot's router never came): the camera sat in zenoh.open for its 30 s connect
+    timeout, ignored the SIGINT and was killed after 15 s (a trial). Now it stops at once, exit 0."""
+    import signal
+    import sys
+    import time
+
+    from shared.transport.session import free_tcp_port
+
+    environ = {
+        **os.environ,
+        "SPLITTAG_SLAM_RUN_DIR": str(tmp_path / "run"),
+        "SPLITTAG_SLAM_ZENOH__MODE": "client",
+        "SPLITTAG_SLAM_ZENOH__CONNECT": f'["tcp/127.0.0.1:{free_tcp_port()}"]',  # nothing listens there
+        "SPLITTAG_SLAM_ZENOH__CONNECT_TIMEOUT_SECS": "60",
+    }
+    log = tmp_path / "slam.log"
+    with log.open("w") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "services.slam"], cwd=REPO, env=environ, stderr=out)
+    try:
+        deadline = time.monotonic() + 60
+        while "zenoh" not in log.read_text() and time.monotonic() < deadline:  # its settings logged: opening
+            time.sleep(0.1)
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=10) == 0, log.read_text()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert "stopped before its Zenoh session opened" in log.read_text(), log.read_text()
+
+
 def test_up_only_runs_one_hosts_part_of_two_hosts(tmp_path: Path) -> None:
     """deploy/two_host.toml as two launchers, one per host (`up --only edge`, `up --only robot`, the same
     config, runs folders of their own): each starts its own part, the robot's watches the poses at the

@@ -47,3 +47,22 @@ def test_an_untimed_wait_misses_it() -> None:
     """What the helpers are for: the same wait without them sits out its whole 8 s."""
     out = subprocess.run([sys.executable, "-c", SCRIPT, "plain"], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert out.stdout.startswith("timed out"), out.stdout + out.stderr
+
+
+def test_result_unless_set_gives_the_result_its_error_or_none_once_stopped() -> None:
+    import threading
+    from concurrent.futures import Future
+
+    from shared.runtime.waiting import result_unless_set
+
+    stop = threading.Event()
+    done: Future[int] = Future()
+    done.set_result(3)
+    assert result_unless_set(done, stop) == 3
+    failed: Future[int] = Future()
+    failed.set_exception(ValueError("no router"))
+    with pytest.raises(ValueError, match="no router"):
+        result_unless_set(failed, stop)
+    pending: Future[int] = Future()
+    threading.Timer(0.2, stop.set).start()
+    assert result_unless_set(pending, stop, poll_secs=0.05) is None

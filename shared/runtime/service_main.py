@@ -10,6 +10,7 @@ import signal
 import threading
 import tomllib
 from collections.abc import Callable
+from concurrent.futures import Future
 from pathlib import Path
 from typing import TypeVar
 
@@ -22,6 +23,7 @@ from shared.runtime.cpus import CpuPlacementError, pin_cpus
 from shared.runtime.errors import one_line_error
 from shared.runtime.logs import setup_logging
 from shared.runtime.settings import CONFIG_EXIT, SOURCE_ENDED_EXIT, ConfigurationError, ServiceSettings
+from shared.runtime.waiting import result_unless_set
 from shared.transport.session import ZenohSettings, certificate_problem, open_session, zenoh_log_from_env
 from shared.vision.files import atomic_write_text
 from shared.vision.geometry import CameraFileError
@@ -83,6 +85,38 @@ def open_error_line(exc: zenoh.ZError) -> str:
     return text
 
 
+def _open_unless_stopped(zenoh_settings: ZenohSettings, stop: threading.Event) -> zenoh.Session | None:
+    """The service's Zenoh session (its errors raised here), or None if `stop` is set while it opens.
+    zenoh.open blocks for up to `connect_timeout_secs` when the router it dials is not up, without
+    running Python, so a stop signal's handler would wait for it: it opens on a thread of its own while
+    the main thread waits on both. A session that opens after the stop is closed, not left open."""
+    opened: Future[zenoh.Session] = Future()
+    lock = threading.Lock()
+    abandoned = threading.Event()
+
+    def open_it() -> None:
+        try:
+            session = open_session(zenoh_settings)
+        except BaseException as exc:  # (handed to the main thread, which decides)
+            opened.set_exception(exc)
+            return
+        with lock:
+            if abandoned.is_set():
+                session.close()
+            else:
+                opened.set_result(session)
+
+    threading.Thread(target=open_it, name="zenoh-open", daemon=True).start()
+    session = result_unless_set(opened, stop)
+    if session is not None:
+        return session
+    with lock:
+        abandoned.set()
+        if opened.done() and opened.exception() is None:  # opened just as the stop came
+            opened.result().close()
+    return None
+
+
 def service_main(
     name: str,
     settings_cls: type[S],
@@ -122,7 +156,7 @@ def service_main(
     zenoh_log_from_env()  # (RUST_LOG: zenoh's own log in this service's, e.g. access control's refusals)
     try:
         # A certificate that is not there, tls/ endpoints without TLS settings: the settings' fault.
-        session = open_session(settings.zenoh)
+        session = _open_unless_stopped(settings.zenoh, stop)
     except (FileNotFoundError, ValueError) as exc:
         log.error("%s: configuration error: zenoh: %s", name, one_line_error(exc))
         return CONFIG_EXIT
@@ -134,6 +168,11 @@ def service_main(
         # launcher retries and prints it with each restart
         log.error("%s: cannot open its Zenoh session: %s", name, open_error_line(exc))
         return 1
+    if session is None:
+        # (a launcher stopping the run while the router this service dials is not up: a trial's camera
+        # sat in zenoh.open for its 30 s connect timeout and was killed after 15)
+        log.info("%s stopped before its Zenoh session opened", name)
+        return 0
     code = 0
     try:
         if run(settings, session, stop) is SOURCE_ENDED and not stop.is_set():

@@ -30,3 +30,14 @@ def until_set(event: threading.Event, *, poll_secs: float = POLL_SECS) -> None:
     """`event.wait()`, returning to the interpreter every `poll_secs` so that signal handlers run."""
     while not event.wait(poll_secs):
         pass
+
+
+def result_unless_set(future: Future[T], stop: threading.Event, *, poll_secs: float = POLL_SECS) -> T | None:
+    """`future.result()` (its exception raised alike), or None as soon as `stop` is set first; returning
+    to the interpreter every `poll_secs` so that signal handlers run."""
+    while not stop.is_set():
+        try:
+            return future.result(timeout=poll_secs)
+        except TimeoutError:
+            continue
+    return None
