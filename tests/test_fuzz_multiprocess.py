@@ -19,7 +19,7 @@ from shared.tools.launch import Monitor, attach_monitor, demo_tag_map
 from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
 from shared.vision.camera import CameraIntrinsics
 from shared.wire import keys
-from shared.wire.messages import CameraPose, Frame, Message, TagPoses, decode, encode
+from shared.wire.messages import CameraPose, Features, Frame, Message, TagPoses, decode, encode
 from tests.conftest import DeployConfig
 from tests.examples import example_messages
 from tests.procs import processes, start_process, wait_until
@@ -83,6 +83,10 @@ def test_no_message_kills_a_service(tmp_path: Path, deploy_config: DeployConfig)
         poses: list[CameraPose] = []
         raw_poses: list[bytes] = []
         subs.append(session.declare_subscriber(keys.tag_poses(ROBOT), lambda s: raw_poses.append(s.payload.to_bytes())))
+        raw_features: list[bytes] = []
+        subs.append(
+            session.declare_subscriber(keys.features(ROBOT), lambda s: raw_features.append(s.payload.to_bytes()))
+        )
         subs.append(
             session.declare_subscriber(
                 keys.camera_pose(ROBOT), lambda s: poses.append(decode(s.payload.to_bytes(), CameraPose))
@@ -102,6 +106,8 @@ def test_no_message_kills_a_service(tmp_path: Path, deploy_config: DeployConfig)
                 robot_id=ROBOT, seq=9_000, capture_nanos=1, intrinsics=tiny, image=np.zeros((4, 4), np.uint8)
             )
             real = raw_poses[-1]  # a real TagPoses (slam has fused it), re-sent below
+            wait_until(lambda: len(raw_features) >= 1, 30, "a real Features")
+            real_features = decode(raw_features[-1], Features)  # (the example's tensors are not a real cut's)
             tag = ("tags", 0)
             crashes = {
                 "robot_infer": (
@@ -129,6 +135,12 @@ def test_no_message_kills_a_service(tmp_path: Path, deploy_config: DeployConfig)
                             ),
                         ),
                         _with(ex["Features"], ("intrinsics", "distortion"), [0.1, 0.0, 0.0]),
+                        # a real one captured an hour ahead (a trial's: posed; frames.csv read e2e -3598793 ms)
+                        encode(
+                            real_features.model_copy(
+                                update={"seq": 9_004, "capture_nanos": time.time_ns() + 3600 * 10**9}
+                            )
+                        ),
                     ],
                 ),
                 "slam": (

@@ -573,3 +573,24 @@ def test_the_controllers_model_is_set_against_the_pinned_rows_paths() -> None:
     assert line.endswith("k = 0 100 / 80 ms = 1.25, k = 5 90 / 75 ms = 1.20")
     waiting = state.model_copy(update={"reason": CONTROLLER_WAITING})
     assert _model_against_pinned(waiting, [row(0, 30.0, 10.0, 40.0)]) == "" == _model_against_pinned(state, [])
+
+
+def test_poses_captured_ahead_of_the_clock_or_before_the_run_are_counted_not_recorded() -> None:
+    """A trial's made-up Features an hour ahead were posed by the edge (before it refused them) and a
+    TagPoses captured in 1970 was re-published: frames.csv read e2e -3598793 ms and a frame age of 1.8e12 ms.
+    The run's records keep this run's frames only; slam refuses those poses as well."""
+    poses = example_messages()[TagPoses.SCHEMA]
+    assert isinstance(poses, TagPoses)
+    now = poses.capture_nanos + 50_000_000  # the example frame was captured 50 ms ago
+    monitor = Monitor(None, not_before_nanos=now - 60 * 10**9, wall_clock_nanos=lambda: now)
+    monitor.on_poses(encode(poses))
+    ahead = poses.model_copy(update={"seq": poses.seq + 1, "capture_nanos": now + 3600 * 10**9})
+    before = poses.model_copy(update={"seq": poses.seq + 2, "capture_nanos": 1_000})
+    for msg in (ahead, before):
+        monitor.on_poses(encode(msg))
+    assert [r["seq"] for r in monitor.records] == [poses.seq] and monitor.frames_total == 1
+    summary = monitor.summary()
+    assert summary["out_of_time_messages"] == 2 and summary["frames"] == 1
+    late_ok = poses.model_copy(update={"seq": poses.seq + 3, "capture_nanos": now + 59 * 10**9})  # within the bound
+    monitor.on_poses(encode(late_ok))
+    assert monitor.frames_total == 2

@@ -36,7 +36,7 @@ from shared.transport.session import declare_tensor_publisher, encoding_for
 from shared.vision.tagmap import TagMapFile, load_tag_map
 from shared.viz.recording import make_viz
 from shared.wire import keys
-from shared.wire.messages import ComputeProfile, Features, TagPoses, decode_for_robot, encode
+from shared.wire.messages import ComputeProfile, Features, TagPoses, decode_for_robot, encode, refuse_future_capture
 
 log = logging.getLogger(__name__)
 
@@ -297,6 +297,7 @@ class EdgeInfer:
     def _decode(self, item: _Item, lane: Lane) -> EdgeInput:
         s, emulated = self.settings, self.emulated
         features = decode_for_robot(item.payload, Features, item.robot_id, max_bytes=s.max_payload_bytes)
+        refuse_future_capture(features, now_nanos=time.time_ns(), ahead_nanos=round(s.max_capture_ahead_secs * 1e9))
         check_features(features)
         min_secs = len(features.tags) * emulated[features.split_k] / 1e3 if emulated else 0.0
         return EdgeInput(features, item.received, item.previous, len(item.payload), lane.tag_map, min_secs)

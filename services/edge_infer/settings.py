@@ -52,6 +52,10 @@ class EdgeInferSettings(ServiceSettings):
     # Where the network is split (cuts 1..6) it runs once per ROI whatever this says.
     views: Views = 1
     serve_echo: bool = True  # the link-probe echo queryable lives on the edge
+    # Features captured further ahead of this host's clock are refused, as robot_infer refuses such frames
+    # (a robot sending Features of its own with its clock set wrong, or a made-up message): slam refuses
+    # their poses anyway, and their latencies read negative in the run's records.
+    max_capture_ahead_secs: float = Field(default=60.0, gt=0)
     queue_depth: int = Field(default=2, ge=1)  # Features waiting for the edge; small = bounded latency
     profile_period_secs: float = Field(default=1.0, gt=0)  # ComputeProfile E(k) publication period
     # Emulating another edge CPU: a fixed per-tag tail time (PnP included) at every cut, ms. Frames are

@@ -38,7 +38,7 @@ from shared.vision.proposals import Stage1Detector
 from shared.vision.tagmap import TagMapFile, load_tag_map
 from shared.vision.tracking import TagTracker
 from shared.wire import keys
-from shared.wire.codec import SchemaError, WireError
+from shared.wire.codec import WireError
 from shared.wire.cuts import N_CUTS, CodecName
 from shared.wire.messages import (
     ComputeProfile,
@@ -51,6 +51,7 @@ from shared.wire.messages import (
     decode_for_robot,
     decode_view,
     encode,
+    refuse_future_capture,
 )
 
 log = logging.getLogger(__name__)
@@ -61,12 +62,7 @@ def checked_frame(
 ) -> Frame:
     """A Frame for this robot (decode_for_robot), captured at most `ahead_nanos` ahead of this host's clock."""
     frame = decode_for_robot(payload, Frame, robot_id, max_bytes=max_bytes)
-    ahead = frame.capture_nanos - now_nanos()
-    if ahead > ahead_nanos:
-        raise SchemaError(
-            f"Frame seq {frame.seq} captured {ahead / 1e9:.1f} s ahead of this host's clock (more than "
-            f"{ahead_nanos / 1e9:g} s: is the camera's clock set?)"
-        )
+    refuse_future_capture(frame, now_nanos=now_nanos(), ahead_nanos=ahead_nanos)
     return frame
 
 

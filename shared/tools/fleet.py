@@ -449,7 +449,13 @@ def run_fleet(
     # (without a map its world is its anchor tag's, and the error read 369 cm for poses 0.1 cm right).
     slam_has_map = "tag_map" in {**base.get("slam", {}), **extra.get("slam", {})}
     monitors = {
-        r: Monitor(run_tags, max_records=200_000, slam_has_map=slam_has_map, at_robot=only == r)
+        r: Monitor(
+            run_tags,
+            max_records=200_000,
+            slam_has_map=slam_has_map,
+            at_robot=only == r,
+            not_before_nanos=time.time_ns() - 60_000_000_000,  # (frames of this run only)
+        )
         for r in plan.robots
         if only in (None, "edge", r)
     }

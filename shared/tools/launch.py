@@ -375,6 +375,14 @@ class Monitor:
     # replay or a duplicating route): counted, not recorded again (a trial's 53 repeats read as 168 frames of 115)
     repeated: int = 0
     _recent_frames: dict[tuple[int, int], None] = field(default_factory=dict)
+    # TagPoses of a frame captured more than `max_capture_ahead_secs` ahead of this host's clock, or before
+    # `not_before_nanos` (the launcher: a minute before its run began): counted, not recorded (a trial's made-up
+    # Features an hour ahead were posed by the edge, and frames.csv read e2e -3598793 ms; one captured in 1970,
+    # frame age 1.8e12 ms). slam refuses such poses too. Their latencies are not this run's.
+    out_of_time: int = 0
+    max_capture_ahead_secs: float = 60.0
+    not_before_nanos: int | None = None
+    wall_clock_nanos: Callable[[], int] = time.time_ns  # (a fake in tests)
     # the data set's own stamp of each frame (FrameStamp), by capture time: frames.csv's `source_stamp`,
     # the key of the run's trajectory.tum and of the data set's ground truth (the newest 20000 frames)
     _source_stamps: dict[int, int] = field(default_factory=dict)
@@ -400,6 +408,15 @@ class Monitor:
         """Record one TagPoses message."""
         msg = self._decode(payload, TagPoses)
         if msg is None:
+            return
+        ahead_secs = (msg.capture_nanos - self.wall_clock_nanos()) / 1e9
+        if ahead_secs > self.max_capture_ahead_secs or (
+            self.not_before_nanos is not None and msg.capture_nanos < self.not_before_nanos
+        ):
+            with self._lock:
+                self.out_of_time += 1
+            when = "before this run" if ahead_secs <= 0 else f"{ahead_secs:.0f} s ahead of this host's clock"
+            log.warning("monitor: TagPoses seq %d captured %s: not recorded", msg.seq, when)
             return
         with self._lock:
             if (msg.capture_nanos, msg.seq) in self._recent_frames:
@@ -660,6 +677,8 @@ class Monitor:
         out: dict[str, Any] = {"frames": len(recs), "frames_total": self.frames_total, "bad_messages": self.bad}
         if self.repeated:
             out["repeated_messages"] = self.repeated
+        if self.out_of_time:
+            out["out_of_time_messages"] = self.out_of_time
         captured = max(self.gt_total, self.stamps_total)
         if captured:  # robot_infer takes the newest frame: a camera faster than the robot skips frames
             out["frames_captured"] = captured
@@ -1560,7 +1579,9 @@ def run_pipeline(
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     from shared.tools.linkemu import read_events
 
-    monitor = Monitor(run_tags, max_records=200_000, at_robot=only == "robot")  # a deployment may run for days
+    monitor = Monitor(  # a deployment may run for days
+        run_tags, max_records=200_000, at_robot=only == "robot", not_before_nanos=time.time_ns() - 60_000_000_000
+    )
     frames_csv = FramesCsv(
         run_dir / "frames.csv",
         monitor,

@@ -830,6 +830,18 @@ def decode_for_robot(
     return cast(M, message)
 
 
+def refuse_future_capture(message: FrameMessage, *, now_nanos: int, ahead_nanos: int) -> None:
+    """A message captured more than `ahead_nanos` ahead of `now_nanos` (this host's clock) is refused
+    (SchemaError): a clock set wrong on the robot, or a made-up message. Its latencies would read
+    negative, and slam refuses its poses anyway."""
+    ahead = message.capture_nanos - now_nanos
+    if ahead > ahead_nanos:
+        raise SchemaError(
+            f"{type(message).__name__} seq {message.seq} captured {ahead / 1e9:.1f} s ahead of this host's clock "
+            f"(more than {ahead_nanos / 1e9:g} s: is the camera's clock set?)"
+        )
+
+
 def _schema_error(schema: Any) -> SchemaError:
     if not isinstance(schema, str):
         return SchemaError(f"schema id must be a string, got {type(schema).__name__}")
