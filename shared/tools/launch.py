@@ -1222,12 +1222,16 @@ def link_certificate_problem(config: Path, addresses: tuple[str, ...]) -> str | 
     missing = [a for a in addresses if a not in named]
     if not missing:
         return None
+    stem = Path(certificate).stem
+    # deploy/make-certs.sh names the link's addresses itself in a certificate named edge (given again they
+    # were listed twice: a trial); any other name needs them given
+    names = "" if stem == "edge" else " " + " ".join(missing)
     return (
         f"--link with TLS: the edge's certificate {certificate} does not name {', '.join(missing)}, the emulated "
         f"link's addresses at which the robot and the tools reach the edge; make its certificates again with "
-        f"those names, e.g. SPLITTAG_CERT_NAMES={Path(certificate).stem} deploy/make-certs.sh "
-        f"{Path(certificate).parent} {' '.join(missing)} (plus any other names it had; deploy/make-certs.sh adds "
-        "them itself to a certificate named edge)"
+        f"those names, e.g. SPLITTAG_CERT_NAMES={stem} deploy/make-certs.sh {Path(certificate).parent}{names} "
+        "(plus any other names it had; deploy/make-certs.sh adds the link's addresses itself to a certificate "
+        "named edge)"
     )
 
 
