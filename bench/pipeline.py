@@ -290,11 +290,11 @@ def _model_against_pinned(state: ControllerState | None, pinned: list[Row]) -> s
     ('' without a prediction or pinned rows). The pinned rows ran earlier, under the same load."""
     if state is None or not state.has_prediction or not pinned:
         return ""
+    paths = {r.k: r.robot + r.link + r.edge for r in pinned}
     cells = [
-        f"k = {r.k} {state.predicted_ms_by_k[r.k]:.0f} / {r.robot + r.link + r.edge:.0f} ms = "
-        f"{state.predicted_ms_by_k[r.k] / (r.robot + r.link + r.edge):.2f}"
-        for r in sorted(pinned, key=lambda r: r.k)
-        if r.robot + r.link + r.edge > 0
+        f"k = {k} {state.predicted_ms_by_k[k]:.0f} / {path:.0f} ms = {state.predicted_ms_by_k[k] / path:.2f}"
+        for k, path in sorted(paths.items())
+        if path > 0
     ]
     return "controller's T(k) against the pinned rows' path (predicted / measured): " + ", ".join(cells)
 

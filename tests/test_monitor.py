@@ -582,7 +582,7 @@ def test_poses_captured_ahead_of_the_clock_or_before_the_run_are_counted_not_rec
     poses = example_messages()[TagPoses.SCHEMA]
     assert isinstance(poses, TagPoses)
     now = poses.capture_nanos + 50_000_000  # the example frame was captured 50 ms ago
-    monitor = Monitor(None, not_before_nanos=now - 60 * 10**9, wall_clock_nanos=lambda: now)
+    monitor = Monitor(None, run_started_nanos=now, wall_clock_nanos=lambda: now)
     monitor.on_poses(encode(poses))
     ahead = poses.model_copy(update={"seq": poses.seq + 1, "capture_nanos": now + 3600 * 10**9})
     before = poses.model_copy(update={"seq": poses.seq + 2, "capture_nanos": 1_000})

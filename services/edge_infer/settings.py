@@ -11,7 +11,7 @@ from pydantic_settings import SettingsConfigDict
 from shared.model.precision import PrecisionChoice
 from shared.model.views import Views
 from shared.runtime.settings import ServedRobots, ServiceSettings
-from shared.wire.messages import PerCut, RobotId
+from shared.wire.messages import MAX_CAPTURE_AHEAD_SECS, PerCut, RobotId
 
 
 class EdgeInferSettings(ServiceSettings):
@@ -55,7 +55,7 @@ class EdgeInferSettings(ServiceSettings):
     # Features captured further ahead of this host's clock are refused, as robot_infer refuses such frames
     # (a robot sending Features of its own with its clock set wrong, or a made-up message): slam refuses
     # their poses anyway, and their latencies read negative in the run's records.
-    max_capture_ahead_secs: float = Field(default=60.0, gt=0)
+    max_capture_ahead_secs: float = Field(default=MAX_CAPTURE_AHEAD_SECS, gt=0)
     queue_depth: int = Field(default=2, ge=1)  # Features waiting for the edge; small = bounded latency
     profile_period_secs: float = Field(default=1.0, gt=0)  # ComputeProfile E(k) publication period
     # Emulating another edge CPU: a fixed per-tag tail time (PnP included) at every cut, ms. Frames are

@@ -15,7 +15,7 @@ from shared.transport.access import DATA_KEYS
 from shared.vision.proposals import Stage1Settings
 from shared.vision.tracking import TrackingSettings
 from shared.wire.cuts import CodecName
-from shared.wire.messages import PerCut
+from shared.wire.messages import MAX_CAPTURE_AHEAD_SECS, PerCut
 
 FRAME_KEYS = DATA_KEYS["frame"]  # every robot's, every version
 
@@ -81,7 +81,7 @@ class RobotInferSettings(ServiceSettings):
     in_flight_timeout_secs: float = Field(default=2.0, gt=0)  # a frame never answered returns its credit
     # A frame captured further ahead of this host's clock is refused (a camera's clock set wrong): slam
     # refuses its poses anyway, and its latencies read negative on the way there.
-    max_capture_ahead_secs: float = Field(default=60.0, gt=0)
+    max_capture_ahead_secs: float = Field(default=MAX_CAPTURE_AHEAD_SECS, gt=0)
     profile_period_secs: float = Field(default=1.0, gt=0)  # ComputeProfile C(k) publication period
     # Without the edge (its liveliness token gone, or an answer this late) the robot runs the whole
     # chain on board (k = 7 + PnP) and publishes TagPoses itself; back to the split when the edge is.

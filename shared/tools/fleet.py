@@ -454,7 +454,7 @@ def run_fleet(
             max_records=200_000,
             slam_has_map=slam_has_map,
             at_robot=only == r,
-            not_before_nanos=time.time_ns() - 60_000_000_000,  # (frames of this run only)
+            run_started_nanos=time.time_ns(),  # (frames of this run only)
         )
         for r in plan.robots
         if only in (None, "edge", r)

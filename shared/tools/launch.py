@@ -40,8 +40,9 @@ from shared.vision.tagmap import TagMapFile, TagSpec, load_tag_map
 from shared.vision.trajectory import format_stamp_nanos
 from shared.viz.recording import merge_recordings
 from shared.wire import keys
-from shared.wire.codec import WireError
+from shared.wire.codec import SchemaError, WireError
 from shared.wire.messages import (
+    MAX_CAPTURE_AHEAD_SECS,
     CameraPose,
     ControllerState,
     FrameStamp,
@@ -49,6 +50,7 @@ from shared.wire.messages import (
     TagPoses,
     decode,
     decode_for_robot,
+    refuse_future_capture,
 )
 
 if TYPE_CHECKING:
@@ -375,13 +377,13 @@ class Monitor:
     # replay or a duplicating route): counted, not recorded again (a trial's 53 repeats read as 168 frames of 115)
     repeated: int = 0
     _recent_frames: dict[tuple[int, int], None] = field(default_factory=dict)
-    # TagPoses of a frame captured more than `max_capture_ahead_secs` ahead of this host's clock, or before
-    # `not_before_nanos` (the launcher: a minute before its run began): counted, not recorded (a trial's made-up
-    # Features an hour ahead were posed by the edge, and frames.csv read e2e -3598793 ms; one captured in 1970,
-    # frame age 1.8e12 ms). slam refuses such poses too. Their latencies are not this run's.
+    # TagPoses of a frame captured more than MAX_CAPTURE_AHEAD_SECS ahead of this host's clock, or as long
+    # before `run_started_nanos` (the launchers' run): counted, not recorded (a trial's made-up Features an
+    # hour ahead were posed by the edge, and frames.csv read e2e -3598793 ms; one captured in 1970, frame age
+    # 1.8e12 ms). slam refuses such poses too. Their latencies are not this run's. Said for the 1st, 2nd,
+    # 4th, 8th ... such message (a flood of them does not flood the launcher's output).
     out_of_time: int = 0
-    max_capture_ahead_secs: float = 60.0
-    not_before_nanos: int | None = None
+    run_started_nanos: int | None = None
     wall_clock_nanos: Callable[[], int] = time.time_ns  # (a fake in tests)
     # the data set's own stamp of each frame (FrameStamp), by capture time: frames.csv's `source_stamp`,
     # the key of the run's trajectory.tum and of the data set's ground truth (the newest 20000 frames)
@@ -409,14 +411,17 @@ class Monitor:
         msg = self._decode(payload, TagPoses)
         if msg is None:
             return
-        ahead_secs = (msg.capture_nanos - self.wall_clock_nanos()) / 1e9
-        if ahead_secs > self.max_capture_ahead_secs or (
-            self.not_before_nanos is not None and msg.capture_nanos < self.not_before_nanos
-        ):
+        margin = round(MAX_CAPTURE_AHEAD_SECS * 1e9)
+        try:
+            refuse_future_capture(msg, now_nanos=self.wall_clock_nanos(), ahead_nanos=margin)
+            if self.run_started_nanos is not None and msg.capture_nanos < self.run_started_nanos - margin:
+                raise SchemaError(f"TagPoses seq {msg.seq} captured before this run began")
+        except SchemaError as exc:
             with self._lock:
                 self.out_of_time += 1
-            when = "before this run" if ahead_secs <= 0 else f"{ahead_secs:.0f} s ahead of this host's clock"
-            log.warning("monitor: TagPoses seq %d captured %s: not recorded", msg.seq, when)
+                count = self.out_of_time
+            if count & (count - 1) == 0:
+                log.warning("monitor: %s: not recorded (%d such so far)", exc, count)
             return
         with self._lock:
             if (msg.capture_nanos, msg.seq) in self._recent_frames:
@@ -1584,7 +1589,7 @@ def run_pipeline(
     from shared.tools.linkemu import read_events
 
     monitor = Monitor(  # a deployment may run for days
-        run_tags, max_records=200_000, at_robot=only == "robot", not_before_nanos=time.time_ns() - 60_000_000_000
+        run_tags, max_records=200_000, at_robot=only == "robot", run_started_nanos=time.time_ns()
     )
     frames_csv = FramesCsv(
         run_dir / "frames.csv",

@@ -830,6 +830,12 @@ def decode_for_robot(
     return cast(M, message)
 
 
+# How far ahead of a host's clock a frame's capture time may be before it is refused (robot_infer's and
+# edge_infer's `max_capture_ahead_secs`, the launcher's monitor): clocks a little apart pass, a clock set
+# wrong or a made-up stamp does not.
+MAX_CAPTURE_AHEAD_SECS = 60.0
+
+
 def refuse_future_capture(message: FrameMessage, *, now_nanos: int, ahead_nanos: int) -> None:
     """A message captured more than `ahead_nanos` ahead of `now_nanos` (this host's clock) is refused
     (SchemaError): a clock set wrong on the robot, or a made-up message. Its latencies would read
