@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import queue
+import signal
 import subprocess
 import sys
 import textwrap
@@ -177,6 +178,13 @@ def test_tum_lines_keep_one_time_for_the_whole_output() -> None:
     assert unstamped.lines(second) == [tum_line(first), tum_line(second)] and unstamped.mode == "capture"
     ended = DataSetTime(grace_secs=2.0, clock=lambda: 0.0)
     assert ended.lines(first) == [] and ended.lines(final=True) == [tum_line(first)]  # the watch ended first
+    # a watch started well before the run (to catch every pose): the grace period starts at the first pose
+    early = DataSetTime(grace_secs=2.0, clock=lambda: now[0])
+    now[0] = 30.0
+    assert early.lines(first) == []
+    now[0] = 30.5
+    early.add(FrameStamp(robot_id="robot1", seq=2, capture_nanos=second.capture_nanos, source_stamp_nanos=7))
+    assert early.lines(second) == [tum_line(second, 7)] and early.mode == "data set"
 
 
 def test_keys_for_one_robot_or_every_robot() -> None:
@@ -287,6 +295,7 @@ def test_watch_every_robot_and_one_robots_tum_trajectory() -> None:
     assert "3 messages from r1, r2" in err
     assert tum_out.splitlines() == [tum_line(_pose("tracking", 2, "r2"), data_set_nanos)]  # lost left out too
     assert tum_out.startswith("1305031102.175304000 ") and "1 left out (no data-set stamp)" in tum_err
+    assert "TUM lines in the data set's time" in tum_err  # it says which time the file is in
 
 
 @pytest.mark.multiprocess
@@ -325,12 +334,14 @@ def test_watch_says_when_the_messages_stop() -> None:
             publisher.put(encode(_messages()["ControllerState"]))  # type: ignore[arg-type]
             time.sleep(QUIET_HINT_SECS + 1.5)
             proc.terminate()
+            time.sleep(0.05)
+            proc.send_signal(signal.SIGINT)  # a second one while it ends (`timeout` and its child both signalled)
             out, err = _finish(proc)
         finally:
             publisher.undeclare()
     assert proc.returncode == 0 and out.startswith("robot1 k=7"), err
     assert "nothing more on splittag/robot1/controller/v2 for 5 s: has the deployment stopped?" in err
-    assert "1 message, 0 refused" in err  # the summary, after SIGTERM
+    assert "1 message, 0 refused" in err and "Traceback" not in err  # the summary, after SIGTERM, once
 
 
 @pytest.mark.multiprocess
@@ -489,7 +500,9 @@ def test_bad_arguments_are_one_line_before_any_connection() -> None:
         assert proc.returncode == 2 and said in err and "Traceback" not in err, (args, err)
 
 
-def test_a_reader_that_cannot_connect_is_told_where_the_run_listens(tmp_path: Path) -> None:
+def test_a_reader_that_cannot_connect_is_told_where_the_run_listens(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """Under --link the edge's router is on the emulated link's address: a trial's `split get` without
     --connect only heard that 127.0.0.1:7447 was unreachable."""
     import argparse
@@ -521,6 +534,18 @@ def test_a_reader_that_cannot_connect_is_told_where_the_run_listens(tmp_path: Pa
         assert _endpoint_hint(args, runs).endswith("listens at tcp/10.78.0.2:7447 (--connect tcp/10.78.0.2:7447)")
         assert _endpoint_hint(argparse.Namespace(connect=None, identity="operator"), runs) != ""
         assert _endpoint_hint(argparse.Namespace(connect=["tcp/10.78.0.2:7447"], identity="operator"), runs) == ""
+        # a reader left at the default endpoint while the live run listens elsewhere is told at once (the
+        # default may be another deployment's: a trial recorded a second deployment's poses)
+        from shared.tools.cli import _reader_settings
+
+        default = argparse.Namespace(connect=[], certs=None, identity="operator", robot_id="robot1")
+        assert _reader_settings(default, "watch", runs) is not None
+        assert capsys.readouterr().err == (
+            "splittag watch: note: reading the default tcp/127.0.0.1:7447; the deployment in "
+            f"{runs}/current listens at tcp/10.78.0.2:7447 (--connect tcp/10.78.0.2:7447)\n"
+        )
+        given = argparse.Namespace(connect=["tcp/127.0.0.1:7447"], certs=None, identity="operator", robot_id="r1")
+        assert _reader_settings(given, "watch", runs) is not None and capsys.readouterr().err == ""  # asked for it
     finally:
         service.kill()
         service.wait()

@@ -164,13 +164,18 @@ def split_endpoint(connect: list[str] | None, *, tls: bool) -> list[str]:
     return ["tls/" + default.split("/", 1)[1] if tls else default]
 
 
-def _reader_settings(args: argparse.Namespace, command: str) -> ZenohSettings | None:
+def _reader_settings(args: argparse.Namespace, command: str, runs: Path = Path("runs")) -> ZenohSettings | None:
     """The client session of a command that reads or steers a running deployment (split, watch, map,
-    stats): the endpoint, TLS identity and robot id checked; None after saying what is wrong."""
+    stats): the endpoint, TLS identity and robot id checked; None after saying what is wrong. Without
+    --connect, a note when the live deployment in runs/current listens elsewhere: the default endpoint
+    may be another deployment's (a trial's watch of its own run on other ports silently recorded the
+    poses of a second deployment on the default ones)."""
     from shared.transport.session import TlsSettings, ZenohSettings
 
     tls = TlsSettings.from_dir(args.certs, args.identity) if args.certs else None
     connect = split_endpoint(args.connect, tls=tls is not None)
+    if not args.connect and "listens at" in (hint := _endpoint_hint(args, runs)):
+        print(f"splittag {command}: note: reading the default {connect[0]}{hint}", file=sys.stderr)
     if tls is None and (secure := [c for c in connect if c.startswith("tls/")]):
         print(f"splittag {command}: {secure[0]} is a TLS endpoint: give --certs (and --identity)", file=sys.stderr)
         return None
@@ -208,9 +213,14 @@ def _cmd_watch(args: argparse.Namespace) -> int:
     import signal
 
     def on_term(*_: object) -> None:  # `timeout`, a supervisor: end as Ctrl-C does, with the summary
+        # once: a second signal while the watch closes its session (`timeout` and its child both signalled,
+        # Ctrl-C twice) was a KeyboardInterrupt traceback out of session.close() instead of the summary
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, on_term)
+    signal.signal(signal.SIGINT, on_term)
     result = watch(args.topic, args.robot_id, settings, fmt=args.format, count=args.count, duration_secs=args.duration)
     print(result.summary(key_for(args.topic, args.robot_id)), file=sys.stderr)
     return 0 if result.messages else 1

@@ -147,24 +147,35 @@ def tum_line(pose: CameraPose, stamp_nanos: int | None = None) -> str | None:
     return f"{format_stamp_nanos(pose.capture_nanos if stamp_nanos is None else stamp_nanos)} {numbers}"
 
 
+# How long after the first pose a TUM watch waits for a data-set stamp before it writes in capture time.
+TUM_STAMP_GRACE_SECS = 2.0
+
+
 class DataSetTime:
     """A data set's time of each frame (the camera's FrameStamps, by capture time), for TUM lines in the
     time trajectory.tum is written in (a trial had to join its live lines through frames.csv). One time
     for the whole output: the first poses wait up to `grace_secs` for a stamp (the stamps' subscription
     reaches the camera's router later than the poses' reaches slam's: review); a stamp by then and the
     lines are in data-set time, a pose without one left out (counted); none, and they are in capture
-    time throughout."""
+    time throughout. The grace period starts at the first pose, not at the watch's start: a watch started
+    before the run (to catch every pose) waited out its grace before any stamp could come and wrote the
+    whole run in capture time (a fresh-clone trial)."""
 
-    def __init__(self, *, keep: int = 4096, grace_secs: float = 2.0, clock: Callable[[], float] = time.monotonic):
+    def __init__(
+        self, *, keep: int = 4096, grace_secs: float = TUM_STAMP_GRACE_SECS, clock: Callable[[], float] = time.monotonic
+    ):
         self._by_capture: dict[int, int] = {}
         self.keep, self.grace_secs, self._clock = keep, grace_secs, clock
-        self._start = clock()
+        self._first_pose: float | None = None  # when the first pose came (the grace period's start)
         self._waiting: list[CameraPose] = []
         self.mode: str | None = None  # "data set" or "capture" once decided
         self.unstamped = 0
 
+    def _grace_over(self) -> bool:
+        return self._first_pose is not None and self._clock() - self._first_pose >= self.grace_secs
+
     def add(self, stamp: FrameStamp) -> None:
-        if self.mode is None and self._clock() - self._start >= self.grace_secs:
+        if self.mode is None and self._grace_over():
             self.mode = "capture"  # no stamp in the grace period: capture time it is
         if self.mode == "capture":
             return  # decided: the output stays in one time
@@ -177,8 +188,10 @@ class DataSetTime:
         """TUM lines of the poses that can be written now (`final`: every one waiting, whatever the time)."""
         if pose is not None:
             self._waiting.append(pose)
+            if self._first_pose is None:
+                self._first_pose = self._clock()
         if self.mode is None:
-            if not final and self._clock() - self._start < self.grace_secs:
+            if not final and not self._grace_over():
                 return []
             self.mode = "capture"
         out = []
@@ -317,6 +330,7 @@ class WatchResult:
     dropped: int = 0
     unstamped: int = 0  # tum: tracking poses left out for want of their frame's data-set stamp
     dropped_stamps: int = 0  # tum: data-set stamps dropped because printing fell behind
+    tum_time: str | None = None  # tum: "data set" or "capture", the time the lines are in (None: no line)
     rejected: dict[str, int] = field(default_factory=dict)
     by_robot: Counter[str] = field(default_factory=Counter)
 
@@ -327,6 +341,13 @@ class WatchResult:
         unstamped = f", {self.unstamped} left out (no data-set stamp)" if self.unstamped else ""
         if self.dropped_stamps:
             unstamped += f", {self.dropped_stamps} data-set stamps dropped (printing fell behind)"
+        if self.tum_time == "data set":
+            unstamped += "; TUM lines in the data set's time (its rgb.txt stamps)"
+        elif self.tum_time == "capture":
+            unstamped += (
+                f"; TUM lines in capture time: no data-set stamp came within {TUM_STAMP_GRACE_SECS:g} s of the first "
+                "pose (a camera source without rgb.txt stamps, or none reached this watch)"
+            )
         return (
             f"{key}: {self.messages} message{'' if self.messages == 1 else 's'}{robots}, {refused} refused{detail}, "
             f"{self.dropped} dropped (printing fell behind){unstamped}"
@@ -442,6 +463,7 @@ def watch(
     result.dropped = dropped["full"]
     result.dropped_stamps = dropped["stamps"]
     result.unstamped = data_set_time.unstamped if data_set_time is not None else 0
+    result.tum_time = data_set_time.mode if data_set_time is not None else None
     return result
 
 
