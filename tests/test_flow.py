@@ -104,6 +104,33 @@ def test_edge_watch_and_abandoning_the_frames_in_flight() -> None:
     assert w.in_flight == 0
 
 
+def test_an_overdue_answer_holds_the_robot_on_board_until_the_edge_answers_again() -> None:
+    """A stalled edge keeps its token for Zenoh's lease: the overdue state is remembered (the window's
+    frames are forgotten, so the next frame would look like the first in flight), one trial frame per
+    timeout still goes to the edge, and an answer (or the token coming back) ends the spell."""
+    clock = FakeClock()
+    watch = EdgeWatch(answer_timeout_secs=1.5, clock=clock)
+    watch.edge_up()
+    assert not watch.on_board(1.4) and not watch.overdue
+    assert watch.on_board(1.6) and watch.overdue and watch.stalls == 1
+    assert watch.on_board(0.0)  # the overdue frames were dropped: still on board
+    assert not watch.trial_due()  # not yet: one timeout after the spell began
+    clock.now = 1.5
+    assert watch.trial_due() and not watch.trial_due()  # one trial, then none for another timeout
+    clock.now = 2.9
+    assert not watch.trial_due()
+    clock.now = 3.0
+    assert watch.trial_due()
+    watch.answered()  # the trial (or any late frame) answered
+    assert not watch.overdue and not watch.on_board(0.0) and not watch.trial_due()
+    assert watch.on_board(2.0) and watch.stalls == 2  # a second spell
+    watch.edge_down()
+    watch.edge_up()  # a new (or reconnected) edge is trusted at once
+    assert not watch.overdue and not watch.on_board(0.0) and watch.outages == 1
+    watch.edge_down()
+    assert watch.on_board(0.0) and not watch.trial_due()  # no token: no trials
+
+
 def test_frames_a_vanished_edge_held_become_orphans_and_nothing_else_does() -> None:
     """What a frame was sent with is kept until its answer; the edge's token gone (clear(recover=True))
     turns the unanswered ones into orphans, oldest first; an answered, expired or merely overdue frame

@@ -19,7 +19,7 @@ from shared.transport.session import ZenohSettings, free_tcp_port, open_session
 from shared.vision.geometry import default_camera, make_pose
 from shared.vision.tags import render_tag, to_uint8
 from shared.wire import keys
-from shared.wire.messages import Frame, TagPoses, decode
+from shared.wire.messages import Frame, TagPoses, decode, encode
 from tests.procs import REPO, wait_until
 
 ROBOT = "recover1"
@@ -74,6 +74,72 @@ def test_the_frames_a_vanished_edge_held_go_out_before_the_next(tmp_path: Path) 
     finally:
         node.halt.set()
         node.close()
+        sub.undeclare()
+        edge.close()
+        session.close()
+
+
+def test_a_stalled_edge_is_worked_around_until_it_answers_again(tmp_path: Path) -> None:
+    """A trial SIGSTOPped edge_infer: its token stays for Zenoh's whole lease (~10 s), and the robot,
+    which forgot each overdue frame, sent the next one to the stalled edge too: no pose for ~10 s
+    instead of on board after edge_answer_timeout_secs. Now an overdue answer holds the robot on board
+    until the edge answers again; one frame per timeout still goes to the edge to find out."""
+    from tests.examples import example_messages
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    timeout_secs = 0.4
+    settings = RobotInferSettings(
+        robot_id=ROBOT,
+        weights=REPO / "models",
+        run_dir=tmp_path,
+        split_k=5,
+        overlap_stage1=False,
+        edge_answer_timeout_secs=timeout_secs,
+        zenoh=ZenohSettings(mode="peer", listen=[endpoint]),
+    )
+    session = open_session(settings.zenoh)
+    edge = open_session(ZenohSettings(mode="peer", connect=[endpoint]))
+    got: list[int] = []
+    lock = threading.Lock()
+
+    def on_poses(sample: zenoh.Sample) -> None:
+        with lock:
+            got.append(decode(sample.payload.to_bytes(), TagPoses).capture_nanos)
+
+    def posed(frame: Frame) -> bool:
+        with lock:
+            return frame.capture_nanos in got
+
+    sub = edge.declare_subscriber(keys.tag_poses(ROBOT), on_poses)
+    answers = edge.declare_publisher(keys.tag_poses(ROBOT))
+    node = RobotInfer(settings, session)
+    try:
+        token = edge.liveliness().declare_token(keys.alive(ROBOT, "edge_infer"))
+        wait_until(lambda: node.watch.alive, 30, "robot_infer sees the edge's token")
+        now = time.time_ns()
+        frames = [_frame(i, now + i * 66_000_000) for i in range(6)]
+        node.process(robot_stage1(frames[0], detector=node.detector))  # to the edge, which is stalled
+        assert node.window.in_flight == 1
+        time.sleep(timeout_secs + 0.1)
+        node.process(robot_stage1(frames[1], detector=node.detector))  # the answer is overdue: on board
+        node.process(robot_stage1(frames[2], detector=node.detector))  # still on board (sent to the edge before)
+        wait_until(lambda: posed(frames[1]) and posed(frames[2]), 10, "frames 1 and 2 posed on board")
+        assert node.watch.overdue and node.watch.stalls == 1 and node.on_board_frames == 2
+        time.sleep(timeout_secs + 0.1)
+        node.process(robot_stage1(frames[3], detector=node.detector))  # a trial: to the edge
+        assert node.window.in_flight == 1 and node.on_board_frames == 2
+        # the edge answers the trial: back to the split
+        answer = example_messages()[TagPoses.SCHEMA]
+        assert isinstance(answer, TagPoses) and answer.link is not None  # an edge's answer carries link stamps
+        answers.put(encode(answer.model_copy(update={"robot_id": ROBOT, "capture_nanos": frames[3].capture_nanos})))
+        wait_until(lambda: not node.watch.overdue, 30, "the edge's answer ends the stall")
+        node.process(robot_stage1(frames[4], detector=node.detector))  # to the edge again
+        assert node.window.in_flight == 1 and node.on_board_frames == 2 and not posed(frames[4])
+        token.undeclare()
+    finally:
+        node.halt.set()
+        node.close()
+        answers.undeclare()
         sub.undeclare()
         edge.close()
         session.close()

@@ -89,6 +89,12 @@ def test_parameters_are_parsed_strictly() -> None:
     with pytest.raises(SplitRequestError, match="no name"):
         parse_parameters("=5")
     assert state.get() == SplitConfig(k=3, codec="fp16", pinned=True, source="user")
+    # a huge value is quoted, not echoed whole into the reply and the log (a trial's 5,000-character k)
+    for params in ({"k": "9" * 5000}, {"k": "x" * 5000}, {"codec": "y" * 5000}, {"z" * 5000: "1"}):
+        with pytest.raises(SplitRequestError) as refused:
+            state.apply(params, None)
+        said = str(refused.value)
+        assert len(said) < 200 and "chars)" in said, said[:300]
 
 
 def test_a_wildcard_set_is_refused_over_real_zenoh() -> None:

@@ -189,6 +189,7 @@ class RobotInfer:
             "fresh_frame_waits": self.frames.fresh_waits,
             "fresh_frame_wait_ms": round(1e3 * self.frames.fresh_wait_secs),
             "edge_outages": self.watch.outages,
+            "edge_stalls": self.watch.stalls,  # an answer overdue with the edge's token there
             "stage1_frames": self.detector.counts.frames,
             "stage1_apriltag_tags": self.detector.counts.apriltag,
             "stage1_aruco_added": self.detector.counts.aruco_added,
@@ -210,7 +211,9 @@ class RobotInfer:
             # Frames are keyed by capture time, not seq: seq starts again with a camera session (a restart,
             # a looped folder's next pass) while frames of the last one may still be in flight (review).
             self.window.done(poses.capture_nanos)
-            if self.pacer is not None and poses.link is not None:  # link None: computed on board
+            if poses.link is not None:  # the edge's answer (link None: computed on board), late or not
+                self.watch.answered()
+            if self.pacer is not None and poses.link is not None:
                 timings = poses.timings
                 self.pacer.answered(
                     poses.capture_nanos,
@@ -300,7 +303,10 @@ class RobotInfer:
         w = self.window
         pace = self.pacer.start_delay_secs() if self.pacer is not None else 0.0
         if not may_run_ahead(
-            in_flight=w.in_flight, capacity=w.capacity, pace_delay_secs=pace, edge_alive=self.watch.alive
+            in_flight=w.in_flight,
+            capacity=w.capacity,
+            pace_delay_secs=pace,
+            edge_alive=self.watch.alive and not self.watch.overdue,
         ):
             return _SKIPPED
         return self._stage1(stop)
@@ -318,7 +324,7 @@ class RobotInfer:
         """One frame after stage 1: head(k), Features out (raises on input the maths cannot take; the
         guard counts it)."""
         frame = s1.frame
-        if self.watch.on_board(self.window.oldest_age_secs()):
+        if self.watch.on_board(self.window.oldest_age_secs()) and not self.watch.trial_due():
             # frames sent to an edge whose token is gone are recomputed here; an answer that is merely
             # overdue may still come, so those are dropped
             self.window.clear(recover=not self.watch.alive)
@@ -428,10 +434,11 @@ class RobotInfer:
         self.edge_token.undeclare()
         self.guard.close()  # the last interval's rejections said, the counts written
         log.info(
-            "robot_infer: %s, %d credits expired, %d frames on board in %d edge outages; stage 1: %s",
+            "robot_infer: %s, %d credits expired, %d frames on board in %d edge outages and %d stalls; stage 1: %s",
             self.guard.stats(),
             self.window.expired,
             self.on_board_frames,
             self.watch.outages,
+            self.watch.stalls,
             self.detector.counts,
         )

@@ -698,8 +698,7 @@ class Monitor:
         with self._lock:
             if self.frames_by_k:
                 out["frames_by_k"] = {str(k): n for k, n in sorted(self.frames_by_k.items())}
-            if self.frames_on_board:
-                out["frames_on_board"] = self.frames_on_board
+            out["frames_on_board"] = self.frames_on_board  # 0 too: the README's sum frames_by_k + this = frames
             if self.tags_not_in_map:  # tag id -> the size it was solved at
                 out["tags_not_in_map"] = {str(i): m for i, m in sorted(self.tags_not_in_map.items())}
             if self.controller_decisions:
@@ -1578,8 +1577,9 @@ def run_pipeline(
         cli = Path(sys.executable).parent / "splittag"
         # (a secure deployment's operator shows its certificate: the monitor's folder holds the operator's)
         certs = f" --certs {Path(zs.tls.certificate).parent}" if zs.tls is not None else ""
+        sudo = "" if os.geteuid() == 0 else "sudo "  # (a root shell may have no sudo at all: a trial)
         print(
-            f"emulated link up: profile {link}; `sudo {cli} link set PROFILE` switches it live; the edge's router "
+            f"emulated link up: profile {link}; `{sudo}{cli} link set PROFILE` switches it live; the edge's router "
             f"is {zs.connect[0]}: `{cli} split get --connect {zs.connect[0]}{certs}` (and set, release) steers the "
             "split",
             flush=True,

@@ -205,25 +205,43 @@ def may_run_ahead(*, in_flight: int, capacity: int, pace_delay_secs: float, edge
 
 class EdgeWatch:
     """Whether the robot must run the whole chain on board: the edge's liveliness token is gone, or a
-    frame sent to it has waited longer than answer_timeout_secs for its answer. Back to the split as
-    soon as the token is there again. Thread-safe (liveliness callbacks run on Zenoh's threads)."""
+    frame sent to it has waited longer than answer_timeout_secs for its answer. Thread-safe (liveliness
+    and answer callbacks run on Zenoh's threads).
 
-    def __init__(self, *, answer_timeout_secs: float) -> None:
+    An overdue answer is remembered (`overdue`) until the edge answers again (`answered`) or its token
+    comes back (`edge_up`): a stalled edge keeps its token for Zenoh's whole lease, and forgetting the
+    overdue frames used to make the next frame look like the first one in flight, so it went to the
+    stalled edge too, and so on: a trial's SIGSTOPped edge_infer left the robot without a pose for
+    ~10 s, not 1.5. While overdue, one frame per answer_timeout_secs still goes to the edge
+    (`trial_due`): its answer, or any late one, ends the spell."""
+
+    def __init__(self, *, answer_timeout_secs: float, clock: Callable[[], float] = time.monotonic) -> None:
         self.answer_timeout_secs = answer_timeout_secs
+        self._clock = clock
         self._alive = False
+        self._overdue = False
+        self._trial_at = -math.inf
         self._lock = threading.Lock()
-        self.outages = 0
+        self.outages = 0  # the token lost
+        self.stalls = 0  # an answer overdue while the token was there
 
     def edge_up(self) -> None:
-        """The edge's liveliness token appeared."""
+        """The edge's liveliness token appeared (a new or reconnected edge: trusted again)."""
         with self._lock:
             self._alive = True
+            self._overdue = False
 
     @property
     def alive(self) -> bool:
         """The edge's liveliness token is there."""
         with self._lock:
             return self._alive
+
+    @property
+    def overdue(self) -> bool:
+        """An answer came later than answer_timeout_secs (or not at), and none since."""
+        with self._lock:
+            return self._overdue
 
     def edge_down(self) -> None:
         """The edge's liveliness token disappeared."""
@@ -232,10 +250,29 @@ class EdgeWatch:
                 self.outages += 1
             self._alive = False
 
-    def on_board(self, oldest_in_flight_secs: float) -> bool:
-        """True when frames must not be sent to the edge now."""
+    def answered(self) -> None:
+        """The edge answered a frame (however late): it is responsive again."""
         with self._lock:
-            return not self._alive or oldest_in_flight_secs > self.answer_timeout_secs
+            self._overdue = False
+
+    def on_board(self, oldest_in_flight_secs: float) -> bool:
+        """True when frames must not be sent to the edge now (but see `trial_due`)."""
+        with self._lock:
+            if self._alive and oldest_in_flight_secs > self.answer_timeout_secs and not self._overdue:
+                self._overdue = True
+                self.stalls += 1
+                self._trial_at = self._clock()  # the first trial one timeout after the spell began
+            return not self._alive or self._overdue
+
+    def trial_due(self) -> bool:
+        """While overdue with the token there: whether this frame goes to the edge after all, to see if it
+        answers again (one per answer_timeout_secs; the frame is dropped if it does not)."""
+        with self._lock:
+            now = self._clock()
+            if self._alive and self._overdue and now - self._trial_at >= self.answer_timeout_secs:
+                self._trial_at = now
+                return True
+            return False
 
 
 @dataclass

@@ -44,6 +44,16 @@ class SplitRequestError(ValueError):
     """A split query that cannot be applied."""
 
 
+MAX_QUOTED_CHARS = 40
+
+
+def _quote(value: object) -> str:
+    """A received value as an error reply (and the log) quotes it: never all of a 5,000-character `k` (a
+    trial's went back to it and into robot_infer.log whole)."""
+    text = repr(value) if not isinstance(value, int) else str(value)
+    return text if len(text) <= MAX_QUOTED_CHARS else f"{text[:MAX_QUOTED_CHARS]}... ({len(text)} chars)"
+
+
 class SplitState:
     """Thread-safe current SplitConfig."""
 
@@ -63,9 +73,11 @@ class SplitState:
         claims (a payload's source is overridden, `source=user` is an error) and may not release a pin."""
         unknown = set(params) - {"k", "codec", "release", "source"}
         if unknown:
-            raise SplitRequestError(f"unknown parameters {sorted(unknown)}; use k, codec, release, source")
+            raise SplitRequestError(f"unknown parameters {_quote(sorted(unknown))}; use k, codec, release, source")
         if as_controller and params.get("source", "controller") != "controller":
-            raise SplitRequestError(f"on the controller's key every set is the controller's, not {params['source']!r}")
+            raise SplitRequestError(
+                f"on the controller's key every set is the controller's, not {_quote(params['source'])}"
+            )
         if payload:
             if params:
                 raise SplitRequestError("give the request as parameters or as a SplitConfig payload, not both")
@@ -80,21 +92,22 @@ class SplitState:
                 return cur
             source = params.get("source", "user")
             if source not in ("user", "controller"):
-                raise SplitRequestError(f"source must be user or controller, got {source!r}")
+                raise SplitRequestError(f"source must be user or controller, got {_quote(source)}")
             k = cur.k
             if "k" in params:
                 try:
                     k = int(params["k"])
                 except ValueError:
-                    raise SplitRequestError(f"k must be an integer 0..{N_CUTS - 1}, got {params['k']!r}") from None
+                    got = _quote(params["k"])
+                    raise SplitRequestError(f"k must be an integer 0..{N_CUTS - 1}, got {got}") from None
                 if not 0 <= k < N_CUTS:
-                    raise SplitRequestError(f"k must be in 0..{N_CUTS - 1}, got {k}")
+                    raise SplitRequestError(f"k must be in 0..{N_CUTS - 1}, got {_quote(k)}")
             codec = params.get("codec", cur.codec)
             if codec not in ("fp16", "fp32"):
-                raise SplitRequestError(f"codec must be fp16 or fp32, got {codec!r}")
+                raise SplitRequestError(f"codec must be fp16 or fp32, got {_quote(codec)}")
             flag = params.get("release", "0")
             if flag not in ("0", "1", "true", "false"):
-                raise SplitRequestError(f"release must be 0, 1, true or false, got {flag!r}")
+                raise SplitRequestError(f"release must be 0, 1, true or false, got {_quote(flag)}")
             release = flag in ("1", "true")
             sets = "k" in params or "codec" in params
             if source == "controller" and cur.pinned and not release:
