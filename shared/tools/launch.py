@@ -593,10 +593,12 @@ class Monitor:
                 out.append(float(translation_error_cm(tag.camera_from_tag[:3, 3], true[:3, 3])))
         return out
 
-    def line(self, down: Sequence[str] = ()) -> str:
+    def line(self, down: Sequence[str] = (), back: Sequence[str] = ()) -> str:
         """One status line over the last second. `down`: the run's processes that exited and are not
         back yet (the supervisor's), named first when the poses stopped (a trial's monitor asked
-        whether the edge was up while robot_infer was the one restarting)."""
+        whether the edge was up while robot_infer was the one restarting); `back`: those that came back
+        moments ago (said next: a trial was asked whether the edge was up just after robot_infer came
+        back, still loading its network)."""
         now = self.clock()
         with self._lock:
             recent = [r for r in self._recent if now - r["t"] <= 1.0]
@@ -612,6 +614,10 @@ class Monitor:
             silent = f"no TagPoses for {now - last['t']:.1f} s (the last: frame {last['seq']})"
             if down:
                 return f"{silent}: {' and '.join(down)} exited and {'is' if len(down) == 1 else 'are'} not back yet"
+            if back:
+                return (
+                    f"{silent}: {' and '.join(back)} came back from a restart moments ago and may still be starting up"
+                )
             # the poses caught up and the camera went quiet (a restarted camera counts from 0 again: only
             # a second's silence of its own says so)
             if gt_at is not None and gt_seq <= last["seq"] and now - gt_at > 1.0:
@@ -842,6 +848,11 @@ def monitor_settings(config: Path, *, at_robot: bool = False) -> tuple[str, Zeno
     # the robot's router second, where reachable: a client fails over to it while the edge's is away
     endpoints = [topology.robot_router] if at_robot else topology.edge_side_endpoints(topology.edge_router)
     return robot_id, ZenohSettings(mode="client", connect=endpoints, tls=tls)
+
+
+# How long after a restarted process is back a silence of the poses is put down to its start-up (robot_infer
+# loads its network and calibrates its compute before the first frame: ~10 s on 2 cores).
+RESTART_WARMUP_SECS = 20.0
 
 
 class LaunchError(RuntimeError):
@@ -1632,7 +1643,7 @@ def run_pipeline(
                     *link_lines.new_lines(),
                     *comings.lines(),
                     *monitor.notices(),
-                    monitor.line(running.supervisor.down()),
+                    monitor.line(running.supervisor.down(), running.supervisor.back(RESTART_WARMUP_SECS)),
                 ],
                 quiet=quiet,
                 supervise=running.supervise,

@@ -44,6 +44,7 @@ class Supervisor:
     _started_at: dict[str, float] = field(default_factory=dict)
     _backoff: dict[str, float] = field(default_factory=dict)
     _down_since: dict[str, float] = field(default_factory=dict)  # exited, not ready again yet
+    _ready_at: dict[str, float] = field(default_factory=dict)  # back after an exit: when
     ended: set[str] = field(default_factory=set)  # cameras whose source ended (said once, never restarted)
 
     def started(self, name: str, *, pid: int | None = None) -> None:
@@ -59,6 +60,7 @@ class Supervisor:
         if since is None:
             return None
         down_secs = round(self.clock() - since, 1)
+        self._ready_at[name] = self.clock()
         self._note({"event": "ready", "name": name, "down_secs": down_secs})
         return down_secs
 
@@ -71,6 +73,12 @@ class Supervisor:
     def down(self) -> list[str]:
         """The processes that exited and are not ready again (restarting), by name."""
         return sorted(self._down_since)
+
+    def back(self, within_secs: float) -> list[str]:
+        """The processes that came back from an exit in the last `within_secs` (still warming up, maybe:
+        robot_infer loads its network and calibrates before its first frame), by name."""
+        now = self.clock()
+        return sorted(n for n, t in self._ready_at.items() if now - t <= within_secs and n not in self._down_since)
 
     def _note(self, incident: dict[str, Any]) -> None:
         incident = {"unix_nanos": self.wall_clock(), **incident}
