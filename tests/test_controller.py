@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from shared.control.controller import ControllerTuning, SplitController
-from shared.wire.messages import ComputeProfile, Features, decode, encode
+from shared.wire.messages import ComputeProfile, ControllerState, Features, decode, encode
 from shared.wire.sizing import features_payload_bytes, probe_features
 from tests.fakes import FakeClock
 
@@ -498,3 +498,44 @@ def test_an_alarm_that_leaves_the_link_as_it_was_keeps_the_veto(late: int) -> No
     assert core.measured_ms(7) == 190.0 and core.measured_ms(0) == 150.0
     state = core.decide(robot_id="r1", current_k=0, pinned=False)
     assert state.best_k == 7 and state.chosen_k == 0 and core.vetoed == 1, state.reason
+
+
+def test_ping_pong_between_two_cuts_needs_a_larger_gain_for_a_while() -> None:
+    """A trial under a shifting load: two nearly tied cuts took turns, 0 -> 6 -> 0 -> 6 -> 0 within 4.4 s,
+    each 'predicted 10-17 ms faster'. One return is free (new evidence may undo a switch); going the same
+    way a second time within reversal_hold_secs needs reversal_gain_factor times the usual gain, unless
+    the gain is that large, the hold is over or the link changed."""
+    clock = FakeClock(100.0)
+    core = SplitController(ControllerTuning(dwell=1, reversal_hold_secs=10.0, reversal_gain_factor=4.0), clock=clock)
+    rng = np.random.default_rng(0)
+    for _ in range(200):  # a fast link: t0 10 ms, beta 0.01 ms/kB
+        size = float(rng.choice([1024, 65536, 262144]))
+        core.add_link_sample(int(size), 10.0 + 0.01 * size / 1024 + rng.normal(0, 0.2))
+    core.add_compute(_profile("robot", [50.0, 300.0, 300.0, 300.0, 300.0, 300.0, 100.0, 300.0]))
+
+    def edge_at_0(ms: float, controller: SplitController = core) -> None:  # k = 6 costs ~160 ms
+        controller.add_compute(_profile("edge", [ms, 300.0, 300.0, 300.0, 300.0, 300.0, 50.0, 300.0]))
+
+    def decide(current_k: int, controller: SplitController = core) -> ControllerState:
+        clock.now += 0.5
+        return controller.decide(robot_id="r1", current_k=current_k, pinned=False)
+
+    edge_at_0(88.0)  # k = 0 ~12 ms faster than k = 6
+    assert decide(6).chosen_k == 0
+    edge_at_0(112.0)  # k = 6 ~12 ms faster: one return is free
+    assert decide(0).chosen_k == 6
+    edge_at_0(88.0)  # and k = 0 again: ping-pong, held (needs 4 x 8 ms)
+    state = decide(6)
+    assert state.best_k == 0 and state.chosen_k == 6 and core.held == 1, state.reason
+    assert "to k=0 a second time in 1.0 s needs" in state.reason, state.reason
+    edge_at_0(50.0)  # a large gain (~50 ms) goes through at once
+    assert decide(6).chosen_k == 0
+    edge_at_0(112.0)  # 0 -> 6 -> 0 -> 6 (a second time within 10 s of the first): held
+    assert decide(0).chosen_k == 0 and core.held == 2
+    clock.now += 10.0  # the hold is over: the usual gain is enough
+    assert decide(0).chosen_k == 6
+    off = SplitController(ControllerTuning(dwell=1, reversal_hold_secs=0), clock=clock)
+    off.link, off.robot = core.link, core.robot
+    for ms, current, chosen in ((88.0, 6, 0), (112.0, 0, 6), (88.0, 6, 0)):
+        edge_at_0(ms, off)
+        assert decide(current, off).chosen_k == chosen  # no hold: every turn taken

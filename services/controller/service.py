@@ -262,11 +262,12 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
         stats.undeclare()
         guard.close()  # the last interval's rejections said, the counts written
         log.info(
-            "controller: %d switches, %d vetoed by the frames measured at both cuts; %d link alarms: %d changes "
-            "taken, %d dismissed (a fresh fit did not predict the link better); "
+            "controller: %d switches, %d vetoed by the frames measured at both cuts, %d held as ping-pong; "
+            "%d link alarms: %d changes taken, %d dismissed (a fresh fit did not predict the link better); "
             "%d link samples left out as stamped at once after a stall of this process or the edge's; inputs %s",
             switches,
             core.vetoed,
+            core.held,
             core.link.alarms,
             core.link.changes,
             core.link.dismissed,

@@ -49,6 +49,13 @@ class ControllerTuning(BaseModel):
     # nearly tie and the model is biased (a loaded link's queue, each side slower when it does the work),
     # a trial's controller went 0 -> 7 -> 0 -> 7 -> 0 within 9 s. 0 turns the check off.
     measured_window_secs: float = Field(default=20.0, ge=0)
+    # Ping-pong: after a -> b -> a, going to b again within this long of the first switch, for latency
+    # alone, needs reversal_gain_factor times the usual gain (a link change lifts it; one return is free:
+    # new evidence may undo a switch). Under a shifting load two nearly tied cuts took turns in a trial,
+    # 0 -> 6 -> 0 -> 6 -> 0 within 4.4 s, each 'predicted 10-17 ms faster'. A cut that cannot keep up is
+    # left at once whatever this says. 0 turns the hold off.
+    reversal_hold_secs: float = Field(default=10.0, ge=0)
+    reversal_gain_factor: float = Field(default=4.0, ge=1)  # (above) the gain a held switch needs, x the usual
     codec: CodecName = "fp16"  # the codec robot_infer uses at cuts 1..6 (payload sizes)
     # Throughput: a cut keeps up with the camera when it is expected to pose at least this share of the
     # camera's frames; the controller chooses the fastest cut among those that keep up (where none does,
@@ -100,6 +107,8 @@ class SplitController:
         # robot + link + edge compute, what T(k) predicts
         self.measured: dict[int, deque[tuple[float, float, int, float]]] = {k: deque(maxlen=120) for k in range(N_CUTS)}
         self.vetoed = 0  # switches the measured frame times vetoed
+        self.held = 0  # switches back to a cut just left that the reversal hold kept
+        self._switches: deque[tuple[float, int, int, int]] = deque(maxlen=2)  # (when, from, to, link changes)
         self.achieved = AchievedIntervals(window_secs=self.settings.throughput_window_secs, clock=clock)
         self.camera_interval_ms: float | None = None  # the last the robot said (kept while it says none)
         self._achieved_at_ms: float | None = None  # the camera's interval what the cuts achieved was timed at
@@ -302,6 +311,29 @@ class SplitController:
         ok[current_k] |= bool(shares[current_k] >= limit - self.settings.frame_share_hysteresis)
         return ok
 
+    def _reversal_hold(self, t: np.ndarray, current_k: int, chosen: int) -> str | None:
+        """Why a switch is held as ping-pong (None: it is not): the last two switches were `current_k` ->
+        `chosen` -> `current_k`, the first less than reversal_hold_secs ago, on the same link, and this
+        one would go to `chosen` a second time for less than reversal_gain_factor x the usual gain."""
+        hold = self.settings.reversal_hold_secs
+        if hold <= 0 or len(self._switches) < 2:
+            return None
+        (first_at, a, b, changes), (_, b2, a2, changes2) = self._switches
+        if not (a == current_k == a2 and b == chosen == b2):
+            return None
+        ago = self._clock() - first_at
+        if ago >= hold or not changes == changes2 == self.link.changes:
+            return None
+        usual = max(self.settings.min_gain_ms, self.settings.min_gain_rel * float(t[current_k]))
+        needed = self.settings.reversal_gain_factor * usual
+        gain = float(t[current_k] - t[chosen])
+        if gain > needed:
+            return None
+        return (
+            f"keep k={current_k}: to k={chosen} a second time in {ago:.1f} s needs {needed:.1f} ms (ping-pong, "
+            f"for {hold:g} s); predicted {gain:.1f} ms faster"
+        )
+
     def decide(self, *, robot_id: str, current_k: int, pinned: bool) -> ControllerState:
         """One decision; the caller applies chosen_k when it differs from current_k (and says so)."""
         t = self.predict()
@@ -342,6 +374,11 @@ class SplitController:
                         f"{there:.0f} ms against {here:.0f} ms here (last {self.settings.measured_window_secs:g} s)"
                     )
                     chosen = current_k
+            if chosen != current_k and not forced and (hold := self._reversal_hold(t, current_k, chosen)) is not None:
+                self.held += 1
+                reason, chosen = hold, current_k
+        if chosen != current_k:
+            self._switches.append((self._clock(), current_k, chosen, self.link.changes))
         return ControllerState(
             robot_id=robot_id,
             stamp_nanos=time.time_ns(),
