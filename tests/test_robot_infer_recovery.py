@@ -5,9 +5,12 @@ of a second session that goes away with a frame in flight."""
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import zenoh
@@ -34,49 +37,75 @@ def _frame(seq: int, capture_nanos: int) -> Frame:
     return Frame(robot_id=ROBOT, seq=seq, capture_nanos=capture_nanos, intrinsics=cam, image=to_uint8(canvas))
 
 
-def test_the_frames_a_vanished_edge_held_go_out_before_the_next(tmp_path: Path) -> None:
+class _Rig:
+    """A real RobotInfer on its own Zenoh session and an "edge": a second session that holds edge_infer's
+    liveliness token, hears every TagPoses of the robot (capture stamps in `got`) and may answer."""
+
+    def __init__(self, node: RobotInfer, edge: zenoh.Session) -> None:
+        self.node, self.edge = node, edge
+        self.got: list[int] = []
+        self._lock = threading.Lock()
+
+    def on_poses(self, sample: zenoh.Sample) -> None:
+        with self._lock:
+            self.got.append(decode(sample.payload.to_bytes(), TagPoses).capture_nanos)
+
+    def posed(self, frame: Frame) -> bool:
+        with self._lock:
+            return frame.capture_nanos in self.got
+
+    def poses(self) -> list[int]:
+        with self._lock:
+            return list(self.got)
+
+    def process(self, frame: Frame) -> None:
+        self.node.process(robot_stage1(frame, detector=self.node.detector))
+
+
+@contextlib.contextmanager
+def _rig(tmp_path: Path, **settings: Any) -> Iterator[_Rig]:
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
-    settings = RobotInferSettings(
+    robot_settings = RobotInferSettings(
         robot_id=ROBOT,
         weights=REPO / "models",
         run_dir=tmp_path,
         split_k=5,
         overlap_stage1=False,
         zenoh=ZenohSettings(mode="peer", listen=[endpoint]),
+        **settings,
     )
-    session = open_session(settings.zenoh)
+    session = open_session(robot_settings.zenoh)
     edge = open_session(ZenohSettings(mode="peer", connect=[endpoint]))
-    got: list[int] = []
-    lock = threading.Lock()
-
-    def on_poses(sample: zenoh.Sample) -> None:
-        with lock:
-            got.append(decode(sample.payload.to_bytes(), TagPoses).capture_nanos)
-
-    sub = edge.declare_subscriber(keys.tag_poses(ROBOT), on_poses)
-    node = RobotInfer(settings, session)
+    node = RobotInfer(robot_settings, session)
+    rig = _Rig(node, edge)
+    sub = edge.declare_subscriber(keys.tag_poses(ROBOT), rig.on_poses)
     try:
-        token = edge.liveliness().declare_token(keys.alive(ROBOT, "edge_infer"))
-        wait_until(lambda: node.watch.alive, 30, "robot_infer sees the edge's token")
-        now = time.time_ns()
-        held, following = _frame(0, now), _frame(1, now + 66_000_000)
-        node.process(robot_stage1(held, detector=node.detector))  # sent to the edge, which never answers
-        assert node.window.in_flight == 1
-        next_one = robot_stage1(following, detector=node.detector)  # taken before the edge goes
-        token.undeclare()
-        wait_until(lambda: not node.watch.alive, 30, "robot_infer sees the token go")
-        node.process(next_one)  # on board: the held frame first, then this one
-        wait_until(lambda: len(got) >= 2, 30, "poses of both frames")
-        time.sleep(0.3)
-        with lock:
-            assert got == [held.capture_nanos, following.capture_nanos]
-        assert node.recovered_frames == 1 and node.on_board_frames == 1
+        yield rig
     finally:
         node.halt.set()
         node.close()
         sub.undeclare()
         edge.close()
         session.close()
+
+
+def test_the_frames_a_vanished_edge_held_go_out_before_the_next(tmp_path: Path) -> None:
+    with _rig(tmp_path) as rig:
+        node = rig.node
+        token = rig.edge.liveliness().declare_token(keys.alive(ROBOT, "edge_infer"))
+        wait_until(lambda: node.watch.alive, 30, "robot_infer sees the edge's token")
+        now = time.time_ns()
+        held, following = _frame(0, now), _frame(1, now + 66_000_000)
+        rig.process(held)  # sent to the edge, which never answers
+        assert node.window.in_flight == 1
+        next_one = robot_stage1(following, detector=node.detector)  # taken before the edge goes
+        token.undeclare()
+        wait_until(lambda: not node.watch.alive, 30, "robot_infer sees the token go")
+        node.process(next_one)  # on board: the held frame first, then this one
+        wait_until(lambda: len(rig.poses()) >= 2, 30, "poses of both frames")
+        time.sleep(0.3)
+        assert rig.poses() == [held.capture_nanos, following.capture_nanos]
+        assert node.recovered_frames == 1 and node.on_board_frames == 1
 
 
 def test_a_stalled_edge_is_worked_around_until_it_answers_again(tmp_path: Path) -> None:
@@ -86,60 +115,30 @@ def test_a_stalled_edge_is_worked_around_until_it_answers_again(tmp_path: Path) 
     until the edge answers again; one frame per timeout still goes to the edge to find out."""
     from tests.examples import example_messages
 
-    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     timeout_secs = 0.4
-    settings = RobotInferSettings(
-        robot_id=ROBOT,
-        weights=REPO / "models",
-        run_dir=tmp_path,
-        split_k=5,
-        overlap_stage1=False,
-        edge_answer_timeout_secs=timeout_secs,
-        zenoh=ZenohSettings(mode="peer", listen=[endpoint]),
-    )
-    session = open_session(settings.zenoh)
-    edge = open_session(ZenohSettings(mode="peer", connect=[endpoint]))
-    got: list[int] = []
-    lock = threading.Lock()
-
-    def on_poses(sample: zenoh.Sample) -> None:
-        with lock:
-            got.append(decode(sample.payload.to_bytes(), TagPoses).capture_nanos)
-
-    def posed(frame: Frame) -> bool:
-        with lock:
-            return frame.capture_nanos in got
-
-    sub = edge.declare_subscriber(keys.tag_poses(ROBOT), on_poses)
-    answers = edge.declare_publisher(keys.tag_poses(ROBOT))
-    node = RobotInfer(settings, session)
-    try:
-        token = edge.liveliness().declare_token(keys.alive(ROBOT, "edge_infer"))
+    with _rig(tmp_path, edge_answer_timeout_secs=timeout_secs) as rig:
+        node = rig.node
+        answers = rig.edge.declare_publisher(keys.tag_poses(ROBOT))
+        token = rig.edge.liveliness().declare_token(keys.alive(ROBOT, "edge_infer"))
         wait_until(lambda: node.watch.alive, 30, "robot_infer sees the edge's token")
         now = time.time_ns()
         frames = [_frame(i, now + i * 66_000_000) for i in range(6)]
-        node.process(robot_stage1(frames[0], detector=node.detector))  # to the edge, which is stalled
+        rig.process(frames[0])  # to the edge, which is stalled
         assert node.window.in_flight == 1
         time.sleep(timeout_secs + 0.1)
-        node.process(robot_stage1(frames[1], detector=node.detector))  # the answer is overdue: on board
-        node.process(robot_stage1(frames[2], detector=node.detector))  # still on board (sent to the edge before)
-        wait_until(lambda: posed(frames[1]) and posed(frames[2]), 10, "frames 1 and 2 posed on board")
+        rig.process(frames[1])  # the answer is overdue: on board
+        rig.process(frames[2])  # still on board (sent to the edge before)
+        wait_until(lambda: rig.posed(frames[1]) and rig.posed(frames[2]), 10, "frames 1 and 2 posed on board")
         assert node.watch.overdue and node.watch.stalls == 1 and node.on_board_frames == 2
         time.sleep(timeout_secs + 0.1)
-        node.process(robot_stage1(frames[3], detector=node.detector))  # a trial: to the edge
+        rig.process(frames[3])  # a trial: to the edge
         assert node.window.in_flight == 1 and node.on_board_frames == 2
         # the edge answers the trial: back to the split
         answer = example_messages()[TagPoses.SCHEMA]
         assert isinstance(answer, TagPoses) and answer.link is not None  # an edge's answer carries link stamps
         answers.put(encode(answer.model_copy(update={"robot_id": ROBOT, "capture_nanos": frames[3].capture_nanos})))
         wait_until(lambda: not node.watch.overdue, 30, "the edge's answer ends the stall")
-        node.process(robot_stage1(frames[4], detector=node.detector))  # to the edge again
-        assert node.window.in_flight == 1 and node.on_board_frames == 2 and not posed(frames[4])
+        rig.process(frames[4])  # to the edge again
+        assert node.window.in_flight == 1 and node.on_board_frames == 2 and not rig.posed(frames[4])
         token.undeclare()
-    finally:
-        node.halt.set()
-        node.close()
         answers.undeclare()
-        sub.undeclare()
-        edge.close()
-        session.close()
