@@ -518,7 +518,9 @@ def test_ping_pong_between_two_cuts_needs_a_larger_gain_for_a_while() -> None:
 
     def decide(current_k: int, controller: SplitController = core) -> ControllerState:
         clock.now += 0.5
-        return controller.decide(robot_id="r1", current_k=current_k, pinned=False)
+        state = controller.decide(robot_id="r1", current_k=current_k, pinned=False)
+        controller.switched(current_k, state.chosen_k)  # applied, as the service says once robot_infer took it
+        return state
 
     edge_at_0(88.0)  # k = 0 ~12 ms faster than k = 6
     assert decide(6).chosen_k == 0
@@ -534,6 +536,14 @@ def test_ping_pong_between_two_cuts_needs_a_larger_gain_for_a_while() -> None:
     assert decide(0).chosen_k == 0 and core.held == 2
     clock.now += 10.0  # the hold is over: the usual gain is enough
     assert decide(0).chosen_k == 6
+    # a decided switch that was not applied (the controller off, a pin meanwhile) does not count
+    unapplied = SplitController(ControllerTuning(dwell=1), clock=clock)
+    unapplied.link, unapplied.robot = core.link, core.robot
+    for ms, current in ((88.0, 6), (112.0, 0), (88.0, 6)):
+        edge_at_0(ms, unapplied)
+        clock.now += 0.5
+        assert unapplied.decide(robot_id="r1", current_k=current, pinned=False).chosen_k != current
+    assert unapplied.held == 0
     off = SplitController(ControllerTuning(dwell=1, reversal_hold_secs=0), clock=clock)
     off.link, off.robot = core.link, core.robot
     for ms, current, chosen in ((88.0, 6, 0), (112.0, 0, 6), (88.0, 6, 0)):

@@ -107,7 +107,8 @@ def test_edge_watch_and_abandoning_the_frames_in_flight() -> None:
 def test_an_overdue_answer_holds_the_robot_on_board_until_the_edge_answers_again() -> None:
     """A stalled edge keeps its token for Zenoh's lease: the overdue state is remembered (the window's
     frames are forgotten, so the next frame would look like the first in flight), one trial frame per
-    timeout still goes to the edge, and an answer (or the token coming back) ends the spell."""
+    timeout still goes to the edge, and a prompt answer (or the token coming back) ends the spell; the
+    late answers of the frames the stall held do not."""
     clock = FakeClock()
     watch = EdgeWatch(answer_timeout_secs=1.5, clock=clock)
     watch.edge_up()
@@ -121,7 +122,9 @@ def test_an_overdue_answer_holds_the_robot_on_board_until_the_edge_answers_again
     assert not watch.trial_due()
     clock.now = 3.0
     assert watch.trial_due()
-    watch.answered()  # the trial (or any late frame) answered
+    watch.answered(2.0)  # a frame the stall held, answered late: the edge is not back yet
+    assert watch.overdue
+    watch.answered(0.2)  # the trial answered promptly
     assert not watch.overdue and not watch.on_board(0.0) and not watch.trial_due()
     assert watch.on_board(2.0) and watch.stalls == 2  # a second spell
     watch.edge_down()

@@ -186,9 +186,11 @@ def test_the_live_line_says_how_long_the_poses_have_stopped() -> None:
     assert monitor.line(down=["edge_infer", "slam"]).endswith(": edge_infer and slam exited and are not back yet")
     # ... and which came back moments ago, still starting (a trial was asked about the edge just after
     # robot_infer came back, loading its network)
-    assert at_robot.line(back=["robot_infer"]).endswith(
+    assert at_robot.line(back={"robot_infer": now[0] - 0.5}).endswith(
         ": robot_infer came back from a restart moments ago and may still be starting up"
     )
+    # a silence that began after it came back is not its restart's (review)
+    assert "came back" not in at_robot.line(back={"robot_infer": now[0] - 3.0})
 
 
 def test_no_slam_error_when_slam_works_in_a_world_of_its_own() -> None:

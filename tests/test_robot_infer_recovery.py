@@ -136,7 +136,17 @@ def test_a_stalled_edge_is_worked_around_until_it_answers_again(tmp_path: Path) 
         # the edge answers the trial: back to the split
         answer = example_messages()[TagPoses.SCHEMA]
         assert isinstance(answer, TagPoses) and answer.link is not None  # an edge's answer carries link stamps
-        answers.put(encode(answer.model_copy(update={"robot_id": ROBOT, "capture_nanos": frames[3].capture_nanos})))
+        late = answer.link.model_copy(update={"sent_nanos": time.time_ns() - 2 * 10**9})  # a held frame's, late
+        answers.put(
+            encode(
+                answer.model_copy(update={"robot_id": ROBOT, "capture_nanos": frames[0].capture_nanos, "link": late})
+            )
+        )
+        prompt = answer.link.model_copy(update={"sent_nanos": time.time_ns() - 50_000_000})
+        reply = answer.model_copy(update={"robot_id": ROBOT, "capture_nanos": frames[3].capture_nanos, "link": prompt})
+        wait_until(lambda: frames[0].capture_nanos in rig.poses(), 30, "the late answer arrives")
+        assert node.watch.overdue  # a late answer does not end the stall
+        answers.put(encode(reply))
         wait_until(lambda: not node.watch.overdue, 30, "the edge's answer ends the stall")
         rig.process(frames[4])  # to the edge again
         assert node.window.in_flight == 1 and node.on_board_frames == 2 and not rig.posed(frames[4])

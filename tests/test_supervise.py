@@ -37,17 +37,17 @@ def test_a_process_back_from_an_exit_is_named_for_a_while() -> None:
     clock = FakeClock()
     sup = Supervisor(clock=clock)
     sup.started("robot_infer")
-    assert sup.ready("robot_infer") is None and sup.back(20.0) == []  # a first start: not "back"
+    assert sup.ready("robot_infer") is None and sup.back(20.0) == {}  # a first start: not "back"
     clock.now += 5.0
     sup.exited("robot_infer", -9)
-    assert sup.down() == ["robot_infer"] and sup.back(20.0) == []
+    assert sup.down() == ["robot_infer"] and sup.back(20.0) == {}
     clock.now += 2.0
     sup.started("robot_infer")
     clock.now += 9.0
     assert sup.ready("robot_infer") == 11.0
-    assert sup.down() == [] and sup.back(20.0) == ["robot_infer"]
+    assert sup.down() == [] and sup.back(20.0) == {"robot_infer": clock.now}
     clock.now += 20.5
-    assert sup.back(20.0) == []
+    assert sup.back(20.0) == {}
 
 
 def test_a_finished_camera_ends_the_run_and_a_crashed_or_stopped_one_restarts() -> None:

@@ -148,6 +148,9 @@ def _decide(
     except SplitQueryError as exc:  # pinned meanwhile, or robot_infer restarting
         return state.model_copy(update={"reason": f"{state.reason}; refused: {exc}"}), False
     log.info("split k=%d -> %d: %s", split.k, state.chosen_k, state.reason)
+    if applied.k == state.chosen_k:
+        with lock:
+            core.switched(split.k, applied.k)
     return state.model_copy(update={"applied": applied.k == state.chosen_k}), True
 
 

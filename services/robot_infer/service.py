@@ -210,9 +210,10 @@ class RobotInfer:
             poses = decode_view(sample.payload.to_bytes(), TagPoses).fields
             # Frames are keyed by capture time, not seq: seq starts again with a camera session (a restart,
             # a looped folder's next pass) while frames of the last one may still be in flight (review).
+            if poses.link is not None:  # the edge's answer (link None: computed on board): prompt, or late?
+                # (before the credit returns: the main loop must not take it while the stall still holds)
+                self.watch.answered((time.time_ns() - poses.link.sent_nanos) / 1e9)  # both stamps the robot's
             self.window.done(poses.capture_nanos)
-            if poses.link is not None:  # the edge's answer (link None: computed on board), late or not
-                self.watch.answered()
             if self.pacer is not None and poses.link is not None:
                 timings = poses.timings
                 self.pacer.answered(
@@ -265,7 +266,9 @@ class RobotInfer:
                 if isinstance(s1, _Skipped):
                     # Start when this frame would reach the edge as it becomes free (the camera ring keeps
                     # the newest frame meanwhile): waiting here is free, waiting in the edge's queue is latency.
-                    delay = self.pacer.start_delay_secs() if self.pacer is not None else 0.0
+                    # (none on board: without the edge the frame crosses no link and waits for no edge)
+                    on_board = self.watch.overdue or not self.watch.alive
+                    delay = self.pacer.start_delay_secs() if self.pacer is not None and not on_board else 0.0
                     if delay > 0 and stop.wait(min(delay, self.settings.edge_answer_timeout_secs)):
                         break
                     s1 = self._stage1(stop)

@@ -85,7 +85,8 @@ class RobotInferSettings(ServiceSettings):
     profile_period_secs: float = Field(default=1.0, gt=0)  # ComputeProfile C(k) publication period
     # Without the edge (its liveliness token gone, or an answer this late) the robot runs the whole
     # chain on board (k = 7 + PnP) and publishes TagPoses itself; back to the split when the edge is
-    # (its token back, or, after a late answer, an answer again: one frame per this time goes to it).
+    # (its token back, or, after a late answer, an answer within this time again: one frame per this
+    # time goes to it to find out).
     edge_answer_timeout_secs: float = Field(default=1.5, gt=0)
     tag_map: Path | None = None  # sizes for on-board PnP (as edge_infer's); unknown ids: default_tag_size_m
     default_tag_size_m: float = Field(default=0.2, gt=0)  # black square's side for ids the tag map does not list

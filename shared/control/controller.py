@@ -311,6 +311,13 @@ class SplitController:
         ok[current_k] |= bool(shares[current_k] >= limit - self.settings.frame_share_hysteresis)
         return ok
 
+    def switched(self, from_k: int, to_k: int) -> None:
+        """The split went from_k -> to_k as decided (the caller's apply succeeded): what the ping-pong hold
+        reads. Decided switches that were not applied (the controller off, a pin meanwhile) count for
+        nothing (review)."""
+        if to_k != from_k:
+            self._switches.append((self._clock(), from_k, to_k, self.link.changes))
+
     def _reversal_hold(self, t: np.ndarray, current_k: int, chosen: int) -> str | None:
         """Why a switch is held as ping-pong (None: it is not): the last two switches were `current_k` ->
         `chosen` -> `current_k`, the first less than reversal_hold_secs ago, on the same link, and this
@@ -377,8 +384,6 @@ class SplitController:
             if chosen != current_k and not forced and (hold := self._reversal_hold(t, current_k, chosen)) is not None:
                 self.held += 1
                 reason, chosen = hold, current_k
-        if chosen != current_k:
-            self._switches.append((self._clock(), current_k, chosen, self.link.changes))
         return ControllerState(
             robot_id=robot_id,
             stamp_nanos=time.time_ns(),

@@ -210,19 +210,30 @@ def _cmd_watch(args: argparse.Namespace) -> int:
     settings = _reader_settings(args, "watch")
     if settings is None:
         return 2
+    import os
     import signal
+    import time
 
-    def on_term(*_: object) -> None:  # `timeout`, a supervisor: end as Ctrl-C does, with the summary
-        # once: a second signal while the watch closes its session (`timeout` and its child both signalled,
-        # Ctrl-C twice) was a KeyboardInterrupt traceback out of session.close() instead of the summary
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        raise KeyboardInterrupt
+    first: list[float] = []
+
+    def on_term(signum: int, _frame: object) -> None:  # `timeout`, a supervisor: end as Ctrl-C does, with the summary
+        # Once: a second signal while the watch closes its session (`timeout` and its child both signalled)
+        # was a KeyboardInterrupt traceback out of session.close() instead of the summary. One more, 2 s
+        # later, ends it at once (a close that hangs must not make it unstoppable: review).
+        now = time.monotonic()
+        if not first:
+            first.append(now)
+            raise KeyboardInterrupt
+        if now - first[0] >= 2.0:
+            os._exit(128 + signum)
 
     signal.signal(signal.SIGTERM, on_term)
     signal.signal(signal.SIGINT, on_term)
     result = watch(args.topic, args.robot_id, settings, fmt=args.format, count=args.count, duration_secs=args.duration)
     print(result.summary(key_for(args.topic, args.robot_id)), file=sys.stderr)
+    if first:  # stopped by a signal: a second one now would kill the interpreter as it exits (exit -2)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     return 0 if result.messages else 1
 
 

@@ -19,7 +19,7 @@ import threading
 import time
 import tomllib
 from collections import Counter, deque
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -593,12 +593,13 @@ class Monitor:
                 out.append(float(translation_error_cm(tag.camera_from_tag[:3, 3], true[:3, 3])))
         return out
 
-    def line(self, down: Sequence[str] = (), back: Sequence[str] = ()) -> str:
+    def line(self, down: Sequence[str] = (), back: Mapping[str, float] | None = None) -> str:
         """One status line over the last second. `down`: the run's processes that exited and are not
         back yet (the supervisor's), named first when the poses stopped (a trial's monitor asked
         whether the edge was up while robot_infer was the one restarting); `back`: those that came back
-        moments ago (said next: a trial was asked whether the edge was up just after robot_infer came
-        back, still loading its network)."""
+        moments ago, name -> when (this monitor's clock), said next when the poses stopped before it came
+        back (a trial was asked whether the edge was up just after robot_infer came back; a silence that
+        began after is not put down to the restart: review)."""
         now = self.clock()
         with self._lock:
             recent = [r for r in self._recent if now - r["t"] <= 1.0]
@@ -614,9 +615,11 @@ class Monitor:
             silent = f"no TagPoses for {now - last['t']:.1f} s (the last: frame {last['seq']})"
             if down:
                 return f"{silent}: {' and '.join(down)} exited and {'is' if len(down) == 1 else 'are'} not back yet"
-            if back:
+            restarted = [name for name, at in (back or {}).items() if at >= last["t"]]
+            if restarted:
                 return (
-                    f"{silent}: {' and '.join(back)} came back from a restart moments ago and may still be starting up"
+                    f"{silent}: {' and '.join(restarted)} came back from a restart moments ago and may still be "
+                    "starting up"
                 )
             # the poses caught up and the camera went quiet (a restarted camera counts from 0 again: only
             # a second's silence of its own says so)
@@ -850,8 +853,8 @@ def monitor_settings(config: Path, *, at_robot: bool = False) -> tuple[str, Zeno
     return robot_id, ZenohSettings(mode="client", connect=endpoints, tls=tls)
 
 
-# How long after a restarted process is back a silence of the poses is put down to its start-up (robot_infer
-# loads its network and calibrates its compute before the first frame: ~10 s on 2 cores).
+# How long after a restarted process is back (its liveliness token) a silence of the poses that began before
+# is put down to its restart: the pipeline's first frames after it (a restarted edge_infer, slam) follow.
 RESTART_WARMUP_SECS = 20.0
 
 

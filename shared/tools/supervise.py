@@ -74,11 +74,11 @@ class Supervisor:
         """The processes that exited and are not ready again (restarting), by name."""
         return sorted(self._down_since)
 
-    def back(self, within_secs: float) -> list[str]:
-        """The processes that came back from an exit in the last `within_secs` (still warming up, maybe:
-        robot_infer loads its network and calibrates before its first frame), by name."""
+    def back(self, within_secs: float) -> dict[str, float]:
+        """The processes that came back from an exit in the last `within_secs`: name -> when (this
+        supervisor's clock, time.monotonic by default)."""
         now = self.clock()
-        return sorted(n for n, t in self._ready_at.items() if now - t <= within_secs and n not in self._down_since)
+        return {n: t for n, t in sorted(self._ready_at.items()) if now - t <= within_secs and n not in self._down_since}
 
     def _note(self, incident: dict[str, Any]) -> None:
         incident = {"unix_nanos": self.wall_clock(), **incident}

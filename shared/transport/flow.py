@@ -208,12 +208,16 @@ class EdgeWatch:
     frame sent to it has waited longer than answer_timeout_secs for its answer. Thread-safe (liveliness
     and answer callbacks run on Zenoh's threads).
 
-    An overdue answer is remembered (`overdue`) until the edge answers again (`answered`) or its token
-    comes back (`edge_up`): a stalled edge keeps its token for Zenoh's whole lease, and forgetting the
-    overdue frames used to make the next frame look like the first one in flight, so it went to the
-    stalled edge too, and so on: a trial's SIGSTOPped edge_infer left the robot without a pose for
-    ~10 s, not 1.5. While overdue, one frame per answer_timeout_secs still goes to the edge
-    (`trial_due`): its answer, or any late one, ends the spell."""
+    An overdue answer is remembered (`overdue`) until the edge answers promptly again (`answered`: a
+    frame answered within answer_timeout_secs of its sending) or its token comes back (`edge_up`): a
+    stalled edge keeps its token for Zenoh's whole lease, and forgetting the overdue frames used to make
+    the next frame look like the first one in flight, so it went to the stalled edge too, and so on: a
+    trial's SIGSTOPped edge_infer left the robot without a pose for ~10 s, not 1.5. While overdue, one
+    frame per answer_timeout_secs still goes to the edge (`trial_due`) to find out. The late answers of
+    the frames a stall held do not end it (an edge that always answers late would flip the robot back
+    to it after each, to wait another timeout without poses: review). A single answer lost with nothing
+    else in flight (a Features the edge refused) also starts a spell, ended by the next trial's answer
+    one timeout later: `stalls` counts both."""
 
     def __init__(self, *, answer_timeout_secs: float, clock: Callable[[], float] = time.monotonic) -> None:
         self.answer_timeout_secs = answer_timeout_secs
@@ -250,10 +254,12 @@ class EdgeWatch:
                 self.outages += 1
             self._alive = False
 
-    def answered(self) -> None:
-        """The edge answered a frame (however late): it is responsive again."""
-        with self._lock:
-            self._overdue = False
+    def answered(self, round_trip_secs: float) -> None:
+        """The edge answered a frame `round_trip_secs` after it was sent (on the robot's clock): within
+        answer_timeout_secs, it is responsive again."""
+        if round_trip_secs <= self.answer_timeout_secs:
+            with self._lock:
+                self._overdue = False
 
     def on_board(self, oldest_in_flight_secs: float) -> bool:
         """True when frames must not be sent to the edge now (but see `trial_due`)."""
