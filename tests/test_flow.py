@@ -113,7 +113,8 @@ def test_an_overdue_answer_holds_the_robot_on_board_until_the_edge_answers_again
     watch = EdgeWatch(answer_timeout_secs=1.5, clock=clock)
     watch.edge_up()
     assert not watch.on_board(1.4) and not watch.overdue
-    assert watch.on_board(1.6) and watch.overdue and watch.stalls == 1
+    assert watch.usable
+    assert watch.on_board(1.6) and watch.overdue and watch.stalls == 1 and not watch.usable
     assert watch.on_board(0.0)  # the overdue frames were dropped: still on board
     assert not watch.trial_due()  # not yet: one timeout after the spell began
     clock.now = 1.5

@@ -267,8 +267,7 @@ class RobotInfer:
                     # Start when this frame would reach the edge as it becomes free (the camera ring keeps
                     # the newest frame meanwhile): waiting here is free, waiting in the edge's queue is latency.
                     # (none on board: without the edge the frame crosses no link and waits for no edge)
-                    on_board = self.watch.overdue or not self.watch.alive
-                    delay = self.pacer.start_delay_secs() if self.pacer is not None and not on_board else 0.0
+                    delay = self.pacer.start_delay_secs() if self.pacer is not None and self.watch.usable else 0.0
                     if delay > 0 and stop.wait(min(delay, self.settings.edge_answer_timeout_secs)):
                         break
                     s1 = self._stage1(stop)
@@ -309,7 +308,7 @@ class RobotInfer:
             in_flight=w.in_flight,
             capacity=w.capacity,
             pace_delay_secs=pace,
-            edge_alive=self.watch.alive and not self.watch.overdue,
+            edge_alive=self.watch.usable,
         ):
             return _SKIPPED
         return self._stage1(stop)

@@ -247,6 +247,12 @@ class EdgeWatch:
         with self._lock:
             return self._overdue
 
+    @property
+    def usable(self) -> bool:
+        """Frames may go to the edge: its token is there and no answer is overdue."""
+        with self._lock:
+            return self._alive and not self._overdue
+
     def edge_down(self) -> None:
         """The edge's liveliness token disappeared."""
         with self._lock:
