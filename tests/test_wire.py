@@ -27,6 +27,7 @@ from shared.wire.codec import (
 from shared.wire.messages import (
     LEGACY_SCHEMAS,
     SCHEMAS,
+    WRITE_FRAMING,
     Features,
     Frame,
     MapTagV1,
@@ -45,6 +46,7 @@ from shared.wire.messages import (
     decode,
     decode_view,
     encode,
+    framing_of,
 )
 from tests.examples import INTRINSICS, assert_messages_equal, example_messages, golden_name
 
@@ -91,6 +93,18 @@ def test_framing1_bytes_of_older_peers_still_decode_and_can_still_be_written(sch
     golden = (GOLDEN / golden_name(schema, framing=1)).read_bytes()
     assert_messages_equal(decode(golden), EXAMPLES[schema])
     assert encode(EXAMPLES[schema], framing=1) == golden
+
+
+@pytest.mark.parametrize("schema", sorted(EXAMPLES))
+def test_a_reply_goes_in_the_askers_framing_and_garbage_gets_ours(schema: str) -> None:
+    """framing_of (the echo's and the split queryable's reply framing): each framing's frozen bytes are
+    recognised; a payload that is no framing at all gets the current one, not the oldest peer's (a
+    trial's garbage probes were answered in framing 1)."""
+    for framing in (1, 2):
+        assert framing_of((GOLDEN / golden_name(schema, framing=framing)).read_bytes()) == framing
+    assert framing_of(encode(EXAMPLES[schema])) == WRITE_FRAMING
+    for garbage in (b"x", b"\x00" * 64, b"GET / HTTP/1.1\r\n", b"\x81\xa1a\x01", b"\x92\x01\x02", b""):
+        assert framing_of(garbage) == WRITE_FRAMING, garbage
 
 
 @pytest.mark.parametrize("schema", sorted(LEGACY_SCHEMAS))

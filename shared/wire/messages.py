@@ -775,13 +775,18 @@ def positional_codec() -> PositionalCodec:
     return PositionalCodec(MESSAGE_TYPES, legacy=LEGACY_SCHEMAS.values())
 
 
+FRAMING1_MAP: Final[int] = 0x82  # msgpack's fixmap of two entries: how every framing 1 message starts
+
+
 def framing_of(payload: bytes | bytearray | memoryview | None) -> int:
     """The framing a request came in (1, 2 or 3), so a reply can be one the asker reads: an older
-    peer's probe or split request gets its answer in its own framing. Unknown or no payload: ours."""
+    peer's probe or split request gets its answer in its own framing. Unknown or no payload: ours (a
+    trial's garbage was answered in framing 1, as if from the oldest peer: only framing 1's two-key map
+    {schema, body} reads as framing 1)."""
     if not payload:
         return WRITE_FRAMING
     if payload[0] != FRAME_MAGIC:
-        return 1
+        return 1 if payload[0] == FRAMING1_MAP else WRITE_FRAMING
     return payload[1] if len(payload) > 1 and payload[1] in (FRAMING, FRAMING3) else WRITE_FRAMING
 
 
