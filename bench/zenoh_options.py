@@ -36,6 +36,7 @@ import numpy as np
 import zenoh
 
 from bench.machine import cpu_label
+from shared.runtime.signals import SignalStop
 from shared.transport.session import ZenohSettings, build_config, free_tcp_port, wait_for_liveliness
 from shared.wire.cuts import tensor_bytes
 
@@ -58,7 +59,7 @@ def _config(settings: ZenohSettings, batch_size: int) -> zenoh.Config:
 def serve(listen: str, batch_size: int) -> None:
     """The edge end: an echo queryable (reads the payload, answers 8 bytes) and a sink subscriber."""
     stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    SignalStop(stop, [signal.SIGTERM])
     session = zenoh.open(_config(ZenohSettings(mode="router", listen=[listen]), batch_size))
 
     def echo(query: zenoh.Query) -> None:

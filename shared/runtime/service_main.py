@@ -23,6 +23,7 @@ from shared.runtime.cpus import CpuPlacementError, pin_cpus
 from shared.runtime.errors import one_line_error
 from shared.runtime.logs import setup_logging
 from shared.runtime.settings import CONFIG_EXIT, SOURCE_ENDED_EXIT, ConfigurationError, ServiceSettings
+from shared.runtime.signals import SignalStop
 from shared.runtime.waiting import result_unless_set
 from shared.transport.session import ZenohSettings, certificate_problem, open_session, zenoh_log_from_env
 from shared.vision.files import atomic_write_text
@@ -145,8 +146,7 @@ def service_main(
     settings.log_resolved()
     write_resolved(settings, name)
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    SignalStop(stop)  # (not a handler that sets it: that can deadlock, see shared.runtime.signals)
     if settings.cpus is not None:
         try:
             pin_cpus(settings.cpus)  # before Zenoh and torch start their threads (those running move too)

@@ -534,9 +534,9 @@ def _cmd_profile(args: argparse.Namespace) -> int:
 
 
 def _cmd_link_up(args: argparse.Namespace) -> int:
-    import signal
     import threading
 
+    from shared.runtime.signals import SignalStop
     from shared.tools.linkemu import LinkEmulator, LinkEmulatorSettings, profile
 
     emu = LinkEmulator(LinkEmulatorSettings(prefix=args.prefix))
@@ -549,8 +549,7 @@ def _cmd_link_up(args: argparse.Namespace) -> int:
         flush=True,
     )
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    SignalStop(stop)
     # Until Ctrl-C, or until the link is gone under it (`link down`, the delay line killed): then it
     # says so and ends, rather than claim a link that is not there (a trial's kept running).
     while not stop.wait(0.5):

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import logging
-import signal
 import threading
 
 import zenoh
 
+from shared.runtime.signals import SignalStop
 from shared.runtime.waiting import until_set
 from shared.transport.probe import serve_echo
 from shared.transport.session import ZenohSettings, open_session
@@ -27,8 +27,7 @@ def run(
     """Serve probes until `stop` is set (or SIGINT/SIGTERM when run as the main thread)."""
     stop = stop or threading.Event()
     if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: stop.set())
+        SignalStop(stop)
     session = open_session(zenoh_settings)
     try:
         queryable = serve_echo(session, keys.echo(robot_id), max_bytes=max_bytes)

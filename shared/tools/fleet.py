@@ -355,13 +355,13 @@ def run_fleet(
     print a line per robot per second until duration/SIGINT, stop everything, write summary.json.
     A process that dies is restarted after the supervisor's backoff (as `splittag up` does)."""
     import json
-    import signal
     import threading
     import time
 
     import zenoh
 
     from shared.runtime.settings import CONFIG_EXIT
+    from shared.runtime.signals import SignalStop
     from shared.tools.launch import (
         ComingsAndGoings,
         FramesCsv,
@@ -403,7 +403,7 @@ def run_fleet(
         run_tags = load_tag_map(run_map) if run_map is not None else None
         refuse_busy_endpoints([s.config for s in specs])
     stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    signals = SignalStop(stop)
     hosts = {"slam": "it is the edge tier's router: every robot and worker is cut off from the edge until it is back"}
     hosts |= {f"{r}_robot_infer": f"it is {r}'s router: {r}'s camera frames wait until it is back" for r in plan.robots}
     supervisor = Supervisor(record=incidents_file(run_dir / "incidents.jsonl"), hosts=hosts)
@@ -518,8 +518,7 @@ def run_fleet(
         if started.session is not None:
             started.session.close()
         codes = stop_services([p for _, p in running])
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        signals.restore()
         forget_run_files(run_dir)
     summary: dict[str, Any] = {
         "run_dir": str(run_dir),

@@ -31,6 +31,7 @@ import zenoh
 
 from shared.runtime.guard import input_counts_summary
 from shared.runtime.settings import CONFIG_EXIT, CURRENT_RUN
+from shared.runtime.signals import SignalStop
 from shared.runtime.sources import demo_scene
 from shared.tools.supervise import Supervisor, incidents_file
 from shared.tools.topology import Topology, merge, write_config
@@ -1599,7 +1600,7 @@ def run_pipeline(
             flush=True,
         )
     stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    signals = SignalStop(stop)
     from shared.tools.linkemu import read_events
 
     monitor = Monitor(  # a deployment may run for days
@@ -1662,8 +1663,7 @@ def run_pipeline(
         codes = stop_services(running.started)
         if emu is not None:
             emu.down()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        signals.restore()
         forget_run_files(run_dir)
     if failure is None:
         return _summarise_run(run_dir, monitor, codes, frames_csv, running.supervisor)
