@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from shared.tools.launch import Monitor
-from shared.wire.messages import CameraPose, TagPoses, encode
+from shared.wire.messages import CameraPose, FrameStamp, TagPoses, encode
 from tests.examples import example_messages
 
 EXAMPLES = example_messages()
@@ -166,7 +166,7 @@ def test_the_live_line_says_how_long_the_poses_have_stopped() -> None:
     # Both stopped (a robot's host went down: found by a fresh-clone trial, which was told to check the edge).
     now[0] += 4.0
     line = monitor.line()
-    assert "nor its camera's ground truth for 5.0 s; is the robot's host up" in line, line
+    assert "nor its camera's ground truth or stamps for 5.0 s; is the robot's host up" in line, line
     # The poses caught up with the camera's last frame (a folder's end): the camera went quiet, not the edge
     # (a trial's runs ended with 'is the edge up?' in 3 of 9).
     ended = Monitor(None, clock=lambda: now[0])
@@ -174,6 +174,15 @@ def test_the_live_line_says_how_long_the_poses_have_stopped() -> None:
     ended.on_poses(encode(poses.model_copy(update={"seq": 299})))
     now[0] += 1.1
     assert "the camera has sent nothing newer for 1.1 s" in ended.line(), ended.line()
+    # A data set without ground truth (a video, a folder with rgb.txt): its stamps say the same (a trial's
+    # video run, ended by max_frames, was asked 'is the robot up?').
+    stamped = Monitor(None, clock=lambda: now[0])
+    stamp = EXAMPLES[FrameStamp.SCHEMA]
+    assert isinstance(stamp, FrameStamp)
+    stamped.on_stamp(encode(stamp.model_copy(update={"seq": 119})))
+    stamped.on_poses(encode(poses.model_copy(update={"seq": 119})))
+    now[0] += 1.3
+    assert "the camera has sent nothing newer for 1.3 s" in stamped.line(), stamped.line()
     # At the robot's own router (a fleet's robot host), on-board poses arrive: the silence is robot_infer's.
     at_robot = Monitor(None, clock=lambda: now[0], at_robot=True)
     at_robot.on_poses(encode(poses.model_copy(update={"seq": 41})))

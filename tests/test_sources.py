@@ -14,7 +14,7 @@ import pytest
 
 from services.camera.service import run as run_camera
 from services.camera.settings import CameraSettings
-from shared.runtime.sources import CaptureSource, FolderSource
+from shared.runtime.sources import CaptureSource, FolderSource, VideoSource
 from shared.transport.session import ZenohSettings, free_tcp_port, open_session
 from shared.vision.geometry import GeometryError, camera_to_yaml, default_camera, make_pose
 from shared.vision.tags import render_tag, to_uint8
@@ -66,22 +66,73 @@ def test_folder_source_skips_bad_images_and_checks_groundtruth(tmp_path: Path) -
         FolderSource(tmp_path / "empty_does_not_exist", info)
 
 
-def test_video_source_reads_gray_frames_at_camera_size(tmp_path: Path) -> None:
+def _video(tmp: Path, n: int, *, size: tuple[int, int] = (CAM.width, CAM.height), name: str = "clip.avi") -> Path:
+    """An MJPG video of _tag_image(0..n-1) in colour at 15 fps (scaled to `size`)."""
+    video = tmp / name
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"MJPG"), 15.0, size)
+    assert writer.isOpened(), "OpenCV cannot write MJPG here"
+    for i in range(n):
+        image = cv2.resize(_tag_image(i), size, interpolation=cv2.INTER_AREA)
+        writer.write(cv2.cvtColor(image, cv2.COLOR_GRAY2BGR))
+    writer.release()
+    return video
+
+
+def test_a_video_file_streams_grey_frames_in_its_own_time_with_ground_truth_matched_by_it(tmp_path: Path) -> None:
+    """A video is a data set: each frame carries its own time (seconds from the video's first frame) and
+    its place, ground truth in that time is matched within 20 ms, and a restarted camera seeks to its
+    place instead of replaying the video (a trial's groundtruth was ignored, its restart replayed 0-49)."""
     info = tmp_path / "camera_info.yaml"
     info.write_text(camera_to_yaml(CAM))
-    video = tmp_path / "clip.avi"
-    # Written at half size in colour: the source converts to grey and resizes to the camera_info size.
-    writer = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"MJPG"), 15.0, (CAM.width // 2, CAM.height // 2))
-    assert writer.isOpened(), "OpenCV cannot write MJPG here"
-    for i in range(5):
-        small = cv2.resize(_tag_image(i), (CAM.width // 2, CAM.height // 2), interpolation=cv2.INTER_AREA)
-        writer.write(cv2.cvtColor(small, cv2.COLOR_GRAY2BGR))
-    writer.release()
-    frames = list(CaptureSource(str(video), info).frames())
-    assert len(frames) == 5
+    video = _video(tmp_path, 6)
+    gt = tmp_path / "groundtruth.txt"  # every frame's pose but frame 4's, in the video's time
+    write_tum(gt, [(i / 15.0, make_pose(np.eye(3), [float(i), 0.0, 0.0])) for i in range(6) if i != 4])
+    source = VideoSource(video, info, gt)
+    frames = list(source.frames())
+    assert len(frames) == 6 and [f.index for f in frames] == list(range(6))
     assert all(f.image.shape == (CAM.height, CAM.width) and f.image.dtype == np.uint8 for f in frames)
-    with pytest.raises(OSError, match="cannot open"):
-        list(CaptureSource(str(tmp_path / "absent.avi"), info).frames())
+    assert [f.stamp_nanos for f in frames] == [round(i * 1e9 / 15) for i in range(6)]
+    assert [None if f.world_from_camera is None else f.world_from_camera[0, 3] for f in frames] == [0, 1, 2, 3, None, 5]
+    assert source.span_nanos == 400_000_000 and source.identity == {"images": 6, "first": str(video)}
+    later = list(source.frames(3))
+    assert [f.index for f in later] == [3, 4, 5]
+    assert [f.stamp_nanos for f in later] == [f.stamp_nanos for f in frames[3:]]
+    assert all(np.array_equal(a.image, b.image) for a, b in zip(later, frames[3:], strict=True))
+    assert VideoSource(video, info).frames().__next__().world_from_camera is None  # no ground truth given
+
+
+def test_a_video_that_cannot_be_used_is_refused_at_once_saying_why(tmp_path: Path) -> None:
+    """Refused when the source is made (before any Zenoh session: exit 2, no restart loop): frames of
+    another size than the camera_info's (a trial's 640x480 video with a 1280x720 camera_info was resized
+    silently and posed metres off), a file OpenCV cannot open (a trial's cut-short mp4 restarted the
+    camera for the whole run), a folder, a missing file, ground truth in another clock."""
+    from services.camera.service import check_source
+    from shared.runtime.settings import ConfigurationError
+
+    info = tmp_path / "camera_info.yaml"
+    info.write_text(camera_to_yaml(CAM))
+    small = _video(tmp_path, 2, size=(CAM.width // 2, CAM.height // 2), name="small.avi")
+    with pytest.raises(GeometryError, match=f"are {CAM.width // 2}x{CAM.height // 2} but the camera_info says"):
+        VideoSource(small, info)
+    garbage = tmp_path / "cut.mp4"
+    garbage.write_bytes(np.random.default_rng(0).integers(0, 256, 100_000, dtype=np.uint8).tobytes())
+    with pytest.raises(GeometryError, match="not a video OpenCV can open"):
+        VideoSource(garbage, info)
+    with pytest.raises(FileNotFoundError, match="is a folder, not a video file"):
+        VideoSource(tmp_path, info)
+    with pytest.raises(FileNotFoundError, match="no such file"):
+        VideoSource(tmp_path / "absent.avi", info)
+    video = _video(tmp_path, 3)
+    epoch = tmp_path / "epoch.txt"
+    write_tum(epoch, [(1_700_000_000.0 + i / 15, np.eye(4)) for i in range(3)])
+    with pytest.raises(GeometryError, match="in the video's time"):
+        VideoSource(video, info, epoch)
+    for path in (small, garbage, tmp_path, tmp_path / "absent.avi"):
+        with pytest.raises(ConfigurationError, match="source video"):
+            check_source(CameraSettings(source="video", path=str(path), camera_info=info))
+    assert isinstance(check_source(CameraSettings(source="video", path=str(video), camera_info=info)), VideoSource)
+    with pytest.raises(ConfigurationError, match="groundtruth: a v4l2 source"):
+        check_source(CameraSettings(source="v4l2", path="0", camera_info=info, groundtruth=epoch))
 
 
 def test_v4l2_source_when_a_device_exists(tmp_path: Path) -> None:
@@ -543,6 +594,29 @@ def test_a_restarted_camera_goes_on_with_its_data_set(tmp_path: Path) -> None:
     assert published == 3 and np.array_equal(alone[0].image, _tag_image(0))
 
 
+def test_a_restarted_video_camera_goes_on_from_its_place_in_the_video(tmp_path: Path) -> None:
+    """As a folder's: the run's restarted video camera seeks to the next frame (a trial's killed camera
+    replayed frames 0-49, so trajectory.tum went back in time), its frames stamped in the video's time."""
+    import os
+
+    info = tmp_path / "camera_info.yaml"
+    info.write_text(camera_to_yaml(CAM))
+    video = _video(tmp_path, 4)
+    settings = CameraSettings(
+        robot_id="resume4", source="video", path=str(video), camera_info=info, fps=50.0, loop=False,
+        run_dir=tmp_path, max_frames=2,
+    )  # fmt: skip
+    (tmp_path / "launcher.pid").write_text(f"{os.getppid()}\n")  # this process plays the run's launcher's child
+    first, _, published = _stream(settings, "resume4", 2)
+    assert published == 2
+    stamps: list[FrameStamp] = []
+    again, _, published = _stream(settings.model_copy(update={"max_frames": 0}), "resume4", 2, stamps)
+    assert published == 4 and [f.seq for f in again] == [0, 1]
+    assert [s.source_stamp_nanos for s in stamps] == [round(i * 1e9 / 15) for i in (2, 3)]
+    frames = list(VideoSource(video, info).frames())
+    assert np.array_equal(again[0].image, frames[2].image) and np.array_equal(first[1].image, frames[1].image)
+
+
 def test_a_restarted_camera_counts_images_by_their_place_in_the_listing(tmp_path: Path) -> None:
     """A data set with an unreadable image: the progress counts places in the listing, not images read,
     so a camera restarted after the whole pass ends at once instead of skipping everything and failing
@@ -573,19 +647,19 @@ def test_a_restarted_camera_counts_images_by_their_place_in_the_listing(tmp_path
 def test_a_progress_file_that_is_not_this_data_sets_is_ignored(tmp_path: Path) -> None:
     """The progress a restarted camera reads is refused, and the data set played from its start, when it
     is damaged or names another listing (another folder, images added): never a crash, never a skip."""
-    from services.camera.service import FolderProgress
+    from services.camera.service import SourceProgress
 
     settings = _looping_folder(tmp_path, "prog1", max_frames=0)
     assert settings.camera_info is not None
     source = FolderSource(Path(settings.path), settings.camera_info, settings.groundtruth)
-    progress = FolderProgress.of_run(settings, source)
+    progress = SourceProgress.of_run(settings, source)
     progress.write(1, 2, 5)
     assert progress.read() == (1, 2, 5)
     for damaged in ("", "{", "[]", '{"images": 3}', progress.path.read_text().replace('"passes": 1', '"passes": "x"')):
         progress.path.write_text(damaged)
         assert progress.read() is None, damaged
     progress.write(1, 2, 5)
-    other = FolderProgress(progress.path, source.files[:2])  # a listing of two images
+    other = SourceProgress(progress.path, {"images": 2, "first": str(source.files[0])})  # a listing of two images
     assert other.read() is None
 
 

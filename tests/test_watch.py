@@ -349,8 +349,15 @@ def test_watch_says_when_nothing_comes_and_exits_nonzero() -> None:
     with _router() as (endpoint, _session):
         proc = _light_cli("watch", "controller", "--connect", endpoint, "--duration", str(QUIET_HINT_SECS + 1))
         out, err = _finish(proc)
+        # ended before the hint's 5 s: said at the end all the same, with who publishes it (a trial's
+        # `watch controller` with no controller running said only '0 messages')
+        short = _light_cli("watch", "controller", "--connect", endpoint, "--duration", "1")
+        _, short_err = _finish(short)
     assert proc.returncode == 1 and out == ""
     assert "nothing on splittag/robot1/controller/v2 yet" in err and "0 messages" in err
+    assert "`splittag up --controller`" in err and err.count("nothing") == 1  # (once)
+    assert short.returncode == 1 and "nothing came on splittag/robot1/controller/v2" in short_err
+    assert "runs only when asked" in short_err
 
 
 @pytest.mark.multiprocess

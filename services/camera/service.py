@@ -7,6 +7,7 @@ import logging
 import os
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import zenoh
@@ -14,7 +15,15 @@ import zenoh
 from services.camera.settings import CameraSettings
 from shared.runtime.service_main import started_by_run_launcher
 from shared.runtime.settings import ConfigurationError
-from shared.runtime.sources import CaptureSource, DemoSource, FolderSource, FrameSource
+from shared.runtime.sources import (
+    CaptureSource,
+    DemoSource,
+    FolderSource,
+    FrameSource,
+    SourceFrame,
+    SourceSizeError,
+    VideoSource,
+)
 from shared.transport.session import declare_tensor_publisher, encoding_for, wait_for_liveliness
 from shared.viz.recording import make_viz
 from shared.wire import keys
@@ -24,21 +33,22 @@ from shared.wire.messages import CameraPose, Frame, FrameStamp, TagPoses, decode
 log = logging.getLogger(__name__)
 
 
-class FolderProgress:
-    """Where a folder source's camera is in its data set, kept in the run folder so that a camera the
-    run's launcher restarts goes on from the next image instead of replaying the data set from its first
-    (a trial's restart at 17 s gave trajectory.tum 220 rows for 150 stamps, jumping back in time).
-    Written after each frame (a rename, no fsync: it has to survive the process, not the host)."""
+class SourceProgress:
+    """Where a folder or video camera is in its data set, kept in the run folder so that a camera the
+    run's launcher restarts goes on from the next image or video frame instead of replaying the data set
+    from its first (a trial's restart at 17 s gave trajectory.tum 220 rows for 150 stamps, jumping back in
+    time; another's killed video camera replayed frames 0-49). Written after each frame (a rename, no
+    fsync: it has to survive the process, not the host)."""
 
-    def __init__(self, path: Path, listing: list[Path]) -> None:
-        self.path, self.listing = path, listing
+    def __init__(self, path: Path, identity: dict[str, object]) -> None:
+        self.path, self.identity = path, identity
 
     @classmethod
-    def of_run(cls, settings: CameraSettings, source: FolderSource) -> FolderProgress:
-        return cls(settings.run_dir / f"camera_{settings.robot_id}.progress.json", source.files)
+    def of_run(cls, settings: CameraSettings, source: FolderSource | VideoSource) -> SourceProgress:
+        return cls(settings.run_dir / f"camera_{settings.robot_id}.progress.json", source.identity)
 
     def _listing_doc(self) -> dict[str, object]:
-        return {"images": len(self.listing), "first": str(self.listing[0])}
+        return dict(self.identity)
 
     def read(self) -> tuple[int, int, int] | None:
         """(completed passes, index of the next image, frames published in the run), or None (no progress,
@@ -69,10 +79,15 @@ def make_source(settings: CameraSettings) -> FrameSource:
         raise ValueError(f"source {settings.source!r} needs camera_info (a ROS camera_info YAML)")
     if settings.source == "folder":
         return FolderSource(Path(settings.path), settings.camera_info, settings.groundtruth)
-    if settings.source == "video":
-        return CaptureSource(settings.path, settings.camera_info)
+    if settings.source == "video" and _local_file(settings.path):
+        return VideoSource(Path(settings.path), settings.camera_info, settings.groundtruth)
     target: str | int = int(settings.path) if settings.path.isdigit() else settings.path
     return CaptureSource(target, settings.camera_info)
+
+
+def _local_file(path: str) -> bool:
+    """A video path names a file (not a URL, rtsp://..., or a GStreamer pipeline, ... ! ..., OpenCV's to open)."""
+    return "://" not in path and "!" not in path
 
 
 class _Stopped(Exception):
@@ -81,22 +96,37 @@ class _Stopped(Exception):
 
 def check_source(settings: CameraSettings) -> FrameSource | None:
     """The configured source, made and checked before any Zenoh session (service_main's `check`): a
-    missing folder, video file or camera_info, or a malformed listing, is a configuration error said at
-    once, not a crash-and-restart loop behind a connection timeout. None for the demo scene (rendered
-    or read from its cache when streaming starts); V4L2 devices open when streaming starts."""
+    missing folder, video file or camera_info, a malformed listing, a video OpenCV cannot read or of
+    another size than the camera_info's, is a configuration error said at once, not a crash-and-restart
+    loop behind a connection timeout. None for the demo scene (rendered or read from its cache when
+    streaming starts); V4L2 devices and streams open when streaming starts (their size is checked at
+    their first frame)."""
     if settings.source == "demo":
         return None
+    if settings.groundtruth is not None and not (
+        settings.source == "folder" or (settings.source == "video" and _local_file(settings.path))
+    ):  # (a trial's groundtruth was silently ignored for a video)
+        raise ConfigurationError(
+            f"groundtruth: a {settings.source} source {settings.path!r} has no time of its own to match it by "
+            "(an image folder or a video file has)"
+        )
     try:
         source = make_source(settings)
         if isinstance(source, FolderSource):
             source.check()
     except (OSError, ValueError) as exc:  # FileNotFoundError is an OSError; GeometryError a ValueError
         raise ConfigurationError(f"source {settings.source} {settings.path!r}: {exc}") from None
-    # A file must be there; a URL (rtsp://...) or a GStreamer pipeline (... ! ...) is OpenCV's to open.
-    local_file = settings.source == "video" and "://" not in settings.path and "!" not in settings.path
-    if local_file and not Path(settings.path).is_file():
-        raise ConfigurationError(f"source video {settings.path!r}: no such file")
     return source
+
+
+def _frames_from(source: FrameSource, start: int) -> Iterator[SourceFrame]:
+    """One pass over the source; a video from frame `start` (a seek: the caller skips a folder's first
+    images itself). A live source whose frames are not of the camera_info's size is a configuration
+    error (restarting cannot help)."""
+    try:
+        yield from source.frames(start) if isinstance(source, VideoSource) else source.frames()
+    except SourceSizeError as exc:
+        raise ConfigurationError(f"source: {exc}") from None
 
 
 def run(
@@ -143,12 +173,12 @@ def run(
     seq = 0
     published = 0  # frames over all passes (max_frames, the return value)
     passes = 0  # completed passes over the source
-    span = source.span_nanos if isinstance(source, FolderSource) else None
+    span = source.span_nanos if isinstance(source, FolderSource | VideoSource) else None
     first = settings.start_frame  # the first pass starts later in the source (a fleet's robots at different places)
     progress = None
     resumed = None
-    if isinstance(source, FolderSource) and started_by_run_launcher(settings.run_dir):
-        progress = FolderProgress.of_run(settings, source)
+    if isinstance(source, FolderSource | VideoSource) and started_by_run_launcher(settings.run_dir):
+        progress = SourceProgress.of_run(settings, source)
         resumed = progress.read()
         if resumed is not None:
             passes, first, published = resumed  # (max_frames counts the run's frames, not this process's)
@@ -162,7 +192,7 @@ def run(
             produced = False
             shift = passes * span if span is not None else 0
             sent_this_pass = 0
-            for index, item in enumerate(source.frames()):
+            for index, item in enumerate(_frames_from(source, first)):
                 produced = True
                 position = item.index if item.index is not None else index  # (a folder's skips unreadable images)
                 if position < first and not sent_this_pass:

@@ -628,7 +628,7 @@ class SlamNode:
         out: dict[str, Any] = {
             "poses": len(stamps),
             "resumed_poses": len(run.previous_stamps_nanos),
-            "time": "data set (rgb.txt)" if in_source_time else "capture",
+            "time": "data set (rgb.txt or the video's own)" if in_source_time else "capture",
         }
         gt_stamps, gt_poses = _after(
             run.previous_gt_stamps_nanos,

@@ -42,8 +42,8 @@ class SourceFrame:
 
     image: NDArray[np.uint8]
     world_from_camera: Array | None  # ground truth, when the source knows it
-    stamp_nanos: int | None = None  # the data set's time of this frame (TUM rgb.txt), when it has one
-    index: int | None = None  # a folder's: the image's place in its listing (unreadable ones are skipped)
+    stamp_nanos: int | None = None  # the data set's time of this frame (TUM rgb.txt, a video's), when it has one
+    index: int | None = None  # its place in a folder's listing or a video (unreadable or mis-sized ones are skipped)
 
 
 class FrameSource(Protocol):
@@ -347,6 +347,11 @@ class FolderSource:
                 self.gt = [p for _, p in rows]
 
     @property
+    def identity(self) -> dict[str, object]:
+        """What a restarted camera checks its progress record against (the same listing)."""
+        return {"images": len(self.files), "first": str(self.files[0])}
+
+    @property
     def span_nanos(self) -> int | None:
         """How long one pass of the stamped images lasts (latest - earliest stamp plus the median frame
         period), the shift of each new pass when the source loops; None without stamps."""
@@ -379,8 +384,132 @@ class FolderSource:
             yield SourceFrame(np.ascontiguousarray(img), None if self.gt is None else self.gt[i], stamp, index=i)
 
 
+VIDEO_SIZE_WARNINGS: Final[int] = 3  # frames of another size said one by one; then only counted
+
+
+class VideoSource:
+    """A video file: a data set whose time is the video's own (each frame's timestamp from the start of
+    the video, as OpenCV reads it from the container), so `trajectory.tum` is in that time and a TUM
+    ground truth in it (seconds from the first frame) is associated by time, nearest within 20 ms, as a
+    folder's with `rgb.txt`. Opened, its first frame read and its size checked against the camera_info
+    at construction: a file OpenCV cannot read, or frames of another size (a trial's 640x480 video with a
+    1280x720 camera_info was resized silently and posed metres off), is a GeometryError said at once."""
+
+    def __init__(self, path: Path, camera_info: Path, groundtruth: Path | None = None) -> None:
+        self.camera = camera_from_yaml(camera_info)
+        self.path = Path(path)
+        if self.path.is_dir():
+            raise FileNotFoundError(f"{self.path} is a folder, not a video file (images in a folder: source = folder)")
+        if not self.path.is_file():
+            raise FileNotFoundError(f"{self.path}: no such file")
+        cap = cv2.VideoCapture(str(self.path))
+        try:
+            if not cap.isOpened():
+                raise GeometryError(
+                    f"{self.path}: not a video OpenCV can open (damaged or cut short, or in a container or codec "
+                    "this OpenCV build lacks)"
+                )
+            ok, frame = cap.read()
+            if not ok:
+                raise GeometryError(f"{self.path}: OpenCV opens it but reads no frame from it (damaged or empty?)")
+            height, width = frame.shape[:2]
+            if (height, width) != (self.camera.height, self.camera.width):
+                raise GeometryError(
+                    f"{self.path}: its frames are {width}x{height} but the camera_info says "
+                    f"{self.camera.width}x{self.camera.height} (a camera_info of this video's camera, at its size)"
+                )
+            self.frame_count = max(0, int(cap.get(cv2.CAP_PROP_FRAME_COUNT)))  # (the container's say: may be 0)
+            fps = float(cap.get(cv2.CAP_PROP_FPS))
+            self.fps = fps if math.isfinite(fps) and fps > 0 else None
+        finally:
+            cap.release()
+        self._gt_seconds: NDArray[np.float64] | None = None
+        self._gt_poses: list[Array] = []
+        if groundtruth:
+            rows = read_tum(groundtruth)
+            self._gt_seconds = np.array([t for t, _ in rows], np.float64)
+            self._gt_poses = [pose for _, pose in rows]
+            if rows and self.frame_count and self.fps:  # the container's nominal frame times: a clock check
+                seconds = [i / self.fps for i in range(self.frame_count)]
+                nearest = associate_stamps(seconds, self._gt_seconds, GT_MAX_DT_S)
+                matched = sum(j is not None for j in nearest)
+                if not matched:
+                    raise GeometryError(
+                        f"{groundtruth}: none of its {len(rows)} poses is within {GT_MAX_DT_S * 1e3:.0f} ms of a "
+                        f"frame of {self.path} (frames 0-{seconds[-1]:.3f} s from the video's start, ground truth "
+                        f"{self._gt_seconds.min():.6f}-{self._gt_seconds.max():.6f} s): a video's ground truth is "
+                        "in the video's time, seconds from its first frame"
+                    )
+                if matched < len(nearest):
+                    log.warning(
+                        "%s: about %d of %d frames have no ground-truth pose within %.0f ms (they go without truth)",
+                        groundtruth,
+                        len(nearest) - matched,
+                        len(nearest),
+                        GT_MAX_DT_S * 1e3,
+                    )
+        self.other_size = 0  # frames skipped for another size than the camera_info's
+
+    @property
+    def identity(self) -> dict[str, object]:
+        """What a restarted camera checks its progress record against (the same file, as long)."""
+        return {"images": self.frame_count, "first": str(self.path)}
+
+    @property
+    def span_nanos(self) -> int | None:
+        """How long one pass lasts (frames / fps: the next pass's stamps go on from there); None where
+        the container does not say."""
+        if not self.frame_count or not self.fps:
+            return None
+        return round(self.frame_count / self.fps * 1e9)
+
+    def _truth(self, seconds: float) -> Array | None:
+        if self._gt_seconds is None:
+            return None
+        [j] = associate_stamps([seconds], self._gt_seconds, GT_MAX_DT_S)
+        return None if j is None else self._gt_poses[j]
+
+    def frames(self, start: int = 0) -> Iterator[SourceFrame]:
+        """The video from frame `start` (a restarted camera's place in it), each frame with its own time."""
+        cap = cv2.VideoCapture(str(self.path))
+        if not cap.isOpened():
+            raise OSError(f"cannot open video {str(self.path)!r}")
+        try:
+            if start:
+                cap.set(cv2.CAP_PROP_POS_FRAMES, start)
+            while True:
+                ok, frame = cap.read()
+                if not ok:
+                    return
+                index = max(0, int(cap.get(cv2.CAP_PROP_POS_FRAMES)) - 1)
+                millis = float(cap.get(cv2.CAP_PROP_POS_MSEC))
+                stamp = max(0, round(millis * 1e6)) if math.isfinite(millis) else None
+                gray = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if frame.ndim == 3 else frame
+                if gray.shape != (self.camera.height, self.camera.width):
+                    self.other_size += 1
+                    if self.other_size <= VIDEO_SIZE_WARNINGS:
+                        log.warning(
+                            "skipping frame %d of %s: %dx%d, not the camera_info's %dx%d (%d so far)",
+                            index,
+                            self.path,
+                            gray.shape[1],
+                            gray.shape[0],
+                            self.camera.width,
+                            self.camera.height,
+                            self.other_size,
+                        )
+                    continue
+                truth = None if stamp is None else self._truth(stamp / 1e9)
+                yield SourceFrame(np.ascontiguousarray(gray, np.uint8), truth, stamp, index=index)
+        finally:
+            cap.release()
+
+
 class CaptureSource:
-    """A video file or a V4L2 device through OpenCV; frames converted to grayscale."""
+    """A V4L2 device, a stream URL or a GStreamer pipeline through OpenCV (live: no time of its own, no
+    ground truth); frames converted to grayscale. The device is asked for the camera_info's size; one
+    that gives another is refused (SourceSizeError) at its first frame rather than resized, which would
+    break the intrinsics."""
 
     def __init__(self, target: str | int, camera_info: Path) -> None:
         self.camera = camera_from_yaml(camera_info)
@@ -390,6 +519,10 @@ class CaptureSource:
         cap = cv2.VideoCapture(self.target)
         if not cap.isOpened():
             raise OSError(f"cannot open video source {self.target!r}")
+        cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.camera.width)
+        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.camera.height)
+        first = True
+        skipped = 0
         try:
             while True:
                 ok, frame = cap.read()
@@ -397,7 +530,20 @@ class CaptureSource:
                     return
                 gray = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if frame.ndim == 3 else frame
                 if gray.shape != (self.camera.height, self.camera.width):
-                    gray = cv2.resize(gray, (self.camera.width, self.camera.height), interpolation=cv2.INTER_AREA)
+                    if first:
+                        raise SourceSizeError(
+                            f"{self.target!r} gives {gray.shape[1]}x{gray.shape[0]} frames but the camera_info "
+                            f"says {self.camera.width}x{self.camera.height} (it was asked for that size)"
+                        )
+                    skipped += 1
+                    if skipped <= VIDEO_SIZE_WARNINGS:
+                        log.warning("skipping a %dx%d frame of %r", gray.shape[1], gray.shape[0], self.target)
+                    continue
+                first = False
                 yield SourceFrame(np.ascontiguousarray(gray, np.uint8), None)
         finally:
             cap.release()
+
+
+class SourceSizeError(GeometryError):
+    """A live source's frames are not of the camera_info's size."""

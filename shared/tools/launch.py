@@ -357,8 +357,9 @@ class Monitor:
     clock: Callable[[], float] = time.monotonic  # when each message arrived (a fake in tests)
     # slam was given `tag_map` (its world is the map's): only then is its pose comparable with ground truth
     slam_has_map: bool = True
-    _last_gt_at: float | None = None  # when the camera's ground truth last arrived (this monitor's clock)
-    _last_gt_seq: int = -1  # the frame the camera last sent ground truth for
+    # when the camera's ground truth or data-set stamp last arrived (this monitor's clock): its sign of life
+    _last_gt_at: float | None = None
+    _last_gt_seq: int = -1  # the frame the camera last sent ground truth or a stamp for
     # frames the camera captured, as far as this monitor sees them (ground truth or data-set stamps)
     gt_total: int = 0
     stamps_total: int = 0
@@ -578,6 +579,10 @@ class Monitor:
                 self.stamps_total += 1
                 self._source_stamps[stamp.capture_nanos] = stamp.source_stamp_nanos
                 _keep_newest(self._source_stamps, 20_000)
+                # (a data set without ground truth says the camera is there too: a trial's video run, ended
+                # by max_frames, was asked 'is the robot up?' as the camera stopped)
+                self._last_gt_at = self.clock()
+                self._last_gt_seq = stamp.seq
 
     def _errors(self, msg: TagPoses) -> list[float]:
         if self.tag_map is None:
@@ -641,8 +646,8 @@ class Monitor:
                 )
             if gt_at is not None:
                 return (
-                    f"{silent}, nor its camera's ground truth for {now - gt_at:.1f} s; is the robot's host up "
-                    "(its camera, robot_infer), and its link to the edge?"
+                    f"{silent}, nor its camera's ground truth or stamps for {now - gt_at:.1f} s; is the robot's host "
+                    "up (its camera, robot_infer), and its link to the edge?"
                 )
             return (
                 f"{silent}; is the robot up, and the edge? (a monitor that cannot reach the robot's router sees "

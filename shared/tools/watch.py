@@ -57,6 +57,15 @@ TOPICS: Final[dict[str, tuple[Callable[[str], str], type[Message]]]] = {
     "controller": (keys.controller, ControllerState),
     "map": (keys.tag_map, TagMap),
 }
+# Who publishes each topic, for a watch that hears nothing (a trial's `watch controller` with no controller
+# running said only '0 messages')
+PUBLISHERS: Final[dict[str, str]] = {
+    "poses": "slam publishes it",
+    "tags": "edge_infer publishes it, and robot_infer while the edge is away",
+    "controller": "the controller publishes it, and runs only when asked: `splittag up --controller` or "
+    "`[controller] enabled = true`",
+    "map": "slam publishes it when a tag is added and every 30 frames",
+}
 FORMATS: Final[tuple[str, ...]] = ("text", "json", "tum")
 QUEUE_MESSAGES: Final[int] = 1000  # received but not yet printed; beyond it a message is dropped (counted)
 QUIET_HINT_SECS: Final[float] = 5.0  # nothing by then: say on stderr what is being waited for
@@ -423,7 +432,7 @@ def watch(
                 break
             if not hinted and now - last_at >= quiet_secs:
                 if received == 0:
-                    said = f"nothing on {key} yet: is its publisher running, and reachable from here?"
+                    said = f"nothing on {key} yet ({PUBLISHERS[topic]}): is it running, and reachable from here?"
                 else:  # a deployment that stopped: say so once instead of waiting in silence
                     said = (
                         f"nothing more on {key} for {now - last_at:.0f} s: has the deployment stopped? (Ctrl-C "
@@ -450,6 +459,8 @@ def watch(
         take_stamps()
         if data_set_time is not None:
             emit(data_set_time.lines(final=True))
+        if received == 0 and not hinted:  # ended (--duration, --count) before the hint: said all the same
+            print(f"nothing came on {key} ({PUBLISHERS[topic]}): is it running, and reachable from here?", file=err)
         subscriber.undeclare()
         if stamp_subscriber is not None:
             stamp_subscriber.undeclare()
