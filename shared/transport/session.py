@@ -85,6 +85,12 @@ class ZenohSettings(BaseModel):
     # fragments. zenoh's default and its maximum: on loopback 8 KiB batches take a 0.9 MB tensor 4.5x
     # as long, on the emulated 5G uplink every size is link-bound (bench/zenoh_options.py, docs/wire.md).
     batch_size_bytes: int = Field(default=65535, ge=1024, le=65535)
+    # A reliable (BLOCK) put waits at most this long for room in a link's queue; then zenoh closes that
+    # link (and reconnects when it can) so the put and every later one go on. zenoh's default is 5 s: a
+    # link cut longer than a few seconds (the queue and the socket full of messages for the far side)
+    # froze the robot's on-board pipeline for 5 s (a two-host trial: 5 of 7 cuts of 10 s). Keep it above
+    # what one batch takes on the slowest link in use (64 KiB: 0.5 s at 1 Mbit/s).
+    block_close_secs: float = Field(default=1.0, gt=0, le=60)
     tls: TlsSettings | None = None  # needed by tls/ endpoints
     # Enforced by a router on the messages of the peers and clients it serves (shared.transport.access).
     access_control: AccessControlSettings = Field(default_factory=AccessControlSettings)
@@ -129,6 +135,11 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
     if settings.config_file is None or "batch_size_bytes" in settings.model_fields_set:
         # (a config file's own batch size stands unless the setting is given explicitly)
         config.insert_json5("transport/link/tx/batch_size", json.dumps(settings.batch_size_bytes))
+    if settings.config_file is None or "block_close_secs" in settings.model_fields_set:
+        config.insert_json5(
+            "transport/link/tx/queue/congestion_control/block/wait_before_close",
+            json.dumps(round(settings.block_close_secs * 1e6)),  # microseconds
+        )
     uses_tls = any(e.startswith("tls/") for e in (*settings.listen, *settings.connect))
     if uses_tls and settings.tls is None:
         raise ValueError("tls/ endpoints need zenoh.tls settings (certificates: deploy/make-certs.sh)")
