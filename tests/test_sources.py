@@ -14,8 +14,9 @@ import pytest
 
 from services.camera.service import run as run_camera
 from services.camera.settings import CameraSettings
-from shared.runtime.sources import CaptureSource, FolderSource, VideoSource
+from shared.runtime.sources import CaptureSource, FolderSource, SourceSizeError, VideoSource
 from shared.transport.session import ZenohSettings, free_tcp_port, open_session
+from shared.vision.camera import CameraIntrinsics
 from shared.vision.geometry import GeometryError, camera_to_yaml, default_camera, make_pose
 from shared.vision.tags import render_tag, to_uint8
 from shared.vision.trajectory import read_tum, write_tum
@@ -139,10 +140,37 @@ def test_v4l2_source_when_a_device_exists(tmp_path: Path) -> None:
     devices = sorted(Path("/dev").glob("video*"))
     if not devices:
         pytest.skip("no V4L2 device (/dev/video*) on this machine")
+    probe = cv2.VideoCapture(str(devices[0]))
+    probe.set(cv2.CAP_PROP_FRAME_WIDTH, CAM.width)
+    probe.set(cv2.CAP_PROP_FRAME_HEIGHT, CAM.height)
+    ok, first = probe.read()
+    probe.release()
+    if not ok:
+        pytest.skip(f"{devices[0]} gives no frame")
+    height, width = first.shape[:2]  # (a device that cannot give CAM's size: at its own, which it is asked for)
+    camera = CAM.model_copy(update={"width": width, "height": height})
+    info = tmp_path / "camera_info.yaml"
+    info.write_text(camera_to_yaml(camera))
+    frame = next(iter(CaptureSource(str(devices[0]), info).frames()))
+    assert frame.image.shape == (height, width)
+
+
+def test_a_live_source_of_another_size_is_refused_at_its_first_frame(tmp_path: Path) -> None:
+    """A device or stream is asked for the camera_info's size; one that gives another is refused, not
+    resized (the intrinsics would no longer hold), and the camera service makes that a configuration
+    error (exit 2, no restart loop). A local file given as a stream stands in for the device."""
+    from services.camera.service import _frames_from
+    from shared.runtime.settings import ConfigurationError
+
     info = tmp_path / "camera_info.yaml"
     info.write_text(camera_to_yaml(CAM))
-    frame = next(iter(CaptureSource(str(devices[0]), info).frames()))
-    assert frame.image.shape == (CAM.height, CAM.width)
+    small = _video(tmp_path, 2, size=(CAM.width // 2, CAM.height // 2))
+    with pytest.raises(SourceSizeError, match=f"gives {CAM.width // 2}x{CAM.height // 2} frames but the camera_info"):
+        next(iter(CaptureSource(str(small), info).frames()))
+    with pytest.raises(ConfigurationError, match=r"source: .* gives"):
+        next(iter(_frames_from(CaptureSource(str(small), info), 0)))
+    right = _video(tmp_path, 2, name="right.avi")
+    assert len(list(CaptureSource(str(right), info).frames())) == 2
 
 
 def _stream(
@@ -427,7 +455,6 @@ def test_a_looped_folders_span_is_its_time_span_whatever_rgb_txts_order() -> Non
 
 def _demo_source(cache_dir: str, camera_json: str) -> int:
     from shared.runtime.sources import DemoSource
-    from shared.vision.camera import CameraIntrinsics
 
     DemoSource(n_frames=3, cache_dir=Path(cache_dir), camera=CameraIntrinsics.model_validate_json(camera_json))
     return 0
@@ -615,6 +642,43 @@ def test_a_restarted_video_camera_goes_on_from_its_place_in_the_video(tmp_path: 
     assert [s.source_stamp_nanos for s in stamps] == [round(i * 1e9 / 15) for i in (2, 3)]
     frames = list(VideoSource(video, info).frames())
     assert np.array_equal(again[0].image, frames[2].image) and np.array_equal(first[1].image, frames[1].image)
+
+
+def test_a_video_camera_restarted_after_its_pass_ends_at_once_and_a_start_past_its_end_is_refused(
+    tmp_path: Path,
+) -> None:
+    """A video camera restarted once its pass was played (killed while waiting for the last poses) ends
+    at once, as a folder's does, instead of failing 'the source produced no frames' on every restart
+    (review); a start_frame past the video's end says so; a looping video's stamps never go back."""
+    import os
+
+    from services.camera.service import SourceProgress
+
+    info = tmp_path / "camera_info.yaml"
+    info.write_text(camera_to_yaml(CAM))
+    video = _video(tmp_path, 4)
+    settings = CameraSettings(
+        robot_id="resume5", source="video", path=str(video), camera_info=info, fps=50.0, loop=False,
+        run_dir=tmp_path, wait_for=[],
+    )  # fmt: skip
+    (tmp_path / "launcher.pid").write_text(f"{os.getppid()}\n")
+    SourceProgress.of_run(settings, VideoSource(video, info)).write(0, 4, 4)  # the pass was played
+    alone = open_session(ZenohSettings(mode="peer", listen=[], multicast_scouting=False))
+    try:
+        assert run_camera(settings, session=alone, stop=threading.Event()) == 4
+        (tmp_path / "launcher.pid").unlink()
+        with pytest.raises(ValueError, match="start_frame 4 is past the source's last frame"):
+            run_camera(settings.model_copy(update={"start_frame": 4}), session=alone, stop=threading.Event())
+    finally:
+        alone.close()
+    stamps: list[FrameStamp] = []
+    looping = CameraSettings(
+        robot_id="loop5", source="video", path=str(video), camera_info=info, fps=50.0, loop=True, max_frames=9,
+        run_dir=tmp_path,
+    )  # fmt: skip
+    _stream(looping, "loop5", 9, stamps)
+    got = [s.source_stamp_nanos for s in stamps]
+    assert all(abs(a - i * 1e9 / 15) <= 2 for i, a in enumerate(got)), got  # 4 frames a pass, 1/15 s apart, on
 
 
 def test_a_restarted_camera_counts_images_by_their_place_in_the_listing(tmp_path: Path) -> None:

@@ -14,10 +14,11 @@ from tests.procs import REPO
 SCRIPT = """
 import signal, sys, threading, time
 from concurrent.futures import ThreadPoolExecutor
+from shared.runtime.signals import SignalStop
 from shared.runtime.waiting import result_of, until_set
 
 stop = threading.Event()
-signal.signal(signal.SIGINT, lambda *_: stop.set())
+SignalStop(stop)  # as service_main
 wait = sys.argv[1]
 
 def kick():  # SIGINT handled on this thread (as on a Zenoh or torch thread), not on the main one

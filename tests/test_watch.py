@@ -23,7 +23,9 @@ from scipy.spatial.transform import Rotation
 
 from shared.runtime.guard import InputGuard, serve_stats
 from shared.tools.watch import (
+    PUBLISHERS,
     QUIET_HINT_SECS,
+    TOPICS,
     controller_text,
     json_line,
     key_for,
@@ -70,6 +72,11 @@ def _pose(status: str = "tracking", seq: int = 3, robot_id: str = "robot1") -> C
     pose = _messages()["CameraPose"]
     assert isinstance(pose, CameraPose)
     return pose.model_copy(update={"status": status, "seq": seq, "robot_id": robot_id})
+
+
+def test_every_topic_says_who_publishes_it() -> None:
+    """(the hint for a silent topic looks its publisher up: review)"""
+    assert set(PUBLISHERS) == set(TOPICS)
 
 
 def test_quaternions_agree_with_scipy_everywhere_including_half_turns() -> None:

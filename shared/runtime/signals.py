@@ -27,6 +27,8 @@ class SignalStop:
     the watcher thread). Install it from the main thread, as any signal handler."""
 
     def __init__(self, stop: threading.Event, signals: Iterable[signal.Signals] = STOP_SIGNALS) -> None:
+        if threading.current_thread() is not threading.main_thread():  # (before any pipe or thread: review)
+            raise ValueError("signal handlers can only be installed from the main thread")
         self.stop = stop
         self.received: list[int] = []  # the signals that came, in order (read after the stop)
         self._read, self._write = os.pipe()
@@ -54,7 +56,8 @@ class SignalStop:
             self.stop.set()
 
     def restore(self) -> None:
-        """The previous handlers back; the watcher ends. Idempotent."""
+        """The previous handlers back; the watcher ends. Idempotent. Restore in the reverse order of
+        installation when several are nested (each puts back what it found)."""
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)
         self._previous = {}

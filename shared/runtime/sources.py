@@ -275,15 +275,15 @@ def associate_stamps(stamps_s: list[float], gt_stamps_s: NDArray[np.float64], ma
     (TUM's association: ground truth runs at another rate than the images). Pure."""
     if len(gt_stamps_s) == 0:
         return [None] * len(stamps_s)
-    order = np.argsort(gt_stamps_s)
-    sorted_gt = gt_stamps_s[order]
-    out: list[int | None] = []
-    for t in stamps_s:
-        j = int(np.searchsorted(sorted_gt, t))
-        near = [c for c in (j - 1, j) if 0 <= c < len(sorted_gt)]
-        best = min(near, key=lambda c: abs(sorted_gt[c] - t))
-        out.append(int(order[best]) if abs(sorted_gt[best] - t) <= max_dt_s else None)
-    return out
+    order = np.argsort(gt_stamps_s, kind="stable")
+    sorted_gt = np.asarray(gt_stamps_s, np.float64)[order]
+    t = np.asarray(stamps_s, np.float64)
+    j = np.searchsorted(sorted_gt, t)  # (vectorised: a long video's nominal frame times are checked at start-up)
+    before = np.clip(j - 1, 0, len(sorted_gt) - 1)
+    after = np.clip(j, 0, len(sorted_gt) - 1)
+    best = np.where(np.abs(sorted_gt[before] - t) <= np.abs(sorted_gt[after] - t), before, after)
+    ok = np.abs(sorted_gt[best] - t) <= max_dt_s
+    return [int(order[b]) if good else None for b, good in zip(best, ok, strict=True)]
 
 
 RGB_LIST: Final[str] = "rgb.txt"
@@ -385,6 +385,7 @@ class FolderSource:
 
 
 VIDEO_SIZE_WARNINGS: Final[int] = 3  # frames of another size said one by one; then only counted
+VIDEO_GT_CHECK_FRAMES: Final[int] = 30  # a video without a frame count: its ground truth's clock checked over these
 
 
 class VideoSource:
@@ -412,25 +413,31 @@ class VideoSource:
             ok, frame = cap.read()
             if not ok:
                 raise GeometryError(f"{self.path}: OpenCV opens it but reads no frame from it (damaged or empty?)")
+            # The first frame's time is 0: OpenCV's own MJPEG reader gives each frame the next one's time
+            # (FFmpeg its own), which would shift the ground truth by a frame (review).
+            origin_ms = float(cap.get(cv2.CAP_PROP_POS_MSEC))
+            self._origin_ms = origin_ms if math.isfinite(origin_ms) else 0.0
             height, width = frame.shape[:2]
             if (height, width) != (self.camera.height, self.camera.width):
                 raise GeometryError(
                     f"{self.path}: its frames are {width}x{height} but the camera_info says "
                     f"{self.camera.width}x{self.camera.height} (a camera_info of this video's camera, at its size)"
                 )
-            self.frame_count = max(0, int(cap.get(cv2.CAP_PROP_FRAME_COUNT)))  # (the container's say: may be 0)
+            count = float(cap.get(cv2.CAP_PROP_FRAME_COUNT))  # the container's say: approximate, or none (0, < 0)
+            self.frame_count = int(count) if math.isfinite(count) and 0 < count < 1e9 else 0
             fps = float(cap.get(cv2.CAP_PROP_FPS))
-            self.fps = fps if math.isfinite(fps) and fps > 0 else None
+            self.fps = fps if math.isfinite(fps) and 0 < fps < 1000 else None
         finally:
             cap.release()
         self._gt_seconds: NDArray[np.float64] | None = None
         self._gt_poses: list[Array] = []
+        self._gt_name = ""
         if groundtruth:
             rows = read_tum(groundtruth)
             self._gt_seconds = np.array([t for t, _ in rows], np.float64)
             self._gt_poses = [pose for _, pose in rows]
             if rows and self.frame_count and self.fps:  # the container's nominal frame times: a clock check
-                seconds = [i / self.fps for i in range(self.frame_count)]
+                seconds = list(np.arange(self.frame_count, dtype=np.float64) / self.fps)
                 nearest = associate_stamps(seconds, self._gt_seconds, GT_MAX_DT_S)
                 matched = sum(j is not None for j in nearest)
                 if not matched:
@@ -442,13 +449,25 @@ class VideoSource:
                     )
                 if matched < len(nearest):
                     log.warning(
-                        "%s: about %d of %d frames have no ground-truth pose within %.0f ms (they go without truth)",
+                        "%s: about %d of the video's about %d frames have no ground-truth pose within %.0f ms (they go "
+                        "without truth)",
                         groundtruth,
                         len(nearest) - matched,
                         len(nearest),
                         GT_MAX_DT_S * 1e3,
                     )
+            elif rows:
+                log.warning(
+                    "%s does not say how many frames it holds at what rate: its ground truth's clock is checked "
+                    "over the first %d frames",
+                    self.path,
+                    VIDEO_GT_CHECK_FRAMES,
+                )
+            self._gt_name = str(groundtruth)
         self.other_size = 0  # frames skipped for another size than the camera_info's
+        self._last_stamp: int | None = None  # the latest frame time read, and the step to it: the pass's span
+        self._step = 0
+        self._gt_checked = 0  # frames whose truth was looked up, before the first match
 
     @property
     def identity(self) -> dict[str, object]:
@@ -457,16 +476,30 @@ class VideoSource:
 
     @property
     def span_nanos(self) -> int | None:
-        """How long one pass lasts (frames / fps: the next pass's stamps go on from there); None where
-        the container does not say."""
-        if not self.frame_count or not self.fps:
-            return None
-        return round(self.frame_count / self.fps * 1e9)
+        """How long one pass lasts, where the next pass's stamps go on from: the frame times read so far
+        (the last plus one step) or the container's frames / fps, whichever is longer (a variable frame
+        rate's nominal rate is too high; a raw stream says neither: review); None before either is known."""
+        header = round(self.frame_count / self.fps * 1e9) if self.frame_count and self.fps else 0
+        seen = self._last_stamp + max(self._step, 1) if self._last_stamp is not None else 0
+        return max(header, seen) or None
 
     def _truth(self, seconds: float) -> Array | None:
         if self._gt_seconds is None:
             return None
         [j] = associate_stamps([seconds], self._gt_seconds, GT_MAX_DT_S)
+        if j is None and self._gt_checked >= 0:
+            self._gt_checked += 1
+            if self._gt_checked == VIDEO_GT_CHECK_FRAMES:  # (said once: a clock the start-up check could not see)
+                log.warning(
+                    "%s: none of the first %d frames of %s has a ground-truth pose within %.0f ms: a video's ground "
+                    "truth is in the video's time, seconds from its first frame",
+                    self._gt_name,
+                    VIDEO_GT_CHECK_FRAMES,
+                    self.path,
+                    GT_MAX_DT_S * 1e3,
+                )
+        elif j is not None:
+            self._gt_checked = -1  # matched: checked
         return None if j is None else self._gt_poses[j]
 
     def frames(self, start: int = 0) -> Iterator[SourceFrame]:
@@ -482,8 +515,12 @@ class VideoSource:
                 if not ok:
                     return
                 index = max(0, int(cap.get(cv2.CAP_PROP_POS_FRAMES)) - 1)
-                millis = float(cap.get(cv2.CAP_PROP_POS_MSEC))
+                millis = float(cap.get(cv2.CAP_PROP_POS_MSEC)) - self._origin_ms
                 stamp = max(0, round(millis * 1e6)) if math.isfinite(millis) else None
+                if stamp is not None:
+                    if self._last_stamp is not None and stamp > self._last_stamp:
+                        self._step = stamp - self._last_stamp
+                    self._last_stamp = max(stamp, self._last_stamp or 0)
                 gray = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if frame.ndim == 3 else frame
                 if gray.shape != (self.camera.height, self.camera.width):
                     self.other_size += 1

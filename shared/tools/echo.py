@@ -26,9 +26,13 @@ def run(
 ) -> None:
     """Serve probes until `stop` is set (or SIGINT/SIGTERM when run as the main thread)."""
     stop = stop or threading.Event()
-    if threading.current_thread() is threading.main_thread():
-        SignalStop(stop)
-    session = open_session(zenoh_settings)
+    signals = SignalStop(stop) if threading.current_thread() is threading.main_thread() else None
+    try:
+        session = open_session(zenoh_settings)
+    except BaseException:
+        if signals is not None:
+            signals.restore()
+        raise
     try:
         queryable = serve_echo(session, keys.echo(robot_id), max_bytes=max_bytes)
 
@@ -47,4 +51,6 @@ def run(
         queryable.undeclare()
     finally:
         session.close()
+        if signals is not None:
+            signals.restore()
         log.info("echo stopped")

@@ -403,7 +403,6 @@ def run_fleet(
         run_tags = load_tag_map(run_map) if run_map is not None else None
         refuse_busy_endpoints([s.config for s in specs])
     stop = threading.Event()
-    signals = SignalStop(stop)
     hosts = {"slam": "it is the edge tier's router: every robot and worker is cut off from the edge until it is back"}
     hosts |= {f"{r}_robot_infer": f"it is {r}'s router: {r}'s camera frames wait until it is back" for r in plan.robots}
     supervisor = Supervisor(record=incidents_file(run_dir / "incidents.jsonl"), hosts=hosts)
@@ -474,6 +473,7 @@ def run_fleet(
             frames_csv.flush()
 
     started = Started()
+    signals = SignalStop(stop)  # (restored in the finally below, however the run ends: review)
     try:
         (run_dir / "launcher.pid").write_text(f"{os.getpid()}\n")
         for spec in specs:  # one at a time: a start that fails leaves the ones before it to be stopped

@@ -1605,7 +1605,6 @@ def run_pipeline(
             flush=True,
         )
     stop = threading.Event()
-    signals = SignalStop(stop)
     from shared.tools.linkemu import read_events
 
     monitor = Monitor(  # a deployment may run for days
@@ -1626,6 +1625,7 @@ def run_pipeline(
 
     started = Started()
     failure: LaunchError | None = None
+    signals = SignalStop(stop)  # (restored in the finally below, however the run ends: review)
     try:
         (run_dir / "launcher.pid").write_text(f"{os.getpid()}\n")  # `splittag down` stops the run through it
         running.start_all(services)

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import signal
 import threading
 
 import msgpack
 import numpy as np
 import zenoh
 
+from shared.runtime.signals import SignalStop
 from shared.transport.session import ZenohSettings, declare_fifo_subscriber, open_session
 from shared.wire import keys
 from shared.wire.codec import WireError
@@ -36,7 +36,7 @@ def main() -> None:
     ap.add_argument("--nbytes", type=int, required=True)
     args = ap.parse_args()
     stop = threading.Event()
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    SignalStop(stop)
     want = expected_tensor(args.seed, args.nbytes)
     state: dict[str, object] = {"received": 0, "bit_exact": False, "errors": []}
     lock = threading.Lock()
