@@ -179,6 +179,33 @@ def test_an_untried_cut_that_keeps_up_by_the_model_is_tried_where_the_current_on
     assert state.chosen_k == 0 and f"k=7 cannot keep up: ran at {ms[7]:.0f} ms a frame" in state.reason
 
 
+def test_a_cut_left_for_falling_behind_is_not_taken_back_for_latency_for_a_while() -> None:
+    """A two-host trial on a steady link under CPU load: 7 -> 5 (k = 7 'cannot keep up', 72 % of the
+    frames, 90 % needed) -> 7 ('22 ms faster': no cut kept up, and the bar had moved below k = 7's share)
+    -> 5 within 0.8 s, 10-16 switches a run. A cut left because it fell behind is taken back for latency
+    only after reversal_hold_secs, for reversal_gain_factor x the usual gain, or on a changed link."""
+    core, clock = _core()
+    _fast_link(core, t0_ms=40.0, beta_ms_per_kB=1.0)
+    link0 = 1.0 * features_payload_bytes(4, 0) / 1024
+    interval = 1.13 * link0
+    head7 = 1.14 * interval
+    ms = [50.0 + head7 * f for f in (0.0, 0.3, 0.5, 0.65, 0.8, 0.9, 0.97, 1.0)]
+    core.add_compute(_profile("robot", ms, 3.5, period_ms=ms, frame_interval_ms=interval))
+    core.add_compute(_profile("edge", [130.0, 80.0, 60.0, 40.0, 25.0, 10.0, 5.0, 3.0], 3.5))
+    _posed(core, clock, 7, every_ms=ms[7])  # k = 7 poses 76 % of the frames
+    state = core.decide(robot_id="r1", current_k=7, pinned=False)
+    assert state.chosen_k == 0 and "k=7 cannot keep up" in state.reason
+    core.switched(7, 0)
+    _posed(core, clock, 0, every_ms=interval / 0.6)  # ... and k = 0 only 60 % under the load: no cut keeps up
+    state = core.decide(robot_id="r1", current_k=0, pinned=False)
+    assert state.best_k == 7 and state.chosen_k == 0 and core.held == 1, state.reason
+    assert "keep k=0: k=7 fell behind the camera" in state.reason, state.reason
+    clock.now += core.settings.reversal_hold_secs  # the hold is over
+    _posed(core, clock, 0, every_ms=interval / 0.6, frames=3)  # (still what k = 0 achieves)
+    state = core.decide(robot_id="r1", current_k=0, pinned=False)
+    assert state.chosen_k == 7, state.reason
+
+
 def test_throughput_does_not_flap_near_the_limit_and_can_be_turned_off() -> None:
     core, _ = _core()
     # The robot's head 16 % slower: k = 3 is expected to pose 87 % of the frames, below the 90 % a cut

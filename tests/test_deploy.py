@@ -205,6 +205,30 @@ def test_up_refuses_ports_another_deployment_holds(tmp_path: Path) -> None:
     assert "Traceback" not in up.stderr and not runs.exists()  # nothing started, no run folder
 
 
+def test_up_refuses_a_part_whose_router_listens_at_another_hosts_address(tmp_path: Path) -> None:
+    """A two-host trial started `--only robot` on the edge host: robot_infer could not listen at the
+    robot's address, but the run's camera joined the real robot's router across the network and doubled
+    its frames (exit 0). Refused now, before anything starts: the address is not this host's."""
+    import sys
+
+    cfg = write_config(
+        tmp_path / "two.toml",
+        base=REPO / "deploy" / "two_host.toml",
+        extra={"robot_infer": {"zenoh": {"listen": ["tcp/192.0.2.1:7448"]}}},  # TEST-NET-1: no host has it
+    )
+    runs = tmp_path / "runs"
+    up = subprocess.run(
+        [sys.executable, "-m", "shared.tools.cli", "up", "--config", str(cfg), "--only", "robot", "--runs", str(runs)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert up.returncode == 2, up.stdout + up.stderr
+    assert "would listen on tcp/192.0.2.1:7448, an address this host does not have" in up.stderr, up.stderr
+    assert "Traceback" not in up.stderr and not runs.exists()
+
+
 def test_down_without_a_deployment_says_so(tmp_path: Path) -> None:
     down = subprocess.run(
         ["bash", "deploy/down.sh", "--runs", str(tmp_path)], cwd=REPO, capture_output=True, text=True, timeout=60

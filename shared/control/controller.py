@@ -52,8 +52,10 @@ class ControllerTuning(BaseModel):
     # Ping-pong: after a -> b -> a, going to b again within this long of the first switch, for latency
     # alone, needs reversal_gain_factor times the usual gain (a link change lifts it; one return is free:
     # new evidence may undo a switch). Under a shifting load two nearly tied cuts took turns in a trial,
-    # 0 -> 6 -> 0 -> 6 -> 0 within 4.4 s, each 'predicted 10-17 ms faster'. A cut that cannot keep up is
-    # left at once whatever this says. 0 turns the hold off.
+    # 0 -> 6 -> 0 -> 6 -> 0 within 4.4 s, each 'predicted 10-17 ms faster'. A cut left because it could not
+    # keep up is taken back for latency within this long only for that gain too (a trial: 7 -> 5 -> 7 -> 5
+    # within 0.8 s where no cut kept up). A cut that cannot keep up is left at once whatever this says.
+    # 0 turns the hold off.
     reversal_hold_secs: float = Field(default=10.0, ge=0)
     reversal_gain_factor: float = Field(default=4.0, ge=1)  # (above) the gain a held switch needs, x the usual
     codec: CodecName = "fp16"  # the codec robot_infer uses at cuts 1..6 (payload sizes)
@@ -109,6 +111,9 @@ class SplitController:
         self.vetoed = 0  # switches the measured frame times vetoed
         self.held = 0  # switches back to a cut just left that the reversal hold kept
         self._switches: deque[tuple[float, int, int, int]] = deque(maxlen=2)  # (when, from, to, link changes)
+        # cuts left because they could not keep up: k -> (when, link changes), and the switch decided so
+        self._fell_behind: dict[int, tuple[float, int]] = {}
+        self._forced_switch: tuple[int, int] | None = None
         self.achieved = AchievedIntervals(window_secs=self.settings.throughput_window_secs, clock=clock)
         self.camera_interval_ms: float | None = None  # the last the robot said (kept while it says none)
         self._achieved_at_ms: float | None = None  # the camera's interval what the cuts achieved was timed at
@@ -317,6 +322,8 @@ class SplitController:
         nothing (review)."""
         if to_k != from_k:
             self._switches.append((self._clock(), from_k, to_k, self.link.changes))
+            if self._forced_switch == (from_k, to_k):  # left because it could not keep up
+                self._fell_behind[from_k] = (self._clock(), self.link.changes)
 
     def _reversal_hold(self, t: np.ndarray, current_k: int, chosen: int) -> str | None:
         """Why a switch is held as ping-pong (None: it is not): the last two switches were `current_k` ->
@@ -339,6 +346,29 @@ class SplitController:
         return (
             f"keep k={current_k}: to k={chosen} a second time in {ago:.1f} s needs {needed:.1f} ms (ping-pong, "
             f"for {hold:g} s); predicted {gain:.1f} ms faster"
+        )
+
+    def _fell_behind_hold(self, t: np.ndarray, current_k: int, chosen: int) -> str | None:
+        """Why a switch for latency back to a cut left less than reversal_hold_secs ago because it could
+        not keep up is held (None: it is not). Where no cut keeps up, the bar moves with the shares each
+        decision: a two-host trial's controller went 7 -> 5 (k = 7 'cannot keep up', 72 % of the frames,
+        90 % needed) -> 7 ('22 ms faster') -> 5 within 0.8 s, 10-16 switches a run on a link that never
+        changed. A link change lifts it; so does reversal_gain_factor x the usual gain."""
+        hold = self.settings.reversal_hold_secs
+        left = self._fell_behind.get(chosen)
+        if hold <= 0 or left is None:
+            return None
+        ago = self._clock() - left[0]
+        if ago >= hold or left[1] != self.link.changes:
+            return None
+        usual = max(self.settings.min_gain_ms, self.settings.min_gain_rel * float(t[current_k]))
+        needed = self.settings.reversal_gain_factor * usual
+        gain = float(t[current_k] - t[chosen])
+        if gain > needed:
+            return None
+        return (
+            f"keep k={current_k}: k={chosen} fell behind the camera {ago:.1f} s ago (held for {hold:g} s unless "
+            f"{needed:.1f} ms faster); predicted {gain:.1f} ms faster"
         )
 
     def decide(self, *, robot_id: str, current_k: int, pinned: bool) -> ControllerState:
@@ -381,9 +411,12 @@ class SplitController:
                         f"{there:.0f} ms against {here:.0f} ms here (last {self.settings.measured_window_secs:g} s)"
                     )
                     chosen = current_k
-            if chosen != current_k and not forced and (hold := self._reversal_hold(t, current_k, chosen)) is not None:
-                self.held += 1
-                reason, chosen = hold, current_k
+            if chosen != current_k and not forced:
+                hold = self._reversal_hold(t, current_k, chosen) or self._fell_behind_hold(t, current_k, chosen)
+                if hold is not None:
+                    self.held += 1
+                    reason, chosen = hold, current_k
+            self._forced_switch = (current_k, chosen) if forced and chosen != current_k else None
         return ControllerState(
             robot_id=robot_id,
             stamp_nanos=time.time_ns(),

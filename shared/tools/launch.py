@@ -124,10 +124,22 @@ def busy_endpoints(endpoints: list[str]) -> list[str]:
     """The tcp/ and tls/ endpoints of this host that something already listens on (another deployment's
     routers: a run started beside it joined them, counted their liveliness tokens as its own and mixed
     both runs' data, found by a trial). Endpoints of other hosts or namespaces are not judged here."""
+    return _endpoint_trouble(endpoints)[0]
+
+
+def foreign_endpoints(endpoints: list[str]) -> list[str]:
+    """The tcp/ and tls/ endpoints at an address this host does not have (a part started on the wrong
+    host: a two-host trial's `--only robot` on the edge host could not start robot_infer, but its camera
+    joined the real robot's router across the network and doubled its frames)."""
+    return _endpoint_trouble(endpoints)[1]
+
+
+def _endpoint_trouble(endpoints: list[str]) -> tuple[list[str], list[str]]:
     import errno
     import socket
 
-    busy = []
+    busy: list[str] = []
+    foreign: list[str] = []
     for endpoint in endpoints:
         proto, _, rest = endpoint.partition("/")
         host, _, port = rest.split("#", 1)[0].split("?", 1)[0].rpartition(":")  # Zenoh's #config / ?metadata
@@ -146,12 +158,24 @@ def busy_endpoints(endpoints: list[str]) -> list[str]:
                 if exc.errno == errno.EADDRINUSE:
                     busy.append(endpoint)
                     break
-    return busy
+                if exc.errno == errno.EADDRNOTAVAIL:
+                    foreign.append(endpoint)
+                    break
+    return busy, foreign
 
 
 def refuse_busy_endpoints(configs: list[Path], services: Sequence[str] | None = None) -> None:
-    """LaunchError (exit 2) naming the endpoints of the run (of its `services`) that something already listens on."""
-    busy = busy_endpoints([e for c in configs for e in listen_endpoints(c, services)])
+    """LaunchError (exit 2) naming the endpoints of the run (of its `services`) that something already
+    listens on, or that are at an address this host does not have (the part is another host's)."""
+    endpoints = [e for c in configs for e in listen_endpoints(c, services)]
+    busy, foreign = _endpoint_trouble(endpoints)
+    if foreign:
+        raise LaunchError(
+            f"this run would listen on {', '.join(foreign)}, an address this host does not have: is this the "
+            "right host for it? (`--only` picks the part a host runs; its config's zenoh listen endpoints say "
+            "where each listens)",
+            exit_code=2,
+        )
     if busy:
         raise LaunchError(
             f"{', '.join(busy)} already in use on this host: another deployment (`splittag down` stops the one in "
