@@ -328,3 +328,41 @@ def test_down_after_a_dead_launcher_removes_its_emulated_link(tmp_path: Path) ->
             holder.kill()
             holder.wait()
         emu.down()
+
+
+def test_link_probe_connects_to_a_running_deployments_edge(tmp_path: Path) -> None:
+    """`link probe --connect` against a deployment's edge, whose edge_infer serves the echo under its own
+    token (a two-host trial's probe waited for `splittag echo`'s token alone, 30 s, then a traceback);
+    with nothing there it says so in one line."""
+    import subprocess
+    import sys
+
+    from shared.transport.probe import serve_echo
+    from shared.transport.session import ZenohSettings, free_tcp_port, open_session
+    from shared.wire import keys
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    edge = open_session(ZenohSettings(mode="router", listen=[endpoint]))
+    try:
+        echo = serve_echo(edge, keys.echo("probe9"), max_bytes=64 << 20)
+        token = edge.liveliness().declare_token(keys.alive("probe9", "edge_infer"))  # as edge_infer does
+        out = tmp_path / "samples.json"
+        args = ["link", "probe", "--connect", endpoint, "--robot-id", "probe9", "--repetitions", "1"]
+        assert main([*args, "--tags", "1", "--samples-out", str(out)]) == 0
+        samples = json.loads(out.read_text())
+        assert samples and all(rtt > 0 for _, rtt in samples)
+        token.undeclare()
+        echo.undeclare()
+    finally:
+        edge.close()
+    empty = open_session(ZenohSettings(mode="router", listen=[endpoint]))  # an edge without an echo
+    try:
+        nobody = subprocess.run(
+            [sys.executable, "-m", "shared.tools.cli", "link", "probe", "--connect", endpoint, "--robot-id",
+             "probe9", "--wait-secs", "1"],
+            capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+    finally:
+        empty.close()
+    assert nobody.returncode == 1 and "Traceback" not in nobody.stderr, nobody.stderr
+    assert f"no echo for probe9 behind {endpoint} within 1 s" in nobody.stderr, nobody.stderr

@@ -82,6 +82,9 @@ def test_the_live_line_and_summary_say_how_sure_slam_is_and_how_far_off() -> Non
     monitor.on_camera(b"not a message")
     line = monitor.line()
     assert "| slam lost sigma 2.0 cm e 3.0 cm" in line, line
+    assert poses.link is not None and "k=" in line and "on board" not in line
+    monitor.on_poses(encode(poses.model_copy(update={"seq": 5, "link": None})))  # computed on board
+    assert "on board (the edge away)" in monitor.line() and "payload" not in monitor.line()
     summary = monitor.summary()
     assert summary["slam_frames"] == {"tracking": 2, "bridged": 2, "lost": 1}
     assert abs(summary["slam_sigma_cm_median"] - 2.0) < 1e-9

@@ -242,3 +242,28 @@ def test_a_split_get_waits_for_a_queryable_that_is_not_routed_yet() -> None:
             q.undeclare()
         client.close()
         server.close()
+
+
+def test_a_split_set_that_gets_no_answer_in_time_says_it_is_not_confirmed() -> None:
+    """A set whose query reaches robot_infer's side but gets no answer (a two-host trial's uplink was down:
+    the CLI printed a bare 'Timeout' and nothing said whether k had changed)."""
+    from shared.transport.session import ZenohSettings, free_tcp_port, open_session
+    from shared.transport.split_client import SplitQueryError, query_split
+    from shared.wire import keys
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    robot = open_session(ZenohSettings(mode="router", listen=[endpoint]))
+    held: list[object] = []
+    try:
+        silent = robot.declare_queryable(keys.split("mute1"), held.append)  # takes the query, never answers
+        asker = open_session(ZenohSettings(mode="client", connect=[endpoint]))
+        try:
+            with pytest.raises(SplitQueryError, match="not confirmed and may not have been taken") as info:
+                query_split(asker, "mute1", params="k=3", timeout_secs=0.5)
+            assert "within 0.5 s (zenoh: Timeout)" in str(info.value)
+        finally:
+            asker.close()
+        held.clear()
+        silent.undeclare()
+    finally:
+        robot.close()

@@ -601,12 +601,12 @@ def _cmd_link_down(args: argparse.Namespace) -> int:
 def _probe_here(args: argparse.Namespace) -> list[list[float]]:
     from shared.tools.linkprobe import probe_payloads, run_probes
     from shared.transport.probe import Prober
-    from shared.transport.session import ZenohSettings, open_session, wait_for_liveliness
+    from shared.transport.session import ZenohSettings, open_session
     from shared.wire import keys
 
     session = open_session(ZenohSettings(mode="client", connect=[args.connect]))
     try:
-        wait_for_liveliness(session, [keys.alive(args.robot_id, "echo")], timeout_secs=30)
+        _wait_for_an_echo(session, args.robot_id, args.connect, args.wait_secs)
         prober = Prober(session, keys.echo(args.robot_id))
         try:
             return run_probes(prober, probe_payloads(args.tags), repetitions=args.repetitions)
@@ -614,6 +614,31 @@ def _probe_here(args: argparse.Namespace) -> list[list[float]]:
             prober.close()
     finally:
         session.close()
+
+
+def _wait_for_an_echo(session: Any, robot_id: str, endpoint: str, timeout_secs: float = 30.0) -> None:
+    """Until an echo for `robot_id` is up behind `endpoint`: `splittag echo`'s, or a running deployment's
+    edge_infer, which serves one (a two-host trial's probe of its running edge waited for the echo's token
+    alone and ended in a traceback). ReaderError in one line when neither comes."""
+    import threading
+
+    from shared.tools.watch import ReaderError
+    from shared.wire import keys
+
+    up = threading.Event()
+    subs = [
+        session.liveliness().declare_subscriber(keys.alive(robot_id, who), lambda _s: up.set(), history=True)
+        for who in ("echo", "edge_infer")
+    ]
+    try:
+        if not up.wait(timeout_secs):
+            raise ReaderError(
+                f"no echo for {robot_id} behind {endpoint} within {timeout_secs:g} s: is edge_infer (a deployment's "
+                "edge) or `splittag echo` running there, for this --robot-id?"
+            )
+    finally:
+        for sub in subs:
+            sub.undeclare()
 
 
 def _probe_emulated(args: argparse.Namespace) -> list[list[float]]:
@@ -946,9 +971,14 @@ def _add_link_commands(sub: Any) -> None:
     p = link.add_parser("probe", help="fit RTT = t0 + beta*S from probes at every split point's payload")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--profile", help="probe a fresh emulated link with this profile (root)")
-    where.add_argument("--connect", default=Topology().edge_router, help="or probe the echo behind this endpoint")
+    where.add_argument(
+        "--connect",
+        default=Topology().edge_router,
+        help="or probe the echo behind this endpoint (a deployment's edge_infer, or `splittag echo`)",
+    )
     p.add_argument("--prefix", default="st")
     p.add_argument("--robot-id", default="robot1")
+    p.add_argument("--wait-secs", type=float, default=30.0, help="how long to wait for the echo (--connect)")
     p.add_argument("--repetitions", type=int, default=200)
     p.add_argument("--tags", type=int, default=1, help="payloads of this many tags per split point")
     p.add_argument("--json", type=Path)

@@ -179,7 +179,8 @@ def refuse_busy_endpoints(configs: list[Path], services: Sequence[str] | None = 
     if busy:
         raise LaunchError(
             f"{', '.join(busy)} already in use on this host: another deployment (`splittag down` stops the one in "
-            "runs/current) or another program; give this run other ports (its config's zenoh listen endpoints)",
+            "runs/current, `splittag down --runs FOLDER` one started with --runs) or another program; give this "
+            "run other ports (its config's zenoh listen endpoints)",
             exit_code=2,
         )
 
@@ -682,8 +683,14 @@ class Monitor:
         err = f" e_t {np.median(errs):.2f} cm" if errs else ""
         ages = [r["before_robot_ms"] for r in recent if not np.isnan(r["before_robot_ms"])]
         age = f" (frame age {np.median(ages):.1f})" if ages else ""
+        # (a trial saw the robot go on board only as 'payload 0.0 kB')
+        where = (
+            f"k={recent[-1]['k']}  payload {recent[-1]['payload_bytes'] / 1024:7.1f} kB"
+            if recent[-1]["sent_nanos"] is not None
+            else "on board (the edge away)"
+        )
         return (
-            f"{len(recent):>3} fps  k={recent[-1]['k']}  payload {recent[-1]['payload_bytes'] / 1024:7.1f} kB  "
+            f"{len(recent):>3} fps  {where}  "
             f"robot {med['robot_ms']:6.1f} ms  link {med['transport_ms']:5.1f} ms  edge {med['edge_ms']:5.1f} ms  "
             f"capture->pose {med['e2e_ms']:6.1f} ms{age}  tags {recent[-1]['tags']}{err}{self._slam_part(now)}"
             f"{self._controller_part()}"

@@ -40,6 +40,15 @@ def query_split(
         if reply.ok is not None:
             return decode(reply.ok.payload.to_bytes(), SplitConfig)
         err = reply.err.payload.to_string() if reply.err is not None else "unknown error"
+        if err.strip().lower() == "timeout":  # zenoh's own: the query reached robot_infer's side, no answer came
+            raise SplitQueryError(
+                f"no answer on {selector} within {timeout_secs:g} s (zenoh: Timeout): "
+                + (
+                    "the change is not confirmed and may not have been taken; `split get` says which k runs"
+                    if params
+                    else "is the link to the robot up?"
+                )
+            )
         raise SplitQueryError(err)
     if identity is not None:  # access control drops a query it denies: no reply, no error
         raise SplitQueryError(
