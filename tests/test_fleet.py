@@ -284,3 +284,48 @@ def test_fleet_names_that_would_share_a_certificate_are_refused(tmp_path: Path) 
         timeout=120,
     )
     assert out.returncode == 2 and "no [fleet] certs folder" in out.stderr, out.stderr
+
+
+def test_a_batch_runs_its_tail_in_bounded_chunks_and_a_frame_of_too_many_tags_is_refused() -> None:
+    """A trial's three 200-tag Features took the edge to 4.9 GB in one tail pass: the tail now runs on
+    at most TAIL_CHUNK_TAGS tags at a time (the same keypoints as one message at a time, chunks
+    crossing messages), and a frame of more than MAX_TAGS_PER_FRAME tags is refused before any network."""
+    from shared.model.runtime import load_split_net
+    from shared.perception.split import (
+        MAX_TAGS_PER_FRAME,
+        TAIL_CHUNK_TAGS,
+        EdgeInput,
+        check_features,
+        edge_batch,
+        edge_step,
+    )
+    from shared.vision.tagmap import TagMapFile
+    from shared.wire.cuts import CUTS, FeatureShapeError
+    from shared.wire.messages import Features, TagPoses
+    from tests.examples import example_messages
+
+    base = example_messages()[Features.SCHEMA]
+    assert isinstance(base, Features)
+    rng = np.random.default_rng(1)
+    k, per = 6, 7
+    messages = []
+    for robot in ("r1", "r2", "r3"):  # 21 tags: chunks of 16 cross the messages
+        tags = [
+            base.tags[0].model_copy(
+                update={"tag_id": i, "tensor": np.maximum(rng.normal(0, 1, CUTS[k].shape), 0).astype(np.float16)}
+            )
+            for i in range(per)
+        ]
+        messages.append(base.model_copy(update={"robot_id": robot, "split_k": k, "codec": "fp16", "tags": tags}))
+    assert 3 * per > TAIL_CHUNK_TAGS
+    net = load_split_net(REPO / "models", "fp32")
+    tag_map = TagMapFile(default_size_m=0.2)
+    together = edge_batch([EdgeInput(m, 2, 1, 10, tag_map) for m in messages], net=net)
+    for m, b in zip(messages, together, strict=True):
+        a = edge_step(m, net=net, tag_map=tag_map, receive_nanos=2, previous_receive_nanos=1, payload_bytes=10)
+        assert isinstance(b, TagPoses) and len(b.tags) == per
+        for ta, tb in zip(a.tags, b.tags, strict=True):
+            np.testing.assert_allclose(tb.keypoints_px, ta.keypoints_px, atol=1e-3)
+    many = base.model_copy(update={"tags": [base.tags[0]] * (MAX_TAGS_PER_FRAME + 1)})
+    with pytest.raises(FeatureShapeError, match=f"{MAX_TAGS_PER_FRAME + 1} tags in one frame"):
+        check_features(many)

@@ -154,3 +154,30 @@ def test_a_stalled_edge_is_worked_around_until_it_answers_again(tmp_path: Path) 
         assert node.window.in_flight == 1 and node.on_board_frames == 2 and not rig.posed(frames[4])
         token.undeclare()
         answers.undeclare()
+
+
+def test_a_forged_answer_cannot_steer_the_robots_pacing(tmp_path: Path) -> None:
+    """A trial's one 92-byte TagPoses (another robot's id, timings of 1e12 s, for no frame of this
+    robot's) held robot_infer to 3 fps for 13 s, uncounted. Another robot's is refused and counted; one
+    for no frame in flight here moves neither the pacing nor the stall watch; timings are bounded."""
+    from tests.examples import example_messages
+
+    template = example_messages()[TagPoses.SCHEMA]
+    assert isinstance(template, TagPoses) and template.link is not None
+    with _rig(tmp_path) as rig:
+        node = rig.node
+        pacer = node.pacer
+        assert pacer is not None
+        publisher = rig.edge.declare_publisher(keys.tag_poses(ROBOT))
+        huge = template.timings.model_copy(update={"capture_to_pose_secs": 1e12, "edge_compute_secs": 0.0})
+        link = template.link.model_copy(update={"sent_nanos": time.time_ns(), "received_nanos": 0})
+        forged = template.model_copy(update={"robot_id": "robot2", "capture_nanos": 1, "timings": huge, "link": link})
+        publisher.put(encode(forged))
+        wait_until(lambda: node.guard.rejected.get("tag_poses: ValueError", 0) == 1, 30, "the foreign one refused")
+        ours = forged.model_copy(update={"robot_id": ROBOT})  # this robot's id, but no frame of its in flight
+        publisher.put(encode(ours))
+        wait_until(lambda: node.guard.accepted_by_input.get("tag_poses", 0) >= 1, 30, "this robot's taken")
+        assert pacer.edge_wait_secs == 0.0 and not node.watch.overdue
+        pacer.answered(1, tags=1, link_secs=1e12, edge_secs=0.0, edge_received_nanos=0, edge_done_nanos=10**21)
+        assert pacer.edge_wait_secs <= 10.0 and abs(pacer.link_secs) <= 10.0  # (MAX_ANSWER_SECS)
+        publisher.undeclare()

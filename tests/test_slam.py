@@ -453,6 +453,33 @@ def test_a_repeated_message_is_refused_and_a_restarted_camera_goes_on(tmp_path: 
         node.on_poses(_tag_poses(99, time.time_ns() + 3_600 * 10**9, poses[0]))
 
 
+def test_a_frame_stamped_ahead_of_its_camera_stops_slam_for_five_frames_not_until_its_time(tmp_path: Path) -> None:
+    """A trial's hostile camera sent one frame stamped 45 s ahead (within the 60 s bound): slam fused it
+    and refused every real frame for 44 s as older. Five real frames in a row, in order and newer than
+    the one before the stray, say the stray was the odd one out: slam goes on from them."""
+    node = SlamNode(SlamServiceSettings(run_dir=tmp_path))
+    poses = _constant_velocity(40)
+    for i in range(10):
+        assert node.on_poses(_tag_poses(i, 1_000 + i, poses[i]))[0].status == "tracking"
+    node.on_poses(_tag_poses(40, 46_000, poses[10]))  # the stray: seq 40, 45 s ahead
+    for i in range(10, 14):
+        with pytest.raises(SlamInputError, match="out of order"):
+            node.on_poses(_tag_poses(i, 1_000 + i, poses[i]))
+    assert node.indexer.strays == 0
+    for i in range(14, 30):  # the fifth in a row is taken, and the stream goes on
+        assert node.on_poses(_tag_poses(i, 1_000 + i, poses[i]))[0].status == "tracking", i
+    assert node.indexer.strays == 1
+    # refused ones out of order among themselves, or older than the frame before the stray, do not count
+    other = SlamNode(SlamServiceSettings(run_dir=tmp_path / "b"))
+    for i in range(10):
+        other.on_poses(_tag_poses(i, 1_000 + i, poses[i]))
+    other.on_poses(_tag_poses(40, 46_000, poses[10]))
+    for j, stamp in enumerate((1_011, 1_012, 1_005, 1_013, 1_003, 1_014, 1_015, 1_016)):  # (1_009: the frame before)
+        with pytest.raises(SlamInputError, match="out of order"):
+            other.on_poses(_tag_poses(100 + j, stamp, poses[11]))
+    assert other.indexer.strays == 0
+
+
 def test_slam_says_when_it_waits_for_an_anchor_that_never_comes(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:

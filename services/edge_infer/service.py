@@ -211,7 +211,9 @@ class EdgeInfer:
         )
         if s.serve_echo:
             lane.endpoints.append(
-                serve_echo(session, keys.echo(robot), max_bytes=s.max_payload_bytes, arrivals=arrivals)
+                serve_echo(
+                    session, keys.echo(robot), max_bytes=s.max_payload_bytes, arrivals=arrivals, guard=self.guard
+                )
             )
         lane.endpoints.append(
             serve_stats(session, keys.stats(robot, "edge_infer"), self.guard, lambda: self.counters(lane))

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import threading
 import time
@@ -38,7 +37,6 @@ from shared.vision.proposals import Stage1Detector
 from shared.vision.tagmap import TagMapFile, load_tag_map
 from shared.vision.tracking import TagTracker
 from shared.wire import keys
-from shared.wire.codec import WireError
 from shared.wire.cuts import N_CUTS, CodecName
 from shared.wire.messages import (
     ComputeProfile,
@@ -169,7 +167,7 @@ class RobotInfer:
             keys.compute(rid, "robot"), encoding=encoding_for(ComputeProfile.SCHEMA)
         )
         self.sent_pub = session.declare_publisher(keys.frame_sent(rid), encoding=encoding_for(FrameSent.SCHEMA))
-        self.queryable = serve_split(session, keys.split(rid), self.state)
+        self.queryable = serve_split(session, keys.split(rid), self.state, guard=self.guard)
         self.acks = session.declare_subscriber(keys.tag_poses(rid), self._on_poses) if s.max_in_flight else None
         self.edge_token = session.liveliness().declare_subscriber(
             keys.alive(rid, "edge_infer"), self._on_edge, history=True
@@ -204,38 +202,50 @@ class RobotInfer:
 
     # Zenoh callbacks: bookkeeping only.
     def _on_poses(self, sample: zenoh.Sample) -> None:
-        # A bad TagPoses is edge_infer's problem to report; that frame's credit expires on its own.
-        with contextlib.suppress(WireError):
-            # Every check, but no model: this runs on Zenoh's thread and reads a few fields.
-            poses = decode_view(sample.payload.to_bytes(), TagPoses).fields
-            # Frames are keyed by capture time, not seq: seq starts again with a camera session (a restart,
-            # a looped folder's next pass) while frames of the last one may still be in flight (review).
-            if poses.link is not None:  # the edge's answer (link None: computed on board): prompt, or late?
-                # (before the credit returns: the main loop must not take it while the stall still holds)
-                self.watch.answered((time.time_ns() - poses.link.sent_nanos) / 1e9)  # both stamps the robot's
-            self.window.done(poses.capture_nanos)
-            if self.pacer is not None and poses.link is not None:
-                timings = poses.timings
-                self.pacer.answered(
-                    poses.capture_nanos,
-                    tags=len(poses.tags),
-                    link_secs=timings.transport_secs,
-                    edge_secs=timings.edge_compute_secs,
-                    edge_received_nanos=poses.link.received_nanos,
-                    # capture_to_pose is the edge's done stamp minus the capture stamp: done on the edge's clock
-                    edge_done_nanos=poses.capture_nanos + round(timings.capture_to_pose_secs * 1e9),
-                    link=poses.link,
-                )
-                if self.pacer.uplink is not None:  # the link as a delay would grow the window on its own queue
-                    camera = self.frames.interval_secs() or 0.0
-                    self.window.set_capacity(
-                        credits_needed(
-                            cycle_secs=self.pacer.robot_secs + self.window.typical_answer_secs,
-                            period_secs=max(self.pacer.period_secs(), camera),
-                            floor=self.settings.max_in_flight,
-                            ceiling=self.settings.in_flight_limit,
-                        )
+        payload = sample.payload.to_bytes()
+        self.guard.run("tag_poses", len(payload), partial(self._take_poses, payload))
+
+    def _take_poses(self, payload: bytes) -> None:
+        """An answer: its credit back, and what it says of the edge and the link. Only another robot's
+        (refused: counted by the guard) or one for no frame in flight here (ignored: this robot's own
+        on-board poses, a late duplicate, a forged one) cannot steer the pacing or the stall watch (a
+        trial's one forged TagPoses, another robot's id and timings of 1e12 s, held the robot to 3 fps
+        for 13 s, uncounted)."""
+        # Every check, but no model: this runs on Zenoh's thread and reads a few fields.
+        poses = decode_view(payload, TagPoses).fields
+        if poses.robot_id != self.settings.robot_id:
+            raise ValueError(f"TagPoses of robot {poses.robot_id[:40]!r} on {self.settings.robot_id}'s key")
+        # Frames are keyed by capture time, not seq: seq starts again with a camera session (a restart,
+        # a looped folder's next pass) while frames of the last one may still be in flight (review).
+        if poses.link is None or not self.window.holds(poses.capture_nanos):
+            self.window.done(poses.capture_nanos)  # (an orphan's answer from the race, if any)
+            return
+        # the edge's answer: prompt, or late? (before the credit returns: the main loop must not take it
+        # while the stall still holds)
+        self.watch.answered((time.time_ns() - poses.link.sent_nanos) / 1e9)  # both stamps the robot's
+        self.window.done(poses.capture_nanos)
+        if self.pacer is not None:
+            timings = poses.timings
+            self.pacer.answered(
+                poses.capture_nanos,
+                tags=len(poses.tags),
+                link_secs=timings.transport_secs,
+                edge_secs=timings.edge_compute_secs,
+                edge_received_nanos=poses.link.received_nanos,
+                # capture_to_pose is the edge's done stamp minus the capture stamp: done on the edge's clock
+                edge_done_nanos=poses.capture_nanos + round(min(timings.capture_to_pose_secs, 3_600.0) * 1e9),
+                link=poses.link,
+            )
+            if self.pacer.uplink is not None:  # the link as a delay would grow the window on its own queue
+                camera = self.frames.interval_secs() or 0.0
+                self.window.set_capacity(
+                    credits_needed(
+                        cycle_secs=self.pacer.robot_secs + self.window.typical_answer_secs,
+                        period_secs=max(self.pacer.period_secs(), camera),
+                        floor=self.settings.max_in_flight,
+                        ceiling=self.settings.in_flight_limit,
                     )
+                )
 
     def _on_edge(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.PUT:

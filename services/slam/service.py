@@ -377,7 +377,17 @@ class SlamNode:
             for o in observations:
                 check_observation(o)  # before the indexer remembers the frame (the size as sent, too)
             observations = [self._sized(o) for o in observations]
+            strays = run.indexer.strays
             frame = run.indexer.index(msg.seq, msg.capture_nanos)
+            if run.indexer.strays != strays:
+                log.warning(
+                    "%s: %d frames in a row came older than the newest fused one: it was a stray (a capture time "
+                    "ahead of its camera's); going on from frame seq %d as a new camera session (%d strays)",
+                    robot,
+                    run.indexer.stray_confirm,
+                    msg.seq,
+                    run.indexer.strays,
+                )
             res = self.slam.update(frame, msg.capture_nanos, observations, robot=robot)
             truth = run.gt_recent.pop(msg.capture_nanos, None)
             source_nanos = run.stamp_recent.pop(msg.capture_nanos, None)
@@ -841,6 +851,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
                 "robots": sorted(node.runs),
                 "fragments": state.fragments,
                 "jumps": state.jumps,
+                "strays": sum(r.indexer.strays for r in node.runs.values()),  # frames stamped ahead, undone
                 "soft_reads_skipped": state.soft_reads_skipped,
                 "soft_reads_localised": state.soft_reads_localised,
                 "tracked_skipped": state.tracked_skipped,

@@ -186,9 +186,15 @@ def edge_step(
     return result
 
 
-def check_features(features: Features) -> None:
-    """What the edge can check of a Features before any network runs: its codec and every tensor's
-    shape and dtype for its cut (FeatureShapeError)."""
+MAX_TAGS_PER_FRAME: Final[int] = 256  # far more than any frame holds; a Features with more is refused
+TAIL_CHUNK_TAGS: Final[int] = 16  # the tail runs on at most this many tags at once (bounded memory)
+
+
+def check_features(features: Features, *, max_tags: int = MAX_TAGS_PER_FRAME) -> None:
+    """What the edge can check of a Features before any network runs: its number of tags, its codec
+    and every tensor's shape and dtype for its cut (FeatureShapeError)."""
+    if len(features.tags) > max_tags:  # (a trial's three 200-tag messages took the edge to 4.9 GB)
+        raise FeatureShapeError(f"{len(features.tags)} tags in one frame: more than {max_tags}")
     if features.codec not in ("fp16", "fp32"):
         raise FeatureShapeError(f"codec {features.codec!r} is not fp16 or fp32")
     for tag in features.tags:
@@ -228,17 +234,20 @@ def edge_batch(
         if not members:
             continue
         t0 = time.perf_counter()
-        z = np.stack(
-            [np.asarray(t.tensor, np.uint8 if k == 0 else np.float32) for n in members for t in items[n].features.tags]
-        )
-        out = net.tail(z, k)
+        tensors = [t.tensor for n in members for t in items[n].features.tags]
+        # In chunks: a batch's activations grow with its tags (a trial's 600 tags in one batch: 4.9 GB)
+        chunks = [
+            net.tail(np.stack([np.asarray(x, np.uint8 if k == 0 else np.float32) for x in part]), k)
+            for part in (tensors[i : i + TAIL_CHUNK_TAGS] for i in range(0, len(tensors), TAIL_CHUNK_TAGS))
+        ]
+        out = np.concatenate(chunks)
         tail_secs = time.perf_counter() - t0
         at = 0
         for n in members:
             tags = items[n].features.tags
             kp = out[at : at + len(tags)]
             at += len(tags)
-            share_secs[n] = tail_secs * len(tags) / len(z)
+            share_secs[n] = tail_secs * len(tags) / len(tensors)
             if not np.isfinite(kp).all():
                 bad = [t.tag_id for t, p in zip(tags, kp, strict=True) if not np.isfinite(p).all()]
                 refused[n] = _non_finite(bad, items[n].features.robot_id, k)

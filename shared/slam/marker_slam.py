@@ -300,7 +300,11 @@ class FrameIndexer:
     camera session the index follows seq (so gaps of dropped frames stay gaps for the motion prior);
     a seq that goes back while the capture time goes forward is a new camera session, which continues
     the index after a break wider than any motion prior; a (seq, time) seen before, or a frame older
-    than the last one, is refused."""
+    than the last one, is refused. A *stray*: when `stray_confirm` frames in a row come older than the
+    last one, each newer than the one before it and all newer than the frame before the last, the last
+    was the odd one out (a frame stamped ahead of its camera's clock, a hostile peer's: one 45 s ahead
+    made slam refuse every real frame for 44 s, found by a trial); the stream goes on from them as a new
+    camera session, counted in `strays` (the frames refused meanwhile stay refused)."""
 
     def __init__(
         self,
@@ -308,9 +312,14 @@ class FrameIndexer:
         session_break: int = 1_000,
         remember: int = 4_096,
         max_future_secs: float = 60.0,
+        stray_confirm: int = 5,
         clock_nanos: Callable[[], int] = time.time_ns,
     ) -> None:
         self.session_break = session_break
+        self.stray_confirm = stray_confirm
+        self.strays = 0
+        self._before_last: int | None = None  # the capture time of the frame before the newest
+        self._behind: list[int] = []  # capture times of the frames refused in a row as older, in order
         # A capture time far in the future would make every real frame after it look stale.
         self.max_future_nanos = int(max_future_secs * 1e9)
         self._clock_nanos = clock_nanos
@@ -330,10 +339,19 @@ class FrameIndexer:
         if self._last is not None:
             last_seq, last_time = self._last
             if capture_nanos <= last_time:
-                raise SlamInputError(f"frame seq {seq} is older than the last one (seq {last_seq}): out of order")
-            if seq <= last_seq:  # the camera restarted: a new session after a break
+                in_order = not self._behind or capture_nanos > self._behind[-1]
+                after_before = self._before_last is None or capture_nanos > self._before_last
+                self._behind = [*self._behind, capture_nanos] if in_order and after_before else []
+                if len(self._behind) < self.stray_confirm:
+                    raise SlamInputError(f"frame seq {seq} is older than the last one (seq {last_seq}): out of order")
+                self.strays += 1  # the last one was the stray: go on from these, as a new session
                 self._offset = self._offset + last_seq + self.session_break - seq
                 self.sessions += 1
+            elif seq <= last_seq:  # the camera restarted: a new session after a break
+                self._offset = self._offset + last_seq + self.session_break - seq
+                self.sessions += 1
+            self._before_last = last_time if capture_nanos > last_time else None
+        self._behind = []
         index = self._offset + seq
         self._last = key
         self._seen[key] = index

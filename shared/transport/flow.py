@@ -25,11 +25,14 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Generic, TypeVar
+from typing import Final, Generic, TypeVar
 
 from shared.wire.messages import LinkStamps
 
 T = TypeVar("T")
+
+
+MAX_ANSWER_SECS: Final[float] = 10.0  # the most an answer may say its link, edge or wait took (bounded)
 
 
 class InFlightWindow(Generic[T]):
@@ -146,6 +149,13 @@ class InFlightWindow(Generic[T]):
             raise
         if gone is not None and gone():
             self.clear(recover=True)
+
+    def holds(self, seq: int) -> bool:
+        """Whether `seq` is a frame in flight here (sent, or an orphan not yet recomputed): only an answer
+        to one may steer the pacing and the stall watch (a trial's forged TagPoses for no frame of this
+        robot's, timings of 1e12 s, held robot_infer to 3 fps for as long as it came)."""
+        with self._cond:
+            return seq in self._sent or any(s == seq for s, _ in self._orphans)
 
     def done(self, seq: int) -> None:
         """TagPoses for `seq` arrived: return its credit (unknown seqs are ignored). An orphan of that
@@ -619,6 +629,9 @@ class EdgePacer:
         """The edge's answer for `seq` arrived now, saying what its link and edge compute took and, with
         both stamps (edge clock), when the edge received the frame and finished it; `link`: how it
         crossed the uplink (for the uplink's model)."""
+        # Bounded: one answer with absurd timings (a forged one) must not hold the pacing for minutes.
+        link_secs = min(max(link_secs, -MAX_ANSWER_SECS), MAX_ANSWER_SECS)
+        edge_secs = min(edge_secs, MAX_ANSWER_SECS)
         with self._lock:
             now = self._clock()
             # (not clamped at 0: with the clocks' offset in it, it can be negative, and that offset must cancel)
@@ -630,7 +643,7 @@ class EdgePacer:
             if edge_received_nanos is not None and edge_done_nanos is not None:
                 waited = (edge_done_nanos - edge_received_nanos) / 1e9 - max(0.0, edge_secs)
                 behind_own = (self._edge_done_nanos - edge_received_nanos) / 1e9  # our previous frame, still there
-                foreign = max(0.0, waited - max(0.0, behind_own))
+                foreign = min(max(0.0, waited - max(0.0, behind_own)), MAX_ANSWER_SECS)
                 self.edge_wait_secs += self._alpha * (foreign - self.edge_wait_secs)  # 0 is a value here
                 self._edge_done_nanos = edge_done_nanos  # the latest answer's (a new worker: its clock)
             sent = self._sent.pop(seq, None)
