@@ -40,6 +40,7 @@ from shared.slam.marker_slam import (
     rescale_observation,
     truth_in_estimate_frame,
 )
+from shared.transport.access import MAP_KEY
 from shared.transport.session import declare_fifo_subscriber, encoding_for
 from shared.transport.split_control import SplitRequestError, parse_parameters
 from shared.vision.camera import CameraIntrinsics
@@ -800,6 +801,11 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
 
     def answer(query: zenoh.Query) -> None:
         with query:  # the query is finalised (its asker told "no more replies") on exit
+            if not zenoh.KeyExpr(MAP_KEY).includes(query.key_expr):
+                # A wildcard get beyond the map keys (`splittag/r1/**`) reaches this queryable past access
+                # control's deny rule on them, which applies to the keys it includes, so any identity read
+                # the map that way (an adversarial trial, as the secure config's camera): no answer.
+                return
             try:
                 save = map_request(str(query.parameters), query.payload is not None)
             except SlamQueryError as exc:

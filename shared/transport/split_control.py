@@ -190,6 +190,14 @@ def _params_from_payload(payload: bytes) -> dict[str, str]:
     return params
 
 
+def _readable(asked: str) -> bool:
+    """A read on a key that access control's split rules include (`splittag/*/split`, `.../split/auto`)."""
+    from shared.transport.access import SPLIT_AUTO_KEY, SPLIT_KEY
+
+    key = zenoh.KeyExpr(asked)
+    return any(zenoh.KeyExpr(rule).includes(key) for rule in (SPLIT_KEY, SPLIT_AUTO_KEY))
+
+
 def serve_split(
     session: zenoh.Session, key: str, state: SplitState, *, guard: InputGuard | None = None
 ) -> zenoh.Queryable[None]:
@@ -203,6 +211,14 @@ def serve_split(
         payload = query.payload.to_bytes() if query.payload is not None else None
         framing = framing_of(payload)  # the asker's: the reply is one it reads
         asked = str(query.key_expr)
+        wildcard = any(c in asked for c in "*$")
+        if wildcard and not payload and not str(query.parameters) and not _readable(asked):
+            # A wildcard get beyond the split keys (`splittag/r1/**`, `splittag/r1/split/*`) reaches this
+            # queryable past access control's deny rules, which apply to the keys they include, so any
+            # identity read the split that way (an adversarial trial, as the secure config's camera). Reads
+            # are answered only on keys those rules include, as the operator's tools ask: none here.
+            query.drop()  # (finalised: the asker is told there are no more replies)
+            return
         try:
             params = parse_parameters(str(query.parameters))
             if (params or payload) and any(c in asked for c in "*$"):
