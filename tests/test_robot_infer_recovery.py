@@ -122,7 +122,7 @@ def test_a_stalled_edge_is_worked_around_until_it_answers_again(tmp_path: Path) 
         token = rig.edge.liveliness().declare_token(keys.alive(ROBOT, "edge_infer"))
         wait_until(lambda: node.watch.alive, 30, "robot_infer sees the edge's token")
         now = time.time_ns()
-        frames = [_frame(i, now + i * 66_000_000) for i in range(6)]
+        frames = [_frame(i, now + i * 66_000_000) for i in range(7)]
         # stage 1 of every frame first: only the network and PnP run between the steps below
         made = [robot_stage1(f, detector=node.detector) for f in frames]
         node.process(made[0])  # to the edge, which is stalled
@@ -135,6 +135,8 @@ def test_a_stalled_edge_is_worked_around_until_it_answers_again(tmp_path: Path) 
         time.sleep(timeout_secs + 0.1)
         node.process(made[3])  # a trial: to the edge
         assert node.window.in_flight == 1 and node.on_board_frames == 2
+        node.process(made[6])  # the next frame, on board before the trial's answer (the window forgets the trial)
+        assert node.on_board_frames == 3
         # the edge answers the trial: back to the split
         answer = example_messages()[TagPoses.SCHEMA]
         assert isinstance(answer, TagPoses) and answer.link is not None  # an edge's answer carries link stamps
@@ -151,7 +153,7 @@ def test_a_stalled_edge_is_worked_around_until_it_answers_again(tmp_path: Path) 
         answers.put(encode(reply))
         wait_until(lambda: not node.watch.overdue, 30, "the edge's answer ends the stall")
         node.process(made[4])  # to the edge again
-        assert node.window.in_flight == 1 and node.on_board_frames == 2 and not rig.posed(frames[4])
+        assert node.window.in_flight == 1 and node.on_board_frames == 3 and not rig.posed(frames[4])
         token.undeclare()
         answers.undeclare()
 

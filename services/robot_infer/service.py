@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from functools import partial
@@ -53,6 +54,7 @@ from shared.wire.messages import (
 )
 
 log = logging.getLogger(__name__)
+EXPECTED_ANSWERS = 512  # the newest frames sent whose answers may steer the pacing and the stall watch
 
 
 def checked_frame(
@@ -123,6 +125,8 @@ class RobotInfer:
         self.tag_map = load_tag_map(s.tag_map) if s.tag_map else TagMapFile(default_size_m=s.default_tag_size_m)
         # Each frame in flight keeps its Features: if its edge vanishes, the robot computes it on board.
         self.window: InFlightWindow[Features] = InFlightWindow(s.max_in_flight, timeout_secs=s.in_flight_timeout_secs)
+        self._expected: OrderedDict[int, None] = OrderedDict()  # frames sent to the edge, not yet answered
+        self._expected_lock = threading.Lock()
         uplink = UplinkQueue() if s.pace_to_link else None  # the uplink as a queue, not a delay
         paced = s.pace_to_edge and s.max_in_flight
         self.pacer = (
@@ -217,7 +221,7 @@ class RobotInfer:
             raise ValueError(f"TagPoses of robot {poses.robot_id[:40]!r} on {self.settings.robot_id}'s key")
         # Frames are keyed by capture time, not seq: seq starts again with a camera session (a restart,
         # a looped folder's next pass) while frames of the last one may still be in flight (review).
-        if poses.link is None or not self.window.holds(poses.capture_nanos):
+        if poses.link is None or not self._answering(poses.capture_nanos):
             self.window.done(poses.capture_nanos)  # (an orphan's answer from the race, if any)
             return
         # the edge's answer: prompt, or late? (before the credit returns: the main loop must not take it
@@ -246,6 +250,13 @@ class RobotInfer:
                         ceiling=self.settings.in_flight_limit,
                     )
                 )
+
+    def _answering(self, capture_nanos: int) -> bool:
+        """Whether this answers a frame this robot sent to the edge and has not had an answer for (each
+        counts once). Not the window's frames in flight: the window forgets a trial frame as the robot
+        computes on board while the edge is overdue, and that trial's answer is what ends the stall."""
+        with self._expected_lock:
+            return self._expected.pop(capture_nanos, False) is None
 
     def _on_edge(self, sample: zenoh.Sample) -> None:
         if sample.kind == zenoh.SampleKind.PUT:
@@ -355,6 +366,10 @@ class RobotInfer:
         wire = encode(features)
         sent_nanos, sent_at = time.time_ns(), time.monotonic()
         key = frame.capture_nanos  # unique and in send order across camera sessions (see _on_poses)
+        with self._expected_lock:  # (before the put: the answer may come before send returns)
+            self._expected[key] = None
+            while len(self._expected) > EXPECTED_ANSWERS:
+                self._expected.popitem(last=False)
         self.window.send(key, lambda: self.pub.put(wire), keep=features, gone=lambda: not self.watch.alive)
         if self.pacer is not None:
             self.pacer.sent(key, tags=len(tags), robot_secs=compute_secs, payload_bytes=len(wire), sent_at=sent_at)
