@@ -325,6 +325,13 @@ class SplitController:
             if self._forced_switch == (from_k, to_k):  # left because it could not keep up
                 self._fell_behind[from_k] = (self._clock(), self.link.changes)
 
+    def _short_of_held_gain(self, t: np.ndarray, current_k: int, chosen: int) -> tuple[float, float] | None:
+        """(the gain a held switch needs, the predicted gain) when the switch falls short of it, else None."""
+        usual = max(self.settings.min_gain_ms, self.settings.min_gain_rel * float(t[current_k]))
+        needed = self.settings.reversal_gain_factor * usual
+        gain = float(t[current_k] - t[chosen])
+        return None if gain > needed else (needed, gain)
+
     def _reversal_hold(self, t: np.ndarray, current_k: int, chosen: int) -> str | None:
         """Why a switch is held as ping-pong (None: it is not): the last two switches were `current_k` ->
         `chosen` -> `current_k`, the first less than reversal_hold_secs ago, on the same link, and this
@@ -338,11 +345,9 @@ class SplitController:
         ago = self._clock() - first_at
         if ago >= hold or not changes == changes2 == self.link.changes:
             return None
-        usual = max(self.settings.min_gain_ms, self.settings.min_gain_rel * float(t[current_k]))
-        needed = self.settings.reversal_gain_factor * usual
-        gain = float(t[current_k] - t[chosen])
-        if gain > needed:
+        if (held := self._short_of_held_gain(t, current_k, chosen)) is None:
             return None
+        needed, gain = held
         return (
             f"keep k={current_k}: to k={chosen} a second time in {ago:.1f} s needs {needed:.1f} ms (ping-pong, "
             f"for {hold:g} s); predicted {gain:.1f} ms faster"
@@ -361,11 +366,9 @@ class SplitController:
         ago = self._clock() - left[0]
         if ago >= hold or left[1] != self.link.changes:
             return None
-        usual = max(self.settings.min_gain_ms, self.settings.min_gain_rel * float(t[current_k]))
-        needed = self.settings.reversal_gain_factor * usual
-        gain = float(t[current_k] - t[chosen])
-        if gain > needed:
+        if (held := self._short_of_held_gain(t, current_k, chosen)) is None:
             return None
+        needed, gain = held
         return (
             f"keep k={current_k}: k={chosen} fell behind the camera {ago:.1f} s ago (held for {hold:g} s unless "
             f"{needed:.1f} ms faster); predicted {gain:.1f} ms faster"
