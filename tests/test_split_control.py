@@ -28,7 +28,7 @@ def _served(state: SplitState, guard: Any = None) -> Iterator[zenoh.Session]:
     port = free_tcp_port()
     server = open_session(ZenohSettings(mode="peer", listen=[f"tcp/127.0.0.1:{port}"]))
     client = open_session(ZenohSettings(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
-    queryable = serve_split(server, keys.split("w1"), state, guard=guard)
+    queryable = serve_split(server, keys.split("w1"), state, refused=None if guard is None else guard.reject)
     try:
         yield client
     finally:
@@ -294,7 +294,7 @@ def test_refused_split_requests_and_probes_are_counted_and_logged_once_a_second(
             assert errors  # still answered, with the reason
         echo_guard = InputGuard("edge_infer", schedule=lambda _secs, _fn: None)
         server = client  # (a queryable on the client's session: the same code path)
-        echo = serve_echo(server, keys.echo("w1"), max_bytes=1 << 20, guard=echo_guard)
+        echo = serve_echo(server, keys.echo("w1"), max_bytes=1 << 20, refused=echo_guard.reject)
         try:
             for _ in range(40):
                 list(client.get(keys.echo("w1"), payload=b"garbage", timeout=5))

@@ -212,7 +212,11 @@ class EdgeInfer:
         if s.serve_echo:
             lane.endpoints.append(
                 serve_echo(
-                    session, keys.echo(robot), max_bytes=s.max_payload_bytes, arrivals=arrivals, guard=self.guard
+                    session,
+                    keys.echo(robot),
+                    max_bytes=s.max_payload_bytes,
+                    arrivals=arrivals,
+                    refused=self.guard.reject,
                 )
             )
         lane.endpoints.append(

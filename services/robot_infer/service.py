@@ -171,7 +171,7 @@ class RobotInfer:
             keys.compute(rid, "robot"), encoding=encoding_for(ComputeProfile.SCHEMA)
         )
         self.sent_pub = session.declare_publisher(keys.frame_sent(rid), encoding=encoding_for(FrameSent.SCHEMA))
-        self.queryable = serve_split(session, keys.split(rid), self.state, guard=self.guard)
+        self.queryable = serve_split(session, keys.split(rid), self.state, refused=self.guard.reject)
         self.acks = session.declare_subscriber(keys.tag_poses(rid), self._on_poses) if s.max_in_flight else None
         self.edge_token = session.liveliness().declare_subscriber(
             keys.alive(rid, "edge_infer"), self._on_edge, history=True

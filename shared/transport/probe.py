@@ -11,7 +11,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import zenoh
 
@@ -29,9 +29,6 @@ from shared.wire.messages import (
     framing_of,
 )
 
-if TYPE_CHECKING:  # (annotations only: these modules stay light for the readers)
-    from shared.runtime.guard import InputGuard
-
 log = logging.getLogger(__name__)
 
 
@@ -41,13 +38,13 @@ def serve_echo(
     *,
     max_bytes: int,
     arrivals: ArrivalClock | None = None,
-    guard: InputGuard | None = None,
+    refused: Callable[[str, int, BaseException], None] | None = None,
 ) -> zenoh.Queryable[None]:
     """Declare the echo queryable: decode each probe, reply a ProbeAck with the probe's link stamps
     (errors are replied, not raised). `arrivals` is shared with whatever else arrives on the same
-    uplink (edge_infer's Features), so a probe's stamps say what was ahead of it. With `guard`, a probe
-    that does not decode is counted there and logged at most once a second (a trial's 2,000 garbage
-    probes in 1.3 s were 2,000 warnings, counted nowhere)."""
+    uplink (edge_infer's Features), so a probe's stamps say what was ahead of it. A probe that does not
+    decode goes to `refused` (a service's InputGuard.reject: counted, logged at most once a second; a
+    trial's 2,000 garbage probes in 1.3 s were 2,000 warnings, counted nowhere), else is logged."""
     enc = encoding_for(ProbeAck.SCHEMA)
     arrivals = arrivals or ArrivalClock()
 
@@ -61,8 +58,8 @@ def serve_echo(
             link = (decode_view(payload, Features, max_bytes=max_bytes).fields.publish_nanos, received, previous)
         except WireError as exc:
             error = str(exc)
-            if guard is not None:
-                guard.reject("probe", len(payload), exc)
+            if refused is not None:
+                refused("probe", len(payload), exc)
             else:
                 log.warning("echo: rejected probe of %d bytes: %s", len(payload), exc)
         framing = framing_of(payload)  # the asker's

@@ -27,7 +27,6 @@ import logging
 import threading
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import zenoh
 from pydantic import ValidationError
@@ -37,9 +36,6 @@ from shared.vision.files import atomic_write_text
 from shared.wire.codec import WireError
 from shared.wire.cuts import N_CUTS
 from shared.wire.messages import SplitConfig, decode, encode, framing_of
-
-if TYPE_CHECKING:  # (annotations only: these modules stay light for the readers)
-    from shared.runtime.guard import InputGuard
 
 log = logging.getLogger(__name__)
 
@@ -199,11 +195,16 @@ def _readable(asked: str) -> bool:
 
 
 def serve_split(
-    session: zenoh.Session, key: str, state: SplitState, *, guard: InputGuard | None = None
+    session: zenoh.Session,
+    key: str,
+    state: SplitState,
+    *,
+    refused: Callable[[str, int, BaseException], None] | None = None,
 ) -> zenoh.Queryable[None]:
     """Declare the split queryable on `key` (a person's) and `key/auto` (a controller's). A refused request
-    is answered with the reason and, with `guard`, counted there and logged at most once a second (a
-    trial's 3,000 refused gets in 4.6 s wrote 440 kB of warnings, counted nowhere)."""
+    is answered with the reason and given to `refused` (what, payload bytes, why: a service's
+    InputGuard.reject, which counts it and logs at most once a second; a trial's 3,000 refused gets in
+    4.6 s wrote 440 kB of warnings, counted nowhere), else logged."""
     enc = encoding_for(SplitConfig.SCHEMA)
     auto = key + "/auto"
 
@@ -227,8 +228,8 @@ def serve_split(
                 raise SplitRequestError(f"{asked}: the split is set on {key} or {auto}")
             applied = state.apply(params, payload, as_controller=asked == auto)
         except SplitRequestError as exc:
-            if guard is not None:
-                guard.reject("split request", len(payload or b""), exc)
+            if refused is not None:
+                refused("split request", len(payload or b""), exc)
             else:
                 log.warning("split request refused: %s", exc)
             query.reply_err(str(exc).encode())
