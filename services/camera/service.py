@@ -47,15 +47,12 @@ class SourceProgress:
     def of_run(cls, settings: CameraSettings, source: FolderSource | VideoSource) -> SourceProgress:
         return cls(settings.run_dir / f"camera_{settings.robot_id}.progress.json", source.identity)
 
-    def _listing_doc(self) -> dict[str, object]:
-        return dict(self.identity)
-
     def read(self) -> tuple[int, int, int] | None:
         """(completed passes, index of the next image, frames published in the run), or None (no progress,
         unreadable, or of another listing: from the start)."""
         try:
             doc = json.loads(self.path.read_text())
-            if {k: doc.get(k) for k in ("images", "first")} != self._listing_doc():
+            if {k: doc.get(k) for k in self.identity} != self.identity:
                 return None
             return int(doc["passes"]), int(doc["next_index"]), int(doc["published"])
         except (OSError, ValueError, KeyError, TypeError, AttributeError):
@@ -63,7 +60,7 @@ class SourceProgress:
 
     def write(self, passes: int, next_index: int, published: int) -> None:
         tmp = self.path.with_name(f".{self.path.name}.tmp")
-        doc = {**self._listing_doc(), "passes": passes, "next_index": next_index, "published": published}
+        doc = {**self.identity, "passes": passes, "next_index": next_index, "published": published}
         try:
             tmp.write_text(json.dumps(doc))
             os.replace(tmp, self.path)

@@ -210,9 +210,9 @@ class RobotInfer:
         self.guard.run("tag_poses", len(payload), partial(self._take_poses, payload))
 
     def _take_poses(self, payload: bytes) -> None:
-        """An answer: its credit back, and what it says of the edge and the link. Only another robot's
-        (refused: counted by the guard) or one for no frame in flight here (ignored: this robot's own
-        on-board poses, a late duplicate, a forged one) cannot steer the pacing or the stall watch (a
+        """An answer: its credit back, and what it says of the edge and the link. Another robot's (refused:
+        counted by the guard) or one for no frame this robot sent and still waits for (ignored: its own
+        on-board poses, a duplicate, a forged one) cannot steer the pacing or the stall watch (a
         trial's one forged TagPoses, another robot's id and timings of 1e12 s, held the robot to 3 fps
         for 13 s, uncounted)."""
         # Every check, but no model: this runs on Zenoh's thread and reads a few fields.
@@ -236,8 +236,9 @@ class RobotInfer:
                 link_secs=timings.transport_secs,
                 edge_secs=timings.edge_compute_secs,
                 edge_received_nanos=poses.link.received_nanos,
-                # capture_to_pose is the edge's done stamp minus the capture stamp: done on the edge's clock
-                edge_done_nanos=poses.capture_nanos + round(min(timings.capture_to_pose_secs, 3_600.0) * 1e9),
+                # capture_to_pose is the edge's done stamp minus the capture stamp: done on the edge's clock (the
+                # pacer bounds what it makes of it)
+                edge_done_nanos=poses.capture_nanos + round(timings.capture_to_pose_secs * 1e9),
                 link=poses.link,
             )
             if self.pacer.uplink is not None:  # the link as a delay would grow the window on its own queue

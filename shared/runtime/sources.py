@@ -276,14 +276,18 @@ def associate_stamps(stamps_s: list[float], gt_stamps_s: NDArray[np.float64], ma
     if len(gt_stamps_s) == 0:
         return [None] * len(stamps_s)
     order = np.argsort(gt_stamps_s, kind="stable")
-    sorted_gt = np.asarray(gt_stamps_s, np.float64)[order]
-    t = np.asarray(stamps_s, np.float64)
-    j = np.searchsorted(sorted_gt, t)  # (vectorised: a long video's nominal frame times are checked at start-up)
-    before = np.clip(j - 1, 0, len(sorted_gt) - 1)
-    after = np.clip(j, 0, len(sorted_gt) - 1)
-    best = np.where(np.abs(sorted_gt[before] - t) <= np.abs(sorted_gt[after] - t), before, after)
-    ok = np.abs(sorted_gt[best] - t) <= max_dt_s
-    return [int(order[b]) if good else None for b, good in zip(best, ok, strict=True)]
+    best = nearest_sorted(np.asarray(gt_stamps_s, np.float64)[order], np.asarray(stamps_s, np.float64), max_dt_s)
+    return [None if b < 0 else int(order[b]) for b in best]
+
+
+def nearest_sorted(sorted_s: NDArray[np.float64], t_s: NDArray[np.float64], max_dt_s: float) -> NDArray[np.intp]:
+    """For each time in `t_s`, the index of the nearest in `sorted_s` (ascending, not empty) if within
+    `max_dt_s`, else -1 (vectorised: a long video's nominal frame times are checked at start-up)."""
+    j = np.searchsorted(sorted_s, t_s)
+    before = np.clip(j - 1, 0, len(sorted_s) - 1)
+    after = np.clip(j, 0, len(sorted_s) - 1)
+    best = np.where(np.abs(sorted_s[before] - t_s) <= np.abs(sorted_s[after] - t_s), before, after)
+    return np.where(np.abs(sorted_s[best] - t_s) <= max_dt_s, best, -1)
 
 
 RGB_LIST: Final[str] = "rgb.txt"
@@ -434,6 +438,7 @@ class VideoSource:
         self._gt_name = ""
         if groundtruth:
             rows = read_tum(groundtruth)
+            rows = sorted(rows, key=lambda row: row[0])  # (sorted once: each frame's truth is a bisection)
             self._gt_seconds = np.array([t for t, _ in rows], np.float64)
             self._gt_poses = [pose for _, pose in rows]
             if rows and self.frame_count and self.fps:  # the container's nominal frame times: a clock check
@@ -486,7 +491,8 @@ class VideoSource:
     def _truth(self, seconds: float) -> Array | None:
         if self._gt_seconds is None:
             return None
-        [j] = associate_stamps([seconds], self._gt_seconds, GT_MAX_DT_S)
+        found = int(nearest_sorted(self._gt_seconds, np.array([seconds]), GT_MAX_DT_S)[0]) if self._gt_poses else -1
+        j = None if found < 0 else found
         if j is None and self._gt_checked >= 0:
             self._gt_checked += 1
             if self._gt_checked == VIDEO_GT_CHECK_FRAMES:  # (said once: a clock the start-up check could not see)

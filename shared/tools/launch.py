@@ -120,21 +120,13 @@ def listen_endpoints(config: Path, services: Sequence[str] | None = None) -> lis
     return found
 
 
-def busy_endpoints(endpoints: list[str]) -> list[str]:
-    """The tcp/ and tls/ endpoints of this host that something already listens on (another deployment's
-    routers: a run started beside it joined them, counted their liveliness tokens as its own and mixed
-    both runs' data, found by a trial). Endpoints of other hosts or namespaces are not judged here."""
-    return _endpoint_trouble(endpoints)[0]
-
-
-def foreign_endpoints(endpoints: list[str]) -> list[str]:
-    """The tcp/ and tls/ endpoints at an address this host does not have (a part started on the wrong
-    host: a two-host trial's `--only robot` on the edge host could not start robot_infer, but its camera
-    joined the real robot's router across the network and doubled its frames)."""
-    return _endpoint_trouble(endpoints)[1]
-
-
 def _endpoint_trouble(endpoints: list[str]) -> tuple[list[str], list[str]]:
+    """(busy, foreign): the tcp/ and tls/ endpoints something on this host already listens on (another
+    deployment's routers: a run started beside it joined them, counted their liveliness tokens as its own
+    and mixed both runs' data, found by a trial), and those at an address this host does not have (a part
+    started on the wrong host: a two-host trial's `--only robot` on the edge host could not start
+    robot_infer, but its camera joined the real robot's router across the network and doubled its
+    frames)."""
     import errno
     import socket
 

@@ -150,13 +150,6 @@ class InFlightWindow(Generic[T]):
         if gone is not None and gone():
             self.clear(recover=True)
 
-    def holds(self, seq: int) -> bool:
-        """Whether `seq` is a frame in flight here (sent, or an orphan not yet recomputed): only an answer
-        to one may steer the pacing and the stall watch (a trial's forged TagPoses for no frame of this
-        robot's, timings of 1e12 s, held robot_infer to 3 fps for as long as it came)."""
-        with self._cond:
-            return seq in self._sent or any(s == seq for s, _ in self._orphans)
-
     def done(self, seq: int) -> None:
         """TagPoses for `seq` arrived: return its credit (unknown seqs are ignored). An orphan of that
         seq not yet taken is answered too (a new edge can answer a frame sent in the instant its token
