@@ -10,6 +10,7 @@ import pupil_apriltags
 import pytest
 
 from shared.datasets.synth import pose_facing
+from shared.vision.camera import CameraIntrinsics
 from shared.vision.detector import CORNER_OFFSET_PX, DetectorSettings, TagDetector, destroy_detector
 from shared.vision.geometry import (
     CORNER_KEYPOINTS,
@@ -146,6 +147,50 @@ def test_camera_yaml_round_trip_and_errors(tmp_path: Path) -> None:
         camera_from_yaml(path)
     with pytest.raises(GeometryError, match="cannot read"):
         camera_from_yaml(tmp_path / "absent.yaml")
+
+
+_K = "camera_matrix: {data: [905, 0, 652.3, 0, 898, 391.7, 0, 0, 1]}\n"
+
+
+def _camera_file(tmp_path: Path, model: str, coeffs: list[float], k: str = _K) -> Path:
+    path = tmp_path / "cam.yaml"
+    path.write_text(
+        f"image_width: 1280\nimage_height: 800\n{k}distortion_model: {model}\n"
+        f"distortion_coefficients: {{data: {coeffs}}}\n"
+    )
+    return path
+
+
+def test_camera_file_distortion_models(tmp_path: Path) -> None:
+    """What ROS calibrators write is read as OpenCV's model; what would silently mislead is refused."""
+    eight = [-0.28, 0.08, 1e-3, -5e-4, 0.01, 0.002, 0.003, 0.004]
+    rational = camera_from_yaml(_camera_file(tmp_path, "rational_polynomial", eight))
+    assert (rational.distortion_model, rational.distortion) == ("plumb_bob", eight)
+    np.testing.assert_array_equal(rational.dist_coeffs(), eight)
+    assert camera_from_yaml(_camera_file(tmp_path, "plumb_bob", eight[:5])).distortion == eight[:5]
+    # ROS writes plumb_bob with zeros for a rectified camera; none with zeros is the same camera.
+    assert camera_from_yaml(_camera_file(tmp_path, "none", [0.0] * 5)).distortion == []
+    with pytest.raises(GeometryError, match="none with non-zero coefficients"):
+        camera_from_yaml(_camera_file(tmp_path, "none", eight[:5]))
+    with pytest.raises(GeometryError, match=r"rational_polynomial has 5 coefficients, 8 expected"):
+        camera_from_yaml(_camera_file(tmp_path, "rational_polynomial", eight[:5]))
+    with pytest.raises(GeometryError, match=r"plumb_bob has 3 coefficients; OpenCV takes \(4, 5, 8, 12, 14\)"):
+        camera_from_yaml(_camera_file(tmp_path, "plumb_bob", eight[:3]))
+    with pytest.raises(GeometryError, match=r"fisheye lens.*rectify the images first"):
+        camera_from_yaml(_camera_file(tmp_path, "equidistant", eight[:4]))
+    metres = "camera_matrix: {data: [0.905, 0, 0.65, 0, 0.898, 0.39, 0, 0, 1]}\n"
+    with pytest.raises(GeometryError, match="camera_matrix is in pixels"):
+        camera_from_yaml(_camera_file(tmp_path, "plumb_bob", eight[:5], metres))
+    with pytest.raises(GeometryError, match="must be numbers"):
+        camera_from_yaml(_camera_file(tmp_path, "plumb_bob", ["a", 1, 2, 3]))  # type: ignore[list-item]
+
+
+def test_intrinsics_refuse_coefficients_under_none() -> None:
+    """The wire type too: 'none' with coefficients would be undistorted by some readers and not others."""
+    fields = CAM.model_dump() | {"distortion_model": "none"}
+    with pytest.raises(ValueError, match="'none' with non-zero coefficients"):
+        CameraIntrinsics(**fields | {"distortion": [0.1, 0.0, 0.0, 0.0]})
+    assert CameraIntrinsics(**fields | {"distortion": [0.0] * 4}).distortion == [0.0] * 4
 
 
 @pytest.mark.parametrize(

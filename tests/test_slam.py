@@ -19,6 +19,7 @@ from services.slam.settings import SlamServiceSettings
 from shared.runtime.sources import demo_scene, demo_trajectory
 from shared.sim.scene import look_at
 from shared.slam.marker_slam import (
+    FrameIndexer,
     FrameResult,
     MarkerSlam,
     Observation,
@@ -451,6 +452,27 @@ def test_a_repeated_message_is_refused_and_a_restarted_camera_goes_on(tmp_path: 
     assert len(node.slam.trajectory()) == 20
     with pytest.raises(SlamInputError, match="future"):  # would make every real frame after it look stale
         node.on_poses(_tag_poses(99, time.time_ns() + 3_600 * 10**9, poses[0]))
+
+
+def test_a_frame_numbered_near_the_graphs_limit_does_not_stop_slam(tmp_path: Path) -> None:
+    """A trial's one valid frame with seq 2**56 - 10 (the wire allows up to 2**64 - 1) pushed every
+    later frame's index past what the graph holds: slam refused every frame for the rest of the run."""
+    node = SlamNode(SlamServiceSettings(run_dir=tmp_path))
+    poses = _constant_velocity(30)
+    for i in range(5):
+        assert node.on_poses(_tag_poses(i, 1_000 + i, poses[i]))[0].status == "tracking"
+    for j, seq in enumerate((2**56 - 10, 2**64 - 3)):  # each one a jump: a new session, not a huge index
+        assert node.on_poses(_tag_poses(seq, 1_005 + j, poses[5 + j]))[0].status == "tracking"
+    for i in range(7, 30):  # the real camera goes on (its seq "went back": one more session)
+        assert node.on_poses(_tag_poses(i, 1_000 + i, poses[i]))[0].status == "tracking", i
+    assert node.indexer.sessions == 4
+
+
+def test_frame_indices_move_on_by_at_most_one_session_break_per_frame() -> None:
+    indexer = FrameIndexer(session_break=100, clock_nanos=lambda: 10**12)
+    seqs = [7, 8, 10, 2**63, 3, 4, 104, 205, 2**40, 2**40 + 1]
+    got = [indexer.index(seq, 1_000 + t) for t, seq in enumerate(seqs)]
+    assert got == [0, 1, 3, 103, 203, 204, 304, 404, 504, 505]  # gaps within a session kept (8 -> 10, 4 -> 104)
 
 
 def test_a_frame_stamped_ahead_of_its_camera_stops_slam_for_five_frames_not_until_its_time(tmp_path: Path) -> None:

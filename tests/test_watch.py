@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import queue
+import re
 import signal
 import subprocess
 import sys
@@ -485,10 +486,36 @@ def test_the_readme_pose_listener_runs_as_a_light_client() -> None:
 @pytest.mark.multiprocess
 def test_no_router_is_one_line_in_a_light_client() -> None:
     port = free_tcp_port()  # nothing listens there
-    for args in (["split", "get"], ["map"], ["stats"], ["watch", "poses"]):
+    for args in (["split", "get"], ["map"], ["stats"], ["watch", "poses", "--wait-secs", "0"]):
         proc = _light_cli(*args, "--connect", f"tcp/127.0.0.1:{port}")
         _out, err = _finish(proc, 30.0)
         assert proc.returncode == 1 and "Unable to connect" in err and "Traceback" not in err, (args, err)
+
+
+@pytest.mark.multiprocess
+def test_a_watch_started_before_the_run_waits_for_its_router() -> None:
+    """`splittag watch` just before `splittag up`: the router comes up seconds later (a trial's watch
+    failed with "Unable to connect" and its run's poses were lost); it now keeps trying, and says so."""
+    port = free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    proc = _light_cli("watch", "poses", "--robot-id", "r1", "--connect", endpoint, "--count", "1", "--wait-secs", "40")
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()  # after the first attempt
+        assert re.search(rf"no router at {endpoint} yet; trying for 3\d s more", line), line
+        session = open_session(ZenohSettings(mode="router", listen=[endpoint]))
+        try:
+            publisher = session.declare_publisher(keys.camera_pose("r1"))
+            _wait_subscribed(publisher, proc)
+            publisher.put(encode(_pose(robot_id="r1")))
+            out, err = _finish(proc)
+            publisher.undeclare()
+        finally:
+            session.close()
+    finally:
+        _finish(proc, 1.0)
+    assert proc.returncode == 0, err
+    assert out.split()[:3] == ["r1", "#3", "tracking"] and "1 message" in err, (out, err)
 
 
 def test_a_command_a_light_install_cannot_run_says_so_in_one_line() -> None:

@@ -297,14 +297,18 @@ class FrameIndexer:
     """Frame indices for SLAM from what the camera stamps (seq, capture time), per robot.
 
     A camera numbers its frames from 0 at every start, and a message can arrive twice. Within one
-    camera session the index follows seq (so gaps of dropped frames stay gaps for the motion prior);
-    a seq that goes back while the capture time goes forward is a new camera session, which continues
-    the index after a break wider than any motion prior; a (seq, time) seen before, or a frame older
-    than the last one, is refused. A *stray*: when `stray_confirm` frames in a row come older than the
-    last one, each newer than the one before it and all newer than the frame before the last, the last
-    was the odd one out (a frame stamped ahead of its camera's clock, a hostile peer's: one 45 s ahead
-    made slam refuse every real frame for 44 s, found by a trial); the stream goes on from them as a new
-    camera session, counted in `strays` (the frames refused meanwhile stay refused)."""
+    camera session the index follows seq (so gaps of dropped frames stay gaps for the motion prior),
+    counted from the session's first frame; a seq that goes back while the capture time goes forward is
+    a new camera session, which continues the index after a break wider than any motion prior, and so
+    is a seq that jumps ahead by more than that break (no motion prior spans it). Each frame thus moves
+    the index on by at most `session_break`, whatever its seq says: a frame numbered 2**56 - 10 used to
+    push every later index past what the graph can hold, and slam refused every frame after it for
+    the rest of the run (found by a trial). A (seq, time) seen before, or a frame older than the last
+    one, is refused. A *stray*: when `stray_confirm` frames in a row come older than the last one, each
+    newer than the one before it and all newer than the frame before the last, the last was the odd one
+    out (a frame stamped ahead of its camera's clock, a hostile peer's: one 45 s ahead made slam refuse
+    every real frame for 44 s, found by a trial); the stream goes on from them as a new camera session,
+    counted in `strays` (the frames refused meanwhile stay refused)."""
 
     def __init__(
         self,
@@ -323,11 +327,13 @@ class FrameIndexer:
         # A capture time far in the future would make every real frame after it look stale.
         self.max_future_nanos = int(max_future_secs * 1e9)
         self._clock_nanos = clock_nanos
-        self._offset = 0
+        self._base = 0  # the index of this camera session's first frame
+        self._first_seq = 0  # and its seq
         self._last: tuple[int, int] | None = None  # (seq, capture_nanos) of the newest frame
+        self._last_index = -1
         self._seen: dict[tuple[int, int], int] = {}
         self._remember = remember
-        self.sessions = 1
+        self.sessions = 0
 
     def index(self, seq: int, capture_nanos: int) -> int:
         """The SLAM frame index for this frame; SlamInputError for a repeated or stale one."""
@@ -336,7 +342,9 @@ class FrameIndexer:
             raise SlamInputError(f"frame seq {seq} was captured {capture_nanos} ns, in the future beyond the bound")
         if key in self._seen:
             raise SlamInputError(f"frame seq {seq} (captured {capture_nanos}) was already fused: a repeated message")
-        if self._last is not None:
+        if self._last is None:
+            self._new_session(seq)
+        else:
             last_seq, last_time = self._last
             if capture_nanos <= last_time:
                 in_order = not self._behind or capture_nanos > self._behind[-1]
@@ -345,19 +353,23 @@ class FrameIndexer:
                 if len(self._behind) < self.stray_confirm:
                     raise SlamInputError(f"frame seq {seq} is older than the last one (seq {last_seq}): out of order")
                 self.strays += 1  # the last one was the stray: go on from these, as a new session
-                self._offset = self._offset + last_seq + self.session_break - seq
-                self.sessions += 1
-            elif seq <= last_seq:  # the camera restarted: a new session after a break
-                self._offset = self._offset + last_seq + self.session_break - seq
-                self.sessions += 1
+                self._new_session(seq)
+            elif seq <= last_seq or seq - last_seq > self.session_break:  # the camera restarted, or a jump
+                self._new_session(seq)
             self._before_last = last_time if capture_nanos > last_time else None
         self._behind = []
-        index = self._offset + seq
+        index = self._base + seq - self._first_seq
         self._last = key
+        self._last_index = index
         self._seen[key] = index
         if len(self._seen) > self._remember:
             self._seen.pop(next(iter(self._seen)))
         return index
+
+    def _new_session(self, seq: int) -> None:
+        self._base = 0 if self._last is None else self._last_index + self.session_break
+        self._first_seq = seq
+        self.sessions += 1
 
 
 @dataclass

@@ -229,7 +229,15 @@ def _cmd_watch(args: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGTERM, on_term)
     signal.signal(signal.SIGINT, on_term)
-    result = watch(args.topic, args.robot_id, settings, fmt=args.format, count=args.count, duration_secs=args.duration)
+    result = watch(
+        args.topic,
+        args.robot_id,
+        settings,
+        fmt=args.format,
+        count=args.count,
+        duration_secs=args.duration,
+        wait_secs=args.wait_secs,
+    )
     print(result.summary(key_for(args.topic, args.robot_id)), file=sys.stderr)
     if first:  # stopped by a signal: a second one now would kill the interpreter as it exits (exit -2)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
@@ -908,6 +916,12 @@ def _add_control_commands(sub: Any) -> None:
     )
     p.add_argument("--count", type=int, default=None, help="stop after this many messages")
     p.add_argument("--duration", type=POSITIVE, default=None, help="stop after this many seconds")
+    p.add_argument(
+        "--wait-secs",
+        type=float,
+        default=30.0,
+        help="with no router in reach yet, keep trying this long (a watch started before `splittag up`)",
+    )
     _add_reader_options(p)
     p.set_defaults(func=_cmd_watch)
 

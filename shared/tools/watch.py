@@ -363,6 +363,34 @@ class WatchResult:
         )
 
 
+WAIT_ATTEMPT_SECS: Final[float] = 2.0  # zenoh.open does not return for Ctrl-C: short attempts keep it prompt
+
+
+def _open_waiting(settings: ZenohSettings, wait_secs: float, who: str, err: TextIO) -> zenoh.Session:
+    """A client session, trying again until `wait_secs` have passed while no router answers (said once).
+    Tried in attempts of a few seconds: a signal is handled between two (zenoh.open holds on to it)."""
+    if wait_secs <= 0:
+        return open_session(settings)
+    deadline = time.monotonic() + wait_secs
+    told = False
+    while True:
+        left_secs = deadline - time.monotonic()
+        attempt = settings.model_copy(update={"connect_timeout_secs": max(0.1, min(WAIT_ATTEMPT_SECS, left_secs))})
+        try:
+            return open_session(attempt)
+        except zenoh.ZError:
+            if time.monotonic() >= deadline:
+                raise
+        if not told:
+            told = True
+            print(
+                f"{who}: no router at {', '.join(settings.connect)} yet; trying for "
+                f"{deadline - time.monotonic():.0f} s more (--wait-secs)",
+                file=err,
+                flush=True,
+            )
+
+
 def watch(
     topic: str,
     robot_id: str,
@@ -371,10 +399,12 @@ def watch(
     fmt: str = "text",
     count: int | None = None,
     duration_secs: float | None = None,
+    wait_secs: float = 0.0,
     out: TextIO = sys.stdout,
     err: TextIO = sys.stderr,
 ) -> WatchResult:
-    """Subscribe and print until `count` messages, `duration_secs` or Ctrl-C; the callback only enqueues."""
+    """Subscribe and print until `count` messages, `duration_secs` or Ctrl-C; the callback only enqueues.
+    With no router in reach it keeps trying for `wait_secs` (a watch started just before `splittag up`)."""
     if topic not in TOPICS:
         raise ValueError(f"unknown topic {topic!r}: one of {', '.join(TOPICS)}")
     if fmt not in FORMATS or (fmt == "tum" and topic != "poses"):
@@ -416,7 +446,7 @@ def watch(
                 data_set_time.add(stamp)
 
     try:
-        session = open_session(settings)
+        session = _open_waiting(settings, wait_secs, f"splittag watch {topic}", err)
     except KeyboardInterrupt:
         return result
     start = last_at = time.monotonic()

@@ -32,6 +32,12 @@ class CameraIntrinsics(BaseModel):
     def _distortion_opencv_can_use(self) -> CameraIntrinsics:
         if len(self.distortion) not in DISTORTION_LENGTHS:
             raise ValueError(f"{len(self.distortion)} distortion coefficients; OpenCV takes {DISTORTION_LENGTHS}")
+        if self.distortion_model == "none" and any(self.distortion):
+            # Silently using them (or silently not) would both surprise someone: one of the two is a typo.
+            raise ValueError(
+                f"distortion_model 'none' with non-zero coefficients {self.distortion}: "
+                "say plumb_bob to use them, or leave them out"
+            )
         return self
 
     def matrix(self) -> NDArray[np.float64]:
@@ -39,5 +45,5 @@ class CameraIntrinsics(BaseModel):
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]], dtype=np.float64)
 
     def dist_coeffs(self) -> NDArray[np.float64]:
-        """Distortion coefficients as OpenCV expects them (k1, k2, p1, p2[, k3])."""
+        """Distortion coefficients as OpenCV expects them (k1, k2, p1, p2[, k3[, k4, k5, k6[, ...]]])."""
         return np.asarray(self.distortion, dtype=np.float64)

@@ -23,7 +23,7 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
-from shared.vision.camera import CameraIntrinsics
+from shared.vision.camera import DISTORTION_LENGTHS, CameraIntrinsics
 
 ROI_SIZE: Final[int] = 256
 # Margin of the ROI square, as a fraction of the patch side. The black square spans 0.6 of the
@@ -81,16 +81,21 @@ def camera_from_yaml(path: Path) -> CameraIntrinsics:
     data = doc["camera_matrix"].get("data") if isinstance(doc["camera_matrix"], dict) else None
     if not isinstance(data, list) or len(data) != 9:
         raise CameraFileError(f"camera file {path}: camera_matrix.data must list 9 numbers, got {data!r}")
-    k = np.asarray(data, dtype=np.float64).reshape(3, 3)
+    try:
+        k = np.asarray(data, dtype=np.float64).reshape(3, 3)
+    except (TypeError, ValueError) as exc:
+        raise CameraFileError(f"camera file {path}: camera_matrix.data must be numbers: {exc}") from exc
     model = str(doc.get("distortion_model", "none") or "none")
     coeffs_doc = doc.get("distortion_coefficients", {"data": []}) or {"data": []}
     coeffs = list(coeffs_doc.get("data", []) if isinstance(coeffs_doc, dict) else [])
-    if model not in ("plumb_bob", "none"):
-        raise CameraFileError(f"camera file {path}: distortion_model {model!r} not supported")
-    if model == "plumb_bob" and len(coeffs) not in (4, 5, 8):
-        raise CameraFileError(f"camera file {path}: plumb_bob needs 4, 5 or 8 coefficients")
+    coeffs = _distortion_for(path, model, coeffs)
     if k[0, 1] != 0 or k[1, 0] != 0 or k[2, 0] != 0 or k[2, 1] != 0 or k[2, 2] != 1:
         raise CameraFileError(f"camera file {path}: camera_matrix is not a pinhole K: {k.tolist()}")
+    if not (k[0, 0] >= 1 and k[1, 1] >= 1):
+        raise CameraFileError(
+            f"camera file {path}: fx = {k[0, 0]:g}, fy = {k[1, 1]:g}: camera_matrix is in pixels "
+            "(a focal length below 1 px looks like metres or a normalised camera matrix)"
+        )
     try:
         return CameraIntrinsics(
             width=int(doc["image_width"]),
@@ -99,11 +104,57 @@ def camera_from_yaml(path: Path) -> CameraIntrinsics:
             fy=float(k[1, 1]),
             cx=float(k[0, 2]),
             cy=float(k[1, 2]),
-            distortion_model="plumb_bob" if model == "plumb_bob" else "none",
-            distortion=[float(c) for c in coeffs],
+            distortion_model="plumb_bob" if coeffs else "none",
+            distortion=coeffs,
         )
     except (ValueError, TypeError) as exc:
         raise CameraFileError(f"camera file {path}: {exc}") from exc
+
+
+_FISHEYE_MODELS = ("equidistant", "fisheye", "kannala_brandt")
+
+
+def _distortion_for(path: Path, model: str, data: list[Any]) -> list[float]:
+    """The OpenCV coefficients a camera file's distortion_model and coefficients stand for ([] for none).
+
+    ROS's rational_polynomial (k1 k2 p1 p2 k3 k4 k5 k6) is OpenCV's 8-coefficient model, which the wire
+    calls plumb_bob like OpenCV's other lengths; none with non-zero coefficients is refused (a typo
+    either way: used or not, someone is surprised)."""
+    try:
+        coeffs = [float(c) for c in data]
+    except (TypeError, ValueError) as exc:
+        raise CameraFileError(f"camera file {path}: distortion_coefficients.data must be numbers: {exc}") from exc
+    plumb_bob_lengths = tuple(n for n in DISTORTION_LENGTHS if n)
+    if model == "none":
+        if any(coeffs):
+            raise CameraFileError(
+                f"camera file {path}: distortion_model none with non-zero coefficients {coeffs}: "
+                "say plumb_bob (or rational_polynomial) to use them, or leave them out"
+            )
+        return []
+    if model == "plumb_bob":
+        if len(coeffs) not in plumb_bob_lengths:
+            raise CameraFileError(
+                f"camera file {path}: plumb_bob has {len(coeffs)} coefficients; OpenCV takes {plumb_bob_lengths}"
+            )
+        return coeffs
+    if model == "rational_polynomial":
+        if len(coeffs) != 8:
+            raise CameraFileError(
+                f"camera file {path}: rational_polynomial has {len(coeffs)} coefficients, 8 expected "
+                "(k1 k2 p1 p2 k3 k4 k5 k6)"
+            )
+        return coeffs
+    if model in _FISHEYE_MODELS:
+        raise CameraFileError(
+            f"camera file {path}: distortion_model {model!r} (a fisheye lens) not supported: rectify the "
+            "images first (e.g. cv2.fisheye.initUndistortRectifyMap, or ROS image_proc) and give the "
+            "rectified camera's camera_info (distortion_model none)"
+        )
+    raise CameraFileError(
+        f"camera file {path}: distortion_model {model!r} not supported "
+        "(plumb_bob, rational_polynomial or none; rectify the images first for another model)"
+    )
 
 
 def camera_to_yaml(camera: CameraIntrinsics) -> str:
