@@ -84,6 +84,9 @@ def test_parameters_are_parsed_strictly() -> None:
         state.apply({"release": "maybe"}, None)
     with pytest.raises(SplitRequestError, match="unknown"):
         state.apply({"kk": "3"}, None)
+    for written in ("+5", "05", " 5", "5 ", "\u0665", "5.0", ""):  # int() takes the first five (an integrator's)
+        with pytest.raises(SplitRequestError, match="k must be an integer 0..7"):
+            state.apply({"k": written}, None)
     assert parse_parameters("k=5;codec=fp32") == {"k": "5", "codec": "fp32"}
     with pytest.raises(SplitRequestError, match="twice"):
         parse_parameters("k=5;k=6")
@@ -298,10 +301,16 @@ def test_refused_split_requests_and_probes_are_counted_and_logged_once_a_second(
         try:
             for _ in range(40):
                 list(client.get(keys.echo("w1"), payload=b"garbage", timeout=5))
+            # a key discovery is no probe: unanswered and not counted (it read as a refused one)
+            for discovery in ("splittag/**", "splittag/w1/*/v1", "splittag/w1/**"):
+                assert [
+                    r for r in client.get(discovery, timeout=5) if "echo" in str(r.ok.key_expr if r.ok else "")
+                ] == []
+            assert [r.ok is not None for r in client.get(keys.echo("w1"), timeout=5)] == [True]  # empty probe: answered
         finally:
             echo.undeclare()
     assert guard.rejected == {"split request: SplitRequestError": 40}
-    assert sum(echo_guard.rejected.values()) == 40
+    assert sum(echo_guard.rejected.values()) == 41  # (the empty probe on the echo's own key too)
     assert state.get().k == 7
     said = [r for r in caplog.records if "split request" in r.getMessage() or "probe" in r.getMessage()]
     assert len(said) <= 6, [r.getMessage() for r in said]  # (at most one a second each, not 80)

@@ -585,7 +585,14 @@ def test_a_reader_that_cannot_connect_is_told_where_the_run_listens(
             "splittag watch: note: reading the default tcp/127.0.0.1:7447; the deployment in "
             f"{runs}/current listens at tcp/10.78.0.2:7447 (--connect tcp/10.78.0.2:7447)\n"
         )
+        # steering it is refused: it would change whoever owns the default endpoint (an integrator's note)
+        assert _reader_settings(default, "split set", runs, steers=True) is None
+        assert capsys.readouterr().err.startswith(
+            f"splittag split set: not sent to the default tcp/127.0.0.1:7447; the deployment in {runs}/current "
+            "listens at tcp/10.78.0.2:7447 (--connect tcp/10.78.0.2:7447): give --connect"
+        )
         given = argparse.Namespace(connect=["tcp/127.0.0.1:7447"], certs=None, identity="operator", robot_id="r1")
+        assert _reader_settings(given, "split", runs, steers=True) is not None  # asked for it
         assert _reader_settings(given, "watch", runs) is not None and capsys.readouterr().err == ""  # asked for it
     finally:
         service.kill()

@@ -272,6 +272,10 @@ def _patched(schema: str, **changes: object) -> bytes:
         (encode(EXAMPLES[Frame.SCHEMA])[:-3], MalformedFrame, "truncated"),
         (encode(EXAMPLES[Frame.SCHEMA]) + b"\x00", MalformedFrame, "1 trailing bytes"),
         (b"\xc1", MalformedFrame, "0xc1"),
+        # the two bytes after the version are reserved: an integrator's flag there was read as nothing
+        (b"\xc1\x03\x01\x00" + encode(EXAMPLES[Frame.SCHEMA])[4:], MalformedFrame, "reserved and must be zero"),
+        (b"\xc1\x02\x00\xff" + encode(EXAMPLES[Frame.SCHEMA], framing=2)[4:], MalformedFrame, "got 00 ff"),
+        (b"\xc1\x09" + encode(EXAMPLES[Frame.SCHEMA])[2:], MalformedFrame, "framing version 9 is unknown"),
         (msgpack.packb([1, 2]), MalformedFrame, "envelope"),
         (
             pack({"schema": "splittag/Frame/v2", "body": {}}),

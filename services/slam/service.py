@@ -732,7 +732,7 @@ def map_request(parameters: str, has_payload: bool) -> bool:
         raise SlamQueryError(str(exc)) from None
     unknown = sorted(set(params) - {"save"})
     if unknown:
-        raise SlamQueryError(f"unknown parameters {unknown} (a map query takes only save=1)")
+        raise SlamQueryError(f"unknown parameters {unknown} (a map query takes only save: 1 or true to save, 0 or false for a plain get)")
     save = params.get("save", "0")
     if save not in ("1", "true", "0", "false"):
         raise SlamQueryError(f"save must be 1, true, 0 or false, got {save!r}")

@@ -55,7 +55,7 @@ class ServiceSettings(BaseSettings):
     robot_id: RobotId = "robot1"  # the robot whose keys (splittag/<robot_id>/...) this service uses
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
     run_dir: Path = CURRENT_RUN  # logs, recordings and outputs (the launcher gives each run its folder)
-    # larger messages are refused unread (counted, logged)
+    # larger messages are refused unread (counted, logged); above zenoh.max_message_bytes Zenoh drops them unseen
     max_payload_bytes: int = Field(default=DEFAULT_MAX_BYTES, gt=0)
     # start-up wait for the services this one needs (their liveliness tokens)
     liveliness_timeout_secs: float = Field(default=60.0, gt=0)

@@ -164,17 +164,28 @@ def split_endpoint(connect: list[str] | None, *, tls: bool) -> list[str]:
     return ["tls/" + default.split("/", 1)[1] if tls else default]
 
 
-def _reader_settings(args: argparse.Namespace, command: str, runs: Path = Path("runs")) -> ZenohSettings | None:
+def _reader_settings(
+    args: argparse.Namespace, command: str, runs: Path = Path("runs"), *, steers: bool = False
+) -> ZenohSettings | None:
     """The client session of a command that reads or steers a running deployment (split, watch, map,
     stats): the endpoint, TLS identity and robot id checked; None after saying what is wrong. Without
     --connect, a note when the live deployment in runs/current listens elsewhere: the default endpoint
     may be another deployment's (a trial's watch of its own run on other ports silently recorded the
-    poses of a second deployment on the default ones)."""
+    poses of a second deployment on the default ones). A command that `steers` (split set or release,
+    map --save) is refused instead: it would change whoever owns the default endpoint (an integrator's
+    note: `split set 3` on a shared host)."""
     from shared.transport.session import TlsSettings, ZenohSettings
 
     tls = TlsSettings.from_dir(args.certs, args.identity) if args.certs else None
     connect = split_endpoint(args.connect, tls=tls is not None)
     if not args.connect and "listens at" in (hint := _endpoint_hint(args, runs)):
+        if steers:
+            print(
+                f"splittag {command}: not sent to the default {connect[0]}{hint}: give --connect, that one or "
+                f"--connect {connect[0]} for the deployment there",
+                file=sys.stderr,
+            )
+            return None
         print(f"splittag {command}: note: reading the default {connect[0]}{hint}", file=sys.stderr)
     if tls is None and (secure := [c for c in connect if c.startswith("tls/")]):
         print(f"splittag {command}: {secure[0]} is a TLS endpoint: give --certs (and --identity)", file=sys.stderr)
@@ -248,7 +259,7 @@ def _cmd_watch(args: argparse.Namespace) -> int:
 def _cmd_map(args: argparse.Namespace) -> int:
     from shared.tools.watch import get_map, json_line, map_text
 
-    settings = _reader_settings(args, "map")
+    settings = _reader_settings(args, "map", steers=args.save)
     if settings is None:
         return 2
     if args.robot_id == "*" and args.save:
@@ -295,7 +306,7 @@ def _cmd_split(args: argparse.Namespace) -> int:
         except ValueError as exc:
             print(f"splittag split set: {exc}", file=sys.stderr)
             return 2
-    settings = _reader_settings(args, "split")
+    settings = _reader_settings(args, "split", steers=args.action != "get")
     if settings is None:
         return 2
     print(split_query(args.robot_id, settings.connect, k=k, codec=codec, release=release, tls=settings.tls))

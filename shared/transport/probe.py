@@ -49,6 +49,11 @@ def serve_echo(
     arrivals = arrivals or ArrivalClock()
 
     def on_query(query: zenoh.Query) -> None:
+        if query.payload is None and any(c in str(query.key_expr) for c in "*$"):
+            # A key discovery (`get splittag/**`), not a probe: no reply, nothing counted (an integrator's
+            # read was answered as a refused probe and showed in edge_infer's refusal counters).
+            query.drop()
+            return
         received, previous = arrivals.stamp()
         payload = query.payload.to_bytes() if query.payload is not None else b""
         error = ""

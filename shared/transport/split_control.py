@@ -24,9 +24,11 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import threading
 from collections.abc import Callable
 from pathlib import Path
+from typing import Final
 
 import zenoh
 from pydantic import ValidationError
@@ -95,11 +97,10 @@ class SplitState:
                 raise SplitRequestError(f"source must be user or controller, got {_quote(source)}")
             k = cur.k
             if "k" in params:
-                try:
-                    k = int(params["k"])
-                except ValueError:
+                if not _DECIMAL.fullmatch(params["k"]):  # int() also takes "+5", "05", " 5" and "٥"
                     got = _quote(params["k"])
-                    raise SplitRequestError(f"k must be an integer 0..{N_CUTS - 1}, got {got}") from None
+                    raise SplitRequestError(f"k must be an integer 0..{N_CUTS - 1}, got {got}")
+                k = int(params["k"])
                 if not 0 <= k < N_CUTS:
                     raise SplitRequestError(f"k must be in 0..{N_CUTS - 1}, got {_quote(k)}")
             codec = params.get("codec", cur.codec)
@@ -158,6 +159,9 @@ def remembered_split(path: Path) -> SplitConfig | None:
     except (OSError, ValueError, TypeError, ValidationError) as exc:
         log.warning("ignoring the remembered split in %s: %s", path, exc)
         return None
+
+
+_DECIMAL: Final = re.compile(r"0|[1-9][0-9]{0,8}")  # ASCII digits, as written, no sign or leading zero
 
 
 def parse_parameters(text: str) -> dict[str, str]:

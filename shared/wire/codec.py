@@ -111,7 +111,8 @@ FRAME_MAGIC: Final[int] = 0xC1
 FRAMING: Final[int] = 2
 EXT_ARRAY: Final[int] = 1
 ALIGN: Final[int] = 8
-_FRAME_HEAD = struct.Struct("<BBxxI")
+_FRAME_HEAD = struct.Struct("<BBxxI")  # magic, framing version, two reserved zero bytes, header length
+_RESERVED = slice(2, 4)
 _ARRAY_HEAD = struct.Struct("<BB6xQ")
 DTYPE_CODES: Final[dict[str, int]] = {name: i for i, name in enumerate(WIRE_DTYPES)}
 CODE_DTYPES: Final[dict[int, np.dtype[Any]]] = {i: WIRE_DTYPES[name] for name, i in DTYPE_CODES.items()}
@@ -411,6 +412,10 @@ def open_frame(mv: memoryview) -> tuple[int, memoryview, DataSection]:
     if size < _FRAME_HEAD.size:
         raise MalformedFrame(f"truncated payload: {size} bytes, a 0xc1 frame head needs {_FRAME_HEAD.size}")
     _, version, header_len = _FRAME_HEAD.unpack_from(mv)
+    if mv[_RESERVED] != b"\0\0":  # kept zero, so that a later framing may use them (an integrator's note)
+        raise MalformedFrame(
+            f"bytes 2-3 of the frame head are reserved and must be zero, got {bytes(mv[_RESERVED]).hex(' ')}"
+        )
     head_end = _FRAME_HEAD.size + header_len
     if head_end > size:
         raise MalformedFrame(

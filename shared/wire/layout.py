@@ -112,10 +112,12 @@ def layout_markdown() -> str:
         "no such array), each array starts 8-byte aligned, little-endian, C order, in header order, and the",
         "payload ends with the last one. dtype codes: "
         + ", ".join(f"{d} = {c}" for d, c in DTYPE_CODES.items())
-        + ". The two bytes after the version are zero.",
+        + ". The two bytes after the version are zero (reserved: a message where they are not is refused).",
         "",
         "Checks beyond each field's type (a message failing one is refused whole): `distortion` has 0, 4, 5,",
-        "8, 12 or 14 coefficients (OpenCV's); a Frame's `image` is (height, width) of its intrinsics;",
+        "8, 12 or 14 coefficients (OpenCV's), all zero when `distortion_model` is none (a camera file's",
+        "rational_polynomial arrives as plumb_bob with its 8: OpenCV's model); a Frame's `image` is (height,",
+        "width) of its intrinsics;",
         "`roi_to_image` is invertible; where `proposer` is given, `tracked` is true exactly when it is `tracker`;",
         "`covariance_world` is symmetric with no negative variance.",
         "",

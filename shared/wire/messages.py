@@ -979,6 +979,11 @@ def decode(
     payload = _as_bytes_view(payload)
     if len(payload) >= 2 and payload[0] == FRAME_MAGIC and payload[1] == FRAMING3 and len(payload) <= max_bytes:
         return _decode_positional(payload, expected)
+    if len(payload) >= 2 and payload[0] == FRAME_MAGIC and payload[1] not in (FRAMING, FRAMING3):
+        raise MalformedFrame(
+            f"framing version {payload[1]} is unknown: this release reads framings 1, {FRAMING} and {FRAMING3} "
+            f"(docs/wire.md; a message starts c1 03 00 00)"
+        )
     try:
         doc = unpack(payload, max_bytes=max_bytes)
     except MalformedFrame as exc:
