@@ -732,7 +732,9 @@ def map_request(parameters: str, has_payload: bool) -> bool:
         raise SlamQueryError(str(exc)) from None
     unknown = sorted(set(params) - {"save"})
     if unknown:
-        raise SlamQueryError(f"unknown parameters {unknown} (a map query takes only save: 1 or true to save, 0 or false for a plain get)")
+        raise SlamQueryError(
+            f"unknown parameters {unknown} (a map query takes only save: 1 or true to save, 0 or false for a plain get)"
+        )
     save = params.get("save", "0")
     if save not in ("1", "true", "0", "false"):
         raise SlamQueryError(f"save must be 1, true, 0 or false, got {save!r}")
@@ -741,7 +743,7 @@ def map_request(parameters: str, has_payload: bool) -> bool:
 
 def _refuse_busy(query: zenoh.Query) -> None:
     with query:
-        query.reply_err(b"slam is busy: too many map queries pending")
+        query.reply_err(b"slam is busy: too many map queries pending", encoding=zenoh.Encoding.TEXT_PLAIN)
     raise SlamBusyError("map query refused: too many pending")
 
 
@@ -809,18 +811,22 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
             try:
                 save = map_request(str(query.parameters), query.payload is not None)
             except SlamQueryError as exc:
-                query.reply_err(str(exc).encode())
+                query.reply_err(str(exc).encode(), encoding=zenoh.Encoding.TEXT_PLAIN)
                 raise
             if save:
                 if any(c in str(query.key_expr) for c in "*$"):
                     # A wildcard reaches every queryable under it, past access control's deny rule on the
                     # map key (which sees only the query's own key): a save names the map it saves.
-                    query.reply_err(b"save=1 needs the robot's own map key, not a wildcard")
+                    query.reply_err(
+                        b"save=1 needs the robot's own map key, not a wildcard", encoding=zenoh.Encoding.TEXT_PLAIN
+                    )
                     raise SlamQueryError(f"map save through a wildcard key refused: {query.key_expr}")
                 try:
                     node.write_outputs(settings.run_dir)
                 except Exception as exc:  # said to the asker, not a silent end (a getter asks again then)
-                    query.reply_err(f"map save failed: {type(exc).__name__}: {exc}".encode())
+                    query.reply_err(
+                        f"map save failed: {type(exc).__name__}: {exc}".encode(), encoding=zenoh.Encoding.TEXT_PLAIN
+                    )
                     raise
             try:
                 asker = keys.robot_of(str(query.key_expr))

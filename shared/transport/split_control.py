@@ -236,7 +236,7 @@ def serve_split(
                 refused("split request", len(payload or b""), exc)
             else:
                 log.warning("split request refused: %s", exc)
-            query.reply_err(str(exc).encode())
+            query.reply_err(str(exc).encode(), encoding=zenoh.Encoding.TEXT_PLAIN)
             return
         # On this robot's own key (a wildcard get learns which robot answered), in the asker's framing: the
         # person's key or the controller's, whichever the asked key reaches (zenoh refuses a reply on a key
@@ -245,7 +245,9 @@ def serve_split(
         on = key if asked_key.intersects(zenoh.KeyExpr(key)) else auto
         if not asked_key.intersects(zenoh.KeyExpr(on)):
             if not any(c in asked for c in "*$"):  # a key of its own that names no split: a mistake
-                query.reply_err(f"{asked}: the split is read on {key} or {auto}".encode())
+                query.reply_err(
+                    f"{asked}: the split is read on {key} or {auto}".encode(), encoding=zenoh.Encoding.TEXT_PLAIN
+                )
             # A wildcard that only overlaps `split/**` (`splittag/<robot>/*/stats` reaches `split/stats`)
             # asks for something else: this queryable has no answer for it, not an error (found by a
             # fresh-clone trial: the services' stats came with an error reply beside them).
