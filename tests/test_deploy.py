@@ -229,6 +229,29 @@ def test_up_refuses_a_part_whose_router_listens_at_another_hosts_address(tmp_pat
     assert "Traceback" not in up.stderr and not runs.exists()
 
 
+def test_up_refuses_a_run_dir_in_the_config(tmp_path: Path) -> None:
+    """A soak trial set `[common] run_dir` to go on in a stopped run's folder: `up` replaced it without a
+    word and slam started from nothing. Refused, naming what carries a map over."""
+    import sys
+
+    cfg = write_config(
+        tmp_path / "mine.toml", base=REPO / "deploy" / "local.toml", extra={"common": {"run_dir": "runs/old"}}
+    )
+    runs = tmp_path / "runs"
+    up = subprocess.run(
+        [sys.executable, "-m", "shared.tools.cli", "up", "--config", str(cfg), "--runs", str(runs)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert up.returncode == 2, up.stdout + up.stderr
+    assert (
+        "run_dir in [common] is the launcher's to set" in up.stderr and 'tag_map = "<that run>/map.json"' in up.stderr
+    )
+    assert "Traceback" not in up.stderr and not runs.exists()
+
+
 def test_down_without_a_deployment_says_so(tmp_path: Path) -> None:
     down = subprocess.run(
         ["bash", "deploy/down.sh", "--runs", str(tmp_path)], cwd=REPO, capture_output=True, text=True, timeout=60

@@ -3,6 +3,7 @@ the good one waiting; the consumer gets the newest good one."""
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 import time
@@ -171,6 +172,31 @@ def test_a_burst_of_bad_inputs_is_summed_up_once_its_interval_ends(caplog: pytes
         guard.flush()
         assert len(caplog.records) == 3 and "rejected 1 more inputs" in caplog.records[2].getMessage()
     assert guard.stats()["rejected"] == 11
+
+
+def test_input_counts_are_written_again_once_the_folder_takes_them(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A soak trial made the run folder read-only for a minute: the first failed write stopped every later
+    one, at exit too, and the summary said 0 refused. A failed write is said once and tried again."""
+    blocker = tmp_path / "inputs"
+    blocker.write_text("a file where the folder goes: every write fails")
+    guard = InputGuard("slam", schedule=lambda secs, call: None)
+    counts = blocker / "slam.7.json"
+    with caplog.at_level("WARNING"):
+        guard.persist(counts, every_secs=0.01)
+        for _ in range(2):
+            guard.run("tag_poses", 8, lambda: (_ for _ in ()).throw(ValueError("bad")))
+        time.sleep(0.1)  # several failed periods: said once
+        blocker.unlink()
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and not (counts.exists() and '"rejected": 2' in counts.read_text()):
+            time.sleep(0.01)
+        guard.run("tag_poses", 8, lambda: (_ for _ in ()).throw(ValueError("bad")))
+        guard.close()
+    assert json.loads(counts.read_text())["rejected"] == 3  # the exit's write too
+    said = [r.getMessage() for r in caplog.records if "input counts" in r.getMessage()]
+    assert len(said) == 2 and "trying again" in said[0] and "written to" in said[1] and "again" in said[1], said
 
 
 def test_input_counts_outlive_their_process_in_the_run_folder(tmp_path: Path) -> None:

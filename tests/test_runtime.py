@@ -59,6 +59,15 @@ def test_openvino_tail_at_zero_takes_the_roi_pixels(float_ir: Path) -> None:
     np.testing.assert_allclose(net.tail(rois, 0), net.tail(net.head(rois, 0), 0), atol=1e-6)
 
 
+def test_torch_tail_at_zero_takes_the_roi_pixels_or_heads_floats_alike() -> None:
+    """An integrator's `tail(head(rois, 0), 0)` (docs/int8.md) cast the normalised floats to uint8 on the
+    PyTorch path: 7 ROI px off, while OpenVINO's took them."""
+    net = load_split_net(MODELS, "fp32")
+    rois = _rois(2, seed=3)
+    np.testing.assert_allclose(net.tail(net.head(rois, 0), 0), net.tail(rois, 0), atol=1e-6)
+    np.testing.assert_allclose(net.tail(net.head(rois, 3), 3), net.tail(rois, 0), atol=1e-4)
+
+
 def test_a_folder_without_the_int8_variant_is_refused_with_what_it_has(tmp_path: Path) -> None:
     for name in ("config.json", "model.safetensors"):
         shutil.copy(MODELS / name, tmp_path / name)

@@ -1187,6 +1187,60 @@ def test_a_restarted_process_keeps_the_dead_ones_recording(tmp_path: Path) -> No
     assert merged is not None and {"/world/camera", "/world/camera_bridged"} <= recording_entities(merged)
 
 
+def test_a_long_recording_goes_on_in_new_parts_and_keeps_its_latest_within_keep_mb(tmp_path: Path) -> None:
+    """Rerun's file sink keeps an index of every chunk until its file closes: one file per process grew
+    slam and edge_infer by ~2 MB a minute (a fresh-clone soak). Each process rotates its part every
+    rotate_secs (the clock injected), nothing is lost across a rotation, and keep_mb deletes the oldest."""
+    from shared.viz.recording import RerunSettings, RerunViz, merge_recordings, recording_scalars
+
+    now = [0.0]
+    viz = RerunViz(
+        RerunSettings(enabled=True, rotate_secs=10), service="slam", run_dir=tmp_path, clock_secs=lambda: now[0]
+    )
+    for i in range(50):
+        now[0] = i * 1.0  # a frame a second: a new part every 10 s
+        viz.scalars(1_000 + i, {"latency/x_ms": float(i)})
+    viz.close()
+    assert [p.name for p in viz.parts] == ["slam.rrd", *(f"slam.{n}.rrd" for n in range(2, 6))]
+    merged = merge_recordings(tmp_path)
+    assert merged is not None
+    assert recording_scalars(merged, "/latency/x_ms") == [(1_000 + i, float(i)) for i in range(50)]
+
+    kept = tmp_path / "kept"
+    now[0] = 100.0
+    viz = RerunViz(
+        RerunSettings(enabled=True, rotate_secs=10, keep_mb=1e-6),
+        service="slam",
+        run_dir=kept,
+        clock_secs=lambda: now[0],
+    )
+    for i in range(50):
+        now[0] = 100.0 + i
+        viz.scalars(1_000 + i, {"latency/x_ms": float(i)})
+    viz.close()
+    # every closed part is over the budget (a byte): each rotation deletes them, the latest stretch survives
+    assert viz.dropped_parts == 4 and [p.name for p in kept.glob("*.rrd")] == ["slam.5.rrd"]
+    assert [v for _, v in recording_scalars(kept / "slam.5.rrd", "/latency/x_ms")] == [float(i) for i in range(40, 50)]
+
+
+def test_a_failing_checkpoint_is_counted_said_once_and_its_recovery_said(caplog: pytest.LogCaptureFixture) -> None:
+    from services.slam.service import CheckpointWrites
+
+    writes = CheckpointWrites()
+    outcomes = iter([None, PermissionError("read-only"), OSError("full"), ValueError("odd"), None, None])
+
+    def write() -> None:
+        if (outcome := next(outcomes)) is not None:
+            raise outcome
+
+    with caplog.at_level("WARNING"):
+        for _ in range(6):
+            writes.write(write)
+    assert (writes.failed, writes.failing) == (3, False)
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 2 and "PermissionError: read-only" in said[0] and "again after 3 failed" in said[1], said
+
+
 def test_the_anchor_is_the_tag_whose_pose_the_first_view_pins_best() -> None:
     """The world is the anchor's frame, so the anchor is the best-determined view (near, face-on), not
     the one with the luckiest reprojection error: here the near tag fits worse (0.3 vs 0.01 px)."""

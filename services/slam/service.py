@@ -209,6 +209,35 @@ class RobotRun:
     journal: PoseJournal | None = None  # the poses since the last checkpoint (a kill loses none)
 
 
+class CheckpointWrites:
+    """The periodic checkpoint's writes: a failure (a full disk, a folder made read-only) is counted and
+    said once, its recovery said too, and the service goes on (the poses wait in the journal). They
+    were counted as a refused input named "checkpoint", once a warning per 5 s, and the recovery went
+    unsaid (a soak trial)."""
+
+    def __init__(self) -> None:
+        self.failed = 0
+        self.failing = False
+
+    def write(self, checkpoint: Callable[[], object]) -> None:
+        """Run one checkpoint write."""
+        try:
+            checkpoint()
+        except Exception as exc:  # a checkpoint is never fatal: the run goes on without it
+            self.failed += 1
+            if not self.failing:
+                log.warning(
+                    "checkpoint failed (trying again every period; poses kept in the journal): %s: %s",
+                    type(exc).__name__,
+                    exc,
+                )
+            self.failing = True
+            return
+        if self.failing:
+            log.warning("checkpoint written again after %d failed", self.failed)
+        self.failing = False
+
+
 class SlamNode:
     """The service's state: the SLAM core (one graph, one tag map, a trajectory per robot) plus ground
     truth and output writing (no Zenoh here). One robot (`robots` unset) writes trajectory.tum; a
@@ -856,6 +885,8 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
     fleet_token = session.liveliness().declare_token(keys.fleet_service("slam")) if node.fleet else None
     viz = make_viz(settings.rerun, service="slam", run_dir=settings.run_dir)
 
+    checkpoints = CheckpointWrites()
+
     def robots_served() -> dict[str, object]:
         with node.lock:  # on Zenoh's thread while the main loop may add a robot
             state = node.slam.state
@@ -868,6 +899,8 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
                 "soft_reads_localised": state.soft_reads_localised,
                 "tracked_skipped": state.tracked_skipped,
                 "tracked_localised": state.tracked_localised,
+                "checkpoints_failed": checkpoints.failed,  # writes of the 5 s checkpoint that failed
+                "checkpoint_failing": checkpoints.failing,  # the last one failed (its poses wait in the journal)
             }
 
     stats = serve_stats(session, key(lambda r: keys.stats(r, "slam")), guard, robots_served)
@@ -922,7 +955,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
                 guard.run("tag_poses", len(payload), lambda: process(payload, sample.key_expr))  # noqa: B023
             if time.monotonic() - last_checkpoint >= settings.checkpoint_period_secs:
                 # Atomic: a kill never leaves half a file, or less. A failing write is counted, not fatal.
-                guard.run("checkpoint", 0, lambda: node.write_outputs(settings.run_dir))
+                checkpoints.write(lambda: node.write_outputs(settings.run_dir))
                 release_free_memory()  # the graph marginalised and the checkpoint texts freed: give pages back
                 last_checkpoint = time.monotonic()
     finally:

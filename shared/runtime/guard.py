@@ -55,6 +55,7 @@ class InputGuard:
         self._pending: Counter[str] = Counter()  # rejected since the last line and not logged, by reason
         self._flush_due = False
         self._persist_path: Path | None = None
+        self._write_failing = False  # the last write of the counts failed: tried again every period
         self._label: str | None = None
         self._persist_stop: threading.Event | None = None
         self._persist_thread: threading.Thread | None = None
@@ -157,9 +158,8 @@ class InputGuard:
         def keep() -> None:
             last = written
             while not stop.wait(every_secs):
-                if (now := self._change_count()) != last:
+                if ((now := self._change_count()) != last or self._write_failing) and self._write_counts():
                     last = now
-                    self._write_counts()
 
         self._persist_thread = threading.Thread(target=keep, name=f"{self.service}-counts", daemon=True)
         self._persist_thread.start()
@@ -177,18 +177,27 @@ class InputGuard:
         with self._lock:
             return self.accepted + sum(self.rejected.values())
 
-    def _write_counts(self) -> None:
+    def _write_counts(self) -> bool:
+        """Whether the counts are in the file now. A failed write (a full disk, a folder made read-only)
+        is said once and tried again every period until it succeeds, which is said too: the first
+        failure used to stop every later write, at exit included (a soak trial's summary said 0 refused)."""
         with self._write_lock:  # (the periodic writer and close share the file and its temporary)
             path = self._persist_path
             if path is None:
-                return
+                return True
             doc = {**self.stats(), "label": self._label, "pid": os.getpid(), "unix_nanos": time.time_ns()}
             try:
                 path.parent.mkdir(exist_ok=True)
                 atomic_write_text(path, json.dumps(doc))
-            except OSError as exc:  # (a full disk: the counts stay served on the stats key)
-                log.warning("%s: cannot write its input counts to %s: %s", self.service, path, exc)
-                self._persist_path = None
+            except OSError as exc:  # (the counts stay served on the stats key meanwhile)
+                if not self._write_failing:
+                    log.warning("%s: cannot write its input counts to %s (trying again): %s", self.service, path, exc)
+                self._write_failing = True
+                return False
+            if self._write_failing:
+                log.warning("%s: input counts written to %s again", self.service, path)
+            self._write_failing = False
+            return True
 
     def stats(self) -> dict[str, Any]:
         """accepted (in all and by input), rejected, rejected by reason and the newest rejection's text by

@@ -1225,6 +1225,25 @@ class _Services:
         return True
 
 
+def refuse_own_run_dir(config: Path) -> None:
+    """A config's `run_dir` is refused: the launcher gives each run a new folder, and a soak trial's
+    `[common] run_dir` (to go on in the folder of a run it had stopped) was replaced without a word, so
+    slam started from nothing. Carrying a map over is `[slam] tag_map = "<that run>/map.json"`."""
+    import tomllib
+
+    try:
+        doc = tomllib.loads(config.read_text())
+    except (OSError, ValueError):
+        return  # (said where the config is read)
+    tables = [name for name, table in doc.items() if isinstance(table, dict) and "run_dir" in table]
+    if tables:
+        raise LaunchError(
+            f"{config}: run_dir in [{tables[0]}] is the launcher's to set (each run gets a new folder under "
+            '--runs); to go on with an earlier run\'s map, give [slam] tag_map = "<that run>/map.json"',
+            exit_code=2,
+        )
+
+
 def _placement(
     config: Path, services: tuple[str, ...], link: str | None
 ) -> tuple[Topology, dict[str, list[str]], LinkEmulator | None]:
@@ -1604,6 +1623,7 @@ def run_pipeline(
         services = tuple(s for s in services if s in PARTS[only])
     if controller and "controller" not in services:
         services = (*services, "controller")
+    refuse_own_run_dir(config)
     topology, wrappers, emu = _placement(config, services, link)
     initial = profile(link) if link is not None else None  # refused before the run folder exists
     if emu is not None:

@@ -17,6 +17,8 @@ Entity paths (what the viewer shows):
 from __future__ import annotations
 
 import logging
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Final, Protocol
 
@@ -46,6 +48,13 @@ class RerunSettings(BaseModel):
     part_name: str = ""
     entity_prefix: str = ""  # (above) the per-robot entities' prefix
     jpeg_quality: int = Field(default=80, ge=10, le=100)  # of the logged camera images
+    # Each process starts a new .rrd part this often, as Rerun's file sink holds an index of every chunk
+    # until its file closes (one file per process grew slam and edge_infer by ~2 MB a minute at 5 fps,
+    # without end: a fresh-clone soak; docs/reliability.md *Long runs*).
+    rotate_secs: float = Field(default=300.0, gt=0)
+    # When a process's parts exceed this (MB), its oldest are deleted at the next rotation, so a long run
+    # keeps its latest stretch; 0 keeps every part (the merged recording.rrd holds the whole run).
+    keep_mb: float = Field(default=0.0, ge=0)
 
 
 def sigma_ellipsoid(position_covariance: Array, *, sigmas: float) -> tuple[Array, Array, float]:
@@ -124,15 +133,27 @@ class NullViz:
 class RerunViz:
     """Logs to `<run_dir>/<service>.rrd` under the run's shared recording id."""
 
-    def __init__(self, settings: RerunSettings, *, service: str, run_dir: Path) -> None:
+    def __init__(
+        self,
+        settings: RerunSettings,
+        *,
+        service: str,
+        run_dir: Path,
+        clock_secs: Callable[[], float] = time.monotonic,
+    ) -> None:
         import rerun as rr
 
         self._rr: Any = rr
         self.settings = settings
         run_dir.mkdir(parents=True, exist_ok=True)
         self.rec = rr.RecordingStream("splittag", recording_id=settings.recording_id or run_dir.name)
-        self.path = part_path(run_dir, settings.part_name or service)
+        self._run_dir, self._name = run_dir, settings.part_name or service
+        self._clock_secs = clock_secs
+        self.path = part_path(run_dir, self._name)
         self.rec.save(self.path)
+        self.parts = [self.path]  # this process's .rrd parts, oldest first (the last one open)
+        self.dropped_parts = 0  # deleted for keep_mb
+        self._rotate_at = clock_secs() + settings.rotate_secs
         self._prefix = settings.entity_prefix
         self._robot = ""
         self._time_set = False
@@ -140,6 +161,8 @@ class RerunViz:
         self._sigma_drawn: set[str] = set()  # entities whose covariance ellipsoid is shown
 
     def _log(self, path: str, *args: Any, **kwargs: Any) -> None:
+        if self._clock_secs() >= self._rotate_at:
+            self._rotate()
         if self._prefix and not path.startswith("world/"):
             path = self._prefix.replace("{robot}", self._robot) + path
         self.rec.log(path, *args, **kwargs)
@@ -292,6 +315,28 @@ class RerunViz:
         self._at(capture_nanos)
         self._log(path, self._rr.TextLog(text))
 
+    def _rotate(self) -> None:
+        """Close this part (its file sink frees the index it kept) and go on in a new one; with keep_mb, the
+        oldest closed parts go while the closed ones exceed it."""
+        self.rec.flush()
+        self.path = part_path(self._run_dir, self._name)
+        self.rec.save(self.path)  # the stream's new sink: the old file is finished and closed
+        self.parts.append(self.path)
+        self._rotate_at = self._clock_secs() + self.settings.rotate_secs
+        budget = self.settings.keep_mb * 1e6
+        if not budget:
+            return
+        closed = self.parts[:-1]
+        sizes = {p: p.stat().st_size if p.exists() else 0 for p in closed}
+        while closed and sum(sizes[p] for p in closed) > budget:
+            oldest = closed.pop(0)
+            oldest.unlink(missing_ok=True)
+            self.parts.remove(oldest)
+            self.dropped_parts += 1
+            log.info(
+                "rerun: deleted %s (%.1f MB): this process's parts exceed keep_mb", oldest.name, sizes[oldest] / 1e6
+            )
+
     def close(self) -> None:
         """Flush and close the .rrd file."""
         self.rec.flush()
@@ -317,12 +362,14 @@ def make_viz(settings: RerunSettings, *, service: str, run_dir: Path) -> Viz:
 def part_path(run_dir: Path, name: str) -> Path:
     """A process's own .rrd part: `<name>.rrd`, or `<name>.<n>.rrd` for the n-th process of that name in
     the run (a restarted service used to re-create the dead one's part, and the merged recording lost
-    everything before the restart: found by a fleet trial)."""
-    path, n = run_dir / f"{name}.rrd", 1
-    while path.exists():
-        n += 1
-        path = run_dir / f"{name}.{n}.rrd"
-    return path
+    everything before the restart: found by a fleet trial). n is one past the highest in the folder, so a
+    part is never named as an earlier one that keep_mb deleted (the names keep their order in time)."""
+    import re
+
+    numbers = [1] if (run_dir / f"{name}.rrd").exists() else []
+    pattern = re.compile(rf"{re.escape(name)}\.([0-9]+)\.rrd")
+    numbers += [int(m.group(1)) for p in run_dir.glob(f"{name}.*.rrd") if (m := pattern.fullmatch(p.name))]
+    return run_dir / f"{name}.{max(numbers) + 1}.rrd" if numbers else run_dir / f"{name}.rrd"
 
 
 def merge_recordings(run_dir: Path) -> Path | None:

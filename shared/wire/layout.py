@@ -16,6 +16,7 @@ from pydantic.fields import FieldInfo
 from pydantic.types import AllowInfNan
 
 from shared.wire.codec import DTYPE_CODES
+from shared.wire.cuts import CUTS, N_CUTS
 from shared.wire.messages import MESSAGE_TYPES, ArraySpec
 from shared.wire.positional import inline_array
 
@@ -120,6 +121,18 @@ def layout_markdown() -> str:
         "width) of its intrinsics;",
         "`roi_to_image` is invertible; where `proposer` is given, `tracked` is true exactly when it is `tracker`;",
         "`covariance_world` is symmetric with no negative variance.",
+        "",
+        "A Features tag's `tensor` at cut k, per tag (no batch dimension; the export manifest's shapes without",
+        "theirs): "
+        + f"k = 0 ({CUTS[0].name}) uint8 {CUTS[0].shape}; k = 1..{N_CUTS - 2} ("
+        + ", ".join(c.name for c in CUTS[1:-1])
+        + ") "
+        + ", ".join(str(c.shape) for c in CUTS[1:-1])
+        + f", float16 or float32 as `codec` says; k = {N_CUTS - 1} ({CUTS[-1].name}) float32 {CUTS[-1].shape}"
+        + ". An int8 network's cut travels as its values (scale * (code - zero point)) in that dtype, not as",
+        "its uint8 codes. `edge_width_px` (optional) is how wide the tag's border edge is in the image: the",
+        "median over 36 profiles across the black square's edges of (outer - inner level) / steepest",
+        "gradient, times the ROI's zoom (about 1 px sharp, more with blur); None and the edge uses its nominal width.",
         "",
     ]
     for model in MESSAGE_TYPES:
