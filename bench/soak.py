@@ -76,10 +76,19 @@ def main() -> None:
     ap.add_argument("--warmup-minutes", type=float, default=2.0)
     ap.add_argument("--stall-secs", type=float, default=1.5)
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--rerun", action="store_true", help="record to Rerun as deploy/*.toml do (off: the services only)")
+    ap.add_argument("--rerun-rotate-secs", type=float, help="a new .rrd part this often (default: the setting's)")
     args = ap.parse_args()
     print(f"CPU: {cpu_label()}", flush=True)
     tmp = Path(tempfile.mkdtemp(prefix="splittag-soak-"))
-    cfg, topology = loopback_config(tmp, robot_id=ROBOT, fps=args.fps, split_k=args.split_k)
+    cfg, topology = loopback_config(
+        tmp,
+        robot_id=ROBOT,
+        fps=args.fps,
+        split_k=args.split_k,
+        rerun=args.rerun,
+        rerun_rotate_secs=args.rerun_rotate_secs,
+    )
     services = [start_service(n, cfg, tmp) for n in SERVICES]
     rss: dict[str, list[tuple[float, int]]] = {s.name: [] for s in services}
     try:
@@ -127,6 +136,12 @@ def main() -> None:
             for n, g in growth.items()
         )
     )
+    recorded = {p.name: p.stat().st_size for p in sorted(tmp.glob("*.rrd"))}
+    if recorded:  # (--rerun) each process's parts, before any merge: what a shift's run folder holds
+        print(
+            f"Rerun parts: {len(recorded)} files, {sum(recorded.values()) / 1e6:.1f} MB, "
+            f"{sum(recorded.values()) / 1e6 * 60 / args.minutes:.0f} MB/h"
+        )
     stalls = sum(r["stalls"] for r in rows)
     print(
         f"verdicts: RSS growth < 10 %: {all(g is not None and g < 10 for g in growth.values())}; "
@@ -145,6 +160,7 @@ def main() -> None:
             "stats": stats,
             "p99_worst_over_median": p99_ratio,
             "exit_codes": codes,
+            "rerun_part_bytes": recorded,
         }
         args.json.write_text(json.dumps(doc, indent=1))
         print(f"wrote {args.json}")

@@ -87,6 +87,7 @@ def test_the_live_line_and_summary_say_how_sure_slam_is_and_how_far_off() -> Non
     assert "on board (the edge away)" in monitor.line() and "payload" not in monitor.line()
     summary = monitor.summary()
     assert summary["slam_frames"] == {"tracking": 2, "bridged": 2, "lost": 1}
+    assert summary["frames_without_slam_pose"] == 1  # the on-board frame's pose never came (slam down)
     assert abs(summary["slam_sigma_cm_median"] - 2.0) < 1e-9
     assert abs(summary["slam_online_error_cm_median"] - 3.0) < 1e-9
     assert summary["bad_messages"] == 1

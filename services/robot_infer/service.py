@@ -173,6 +173,7 @@ class RobotInfer:
         self.sent_pub = session.declare_publisher(keys.frame_sent(rid), encoding=encoding_for(FrameSent.SCHEMA))
         self.queryable = serve_split(session, keys.split(rid), self.state, refused=self.guard.reject)
         self.acks = session.declare_subscriber(keys.tag_poses(rid), self._on_poses) if s.max_in_flight else None
+        self._edge_lost_at: float | None = None  # when edge_infer's token went (None: up, or never seen)
         self.edge_token = session.liveliness().declare_subscriber(
             keys.alive(rid, "edge_infer"), self._on_edge, history=True
         )
@@ -260,10 +261,18 @@ class RobotInfer:
             return self._expected.pop(capture_nanos, False) is None
 
     def _on_edge(self, sample: zenoh.Sample) -> None:
+        # (rare, so logged here on Zenoh's thread: the way back was unsaid, a soak trial found only the loss)
         if sample.kind == zenoh.SampleKind.PUT:
             self.watch.edge_up()
+            if self._edge_lost_at is not None:
+                log.warning(
+                    "edge_infer back after %.1f s: frames go to the edge again", time.monotonic() - self._edge_lost_at
+                )
+                self._edge_lost_at = None
         else:
             self.watch.edge_down()
+            self._edge_lost_at = time.monotonic()
+            log.warning("edge_infer gone (its liveliness token): the whole chain runs on board until it is back")
             self.window.clear(recover=True)  # the frames it held: the main loop computes them on board
             if self.pacer is not None:
                 self.pacer.forget()
