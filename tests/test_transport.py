@@ -92,6 +92,12 @@ def test_keys_are_versioned_and_under_root() -> None:
     for bad in ["", "a/b", "*", "a b"]:
         with pytest.raises(ValueError, match="robot id"):
             keys.frames(bad)
+    assert [keys.is_wildcard(k) for k in ("splittag/**", "splittag/*/echo", "splittag/r1/$*", keys.echo("r1"))] == [
+        True,
+        True,
+        True,
+        False,
+    ]
 
 
 def test_access_rules_per_role() -> None:

@@ -843,7 +843,7 @@ def run(settings: SlamServiceSettings, *, session: zenoh.Session, stop: threadin
                 query.reply_err(str(exc).encode(), encoding=zenoh.Encoding.TEXT_PLAIN)
                 raise
             if save:
-                if any(c in str(query.key_expr) for c in "*$"):
+                if keys.is_wildcard(str(query.key_expr)):
                     # A wildcard reaches every queryable under it, past access control's deny rule on the
                     # map key (which sees only the query's own key): a save names the map it saves.
                     query.reply_err(

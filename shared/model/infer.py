@@ -15,8 +15,10 @@ from shared.model.net import SplitKeypointNet
 
 
 def prepare(x: Tensor, k: int, *, channels_last: bool = True) -> Tensor:
-    """The input of the stages after cut k: ROI pixels (k = 0, uint8 or float) are normalised."""
-    x = SplitKeypointNet.normalise_input(x) if k == 0 else x.float()
+    """The input of the stages after cut k. At k = 0 uint8 ROI pixels are normalised; a float tensor there
+    is the normalised ROI already (what `head(rois, 0)` gives and OpenVINO's tail takes: an integrator's
+    `tail(head(rois, 0), 0)` had it cast to uint8, 7 ROI px off)."""
+    x = SplitKeypointNet.normalise_input(x) if k == 0 and x.dtype == torch.uint8 else x.float()
     if channels_last and x.ndim == 4:
         x = x.contiguous(memory_format=torch.channels_last)
     return x

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from shared.model.infer import autocast, run_head, run_tail
+from shared.model.infer import run_head, run_tail
 from shared.model.net import SplitKeypointNet
 from shared.model.openvino_net import OpenVINOSplitNet, variant_path
 from shared.model.precision import Precision, PrecisionChoice, resolve_for_folder
@@ -56,15 +56,10 @@ class TorchSplitNet:
 
     def tail(self, z: NDArray[Any], k: int) -> NDArray[np.float32]:
         """Normalised keypoints (N,16,2) from cut-k tensors (k = 0: uint8 ROIs, or the normalised floats
-        `head(rois, 0)` gives, as OpenVINO's tail takes them: a trial's `tail(head(rois, 0), 0)` had
-        them cast to uint8, 7 ROI px off)."""
+        `head(rois, 0)` gives, as OpenVINO's tail takes them)."""
         z = np.asarray(z)
         check_net_cut(z, k)
-        if k == 0 and z.dtype != np.uint8:
-            x = torch.from_numpy(np.ascontiguousarray(z, np.float32).reshape(-1, 1, INPUT_SIZE, INPUT_SIZE))
-            with torch.no_grad(), autocast(bf16=self._bf16):
-                return self.model.forward_tail(x.contiguous(memory_format=torch.channels_last), 0).float().numpy()
-        x = torch.from_numpy(np.asarray(z, np.uint8 if k == 0 else np.float32))
+        x = torch.from_numpy(z if k == 0 and z.dtype == np.uint8 else np.asarray(z, np.float32))
         if k == 0:
             x = x.reshape(-1, 1, INPUT_SIZE, INPUT_SIZE)
         return run_tail(self.model, x, k, bf16=self._bf16).numpy()

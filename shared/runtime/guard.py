@@ -218,9 +218,9 @@ def _one_robots(declared: str, asked: str) -> str:
     robot's own key when the query names one robot, else the declared key (it intersects the query,
     which reached it, and is the key access control lets this service reply on)."""
     parts, asked_parts = declared.split("/"), asked.split("/")
-    if len(asked_parts) == len(parts) and not any(c in asked_parts[1] for c in "*$"):
+    if len(asked_parts) == len(parts) and not keys.is_wildcard(asked_parts[1]):
         concrete = [a if d == "*" else d for d, a in zip(parts, asked_parts, strict=True)]
-        if not any(c in "/".join(concrete) for c in "*$"):
+        if not keys.is_wildcard("/".join(concrete)):
             return "/".join(concrete)
     return declared
 
@@ -232,7 +232,7 @@ def serve_stats(
 
     # Replies carry the service's own key, not the asker's: a wildcard get (`splittag/r1/*/stats`) then
     # gets one reply per service instead of one consolidated away (a fleet slam serving `*`: the asker's).
-    concrete = not any(c in key for c in "*$")
+    concrete = not keys.is_wildcard(key)
 
     def on_query(query: zenoh.Query) -> None:
         body = {**guard.stats(), **(extra() if extra is not None else {})}

@@ -749,7 +749,7 @@ class Monitor:
                 out["slam_frames"] = dict(self.slam_status)
                 # posed frames slam gave no camera pose for (it was down, or refused them): a soak trial's
                 # kill of slam left a 3 s hole in trajectory.tum that the summary did not point out
-                out["frames_without_slam_pose"] = max(0, len(recs) - sum(self.slam_status.values()))
+                out["frames_without_slam_pose"] = max(0, self.frames_total - sum(self.slam_status.values()))
             if self._slam_sigma_cm:
                 out["slam_sigma_cm_median"] = float(np.median(self._slam_sigma_cm))
             if self._slam_error_cm:

@@ -16,6 +16,7 @@ from typing import NamedTuple
 import zenoh
 
 from shared.transport.session import encoding_for
+from shared.wire import keys
 from shared.wire.codec import WireError
 from shared.wire.messages import (
     WRITE_FRAMING,
@@ -49,7 +50,7 @@ def serve_echo(
     arrivals = arrivals or ArrivalClock()
 
     def on_query(query: zenoh.Query) -> None:
-        if query.payload is None and any(c in str(query.key_expr) for c in "*$"):
+        if query.payload is None and keys.is_wildcard(str(query.key_expr)):
             # A key discovery (`get splittag/**`), not a probe: no reply, nothing counted (an integrator's
             # read was answered as a refused probe and showed in edge_infer's refusal counters).
             query.drop()

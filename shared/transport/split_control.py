@@ -35,6 +35,7 @@ from pydantic import ValidationError
 
 from shared.transport.session import encoding_for
 from shared.vision.files import atomic_write_text
+from shared.wire import keys
 from shared.wire.codec import WireError
 from shared.wire.cuts import N_CUTS
 from shared.wire.messages import SplitConfig, decode, encode, framing_of
@@ -216,7 +217,7 @@ def serve_split(
         payload = query.payload.to_bytes() if query.payload is not None else None
         framing = framing_of(payload)  # the asker's: the reply is one it reads
         asked = str(query.key_expr)
-        wildcard = any(c in asked for c in "*$")
+        wildcard = keys.is_wildcard(asked)
         if wildcard and not payload and not str(query.parameters) and not _readable(asked):
             # A wildcard get beyond the split keys (`splittag/r1/**`, `splittag/r1/split/*`) reaches this
             # queryable past access control's deny rules, which apply to the keys they include, so any
@@ -226,7 +227,7 @@ def serve_split(
             return
         try:
             params = parse_parameters(str(query.parameters))
-            if (params or payload) and any(c in asked for c in "*$"):
+            if (params or payload) and keys.is_wildcard(asked):
                 raise SplitRequestError(f"{asked} names robots by a wildcard: set one robot's split at a time")
             if asked not in (key, auto) and (params or payload):
                 raise SplitRequestError(f"{asked}: the split is set on {key} or {auto}")
@@ -244,7 +245,7 @@ def serve_split(
         asked_key = zenoh.KeyExpr(asked)
         on = key if asked_key.intersects(zenoh.KeyExpr(key)) else auto
         if not asked_key.intersects(zenoh.KeyExpr(on)):
-            if not any(c in asked for c in "*$"):  # a key of its own that names no split: a mistake
+            if not keys.is_wildcard(asked):  # a key of its own that names no split: a mistake
                 query.reply_err(
                     f"{asked}: the split is read on {key} or {auto}".encode(), encoding=zenoh.Encoding.TEXT_PLAIN
                 )

@@ -17,6 +17,7 @@ Entity paths (what the viewer shows):
 from __future__ import annotations
 
 import logging
+import re
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -364,8 +365,6 @@ def part_path(run_dir: Path, name: str) -> Path:
     the run (a restarted service used to re-create the dead one's part, and the merged recording lost
     everything before the restart: found by a fleet trial). n is one past the highest in the folder, so a
     part is never named as an earlier one that keep_mb deleted (the names keep their order in time)."""
-    import re
-
     numbers = [1] if (run_dir / f"{name}.rrd").exists() else []
     pattern = re.compile(rf"{re.escape(name)}\.([0-9]+)\.rrd")
     numbers += [int(m.group(1)) for p in run_dir.glob(f"{name}.*.rrd") if (m := pattern.fullmatch(p.name))]

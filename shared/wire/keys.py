@@ -19,6 +19,11 @@ def _check(segment: str, what: str) -> str:
     return segment
 
 
+def is_wildcard(key: str) -> bool:
+    """Whether a key expression names keys by a wildcard (`*`, `**` or `$*`), not one key."""
+    return "*" in key or "$" in key
+
+
 def frames(robot_id: str) -> str:
     """Frame v1: camera -> robot_infer."""
     return f"{ROOT}/{_check(robot_id, 'robot id')}/frame/v1"
