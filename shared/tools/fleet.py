@@ -24,6 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from shared.tools.topology import merge, write_config
 from shared.transport.session import TlsSettings, ZenohSettings, free_tcp_port
+from shared.vision.files import atomic_write_text
 from shared.wire import keys
 from shared.wire.messages import RobotId
 
@@ -423,7 +424,7 @@ def run_fleet(
         return process
 
     def write_pids() -> None:  # what `splittag down` signals when the launcher itself is gone
-        (run_dir / "pids").write_text("".join(f"{s.name} {p.popen.pid}\n" for s, p in running))
+        atomic_write_text(run_dir / "pids", "".join(f"{s.name} {p.popen.pid}\n" for s, p in running))  # read meanwhile
 
     def restart_dead() -> None:  # what died, after its backoff (also while the fleet comes up)
         for i, (spec, proc) in enumerate(running):

@@ -36,6 +36,7 @@ from shared.runtime.sources import demo_scene
 from shared.tools.supervise import Supervisor, incidents_file
 from shared.tools.topology import Topology, merge, write_config
 from shared.transport.session import TlsSettings, ZenohSettings, open_session, wait_for_liveliness
+from shared.vision.files import atomic_write_text
 from shared.vision.metrics import translation_error_cm
 from shared.vision.tagmap import TagMapFile, TagSpec, load_tag_map
 from shared.vision.trajectory import format_stamp_nanos
@@ -1199,7 +1200,9 @@ class _Services:
         return service
 
     def _write_pids(self) -> None:
-        (self.run_dir / "pids").write_text("\n".join(f"{s.name} {s.popen.pid}" for s in self.started) + "\n")
+        # Atomic: `down` and the tests read it while a restart rewrites it (a clean-clone CI run read a
+        # truncated file that had lost robot_infer's line mid-restart).
+        atomic_write_text(self.run_dir / "pids", "\n".join(f"{s.name} {s.popen.pid}" for s in self.started) + "\n")
 
     def start_all(self, names: tuple[str, ...]) -> None:
         for name in names:
