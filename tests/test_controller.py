@@ -576,3 +576,33 @@ def test_ping_pong_between_two_cuts_needs_a_larger_gain_for_a_while() -> None:
     for ms, current, chosen in ((88.0, 6, 0), (112.0, 0, 6), (88.0, 6, 0)):
         edge_at_0(ms, off)
         assert decide(current, off).chosen_k == chosen  # no hold: every turn taken
+
+
+@pytest.mark.parametrize("edge_alive", [True, False])
+def test_a_cut_whose_answers_come_too_late_for_the_edge_is_left(edge_alive: bool) -> None:
+    """A paper-reproduction trial: at k = 0 the uplink fell from 45 to 4 Mbit/s; robot_infer's answers
+    came after its 1.5 s timeout, so it posed frames on board and sent one frame per timeout to the edge.
+    Each 1.5 s interval of k = 0 was dropped as a pause, k = 0 kept the share it had on the fast link,
+    and the controller stayed there for 14-18 s ('already optimal', its T(0) twice T(7)). Frames posed
+    on board with the edge's token there are the cut's misses; with the token gone, a pause."""
+    clock = FakeClock(100.0)
+    core = SplitController(ControllerTuning(dwell=1), clock=clock)
+    interval = 1000 / 15
+    flat = [20.0] * 8
+    core.add_compute(_profile("robot", flat, 1.0, period_ms=flat, frame_interval_ms=interval))
+    core.add_compute(_profile("edge", flat, 1.0, period_ms=flat))
+    _fast_link(core, t0_ms=5.0, beta_ms_per_kB=0.01)
+    _posed(core, clock, 0, every_ms=interval, frames=60)  # k = 0 kept up on the fast link
+    assert core.decide(robot_id="r1", current_k=0, pinned=False).chosen_k == 0
+    _fast_link(core, t0_ms=5.0, beta_ms_per_kB=2.0)  # the uplink at a twentieth
+    start = 10**13
+    for i in range(1, 3):  # two frames answered at k = 0, 1.5 s apart, the ones between posed on board
+        for _ in range(5):
+            clock.now += 0.25
+            core.add_on_board(edge_alive=edge_alive)
+        core.add_posed(0, start + int(i * 1.5e9))
+    state = core.decide(robot_id="r1", current_k=0, pinned=False)
+    if edge_alive:
+        assert state.chosen_k != 0 and "k=0 cannot keep up: ran at" in state.reason, state.reason
+    else:  # the edge gone meanwhile: nothing said of k = 0's rate
+        assert state.achieved_ms_by_k is not None and state.achieved_ms_by_k[0] == pytest.approx(interval)

@@ -205,9 +205,22 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
 
         return session.declare_subscriber(key, on_sample)
 
+    # edge_infer's liveliness token (as robot_infer watches it): frames posed on board while it is there
+    # were late at the cut in use, not a pause
+    edge_alive = threading.Event()
+
+    def on_edge(sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            edge_alive.set()
+        else:
+            edge_alive.clear()
+            with lock:
+                core.edge_gone()
+
     def on_poses(m: TagPoses) -> None:
-        if m.payload_bytes == 0:
-            return  # computed on board while the edge was gone: nothing crossed the link
+        if m.payload_bytes == 0:  # computed on board: nothing crossed the link
+            core.add_on_board(edge_alive=edge_alive.is_set())
+            return
         core.add_posed(m.split_k, m.capture_nanos)  # what the cut achieves between frames
         if m.link is not None:
             core.add_crossing(m.payload_bytes, m.link)
@@ -222,6 +235,7 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
         subscribe(keys.compute(rid, "robot"), ComputeProfile, core.add_compute),
         subscribe(keys.compute(rid, "edge"), ComputeProfile, core.add_compute),
     ]
+    edge_token = session.liveliness().declare_subscriber(keys.alive(rid, "edge_infer"), on_edge, history=True)
     pub = session.declare_publisher(keys.controller(rid), encoding=encoding_for(ControllerState.SCHEMA))
     prober = Prober(session, keys.echo(rid), timeout_secs=5.0)
     failures = ProbeFailures(lambda: any(True for _ in session.info.routers_zid()))
@@ -257,6 +271,7 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
             _log_state(viz, state)
     finally:
         token.undeclare()
+        edge_token.undeclare()
         for s in subs:
             s.undeclare()
         prober_thread.join(timeout=10)

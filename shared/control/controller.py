@@ -152,6 +152,19 @@ class SplitController:
         achieves."""
         self.achieved.add(k, capture_nanos)
 
+    def add_on_board(self, *, edge_alive: bool) -> None:
+        """robot_infer posed a frame on board. With the edge's liveliness token there, an answer at the
+        cut in use was overdue (its link or edge too slow for it): that cut missed the frame
+        (AchievedIntervals.missed). Without it the edge is gone: a pause, not the cut's rate."""
+        if edge_alive:
+            self.achieved.missed()
+        else:
+            self.edge_gone()
+
+    def edge_gone(self) -> None:
+        """edge_infer's liveliness token went: the stream pauses (the frames it misses are no cut's)."""
+        self.achieved.pause()
+
     def measured_ms(self, k: int, *, min_frames: int = 3) -> float | None:
         """The median measured time at cut k of frames with as many tags as the prediction is for, within
         the window, measured on the link the model predicts now (None: too few such frames).

@@ -26,8 +26,11 @@ class AchievedIntervals:
     # Intervals left out after each change of cut: the frames still in flight at the old cut, and the
     # first frames of a head or tail that has not run for a while.
     SKIP_AFTER_CHANGE = 3
-    # A longer interval is a pause (the camera stopped, the edge gone), not the pipeline's rate.
+    # A longer interval is a pause (the camera stopped, the edge gone), not the pipeline's rate ...
     MAX_GAP_MS = 1000.0
+    # ... unless frames were computed on board meanwhile with the edge there (`missed`): then the cut
+    # delivered too late, and the interval is its rate, up to this long.
+    MAX_MISSED_GAP_MS = 10_000.0
     MAX_GAPS = 60  # per cut: 2-4 s at 15-30 fps
 
     def clear(self) -> None:
@@ -44,6 +47,7 @@ class AchievedIntervals:
         self._clock = clock
         self._last: tuple[int, int] | None = None  # the last frame's (k, capture_nanos)
         self._run = 0  # intervals at the last frame's k since the cut changed
+        self._missed = False  # frames computed on board, the edge there, since the last frame posed
         # the latest intervals only, so the cut in use shows a change within seconds at 30 fps
         self._gaps: dict[int, deque[tuple[float, float]]] = {k: deque(maxlen=self.MAX_GAPS) for k in range(N_CUTS)}
 
@@ -59,11 +63,25 @@ class AchievedIntervals:
                     self._last, self._run = (k, capture_nanos), 0
                 return
             self._run += 1
-            if self._run > self.SKIP_AFTER_CHANGE and gap_ms <= self.MAX_GAP_MS:
+            longest = self.MAX_MISSED_GAP_MS if self._missed else self.MAX_GAP_MS
+            if self._run > self.SKIP_AFTER_CHANGE and gap_ms <= longest:
                 self._gaps[k].append((self._clock(), gap_ms))
         else:
             self._run = 0
         self._last = (k, capture_nanos)
+        self._missed = False
+
+    def missed(self) -> None:
+        """A frame computed on board while the edge was there (an answer overdue at the cut in use: its
+        link or edge too slow for the camera): the interval to the next frame posed at the cut is its
+        rate, not a pause. A trial's 4 Mbit/s uplink at k = 0 posed one frame per 1.5 s (robot_infer's
+        answer timeout: the rest went on board); each such interval was dropped as a pause, k = 0 kept
+        the share it had on the fast link, and the controller stayed there for 14-18 s."""
+        self._missed = self._last is not None
+
+    def pause(self) -> None:
+        """The stream paused (the edge gone): the next interval is not a cut's rate."""
+        self._last, self._run, self._missed = None, 0, False
 
     def interval_ms(self, k: int) -> float | None:
         """The mean interval between consecutive frames posed at cut k lately (None: too few)."""
