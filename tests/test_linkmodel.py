@@ -9,11 +9,13 @@ from shared.control.linkmodel import (
     HysteresisChooser,
     LinkOccupancy,
     OnlineLinkEstimator,
+    ProbeBudget,
     fit_link,
     split_costs,
 )
 from shared.transport.probe import ArrivalClock
 from shared.wire.cuts import CUTS
+from tests.fakes import FakeClock
 from tests.linksim import Crossing, late_stamps, simulate
 
 SIZES_KB = [c.tensor_bytes() / 1024 for c in CUTS]
@@ -363,3 +365,25 @@ def test_a_stall_that_undoes_a_take_over_does_not_count_the_change_twice() -> No
         previous = c.received_ms
     assert est.changes == 1 and est.alarms == est.changes + est.dismissed + est.judging, (est.alarms, est.dismissed)
     assert est.beta_ms_per_kB == pytest.approx(0.577, rel=0.1)
+
+
+def test_probes_stay_within_their_share_of_a_slow_uplink_and_pass_on_a_fast_one() -> None:
+    """A trial's 4 Mbit/s uplink at k = 7 carried 1.6 Mbit/s of probes. The probe loop asks for a 16 or
+    64 kB probe every 0.15 s (its routine pace); the budget lets 10 % of the link's rate through, one
+    burst of both sizes deep, and on the 5G link (beta 0.18 ms/kB) every probe."""
+    for beta, share_used in ((2.05, 0.1), (0.18, None)):
+        clock = FakeClock(0.0)
+        budget = ProbeBudget(share=0.1, depth_bytes=80 * 1024, clock=clock)
+        sent = asked = 0
+        for i in range(400):  # 60 s
+            clock.now += 0.15
+            size = (16 if i % 2 else 64) * 1024
+            asked += size
+            sent += size if budget.take(size, beta_ms_per_kB=beta) else 0
+        rate = 1024 * 1000 / beta  # the link's bytes a second
+        if share_used is None:
+            assert sent == asked
+        else:
+            assert 0.8 * share_used * rate * 60 <= sent <= share_used * rate * 60 + 80 * 1024
+    with pytest.raises(ValueError):
+        ProbeBudget(share=0.0, depth_bytes=1)

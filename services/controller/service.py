@@ -22,6 +22,7 @@ import zenoh
 
 from services.controller.settings import ControllerSettings
 from shared.control.controller import SplitController
+from shared.control.linkmodel import ProbeBudget
 from shared.runtime.guard import InputGuard, persist_input_counts, serve_stats
 from shared.transport.probe import ProbeError, Prober
 from shared.transport.session import encoding_for
@@ -86,8 +87,9 @@ def _probe_loop(
     detector is half-way to firing or its alarm is being judged, to settle it quickly; every size right
     after an alarm (its challenger fit needs more than one size to tell the floor from the slope: with
     64 kB probes alone, a bench.controller run's took over at t0 63 ms, beta 0.19 on a 39.9 ms / 0.577
-    ms/kB link) and again after a change."""
+    ms/kB link) and again after a change. All within `probe_budget_share` of the uplink (ProbeBudget)."""
     burst_from = core.link.changes + core.link.alarms
+    budget = ProbeBudget(share=settings.probe_budget_share, depth_bytes=sum(settings.probe_sizes_bytes))
     last_probe = 0.0
     busy_since: float | None = None
     while not stop.wait(0.005):
@@ -113,6 +115,10 @@ def _probe_loop(
         else:
             continue
         for size in sizes:
+            with lock:
+                beta = core.link.beta_ms_per_kB
+            if not budget.take(size, beta_ms_per_kB=beta):
+                break  # the uplink's probe budget is spent: the next when it has refilled
             try:
                 r = prober.round_trip(encode(probe_features(size)))
             except ProbeError as exc:

@@ -25,3 +25,6 @@ class ControllerSettings(ServiceSettings, ControllerTuning):
     # Two sizes pin both t0 and beta even while frames carry almost nothing (k = 7); small enough
     # to occupy the 14.2 Mbit/s uplink for at most ~37 ms.
     probe_sizes_bytes: list[int] = Field(default_factory=lambda: [16 * 1024, 64 * 1024])
+    # Probes use at most this share of the uplink's estimated rate (1 / beta), in one burst of every size
+    # at most: on a 4 Mbit/s uplink at k = 7 a trial saw 40 % of it in probes (ProbeBudget)
+    probe_budget_share: float = Field(default=0.1, gt=0, le=1)
