@@ -597,6 +597,36 @@ def test_a_restarted_slam_resumes_its_map_and_trajectory(tmp_path: Path) -> None
     assert third.resumed is None and third.revision > second.revision
 
 
+def test_a_restarted_slam_repeats_the_last_pose_and_says_which_tags_relocalise(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """An EKF integrator's trial killed slam mid-turn: the restarted process published the identity as
+    each lost frame's pose (a lost pose repeats the last one), and said it waited for 'the anchor tag 6
+    (the tag map's anchor_tag_id)' of a map that named none, where any tag of the resumed map places the
+    camera again."""
+    poses = _constant_velocity(60)
+    first = SlamNode(SlamServiceSettings(run_dir=tmp_path))
+    for i in range(15):
+        first.on_poses(_tag_poses(i, 1_000 + i, poses[i]))
+    first.write_outputs(tmp_path)
+    last = read_tum(tmp_path / "trajectory.tum")[-1][1]
+    second = SlamNode(SlamServiceSettings(run_dir=tmp_path))
+    with caplog.at_level("WARNING", logger="services.slam.service"):
+        for i in range(15, 45):  # nothing in view
+            cam = second.on_poses(_tag_poses(i, 1_000 + i, poses[i], only=set()))[0]
+            assert cam.status == "lost" and cam.covariance_world is None
+            np.testing.assert_allclose(cam.world_from_camera, last, atol=1e-9)
+    said = [r.getMessage() for r in caplog.records if "frames lost waiting for the anchor" in r.getMessage()]
+    assert len(said) == 1 and "resumed map" in said[0] and "or any of the" in said[0], caplog.text
+    # ... and a tag of that map (not the anchor) places it again
+    anchor = second.resumed.anchor_tag_id if second.resumed else None
+    in_view = {tag_id for tag_id, _, _ in _visible(poses[45])}
+    other = next(t.id for t in load_tag_map(tmp_path / "map.json").tags if t.id != anchor and t.id in in_view)
+    cam = second.on_poses(_tag_poses(45, 1_045, poses[45], only={other}))[0]
+    expected = last @ np.linalg.inv(poses[14]) @ poses[45]  # in slam's world (its anchor's), as before the kill
+    assert cam.status == "tracking" and np.linalg.norm(cam.world_from_camera[:3, 3] - expected[:3, 3]) < 0.01
+
+
 def test_a_killed_slam_loses_none_of_the_poses_it_placed_after_its_last_checkpoint(tmp_path: Path) -> None:
     """A trial SIGKILLed slam: the 19 poses it had published since its last checkpoint were missing from
     the final trajectory.tum (a 6.4 s hole). Each pose goes to a journal as it is placed; the restarted

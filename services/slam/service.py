@@ -355,6 +355,10 @@ class SlamNode:
                         log.info(
                             "resumed %s and %d poses of its journal (%s)", path.name, len(stamps), journal.path.name
                         )
+                if len(run.previous_poses):
+                    # a lost frame repeats the last pose: the killed process's (an EKF integrator's trial
+                    # read the identity from a restarted slam until it placed a frame again)
+                    run.last_pose = run.previous_poses[-1]
             else:  # killed before its first checkpoint (or this robot before it was in one)
                 journal.discard("no checkpoint of this robot's trajectory to resume them after")
             # (the journal's lines stay on disk until this process's first checkpoint holds them: killed
@@ -450,12 +454,17 @@ class SlamNode:
                 run.unanchored += 1
                 run.seen_before_anchor.update(o.tag_id for o in observations)
                 if run.unanchored in (30, 300) or run.unanchored % 3000 == 0:  # said when it matters
+                    # any tag the map places relocalises, not only the anchor (a trial's restarted slam said
+                    # it waited for 'the tag map's anchor_tag_id', of a map that named none: the checkpoint's)
+                    placed = sorted(self.slam.known)
                     log.warning(
-                        "%s: %d frames lost waiting for the anchor tag %d (the tag map's anchor_tag_id) to come "
-                        "into view; tags seen so far: %s",
+                        "%s: %d frames lost waiting for the anchor tag %d%s of the %s to come into view; tags seen "
+                        "so far: %s",
                         robot,
                         run.unanchored,
                         wanted,
+                        f" (or any of the {len(placed)} tags it places: {placed[:20]})" if placed else "",
+                        "resumed map (map.json of the run before the restart)" if self.resumed else "tag map",
                         sorted(run.seen_before_anchor)[:20] or "none",
                     )
             if res.map_changed:  # one shared map: every robot's map key carries the change
