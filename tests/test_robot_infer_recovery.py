@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 import zenoh
 
 from services.robot_infer.service import RobotInfer
@@ -108,7 +109,25 @@ def test_the_frames_a_vanished_edge_held_go_out_before_the_next(tmp_path: Path) 
         assert node.recovered_frames == 1 and node.on_board_frames == 1
 
 
-def test_a_stalled_edge_is_worked_around_until_it_answers_again(tmp_path: Path) -> None:
+def test_the_on_board_count_is_said_at_the_first_frame_then_rate_limited_then_at_the_end() -> None:
+    """A researcher read "1 frames computed on board" (logged at the 1st and every 100th frame) as the run's
+    total when 17 had been: the count is said at an outage's first frame, then every `every_secs` while it
+    lasts with the outage's count so far, and in full when the edge is back."""
+    from shared.runtime.logs import SpellCount
+
+    count = SpellCount(every_secs=10.0)
+    said = [count.add(t) for t in (0.0, 1.0, 5.0, 9.9, 10.0, 12.0, 19.9, 20.5)]
+    assert said == ["first", None, None, None, "running", None, None, "running"]
+    assert count.spell == 8 and count.since_said == 3  # frames 5..7 since the report at 10.0 s
+    assert count.end() == 8 and count.end() == 0  # the edge is back: the outage's total, said once
+    assert count.add(30.0) == "first" and count.spell == 1 and count.total == 9
+    with pytest.raises(ValueError):
+        SpellCount(every_secs=0)
+
+
+def test_a_stalled_edge_is_worked_around_until_it_answers_again(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     """A trial SIGSTOPped edge_infer: its token stays for Zenoh's whole lease (~10 s), and the robot,
     which forgot each overdue frame, sent the next one to the stalled edge too: no pose for ~10 s
     instead of on board after edge_answer_timeout_secs. Now an overdue answer holds the robot on board
@@ -154,6 +173,11 @@ def test_a_stalled_edge_is_worked_around_until_it_answers_again(tmp_path: Path) 
         wait_until(lambda: not node.watch.overdue, 30, "the edge's answer ends the stall")
         node.process(made[4])  # to the edge again
         assert node.window.in_flight == 1 and node.on_board_frames == 3 and not rig.posed(frames[4])
+        logged = [r.getMessage() for r in caplog.records if r.name.startswith("services.robot_infer")]
+        assert any("computing frames on board, the first now (0 before in this run" in m for m in logged), logged
+        assert any("edge back: 3 frames computed on board during the outage (3 in this run)" in m for m in logged), (
+            logged
+        )
         token.undeclare()
         answers.undeclare()
 

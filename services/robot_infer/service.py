@@ -21,6 +21,7 @@ from shared.model.views import with_views
 from shared.model.weights import load_keypoint_fusion
 from shared.perception.split import RobotTimings, Stage1Output, edge_step, robot_head, robot_stage1
 from shared.runtime.guard import InputGuard, persist_input_counts, serve_stats
+from shared.runtime.logs import SpellCount
 from shared.runtime.service_main import started_by_run_launcher
 from shared.runtime.waiting import result_of
 from shared.transport.flow import (
@@ -54,6 +55,7 @@ from shared.wire.messages import (
 )
 
 log = logging.getLogger(__name__)
+ON_BOARD_LOG_SECS = 10.0  # while the edge is away, the count of frames computed on board is logged this often
 EXPECTED_ANSWERS = 512  # the newest frames sent whose answers may steer the pacing and the stall watch
 
 
@@ -149,7 +151,8 @@ class RobotInfer:
         # next frame starts so that it ends as this frame's network does, not before (it would only age)
         self.stage1_secs = 0.0
         self.rest_secs = 0.0
-        self.on_board_frames = 0
+        # frames computed on board, logged at an outage's first, every 10 s while it lasts and at its end
+        self.on_board_count = SpellCount(every_secs=ON_BOARD_LOG_SECS)
         self.recovered_frames = 0
         self.last_profile = 0.0
         rid = s.robot_id
@@ -366,6 +369,8 @@ class RobotInfer:
             self._recover_orphans()
             self.on_board(s1)
             return
+        if self.watch.usable:  # (not a trial frame sent to an edge whose answers are overdue)
+            self._edge_back()
         split = self.state.get()  # changes apply from the next frame; each message says its k
         tags, timings = robot_head(s1, net=self.net, k=split.k, codec=split.codec, tracker=self.tracker)
         network_ms, compute_secs = self._pace(split.k, len(tags), timings)
@@ -434,13 +439,39 @@ class RobotInfer:
         tags, timings = robot_head(s1, net=self.net, k=k, codec="fp32", tracker=self.tracker)
         _, compute_secs = self._pace(k, len(tags), timings)  # the robot's CPU, as emulated for the split
         self._finish_on_board(self._features(frame, tags, k, "fp32", compute_secs))
-        self.on_board_frames += 1
-        if self.on_board_frames == 1 or self.on_board_frames % 100 == 0:
+        said = self.on_board_count.add(time.monotonic())
+        count = self.on_board_count
+        if said == "first":
             log.warning(
-                "edge unavailable (no edge_infer token, or an answer overdue): %d frames computed on board "
-                "(the edge's router: %s)",
-                self.on_board_frames,
+                "edge unavailable (no edge_infer token, or an answer overdue): computing frames on board, "
+                "the first now (%d before in this run; a count follows every %g s while it lasts; the edge's "
+                "router: %s)",
+                count.total - 1,
+                count.every_secs,
                 ", ".join(self.settings.zenoh.connect) or "none configured",
+            )
+        elif said == "running":
+            log.warning(
+                "edge still unavailable: %d frames computed on board in this outage so far (%d in the last "
+                "%g s or more; %d in this run)",
+                count.spell,
+                count.since_said,
+                count.every_secs,
+                count.total,
+            )
+
+    @property
+    def on_board_frames(self) -> int:
+        """Frames computed on board (the whole chain here) in this run."""
+        return self.on_board_count.total
+
+    def _edge_back(self) -> None:
+        """A frame goes to the edge again: say how many the outage computed on board, once."""
+        if spell := self.on_board_count.end():
+            log.warning(
+                "edge back: %d frames computed on board during the outage (%d in this run)",
+                spell,
+                self.on_board_count.total,
             )
 
     def _finish_on_board(self, features: Features) -> bool:
