@@ -347,3 +347,25 @@ def test_the_split_api_refuses_float_rois_and_another_cuts_tensor(precision: str
     with pytest.raises(ValueError, match=r"tail at k=5 \(block5\) takes \(N, 256, 8, 8\)"):
         net.tail(z3, 5)
     assert net.tail(z3, 3).shape == (2, 16, 2) and net.tail(rois, 0).shape == (2, 16, 2)
+
+
+def test_profile_prints_the_cpu_first(capsys: pytest.CaptureFixture[str]) -> None:
+    """README says every benchmark prints its CPU first; `splittag profile`, the paper's table of C(k),
+    did not (a researcher's reproduction had figures without the machine they came from)."""
+    from shared.runtime.cpus import cpu_label
+    from shared.tools.cli import main
+
+    argv = ["profile", "--weights", str(MODELS), "--variant", "fp32", "--repetitions", "1"]
+    assert main(argv) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == f"CPU: {cpu_label()}"
+    assert len(lines) == 2 + 1 + N_CUTS  # the CPU, the caption, the header, a row per cut
+
+
+def test_the_cpu_label_names_model_family_and_features() -> None:
+    from shared.runtime.cpus import cpu_label
+
+    info = "model name\t: AMD EPYC 9R14\ncpu family\t: 25\nmodel\t\t: 17\nflags\t\t: fpu avx2 avx512f avx512_bf16\n"
+    label = cpu_label(info)
+    assert label.startswith("AMD EPYC 9R14 (family 25 model 17), ")
+    assert label.endswith("AVX-512 bf16 + AVX-512 + AVX2, no AMX")

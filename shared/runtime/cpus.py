@@ -1,4 +1,5 @@
-"""Which CPUs a process runs on: robot and edge processes that share a host each on their own cores.
+"""Which CPUs a process runs on: robot and edge processes that share a host each on their own cores;
+and which CPU this is (`cpu_label`: every benchmark and `splittag profile` print it first).
 
 On one host the robot's and the edge's processes otherwise take turns on every core, and each wakes
 to caches the other filled: a small message's codec work (cold Python) then costs several times what
@@ -15,6 +16,42 @@ from collections.abc import Iterable
 from pathlib import Path
 
 log = logging.getLogger(__name__)
+
+
+# Instruction-set features that decide the network's speed here, in the order we quote them.
+FEATURES = (
+    ("amx_bf16", "AMX"),
+    ("avx512_bf16", "AVX-512 bf16"),
+    ("avx512_vnni", "VNNI"),
+    ("avx512f", "AVX-512"),
+    ("avx_vnni", "AVX-VNNI"),
+    ("avx2", "AVX2"),
+)
+
+
+def cpu_label(cpuinfo: str | None = None) -> str:
+    """e.g. 'AMD EPYC (family 25 model 17), 2 cores, AVX-512 bf16 + VNNI + AVX-512, no AMX'.
+
+    The project meets several CPU kinds (Intel Sapphire Rapids with AMX; AMD EPYC Zen 4 with AVX-512
+    bf16 + VNNI; Zen 3 with AVX2 only), and the network's speed at one precision differs up to 20x
+    between them, so a figure without its CPU says little."""
+    text = cpuinfo if cpuinfo is not None else _read_cpuinfo()
+    fields: dict[str, str] = {}
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    flags = set(fields.get("flags", "").split())
+    model = fields.get("model name", "unknown CPU")
+    family = f"family {fields.get('cpu family', '?')} model {fields.get('model', '?')}"
+    has = [name for flag, name in FEATURES if flag in flags and name != "AMX"]
+    amx = "AMX" if "amx_bf16" in flags else "no AMX"
+    cores = os.cpu_count() or 0
+    return f"{model} ({family}), {cores} cores, {' + '.join(has) or 'no AVX2'}, {amx}"
+
+
+def _read_cpuinfo() -> str:
+    path = Path("/proc/cpuinfo")
+    return path.read_text() if path.exists() else ""
 
 
 class CpuPlacementError(ValueError):

@@ -537,8 +537,10 @@ def _cmd_profile(args: argparse.Namespace) -> int:
     from shared.model.net import SplitKeypointNet
     from shared.model.profile import profile_cuts
     from shared.model.weights import load_model
+    from shared.runtime.cpus import cpu_label
     from shared.wire.cuts import CUTS
 
+    print(f"CPU: {cpu_label()}", flush=True)  # (README: every benchmark prints its CPU first)
     torch.set_num_threads(args.threads)
     model = load_model(args.weights) if args.weights.exists() else SplitKeypointNet(roi_margin=0.2)
     timings = profile_cuts(model, variant=args.variant, batch=args.batch, repetitions=args.repetitions)
@@ -730,9 +732,11 @@ def _cmd_link_cost(args: argparse.Namespace) -> int:
     from shared.control.compute import head_per_tag_ms, tail_per_tag_ms
     from shared.model.profile import calibrate_pnp_ms
     from shared.model.runtime import calibrate_cumulative_ms, calibrate_tail_ms, load_split_net
+    from shared.runtime.cpus import cpu_label
     from shared.tools.linkprobe import cost_table, link_fit_of, plot_costs
     from shared.wire.cuts import CUTS, tensor_bytes
 
+    print(f"CPU: {cpu_label()}", flush=True)  # C(k) and E(k) are this CPU's
     torch.set_num_threads(args.threads)
     fit = link_fit_of(json.loads(args.link.read_text()))
     net = load_split_net(args.weights, args.precision, threads=args.threads)
