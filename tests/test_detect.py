@@ -47,6 +47,14 @@ def test_detect_reports_keypoints_poses_and_bad_files(tmp_path: Path) -> None:
     chosen = tag["camera_from_tag"]["chosen"]
     assert np.linalg.norm(np.array(chosen["t_m"]) - pose[:3, 3]) < 0.01
     assert tag["camera_from_tag"]["alternative"]["reprojection_error_px"] >= chosen["reprojection_error_px"]
+    # the network's own keypoints, unfused (the fused ones carry AprilTag's corners: a "network vs AprilTag"
+    # comparison on them was partly AprilTag against itself), and the pose from them alone
+    network = np.array(tag["network_keypoints_px"])
+    fused = np.array(tag["keypoints_px"])
+    assert network.shape == (16, 2) and not np.array_equal(network, fused)
+    assert np.abs(network - fused).max() < 0.5
+    alone = tag["camera_from_tag_network_only"]["chosen"]
+    assert np.linalg.norm(np.array(alone["t_m"]) - pose[:3, 3]) < 0.01
 
 
 def test_detect_says_in_one_line_what_is_wrong_with_a_camera_file(
@@ -90,3 +98,29 @@ def test_detect_without_a_camera_file_assumes_one_and_says_so(
     (tag,) = image["tags"]
     assert tag["id"] == 17
     np.testing.assert_allclose(tag["keypoints_px"], with_camera["keypoints_px"], atol=1e-6)
+
+
+def test_without_fusion_the_keypoints_are_the_networks_own(tmp_path: Path) -> None:
+    """perceive() without a fusion reports the network's keypoints as they are, under both names."""
+    from shared.model.weights import load_model
+    from shared.perception.single import perceive
+    from shared.tools.detect import DEFAULT_WEIGHTS
+    from shared.vision.proposals import Stage1Detector, Stage1Settings
+    from shared.vision.tagmap import TagMapFile
+
+    _tag_image(tmp_path)
+    image = np.asarray(cv2.imread(str(tmp_path / "tag.png"), cv2.IMREAD_GRAYSCALE), np.uint8)
+    detector = Stage1Detector(Stage1Settings())
+    try:
+        (tag,) = perceive(
+            image,
+            camera=default_camera(),
+            detector=detector,
+            model=load_model(DEFAULT_WEIGHTS),
+            tag_map=TagMapFile(default_size_m=0.2),
+        )
+    finally:
+        detector.close()
+    assert tag.keypoints_px is not None and tag.network_keypoints_px is not None
+    np.testing.assert_array_equal(tag.keypoints_px, tag.network_keypoints_px)
+    assert tag.to_json()["camera_from_tag_network_only"] == tag.to_json()["camera_from_tag"]

@@ -63,9 +63,13 @@ class TagResult:
 
     detection: Detection
     tag_size_m: float
-    keypoints_px: Array | None
+    keypoints_px: Array | None  # the network's 16, fused with stage 1's corners when a fusion is given
     pose: PoseCandidates | None  # from the 16 keypoints (or the corners when no network)
     corner_pose: PoseCandidates
+    # The network's own 16, before any fusion, and the pose from them alone: fused keypoints carry
+    # AprilTag's corners, so "network against AprilTag" compared AprilTag partly with itself (a researcher).
+    network_keypoints_px: Array | None = None
+    network_pose: PoseCandidates | None = None
 
     def to_json(self) -> dict[str, Any]:
         """JSON-friendly dict."""
@@ -96,7 +100,9 @@ class TagResult:
             "stage1_corners_px": d.corners_px.tolist(),
             "apriltag_corners_px": d.corners_px.tolist() if d.proposer in ("apriltag", "fullres") else None,
             "keypoints_px": None if self.keypoints_px is None else self.keypoints_px.tolist(),
+            "network_keypoints_px": None if self.network_keypoints_px is None else self.network_keypoints_px.tolist(),
             "camera_from_tag": None if self.pose is None else pose_json(self.pose),
+            "camera_from_tag_network_only": None if self.network_pose is None else pose_json(self.network_pose),
             "camera_from_tag_corners_only": pose_json(self.corner_pose),
         }
 
@@ -120,12 +126,15 @@ def perceive(
     for i, d in enumerate(detections):
         size = tag_map.size_of(d.tag_id)
         corner_pose = solve_planar_pnp(camera, corners_in_tag(size), d.corners_px)
-        if kps is not None:
-            kp_px = keypoints_to_image(kps[i], homs[i])
-            if fusion is not None:
-                kp_px = fusion.apply(kp_px, d.corners_px, homs[i], edge_width_px(rois[i], homs[i]))
-            pose = solve_planar_pnp(camera, lattice_in_tag(size), kp_px)
+        if kps is None:
+            out.append(TagResult(d, size, None, None, corner_pose))
+            continue
+        network_px = keypoints_to_image(kps[i], homs[i])
+        network_pose = solve_planar_pnp(camera, lattice_in_tag(size), network_px)
+        if fusion is None:
+            kp_px, pose = network_px, network_pose
         else:
-            kp_px, pose = None, None
-        out.append(TagResult(d, size, kp_px, pose, corner_pose))
+            kp_px = fusion.apply(network_px, d.corners_px, homs[i], edge_width_px(rois[i], homs[i]))
+            pose = solve_planar_pnp(camera, lattice_in_tag(size), kp_px)
+        out.append(TagResult(d, size, kp_px, pose, corner_pose, network_px, network_pose))
     return out
