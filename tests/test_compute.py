@@ -154,3 +154,38 @@ def test_a_calibration_under_load_cannot_make_a_shorter_head_dearer() -> None:
     assert robot == [0.0, 213.0, 221.0, 221.0, 260.0, 269.0, 269.0, 272.0]
     edge = tail_per_tag_ms([40.0, 45.0, 30.0, 31.0, 20.0, 5.0, 6.0, 0.5], pnp_ms=1.0, views=2)
     assert edge == [81.0, 41.0, 31.0, 31.0, 21.0, 6.0, 6.0, 1.5]
+
+
+def test_the_cuts_take_turns_so_a_spell_of_load_slows_no_cut_throughout() -> None:
+    """A researcher's `link cost` under load printed C(2..5) all equal: each cut was timed all at once, a
+    spell of load slowed every run of cuts 2-4, and the clamp flattened them. The cuts now take turns, a
+    round each per repetition: a spell of load as long as four rounds leaves every cut clean rounds."""
+    import time
+
+    import numpy as np
+
+    from shared.model.runtime import calibrate_cumulative_ms
+    from shared.wire.cuts import CUTS
+
+    class Loaded:
+        """Head up to k takes (1 + k) ms, 15 ms more while calls 8 to 39 run (the spell)."""
+
+        def __init__(self) -> None:
+            self.order: list[int] = []
+
+        def head(self, rois: np.ndarray, k: int) -> np.ndarray:
+            spell = 8 <= len(self.order) < 40
+            self.order.append(k)
+            time.sleep((1 + k + (15 if spell else 0)) / 1e3)
+            return rois
+
+        def tail(self, z: np.ndarray, k: int) -> np.ndarray:
+            raise AssertionError("the robot's calibration ran a tail")
+
+    net = Loaded()
+    ms = calibrate_cumulative_ms(net, repetitions=10)  # type: ignore[arg-type]
+    n = len(CUTS)
+    assert len(net.order) == n * 11
+    assert all(sorted(net.order[i : i + n]) == list(range(n)) for i in range(0, len(net.order), n))  # rounds
+    assert all(m < 1 + k + 10 for k, m in enumerate(ms)), ms  # no cut timed only under the spell
+    assert ms == sorted(ms), ms  # nothing for the clamp to flatten

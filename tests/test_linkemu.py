@@ -366,3 +366,44 @@ def test_link_probe_connects_to_a_running_deployments_edge(tmp_path: Path) -> No
         empty.close()
     assert nobody.returncode == 1 and "Traceback" not in nobody.stderr, nobody.stderr
     assert f"no echo for probe9 behind {endpoint} within 1 s" in nobody.stderr, nobody.stderr
+
+
+def test_the_paper_cost_model_is_eq4_over_cuts_1_to_7_without_edge_compute() -> None:
+    """A researcher could not print the paper's Eq. 4: `link cost` always had k = 0 (the raw ROI, a cut the
+    paper does not have) and E(k). With `paper`, T(k) = gamma C(k) + t0 + beta S(k) over k = 1..7."""
+    from shared.control.linkmodel import LinkFit
+    from shared.tools.linkprobe import FULL_MODEL, PAPER_MODEL, cost_table
+
+    fit = LinkFit(40.0, 0.2, 40.0, 0.0, 8)
+    compute = [0.0, 10.0, 12.0, 14.0, 16.0, 18.0, 19.0, 20.0]
+    edge = [30.0, 25.0, 20.0, 15.0, 10.0, 5.0, 2.0, 0.0]
+    payload = [64.0, 1024.0, 512.0, 256.0, 128.0, 32.0, 8.0, 0.1]
+    paper = cost_table(compute_ms=compute, edge_ms=None, payload_kB=payload, fit=fit, gammas=[1.0, 8.0], paper=True)
+    assert paper["model"] == PAPER_MODEL and paper["k"] == [1, 2, 3, 4, 5, 6, 7] and paper["E_ms"] is None
+    for row in paper["gammas"]:
+        expected = [row["gamma"] * compute[k] + 40.0 + 0.2 * payload[k] for k in range(1, 8)]
+        assert row["T_ms"] == pytest.approx(expected)
+        assert row["best_k"] == 1 + expected.index(min(expected))  # a k, not an index
+    # the same with E(k) given: still not used by the paper's model
+    with_edge = cost_table(compute_ms=compute, edge_ms=edge, payload_kB=payload, fit=fit, gammas=[1.0], paper=True)
+    assert with_edge["gammas"][0]["T_ms"] == paper["gammas"][0]["T_ms"]
+    full = cost_table(compute_ms=compute, edge_ms=edge, payload_kB=payload, fit=fit, gammas=[8.0])
+    assert full["model"] == FULL_MODEL and full["k"] == list(range(8))
+    assert full["gammas"][0]["T_ms"][0] == pytest.approx(0.0 + 40.0 + 0.2 * 64.0 + 30.0)
+    assert full["gammas"][0]["best_k"] == 0  # the raw ROI wins on a slow robot: the cut the paper lacks
+    with pytest.raises(ValueError, match="needs edge_ms"):
+        cost_table(compute_ms=compute, edge_ms=None, payload_kB=payload, fit=fit, gammas=[1.0])
+
+
+def test_link_cost_paper_says_which_model_it_printed(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    repo = Path(__file__).resolve().parents[1]
+    out = tmp_path / "cost.json"
+    argv = ["link", "cost", "--link", str(repo / "docs" / "link_5g.json"), "--paper", "--gamma", "1", "4"]
+    assert main([*argv, "--repetitions", "2", "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert printed.startswith("CPU: ")
+    assert "model: T(k) = gamma C(k) + t0 + beta S(k), k = 1..7 (the paper's Eq. 4)" in printed
+    rows = [line.split()[0] for line in printed.splitlines() if line[:2].strip().isdigit()]
+    assert rows == [str(k) for k in range(1, 8)]
+    doc = json.loads(out.read_text())
+    assert doc["k"] == list(range(1, 8)) and doc["E_ms"] is None and len(doc["C_measured_ms"]) == 7

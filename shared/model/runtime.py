@@ -11,7 +11,7 @@ Both sides of a link may use different precisions: the cut tensor is float on th
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from functools import partial
 from pathlib import Path
 from typing import Any, Protocol
@@ -79,39 +79,48 @@ def load_split_net(weights: Path, precision: PrecisionChoice, *, threads: int | 
     return TorchSplitNet(load_model(weights), bf16=precision == "bf16")
 
 
-def _min_ms(call: Callable[[], object], repetitions: int) -> float:
-    """The fastest of `repetitions` timed calls (ms), after one untimed call (OpenVINO compiles a half
-    on its first use): services start together and calibrate while their neighbours load."""
-    call()
-    times = []
-    for _ in range(repetitions):
-        t0 = time.perf_counter()
+def _min_ms_each(calls: Sequence[Callable[[], object]], repetitions: int) -> list[float]:
+    """The fastest of `repetitions` timed runs of each call (ms), after one untimed run of each (OpenVINO
+    compiles a half on its first use). The calls take turns, a round of all of them per repetition, each
+    round starting one call further on: a spell of load (services start together and calibrate while their
+    neighbours load) then slows some rounds of every call rather than all rounds of a few. Timed one call
+    after another, a researcher's `link cost` under load read C(2..5) all equal: cuts 2-4 were timed
+    during the spell, and the clamp that keeps C(k) from falling with k flattened them to C(5)."""
+    for call in calls:
         call()
-        times.append((time.perf_counter() - t0) * 1e3)
-    return min(times)
+    best = [float("inf")] * len(calls)
+    for r in range(repetitions):
+        for j in range(len(calls)):
+            i = (r + j) % len(calls)
+            t0 = time.perf_counter()
+            calls[i]()
+            best[i] = min(best[i], (time.perf_counter() - t0) * 1e3)
+    return best
 
 
 def calibrate_tail_ms(net: SplitNet, *, repetitions: int = 5) -> list[float]:
     """Tail time per tag (batch 1) from every cut to the keypoints, ms, each timed on an input of its
-    own cut's shape (the minimum over repetitions): what the edge computes. Not the whole network
+    own cut's shape (the minimum over repetitions, the cuts taking turns: `_min_ms_each`): what the edge
+    computes. Not the whole network
     minus the head: each half is its own compiled graph, and a fresh trial read E(4) = 0.2 ms (PnP
     alone) and E(6) > E(5) from that difference. The inputs are made, not computed by the heads, so
     the edge compiles no head it never runs (the times of these dense layers do not depend on the
     values)."""
     rng = np.random.default_rng(0)
-    out = []
+    calls = []
     for cut in CUTS:
         z: NDArray[Any]
         if cut.k == 0:
             z = rng.integers(0, 256, (1, *cut.shape), dtype=np.uint8)
         else:  # the edge runs its tails on float32 (split.edge_step)
             z = np.abs(rng.standard_normal((1, *cut.shape))).astype(np.float32)
-        out.append(_min_ms(partial(net.tail, z, cut.k), repetitions))
-    return out
+        calls.append(partial(net.tail, z, cut.k))
+    return _min_ms_each(calls, repetitions)
 
 
 def calibrate_cumulative_ms(net: SplitNet, *, repetitions: int = 5) -> list[float]:
-    """Cumulative head time per tag (batch 1) at every cut, ms: the minimum over repetitions (services
-    start together and calibrate while their neighbours load; live measurements scale it later)."""
+    """Cumulative head time per tag (batch 1) at every cut, ms: the minimum over repetitions, the cuts
+    taking turns (`_min_ms_each`; services start together and calibrate while their neighbours load;
+    live measurements scale it later)."""
     x = np.random.default_rng(0).integers(0, 256, (1, INPUT_SIZE, INPUT_SIZE), dtype=np.uint8)
-    return [_min_ms(partial(net.head, x, cut.k), repetitions) for cut in CUTS]
+    return _min_ms_each([partial(net.head, x, cut.k) for cut in CUTS], repetitions)

@@ -3,7 +3,8 @@
 probe: time round trips of real Features messages at every split point's payload size against the
 edge's echo queryable (tiny replies, so only the uplink carries the payload), fit RTT = t0 + beta S.
 cost: T(k) = gamma C(k) + t0 + beta S(k) + E(k) per split point from the measured compute profile
-and a fitted link, for several gamma, optimum starred.
+and a fitted link, for several gamma, optimum starred; or the paper's Eq. 4 exactly (`paper`):
+T(k) = gamma C(k) + t0 + beta S(k) over k = 1..7, without the raw-ROI cut k = 0 and without E(k).
 """
 
 from __future__ import annotations
@@ -121,33 +122,47 @@ def plot_link(doc: dict[str, Any], out: Path) -> None:
     plt.close(fig)
 
 
+# The two cost models `link cost` prints, said in its output and its JSON ("model").
+FULL_MODEL = "T(k) = gamma C(k) + t0 + beta S(k) + E(k), k = 0..7"
+PAPER_MODEL = "T(k) = gamma C(k) + t0 + beta S(k), k = 1..7 (the paper's Eq. 4)"
+
+
 def cost_table(
     *,
     compute_ms: Sequence[float],
-    edge_ms: Sequence[float],
+    edge_ms: Sequence[float] | None,
     payload_kB: Sequence[float],
     fit: LinkFit,
     gammas: Sequence[float],
+    paper: bool = False,
 ) -> dict[str, Any]:
-    """T(k) for every gamma with the argmin."""
+    """T(k) for every gamma with the argmin (`best_k`, a k). `compute_ms`, `edge_ms` and `payload_kB`
+    have a value per cut (k = 0..7). `paper`: the paper's Eq. 4, T(k) = gamma C(k) + t0 + beta S(k) over
+    k = 1..7 (it has no raw-ROI cut, and no edge compute term: `edge_ms` is not used and may be None);
+    else splittag's model, with E(k), over every cut."""
+    if not paper and edge_ms is None:
+        raise ValueError("the full model needs edge_ms (E(k)); only the paper's has none")
+    ks = [c.k for c in CUTS if c.k >= 1] if paper else [c.k for c in CUTS]
+    edge = [0.0] * len(ks) if paper or edge_ms is None else [float(edge_ms[k]) for k in ks]
     rows = []
     for g in gammas:
         t = split_costs(
-            compute_ms=compute_ms,
-            edge_ms=edge_ms,
-            payload_kB=payload_kB,
+            compute_ms=[compute_ms[k] for k in ks],
+            edge_ms=edge,
+            payload_kB=[payload_kB[k] for k in ks],
             t0_ms=fit.t0_ms,
             beta_ms_per_kB=fit.beta_ms_per_kB,
             gamma=g,
         )
-        rows.append({"gamma": g, "T_ms": [float(v) for v in t], "best_k": int(np.argmin(t))})
+        rows.append({"gamma": g, "T_ms": [float(v) for v in t], "best_k": ks[int(np.argmin(t))]})
     return {
+        "model": PAPER_MODEL if paper else FULL_MODEL,
         "link": asdict(fit),
-        "k": [c.k for c in CUTS],
-        "split_point": [c.name for c in CUTS],
-        "C_ms": list(map(float, compute_ms)),
-        "E_ms": list(map(float, edge_ms)),
-        "S_kB": list(map(float, payload_kB)),
+        "k": ks,
+        "split_point": [CUTS[k].name for k in ks],
+        "C_ms": [float(compute_ms[k]) for k in ks],
+        "E_ms": None if paper else edge,
+        "S_kB": [float(payload_kB[k]) for k in ks],
         "gammas": rows,
     }
 
@@ -163,13 +178,14 @@ def plot_costs(table: dict[str, Any], out: Path) -> None:
     ks = table["k"]
     for row in table["gammas"]:
         (line,) = ax.plot(ks, row["T_ms"], "o-", label=f"gamma = {row['gamma']:g}")
-        b = row["best_k"]
+        b = ks.index(row["best_k"])
         ax.plot([ks[b]], [row["T_ms"][b]], "*", ms=16, color=line.get_color(), markeredgecolor="k")
     ax.set_xticks(ks, [f"{k}\n{n}" for k, n in zip(ks, table["split_point"], strict=True)], fontsize=7)
     ax.set_xlabel("split point k")
     ax.set_ylabel("predicted latency T(k) (ms)")
     link = table["link"]
-    ax.set_title(f"T(k) = gamma C(k) + {link['t0_ms']:.1f} ms + {link['beta_ms_per_kB']:.3f} ms/kB S(k) + E(k)")
+    edge = "" if table.get("E_ms") is None else " + E(k)"
+    ax.set_title(f"T(k) = gamma C(k) + {link['t0_ms']:.1f} ms + {link['beta_ms_per_kB']:.3f} ms/kB S(k){edge}")
     ax.set_yscale("log")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3, which="both")
