@@ -407,3 +407,77 @@ def test_link_cost_paper_says_which_model_it_printed(tmp_path: Path, capsys: pyt
     assert rows == [str(k) for k in range(1, 8)]
     doc = json.loads(out.read_text())
     assert doc["k"] == list(range(1, 8)) and doc["E_ms"] is None and len(doc["C_measured_ms"]) == 7
+
+
+def test_up_link_takes_the_links_names_addresses_and_ports_from_the_config(tmp_path: Path) -> None:
+    """A researcher could not run `up --link` on other ports or beside a second emulation: the launcher
+    built the link with prefix st, 10.77/10.78 and ports 7447/7448 whatever the config said. The config's
+    [link] table now names the link and its addresses, its routers' listen endpoints give the ports (pure:
+    nothing is brought up)."""
+    from shared.tools.launch import _placement
+
+    repo = Path(__file__).resolve().parents[1]
+    config = tmp_path / "mine.toml"
+    config.write_text(
+        (repo / "deploy" / "local.toml").read_text().replace(":7447", ":34447").replace(":7448", ":34448")
+        + '\n[link]\nprefix = "fr"\nrobot_addr = "10.91.0.1"\nedge_addr = "10.91.0.2"\n'
+        'mgmt_root_addr = "10.92.0.5"\nmgmt_edge_addr = "10.92.0.6"\n'
+    )
+    services = ("camera", "robot_infer", "edge_infer", "slam", "controller")
+    topology, wrappers, emu = _placement(config, services, "5g")
+    assert emu is not None
+    s = emu.settings
+    assert (s.prefix, s.robot_ns, s.edge_ns, s.uplink_dev, s.tun_dev) == (
+        "fr",
+        "fr-robot",
+        "fr-edge",
+        "fr-vr",
+        "fr-tun",
+    )
+    assert (s.robot_addr, s.edge_addr, s.mgmt_root_addr, s.mgmt_edge_addr) == (
+        "10.91.0.1",
+        "10.91.0.2",
+        "10.92.0.5",
+        "10.92.0.6",
+    )
+    tables = topology.zenoh_tables()
+    assert tables["edge_infer"]["zenoh"]["listen"] == ["tcp/0.0.0.0:34447"]
+    assert tables["robot_infer"]["zenoh"]["listen"] == ["tcp/127.0.0.1:34448"]
+    assert tables["robot_infer"]["zenoh"]["connect"] == ["tcp/10.91.0.2:34447"]
+    assert tables["camera"]["zenoh"]["connect"] == ["tcp/127.0.0.1:34448"]
+    assert tables["monitor"]["connect"] == ["tcp/10.92.0.6:34447"]
+    assert wrappers["robot_infer"] == ["ip", "netns", "exec", "fr-robot"]
+    assert wrappers["controller"] == ["ip", "netns", "exec", "fr-robot"]
+    assert wrappers["slam"] == ["ip", "netns", "exec", "fr-edge"]
+    # without a [link] table: the defaults, still on the config's ports
+    config.write_text(config.read_text().split("\n[link]")[0])
+    topology, _, emu = _placement(config, services, "5g")
+    assert emu is not None and emu.settings.prefix == "st" and emu.settings.edge_addr == "10.77.0.2"
+    assert topology.zenoh_tables()["robot_infer"]["zenoh"]["connect"] == ["tcp/10.77.0.2:34447"]
+
+
+@pytest.mark.parametrize(
+    ("table", "said"),
+    [
+        ('prefix = "toolong"', "prefix: String should match pattern"),  # <prefix>-tun must fit 15 characters
+        ('prefix = "St"', "prefix: String should match pattern"),
+        ('edge_addr = "10.77.0.5"', "the uplink veth's two addresses 10.77.0.1 and 10.77.0.5 must be two addresses"),
+        (
+            'mgmt_root_addr = "10.77.0.1"\nmgmt_edge_addr = "10.77.0.2"',
+            "in different /30 subnets, both are 10.77.0.0/30",
+        ),
+        ('robot_addr = "10.77.0.3"\nedge_addr = "10.77.0.2"', "10.77.0.3 is the network or broadcast address"),
+        ('edge_addr = "10.77.0.256"', "edge_addr: Value error, Octet 256"),
+        ("rate = 3", "rate: Extra inputs are not permitted"),
+    ],
+)
+def test_a_bad_link_table_is_refused_in_one_line_before_anything_starts(tmp_path: Path, table: str, said: str) -> None:
+    from shared.tools.launch import LaunchError, _placement
+
+    config = tmp_path / "bad.toml"
+    config.write_text(f"[link]\n{table}\n")
+    with pytest.raises(LaunchError) as refused:
+        _placement(config, ("camera", "robot_infer", "edge_infer", "slam"), "5g")
+    assert refused.value.exit_code == 2
+    message = str(refused.value)
+    assert message.startswith(f"{config}: [link] ") and said in message and "\n" not in message, message

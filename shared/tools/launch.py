@@ -56,7 +56,7 @@ from shared.wire.messages import (
 )
 
 if TYPE_CHECKING:
-    from shared.tools.linkemu import LinkEmulator
+    from shared.tools.linkemu import LinkEmulator, LinkEmulatorSettings
 
 log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)
@@ -1084,12 +1084,17 @@ def _service_of_token(robot_id: str, services: tuple[str, ...], key: str) -> str
     return None
 
 
-def _remove_orphaned_link() -> str:
+def _remove_orphaned_link(run_config: Path) -> str:
     """The emulated link of a run whose launcher died (its namespaces and delay line stayed: a trial):
-    removed as the launcher would have, unless something else now uses it."""
+    removed as the launcher would have, unless something else now uses it. Which link: the run config's
+    [link] table (the default one without it)."""
     from shared.tools.linkemu import LinkEmulator, LinkEmulatorSettings, delay_line_owner, netns_pids
 
-    emu = LinkEmulator(LinkEmulatorSettings())
+    try:
+        settings = LinkEmulatorSettings.from_config(run_config) if run_config.is_file() else LinkEmulatorSettings()
+    except (OSError, ValueError) as exc:  # (LinkProfileError is a ValueError)
+        return f"left up: cannot tell which link the run had ({exc})"
+    emu = LinkEmulator(settings)
     s = emu.settings
     owners = [o for ns in (s.robot_ns, s.edge_ns) for p in netns_pids(ns) if (o := delay_line_owner(p)) is not None]
     if emu.services_inside() or owners:
@@ -1121,7 +1126,7 @@ def finish_orphaned_run(run_dir: Path, stopped: list[str], *, still_running: lis
     from shared.tools.linkemu import EVENTS_FILE
 
     if (run_dir / EVENTS_FILE).is_file() and not still_running:  # (the run had an emulated link)
-        summary["emulated_link"] = _remove_orphaned_link()
+        summary["emulated_link"] = _remove_orphaned_link(run_dir / "config.toml")
     for name in ("frames.csv", *sorted(p.name for p in run_dir.glob("frames_*.csv"))):
         if (run_dir / name).is_file():
             with (run_dir / name).open() as f:
@@ -1257,21 +1262,38 @@ def refuse_own_run_dir(config: Path) -> None:
 def _placement(
     config: Path, services: tuple[str, ...], link: str | None
 ) -> tuple[Topology, dict[str, list[str]], LinkEmulator | None]:
-    """Where the services run: loopback per the config, or both sides of an emulated uplink."""
-    from shared.tools.linkemu import LinkEmulator, LinkEmulatorSettings, in_netns
+    """Where the services run: loopback per the config, or both sides of an emulated uplink (its
+    namespaces and addresses from the config's [link] table, the ports from its routers' listen
+    endpoints)."""
+    from shared.tools.linkemu import LinkEmulator, LinkEmulatorSettings, LinkProfileError, in_netns
 
     own = Topology.from_config(config)
     if link is None:
         return own, {}, None
-    emu = LinkEmulator(LinkEmulatorSettings())
+    try:
+        emu = LinkEmulator(LinkEmulatorSettings.from_config(config))  # the config's [link] table
+    except LinkProfileError as exc:
+        raise LaunchError(str(exc), exit_code=2) from None
+    topology = emulated_topology(emu.settings, own)
     s = emu.settings
-    topology = Topology.emulated_link(edge_addr=s.edge_addr, mgmt_edge_addr=s.mgmt_edge_addr, protocol=own.protocol)
     if own.protocol == "tls":
         problem = link_certificate_problem(config, (s.edge_addr, s.mgmt_edge_addr))
         if problem is not None:
             raise LaunchError(problem, exit_code=2)
     side = {"camera": s.robot_ns, "robot_infer": s.robot_ns, "controller": s.robot_ns}
     return topology, {name: in_netns(side.get(name, s.edge_ns), []) for name in services}, emu
+
+
+def emulated_topology(link: LinkEmulatorSettings, own: Topology) -> Topology:
+    """The endpoints under --link: the emulated link's addresses (`link`, the config's [link] table) with
+    the config's own protocol and ports (`own`, Topology.from_config). Pure."""
+    return Topology.emulated_link(
+        edge_addr=link.edge_addr,
+        mgmt_edge_addr=link.mgmt_edge_addr,
+        protocol=own.protocol,
+        edge_port=own.edge_port,
+        robot_port=own.robot_port,
+    )
 
 
 def link_certificate_problem(config: Path, addresses: tuple[str, ...]) -> str | None:
@@ -1617,11 +1639,12 @@ def run_pipeline(
     `controller` adds the adaptive split controller. `link` (a profile name, root only) runs the robot
     side (camera, robot_infer, controller) and the edge side (edge_infer, slam) in the namespaces of
     an emulated uplink with that profile (switch it live with `splittag link set`), rewriting the
-    endpoints: edge router on tcp/0.0.0.0:7447, robot router connecting over the shaped veth.
+    endpoints: edge router on 0.0.0.0 at the config's edge port, robot router connecting over the shaped
+    veth; the link's prefix and addresses from the config's [link] table.
     `only` ("edge" or "robot", PARTS): this host's part of a two-host deployment; the other host runs
     the other part with the same config. The robot's part watches the poses at the robot's router.
     """
-    from shared.tools.linkemu import profile
+    from shared.tools.linkemu import DEFAULT_PREFIX, profile
 
     if only is not None:
         if only not in PARTS:
@@ -1651,10 +1674,11 @@ def run_pipeline(
         # (a secure deployment's operator shows its certificate: the monitor's folder holds the operator's)
         certs = f" --certs {Path(zs.tls.certificate).parent}" if zs.tls is not None else ""
         sudo = "" if os.geteuid() == 0 else "sudo "  # (a root shell may have no sudo at all: a trial)
+        prefix = "" if emu.settings.prefix == DEFAULT_PREFIX else f" --prefix {emu.settings.prefix}"
         print(
-            f"emulated link up: profile {link}; `{sudo}{cli} link set PROFILE` switches it live; the edge's router "
-            f"is {zs.connect[0]}: `{cli} split get --connect {zs.connect[0]}{certs}` (and set, release) steers the "
-            "split",
+            f"emulated link up: profile {link}; `{sudo}{cli} link set PROFILE{prefix}` switches it live; the edge's "
+            f"router is {zs.connect[0]}: `{cli} split get --connect {zs.connect[0]}{certs}` (and set, release) "
+            "steers the split",
             flush=True,
         )
     stop = threading.Event()

@@ -25,11 +25,13 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Mapping
+from ipaddress import IPv4Address, IPv4Interface
 from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from shared.tools.delayline import control_request
 
@@ -199,20 +201,84 @@ def _describe(pid: int) -> str:
     return f"pid {pid}: {text[:120]}"
 
 
+DEFAULT_PREFIX = "st"
+LINK_TABLE = "link"  # a run config's table of the emulated link's settings (`splittag up --link`)
+
+
 class LinkEmulatorSettings(BaseModel):
     """Names and addresses of the emulated link. A prefix keeps the namespaces and links of parallel
     emulations apart; the management address lives in the root namespace, so parallel emulations also
-    need their own `mgmt_root_addr` / `mgmt_edge_addr` (up() refuses an address another link holds)."""
+    need their own `mgmt_root_addr` / `mgmt_edge_addr` (up() refuses an address another link holds).
+    A run config's `[link]` table sets them for `splittag up/demo --link` (`from_config_doc`)."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    prefix: str = Field(default="st", pattern=r"^[a-z0-9]{1,6}$")
-    robot_addr: str = "10.77.0.1"
-    edge_addr: str = "10.77.0.2"
-    mgmt_root_addr: str = "10.78.0.1"
-    mgmt_edge_addr: str = "10.78.0.2"
+    prefix: str = Field(
+        default=DEFAULT_PREFIX,
+        # (<prefix>-tun and the other device names must fit Linux's 15-character interface names)
+        pattern=r"^[a-z0-9]{1,6}$",
+        description="names the namespaces (<prefix>-robot, <prefix>-edge) and the link's devices "
+        "(<prefix>-vr, -ve, -mr, -me, -tun); 1-6 lowercase letters or digits",
+    )
+    robot_addr: str = Field(default="10.77.0.1", description="the robot's end of the uplink")
+    edge_addr: str = Field(default="10.77.0.2", description="the edge's end of the uplink (the same /30 as robot_addr)")
+    mgmt_root_addr: str = Field(default="10.78.0.1", description="the root namespace's end of the management veth")
+    mgmt_edge_addr: str = Field(
+        default="10.78.0.2",
+        description="the edge's end of the management veth (the same /30 as mgmt_root_addr; tools reach the "
+        "edge's router here)",
+    )
     mtu: int = Field(default=4000, ge=1280, le=65000)
     tbf_limit_bytes: int = Field(default=8 * 1024 * 1024, gt=0)  # deep enough that TCP never sees a drop
+
+    @field_validator("robot_addr", "edge_addr", "mgmt_root_addr", "mgmt_edge_addr")
+    @classmethod
+    def _ipv4(cls, value: str) -> str:
+        return str(IPv4Address(value))  # (a ValueError names what is not an IPv4 address)
+
+    @model_validator(mode="after")
+    def _two_distinct_subnets(self) -> LinkEmulatorSettings:
+        """The uplink's ends share a /30, the management veth's ends another: each pair must be two host
+        addresses of one /30 (not its network or broadcast address), and the two /30s must differ (the
+        same subnet on both veths would route the tools' traffic onto the shaped link, or nowhere)."""
+        pairs = {"uplink": (self.robot_addr, self.edge_addr), "management": (self.mgmt_root_addr, self.mgmt_edge_addr)}
+        nets = {}
+        for name, (a, b) in pairs.items():
+            net = IPv4Interface(f"{a}/30").network
+            if IPv4Interface(f"{b}/30").network != net or a == b:
+                raise ValueError(f"the {name} veth's two addresses {a} and {b} must be two addresses of one /30")
+            for addr in (a, b):
+                if IPv4Address(addr) in (net.network_address, net.broadcast_address):
+                    raise ValueError(f"{addr} is the network or broadcast address of {net}: not usable on a veth")
+            nets[name] = net
+        if nets["uplink"] == nets["management"]:
+            raise ValueError(
+                f"the uplink and the management veth must be in different /30 subnets, both are {nets['uplink']}"
+            )
+        return self
+
+    @classmethod
+    def from_config_doc(cls, doc: Mapping[str, Any], *, source: str = "the config") -> LinkEmulatorSettings:
+        """The link's settings from a run config's `[link]` table (defaults where it has none); a bad one
+        raises LinkProfileError in one line, naming the table."""
+        from pydantic import ValidationError
+
+        from shared.runtime.errors import one_line_error
+
+        table = doc.get(LINK_TABLE, {})
+        if not isinstance(table, Mapping):
+            raise LinkProfileError(f"{source}: [{LINK_TABLE}] must be a table (prefix, robot_addr, edge_addr, ...)")
+        try:
+            return cls(**table)
+        except ValidationError as exc:
+            raise LinkProfileError(f"{source}: [{LINK_TABLE}] {one_line_error(exc)}") from None
+
+    @classmethod
+    def from_config(cls, config: Path) -> LinkEmulatorSettings:
+        """from_config_doc of a TOML file."""
+        import tomllib
+
+        return cls.from_config_doc(tomllib.loads(Path(config).read_text()), source=str(config))
 
     @property
     def robot_ns(self) -> str:

@@ -48,11 +48,27 @@ class Topology:
         return cls(edge_port=free_tcp_port(), robot_port=free_tcp_port(), protocol=protocol)
 
     @classmethod
-    def emulated_link(cls, *, edge_addr: str, mgmt_edge_addr: str, protocol: str = "tcp") -> Topology:
+    def emulated_link(
+        cls,
+        *,
+        edge_addr: str,
+        mgmt_edge_addr: str,
+        protocol: str = "tcp",
+        edge_port: int = EDGE_PORT,
+        robot_port: int = ROBOT_PORT,
+    ) -> Topology:
         """Robot and edge sides in the emulated uplink's namespaces (shared.tools.linkemu): the robot
         reaches the edge over the shaped veth, tools over the management veth, in the config's
-        `protocol` (a secure config's tls/ stays TLS: a trial's went plain tcp/ and nothing connected)."""
-        return cls(edge_bind="0.0.0.0", edge_from_robot=edge_addr, edge_from_tools=mgmt_edge_addr, protocol=protocol)
+        `protocol` (a secure config's tls/ stays TLS: a trial's went plain tcp/ and nothing connected)
+        and on its ports (`splittag up --link` used 7447 / 7448 whatever the config said)."""
+        return cls(
+            edge_port=edge_port,
+            robot_port=robot_port,
+            edge_bind="0.0.0.0",
+            edge_from_robot=edge_addr,
+            edge_from_tools=mgmt_edge_addr,
+            protocol=protocol,
+        )
 
     @classmethod
     def from_config(cls, config: Path) -> Topology:
