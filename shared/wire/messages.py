@@ -17,7 +17,7 @@ import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Annotated, Any, ClassVar, Final, Generic, Literal, Self, TypeVar, cast
+from typing import Annotated, Any, ClassVar, Final, Generic, Literal, Self, TypeAlias, TypeVar, cast, get_args
 
 import numpy as np
 from numpy.typing import NDArray
@@ -717,42 +717,24 @@ MESSAGE_TYPES: Final[tuple[type[Message], ...]] = (
     FrameStamp,
 )
 SCHEMAS: Final[dict[str, type[Message]]] = {m.SCHEMA: m for m in MESSAGE_TYPES}
-# Older versions still accepted: each has `upgrade()` to the current message of its name.
-LEGACY_SCHEMAS: Final[
-    dict[
-        str,
-        type[TagPosesV1]
-        | type[TagPosesV2]
-        | type[TagPosesV3]
-        | type[ProbeAckV1]
-        | type[ComputeProfileV1]
-        | type[ControllerStateV1]
-        | type[FeaturesV1]
-        | type[FeaturesV2]
-        | type[FeaturesV3]
-        | type[CameraPoseV1]
-        | type[CameraPoseV2]
-        | type[TagMapV1]
-        | type[TagMapV2],
-    ]
-] = {
-    m.SCHEMA: m
-    for m in (
-        TagPosesV1,
-        TagPosesV2,
-        TagPosesV3,
-        ProbeAckV1,
-        ComputeProfileV1,
-        ControllerStateV1,
-        FeaturesV1,
-        FeaturesV2,
-        FeaturesV3,
-        CameraPoseV1,
-        CameraPoseV2,
-        TagMapV1,
-        TagMapV2,
-    )
-}
+# Older versions still accepted: each has `upgrade()` to the current message of its name. The union is
+# the one list: LEGACY_SCHEMAS is read from it, and its type says every value has `upgrade()`.
+LegacyMessage: TypeAlias = (
+    TagPosesV1
+    | TagPosesV2
+    | TagPosesV3
+    | ProbeAckV1
+    | ComputeProfileV1
+    | ControllerStateV1
+    | FeaturesV1
+    | FeaturesV2
+    | FeaturesV3
+    | CameraPoseV1
+    | CameraPoseV2
+    | TagMapV1
+    | TagMapV2
+)
+LEGACY_SCHEMAS: Final[dict[str, type[LegacyMessage]]] = {m.SCHEMA: m for m in get_args(LegacyMessage)}
 _CURRENT_BY_NAME: Final[dict[str, type[Message]]] = {m.SCHEMA.rpartition("/")[0]: m for m in MESSAGE_TYPES}
 ENVELOPE_KEYS: Final[frozenset[str]] = frozenset({"schema", "body"})
 
