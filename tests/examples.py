@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+from typing import Final
+
 import numpy as np
 
 from shared.wire.messages import (
+    LEGACY_SCHEMAS,
+    SCHEMAS,
     CameraIntrinsics,
     CameraPose,
     ComputeProfile,
@@ -232,12 +236,24 @@ def _covariance6() -> np.ndarray:
     return a @ a.T * 1e-4 + np.diag([4e-4, 4e-4, 9e-4, 1e-5, 1e-5, 4e-5])
 
 
+# The framings golden files are kept in: 3 is what encode writes, 2 and 1 what older peers send.
+GOLDEN_FRAMINGS: Final[tuple[int, ...]] = (1, 2, 3)
+
+
 def golden_name(schema: str, framing: int = 3) -> str:
     """Path of a schema's golden bytes under tests/golden/: framing3/ (what encode writes, regenerated on
     purpose), framing2/ (named header, tensors out of band) or framing1/ (plain msgpack); the last two
-    are frozen: older peers' bytes must keep decoding."""
+    are frozen: older peers' bytes must keep decoding (`regenerate --missing` adds a new version's, never
+    rewrites one)."""
     name = schema.replace("splittag/", "").replace("/", "_")
     return f"framing1/{name}.msgpack" if framing == 1 else f"framing{framing}/{name}.splittag"
+
+
+def golden_names() -> set[str]:
+    """Every golden file the tests read: each current schema in every framing, and each legacy version in
+    framing 1 (its bytes from when it was current; test_wire's legacy test decodes them)."""
+    current = {golden_name(schema, framing) for schema in SCHEMAS for framing in GOLDEN_FRAMINGS}
+    return current | {golden_name(schema, framing=1) for schema in LEGACY_SCHEMAS}
 
 
 def assert_messages_equal(a: Message, b: Message) -> None:
