@@ -56,7 +56,7 @@ def test_the_wire_document_gives_every_schemas_field_order() -> None:
     # Independent of the generator: TagPoses' fields as the model declares them, in order.
     from shared.wire.messages import TagPoses
 
-    section = text[text.index("**`splittag/TagPoses/v4`**") :]
+    section = text[text.index(f"**`{TagPoses.SCHEMA}`**") :]
     section = section[: section.index("\n\n**`")]
     top = [line.split("`")[1] for line in section.splitlines() if line[:1].isdigit()]
     assert top == list(TagPoses.model_fields)

@@ -10,6 +10,20 @@ import pytest
 from shared.transport.access import AccessControlSettings, access_control_config
 from shared.transport.session import ZenohSettings, build_config
 from shared.wire import keys
+from shared.wire.messages import (
+    CameraPose,
+    ComputeProfile,
+    ControllerState,
+    Features,
+    Frame,
+    FrameSent,
+    FrameStamp,
+    Message,
+    TagMap,
+    TagPoses,
+)
+
+REPO = Path(__file__).resolve().parent.parent
 
 
 def test_shared_memory_and_multicast_off_by_default() -> None:
@@ -86,7 +100,7 @@ def test_missing_config_file_is_a_clear_error(tmp_path: Path) -> None:
 
 
 def test_keys_are_versioned_and_under_root() -> None:
-    assert keys.features("r1") == "splittag/r1/features/v4"
+    assert keys.features("r1") == f"splittag/r1/features/{_version(Features)}"
     assert keys.split("r1") == "splittag/r1/split"
     assert keys.alive("r1", "edge_infer") == "splittag/r1/alive/edge_infer"
     for bad in ["", "a/b", "*", "a b"]:
@@ -98,6 +112,45 @@ def test_keys_are_versioned_and_under_root() -> None:
         True,
         False,
     ]
+
+
+def _version(model: type[Message]) -> str:
+    """The version a schema id ends in (`v4` of splittag/Features/v4)."""
+    return model.SCHEMA.rpartition("/")[2]
+
+
+# The message each data topic of shared.wire.keys carries (the function's docstring names it first).
+KEY_MESSAGES: dict[str, type[Message]] = {
+    "frames": Frame,
+    "ground_truth": CameraPose,
+    "frame_stamp": FrameStamp,
+    "features": Features,
+    "tag_poses": TagPoses,
+    "frame_sent": FrameSent,
+    "camera_pose": CameraPose,
+    "tag_map": TagMap,
+    "compute": ComputeProfile,
+    "controller": ControllerState,
+}
+
+
+def test_every_data_keys_version_is_its_messages_schema_version() -> None:
+    """A data topic ends in the schema version of its message, so a v2 publisher never feeds a v1
+    subscriber (keys.py): a key left at frame_sent/v1 while FrameSent was v2 passed every test. The key
+    function's docstring (`FrameSent v1: ...`) and the README's key table say the same version."""
+    readme = (REPO / "README.md").read_text()
+    data = _data_keys("r1")
+    named = {name.split(":")[0] for name in data}
+    assert named == set(KEY_MESSAGES), f"data keys without their message in KEY_MESSAGES: {named ^ set(KEY_MESSAGES)}"
+    for name, key in data.items():
+        function = name.split(":")[0]
+        model = KEY_MESSAGES[function]
+        assert key.rpartition("/")[2] == _version(model), f"keys.{function}() is {key}, its message {model.SCHEMA}"
+        message = model.SCHEMA.split("/")[1]
+        doc = getattr(keys, function).__doc__ or ""
+        assert doc.startswith(f"{message} {_version(model)}"), f"keys.{function}'s docstring: {doc.split(':')[0]}"
+        topic = key.split("/", 2)[2]  # after splittag/<robot_id>/
+        assert f"/{topic}`" in readme, f"README's key table lacks splittag/<robot_id>/{topic}"
 
 
 def test_access_rules_per_role() -> None:
@@ -158,7 +211,7 @@ def test_access_rules_cover_the_keys_the_services_use() -> None:
     acl = access_control_config(AccessControlSettings(enabled=True))
     rules = {r["id"]: r["key_exprs"] for r in acl["rules"]}
     data = _data_keys("r1")
-    assert {"tag_map:splittag/r1/map/v3", "frame_stamp:splittag/r1/frame_stamp/v1"} <= set(data)
+    assert {f"tag_map:{keys.tag_map('r1')}", f"frame_stamp:{keys.frame_stamp('r1')}"} <= set(data)
     named = {k.split(":")[0] for k in data}
     assert named >= {"frames", "features", "tag_poses", "camera_pose", "compute", "controller"}
     publishers = {
