@@ -1,7 +1,8 @@
 """Every Zenoh key expression splittag uses, in one place (documented in the README).
 
 Data topics end in the schema version of the message they carry, so a v2 publisher never feeds a
-v1 subscriber; control keys (split, alive, echo) carry their schema in the Zenoh encoding instead.
+v1 subscriber (tests/test_transport.py holds each key, its docstring and the README's key table to its
+message's version); control keys (split, alive, echo) carry their schema in the Zenoh encoding instead.
 """
 
 from __future__ import annotations
