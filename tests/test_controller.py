@@ -327,7 +327,7 @@ def test_controller_service_rejects_bad_messages_and_keeps_running(
 
     from services.controller.service import run
     from services.controller.settings import ControllerSettings
-    from shared.transport.session import ZenohSettings, free_tcp_port, open_session
+    from shared.transport.session import ZenohSettings, free_tcp_port, open_session, wait_for_liveliness
     from shared.wire import keys
 
     port = free_tcp_port()
@@ -339,7 +339,8 @@ def test_controller_service_rejects_bad_messages_and_keeps_running(
     caplog.set_level(logging.WARNING, logger="services.controller.service")
     worker.start()
     try:
-        time.sleep(1.0)
+        # The token is declared after the subscribers, so once it is seen the puts below reach them.
+        wait_for_liveliness(hub, [keys.alive("ctl1", "controller")], timeout_secs=30)
         hub.put(keys.tag_poses("ctl1"), b"not msgpack at all")
         hub.put(keys.compute("ctl1", "edge"), encode(_profile("edge", [1.0] * 8))[:-5])  # truncated
         hub.put(keys.compute("ctl1", "robot"), encode(_profile("robot", [1.0] * 8)))  # robot r1's, on ctl1's key
