@@ -97,8 +97,13 @@ def run(settings: RobotInferSettings, *, session: zenoh.Session, stop: threading
 class RobotInfer:
     """The robot side: its model, split state, flow-control window, edge watch and Zenoh endpoints."""
 
-    def __init__(self, settings: RobotInferSettings, session: zenoh.Session) -> None:
+    def __init__(
+        self, settings: RobotInferSettings, session: zenoh.Session, *, clock: Callable[[], float] = time.monotonic
+    ) -> None:
+        """`clock` (monotonic seconds) times the frames in flight: the window, the edge watch and the pacer
+        (a test moves it by hand, so an answer is overdue by the clock, not by how fast the CPU is)."""
         self.settings = s = settings
+        self._clock = clock
         one_view = load_split_net(s.weights, s.precision, threads=s.threads)
         self.net = with_views(one_view, s.views)
         self.fusion = load_keypoint_fusion(s.weights) if s.fuse_corners else None
@@ -126,17 +131,21 @@ class RobotInfer:
         self.tracker = TagTracker(s.tracking) if s.tracking.enabled else None
         self.tag_map = load_tag_map(s.tag_map) if s.tag_map else TagMapFile(default_size_m=s.default_tag_size_m)
         # Each frame in flight keeps its Features: if its edge vanishes, the robot computes it on board.
-        self.window: InFlightWindow[Features] = InFlightWindow(s.max_in_flight, timeout_secs=s.in_flight_timeout_secs)
+        self.window: InFlightWindow[Features] = InFlightWindow(
+            s.max_in_flight, timeout_secs=s.in_flight_timeout_secs, clock=clock
+        )
         self._expected: OrderedDict[int, None] = OrderedDict()  # frames sent to the edge, not yet answered
         self._expected_lock = threading.Lock()
         uplink = UplinkQueue() if s.pace_to_link else None  # the uplink as a queue, not a delay
         paced = s.pace_to_edge and s.max_in_flight
         self.pacer = (
-            EdgePacer(uplink=uplink, stale_secs=s.in_flight_timeout_secs, margin_spreads=s.pace_margin_spreads)
+            EdgePacer(
+                uplink=uplink, stale_secs=s.in_flight_timeout_secs, margin_spreads=s.pace_margin_spreads, clock=clock
+            )
             if paced
             else None
         )
-        self.watch = EdgeWatch(answer_timeout_secs=s.edge_answer_timeout_secs)
+        self.watch = EdgeWatch(answer_timeout_secs=s.edge_answer_timeout_secs, clock=clock)
         self.guard = InputGuard("robot_infer")
         persist_input_counts(self.guard, s.run_dir, label=s.robot_id)
         # stage 1 of the next frame while the network runs (settings.overlap_stage1)
@@ -379,7 +388,7 @@ class RobotInfer:
         self.rest_secs += 0.3 * (compute_secs - stage1 - self.rest_secs)
         features = self._features(frame, tags, split.k, split.codec, compute_secs)
         wire = encode(features)
-        sent_nanos, sent_at = time.time_ns(), time.monotonic()
+        sent_nanos, sent_at = time.time_ns(), self._clock()
         key = frame.capture_nanos  # unique and in send order across camera sessions (see _on_poses)
         with self._expected_lock:  # (before the put: the answer may come before send returns)
             self._expected[key] = None
