@@ -222,7 +222,10 @@ def serve_split(
             # A wildcard get beyond the split keys (`splittag/r1/**`, `splittag/r1/split/*`) reaches this
             # queryable past access control's deny rules, which apply to the keys they include, so any
             # identity read the split that way (an adversarial trial, as the secure config's camera). Reads
-            # are answered only on keys those rules include, as the operator's tools ask: none here.
+            # are answered only on keys those rules include, as the operator's tools ask: none here. This is
+            # also what a wildcard that only overlaps `split/**` gets (`splittag/<robot>/*/stats` reaches
+            # `split/stats`): it asks for something else, and an error reply beside the services' stats was
+            # a fresh-clone trial's finding.
             query.drop()  # (finalised: the asker is told there are no more replies)
             return
         try:
@@ -245,13 +248,12 @@ def serve_split(
         asked_key = zenoh.KeyExpr(asked)
         on = key if asked_key.intersects(zenoh.KeyExpr(key)) else auto
         if not asked_key.intersects(zenoh.KeyExpr(on)):
-            if not keys.is_wildcard(asked):  # a key of its own that names no split: a mistake
-                query.reply_err(
-                    f"{asked}: the split is read on {key} or {auto}".encode(), encoding=zenoh.Encoding.TEXT_PLAIN
-                )
-            # A wildcard that only overlaps `split/**` (`splittag/<robot>/*/stats` reaches `split/stats`)
-            # asks for something else: this queryable has no answer for it, not an error (found by a
-            # fresh-clone trial: the services' stats came with an error reply beside them).
+            # A key of its own beneath split/ that names no split: a mistake, said. (No wildcard gets here:
+            # a read through one is dropped above unless access control's split rules include it, and those
+            # reach `key` or `auto`; a set through one is refused above.)
+            query.reply_err(
+                f"{asked}: the split is read on {key} or {auto}".encode(), encoding=zenoh.Encoding.TEXT_PLAIN
+            )
             return
         query.reply(on, encode(applied, framing=framing), encoding=enc)
 
