@@ -1,6 +1,7 @@
-"""The layers stay layers: `shared/` packages import only lower layers (or themselves), and the
-processes that never run the network do not import torch or MuJoCo (ruff's banned-api rule checks
-the source; this checks what a process really loads, transitive imports included)."""
+"""The layers stay layers: `shared/` packages import only lower layers (or themselves) and never the
+services, benchmarks or tests above them, and the processes that never run the network do not import
+torch or MuJoCo (ruff's banned-api rule checks the source; this checks what a process really loads,
+transitive imports included)."""
 
 from __future__ import annotations
 
@@ -31,20 +32,54 @@ LAYERS: dict[str, int] = {
 }
 
 
-def _shared_imports(path: Path) -> list[tuple[int, str]]:
-    """(line, package) for every `shared.<package>` import in a file, function-level ones included."""
+# shared/ is the library beneath the services, benchmarks and tests: it imports none of them.
+ABOVE_SHARED = ("services", "bench", "tests")
+# The deliberate exceptions, each by file and module it loads, with why.
+ALLOWED_UPWARD_IMPORTS: dict[tuple[str, str], str] = {
+    ("shared/tools/settings_doc.py", "services.{}.settings"): (
+        "`splittag settings` and docs/services.md print each service's settings class, which lives with its "
+        "service; loaded by name (importlib) only when asked, so nothing in shared/ depends on services/ to import"
+    ),
+}
+
+
+def _imports(path: Path) -> list[tuple[int, str]]:
+    """(line, module) for every absolute import in a file, function-level ones included, and every module
+    loaded by name (`importlib.import_module` / `__import__` with a literal or f-string: `{}` for each
+    formatted part)."""
     out = []
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.ImportFrom):
             names = [node.module] if node.module and node.level == 0 else []
         elif isinstance(node, ast.Import):
             names = [a.name for a in node.names]
+        elif isinstance(node, ast.Call) and node.args and _call_name(node.func) in ("import_module", "__import__"):
+            names = [name] if (name := _literal_text(node.args[0])) is not None else []
         else:
             continue
-        for name in names:
-            parts = name.split(".")
-            if parts[0] == "shared" and len(parts) > 1:
-                out.append((node.lineno, parts[1]))
+        out.extend((node.lineno, name) for name in names)
+    return out
+
+
+def _call_name(func: ast.expr) -> str | None:
+    return func.attr if isinstance(func, ast.Attribute) else func.id if isinstance(func, ast.Name) else None
+
+
+def _literal_text(arg: ast.expr) -> str | None:
+    if isinstance(arg, ast.Constant) and isinstance(arg.value, str):
+        return arg.value
+    if isinstance(arg, ast.JoinedStr):
+        return "".join(v.value if isinstance(v, ast.Constant) else "{}" for v in arg.values)
+    return None
+
+
+def _shared_imports(path: Path) -> list[tuple[int, str]]:
+    """(line, package) for every `shared.<package>` import in a file, function-level ones included."""
+    out = []
+    for line, name in _imports(path):
+        parts = name.split(".")
+        if parts[0] == "shared" and len(parts) > 1:
+            out.append((line, parts[1]))
     return out
 
 
@@ -66,6 +101,23 @@ def test_lower_layers_never_import_higher_ones() -> None:
             if pkg not in LAYERS or LAYERS[pkg] >= LAYERS[own]:
                 bad.append(f"{path.relative_to(REPO)}:{line} ({own}, layer {LAYERS[own]}) imports shared.{pkg}")
     assert not bad, "\n".join(bad)
+
+
+def test_shared_never_imports_services_bench_or_tests() -> None:
+    """A module of shared/ importing a service, a benchmark or a test inverts the layers (and breaks the
+    light install, which has no services/, bench/ or tests/). Only the named exceptions above."""
+    bad, used = [], set()
+    for path in sorted(SHARED.rglob("*.py")):
+        where = path.relative_to(REPO).as_posix()
+        for line, name in _imports(path):
+            if name.split(".")[0] not in ABOVE_SHARED:
+                continue
+            if (where, name) in ALLOWED_UPWARD_IMPORTS:
+                used.add((where, name))
+            else:
+                bad.append(f"{where}:{line} imports {name}")
+    assert not bad, "\n".join(bad)
+    assert used == set(ALLOWED_UPWARD_IMPORTS), f"exceptions no longer needed: {set(ALLOWED_UPWARD_IMPORTS) - used}"
 
 
 @pytest.mark.parametrize("service", ["controller", "slam", "camera"])
