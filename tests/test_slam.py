@@ -172,12 +172,13 @@ def test_world_covariance_is_the_graphs_tangent_covariance_in_the_world_frame() 
 def test_each_pose_says_how_sure_it_is() -> None:
     """Noisy keypoints (0.5 px, the noise model's floor) through real PnP, on a path the motion prior
     holds (constant velocity): every pose has a symmetric positive-definite covariance, the position
-    errors lie inside its 95 % ellipsoid about as often as they should, and while only the farthest
-    mapped tag is in view the position grows less sure."""
+    errors lie inside its 95 % ellipsoid about as often as they should but the ellipsoid is not inflated
+    past use (the errors' median NEES), and while only the farthest mapped tag is in view the position
+    grows less sure."""
     rng = np.random.default_rng(1)
     anchor = SCENE.tags[3]
     slam = MarkerSlam(SlamSettings(anchor_tag_id=anchor.id), known_tags={anchor.id: (anchor.size_m, anchor.pose())})
-    inside: list[bool] = []
+    nees: list[float] = []  # normalised estimation error squared of each position (chi2(3) if the covariance is right)
     sigma_m: dict[int, float] = {}
     for i, wfc in enumerate(_constant_velocity(60)):
         seen = _visible(wfc)
@@ -193,14 +194,21 @@ def test_each_pose_says_how_sure_it_is() -> None:
         np.testing.assert_allclose(cov, cov.T)
         assert np.linalg.eigvalsh(cov).min() > 0
         err = res.world_from_camera[:3, 3] - wfc[:3, 3]
-        inside.append(float(err @ np.linalg.solve(cov[:3, :3], err)) <= 7.815)  # chi2(3) 95 %
+        nees.append(float(err @ np.linalg.solve(cov[:3, :3], err)))
         sigma_m[i] = float(np.sqrt(np.trace(cov[:3, :3])))
-    assert len(inside) >= 45 and all(i in sigma_m for i in range(24, 35))
+    inside = np.asarray(nees) <= 7.815  # chi2(3) 95 %
+    assert len(nees) >= 45 and all(i in sigma_m for i in range(24, 35))
     print(
-        f"inside the 95 % ellipsoid: {100 * np.mean(inside):.0f} %; position sigma before / after ten frames "
-        f"of the farthest tag alone: {100 * sigma_m[24]:.1f} / {100 * sigma_m[34]:.1f} cm"
+        f"inside the 95 % ellipsoid: {100 * np.mean(inside):.0f} %; median NEES {np.median(nees):.2f} "
+        f"(chi2(3): 2.37); position sigma before / after ten frames of the farthest tag alone: "
+        f"{100 * sigma_m[24]:.1f} / {100 * sigma_m[34]:.1f} cm"
     )
     assert np.mean(inside) >= 0.9
+    # From the other side: a covariance k times too large divides NEES by k, and the 95 % check above
+    # passes for any k > 1. Measured with this path and noise: median NEES 2.23 (seed 1); over seeds 1-20,
+    # a far bigger perturbation than another CPU's rounding, 0.46 to 3.80 as shipped, at most 0.38 with the
+    # covariance x10 and 0.038 x100. The floor sits between: 0.4.
+    assert np.median(nees) >= 0.4
     assert sigma_m[34] > 1.3 * sigma_m[24]
 
 
