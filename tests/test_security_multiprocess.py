@@ -161,7 +161,10 @@ def test_only_authorised_identities_steer_and_publish(tmp_path: Path, certs: Pat
             # subscriber of that robot, and a queryable on splittag/** would answer every get.
             camera.put(f"splittag/{ROBOT}/**", injected_tag_poses(ROBOT, seq=2**39))
             fake = camera.declare_queryable("splittag/**", lambda q: q.reply(q.key_expr, b"{}"))
-            time.sleep(1.0)
+            # Readiness, not a sleep: a get the camera sends after the declaration, answered, has passed the
+            # edge router (the operator's too) after the declaration on the same link; were the declaration
+            # let through, the operator's get below would reach the fake queryable.
+            assert "accepted" in service_stats(camera, ROBOT, "slam", timeout_secs=10)
             every = zenoh.ConsolidationMode.NONE  # each reply, not the latest per key
             got = [
                 r.ok.payload.to_bytes()
