@@ -47,7 +47,7 @@ def _imports(path: Path) -> list[tuple[int, str]]:
     """(line, module) for every absolute import in a file, function-level ones included, and every module
     loaded by name (`importlib.import_module` / `__import__` with a literal or f-string: `{}` for each
     formatted part)."""
-    out = []
+    out: list[tuple[int, str]] = []
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.ImportFrom):
             names = [node.module] if node.module and node.level == 0 else []
@@ -69,7 +69,7 @@ def _literal_text(arg: ast.expr) -> str | None:
     if isinstance(arg, ast.Constant) and isinstance(arg.value, str):
         return arg.value
     if isinstance(arg, ast.JoinedStr):
-        return "".join(v.value if isinstance(v, ast.Constant) else "{}" for v in arg.values)
+        return "".join(str(v.value) if isinstance(v, ast.Constant) else "{}" for v in arg.values)
     return None
 
 
