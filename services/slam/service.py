@@ -568,7 +568,7 @@ class SlamNode:
             state = self.slam.state
             frames, lost, rejected = state.frames, state.lost, state.rejected_ambiguous
             fragments, jumps = state.fragments, state.jumps
-            disagreeing = {str(t): round(100 * m, 1) for t, m in sorted(state.map_disagreement_m.items())}
+            disagreeing = {f"{a}-{b}": round(100 * m, 1) for (a, b), m in sorted(state.map_disagreement_m.items())}
             observations = dict(state.observations)
             soft_skipped, soft_localised = state.soft_reads_skipped, state.soft_reads_localised
             tracked_skipped, tracked_localised = state.tracked_skipped, state.tracked_localised
@@ -613,7 +613,8 @@ class SlamNode:
             "rejected_ambiguous": rejected,
             "fragments": fragments,  # map fragments begun after long gaps without tags
             "jumps": jumps,  # frames placed away from the motion by their views (SlamSettings.jump_margin_m)
-            # surveyed tags whose views place them > 5 cm from the tag map (median cm): a map wrong there
+            # pairs of surveyed tags ("a-b") the views put > 5 cm further apart (or closer: negative) than the
+            # tag map does, median cm: a map wrong there
             "map_disagreement_cm": disagreeing,
             "soft_reads_skipped": soft_skipped,  # blind soft reads left out (SlamSettings.soft_reads)
             "soft_reads_localised": soft_localised,  # soft reads that placed the camera against a known tag

@@ -241,9 +241,9 @@ class SlamState:
     tracked_skipped: int = 0  # tracked views left out (SlamSettings.tracked_reads)
     tracked_localised: int = 0  # tracked views that placed the camera against a mapped tag ("localise")
     jumps: int = 0  # frames whose views placed the camera beyond the motion envelope (SlamSettings.jump_margin_m)
-    # surveyed tags whose views put them this far (m, median) from where the map says, in frames placed
-    # by several tags (MarkerSlam.MAP_DISAGREEMENT_M): a map taken as surveyed that is wrong there
-    map_disagreement_m: dict[int, float] = field(default_factory=dict)
+    # pairs of surveyed tags whose views put them this much further apart (m, median; negative: closer)
+    # than the map does (MarkerSlam.MAP_DISAGREEMENT_M): a map taken as surveyed that is wrong there
+    map_disagreement_m: dict[tuple[int, int], float] = field(default_factory=dict)
 
 
 def _central(poses: list[Array]) -> Array:
@@ -447,10 +447,11 @@ class _Track:
 
 
 class MarkerSlam:
-    # A surveyed tag whose views place it this far from its map pose (median of the last MAP_CHECK_VIEWS
-    # frames placed by several tags) is said once: an EKF integrator's trial moved one tag of a surveyed
-    # map by 15 cm, the frames that saw it were 35 cm off (up to 65) and nothing said why. (The true map on
-    # a fast blurred room: the views' median disagreement stays at a few cm.)
+    # Two surveyed tags whose views put them this much further apart or closer than the map does (median
+    # of their last MAP_CHECK_VIEWS views together) are said once: an EKF integrator's trial moved one tag
+    # of a surveyed map by 15 cm, the frames that saw it were 35 cm off (up to 65) and nothing said why.
+    # Distances, not where the frame's pose puts a tag: a pose the motion prior pulled off in a sharp turn
+    # put a tag of the exact map 5.2 cm off (a first version said so).
     MAP_DISAGREEMENT_M = 0.05
     MAP_CHECK_VIEWS = 20
     """Incremental marker SLAM (see module docstring)."""
@@ -481,8 +482,8 @@ class MarkerSlam:
         self._fragments = _Fragments()
         self._tag_fragment: dict[int, int] = {}  # tag id -> the fragment it was mapped in
         self._fragment_links: dict[int, int] = {}  # fragment -> its weak link's factor index in iSAM2
-        # surveyed tag -> how far its latest views in frames placed by several tags put it from the map (m)
-        self._map_views: dict[int, deque[float]] = {}
+        # pair of surveyed tags -> their latest views' distance apart less the map's (m)
+        self._map_views: dict[tuple[int, int], deque[float]] = {}
         self._new_isam()
         if settings.localisation_only:
             if not self.known:
@@ -958,8 +959,7 @@ class MarkerSlam:
             self.isam.update()
         self._estimate = self.isam.calculateEstimate()
         pose = self._pose(track, frame)
-        if used >= 2:
-            self._check_map(pose, surveyed_views)
+        self._check_map(surveyed_views)
         covariance = self._covariance_world(track, frame, pose)
         track.stamps[frame] = stamp_nanos
         if sum(len(t.stamps) for t in self._tracks.values()) >= s.window_frames:
@@ -967,28 +967,32 @@ class MarkerSlam:
         status: Literal["tracking", "bridged"] = "tracking" if self._tied(fragment) else "bridged"
         return FrameResult(pose, status, used, rejected, map_changed, covariance)
 
-    def _check_map(self, world_from_camera: Array, views: list[tuple[int, Array]]) -> None:
-        """Where this frame's views put each surveyed tag against where the map has it (a frame placed by
-        several tags): a tag that stays MAP_DISAGREEMENT_M off is said once and kept in the state."""
-        for tag_id, camera_from_tag in views:
-            seen = (world_from_camera @ camera_from_tag)[:3, 3]
-            off = float(np.linalg.norm(seen - self.known[tag_id][1][:3, 3]))
-            recent = self._map_views.setdefault(tag_id, deque(maxlen=self.MAP_CHECK_VIEWS))
-            recent.append(off)
-            median = float(np.median(recent))
-            if len(recent) < self.MAP_CHECK_VIEWS or median <= self.MAP_DISAGREEMENT_M:
-                self.state.map_disagreement_m.pop(tag_id, None)
-                continue
-            if tag_id not in self.state.map_disagreement_m:
-                logging.getLogger(__name__).warning(
-                    "slam: tag %d is seen %.1f cm from where the tag map puts it (median of its last %d views in "
-                    "frames placed by several tags), and the map states it as surveyed: if the map is only "
-                    "roughly right there, give the tag its position_sigma_m / rotation_sigma_deg (or fix it)",
-                    tag_id,
-                    100 * median,
-                    len(recent),
-                )
-            self.state.map_disagreement_m[tag_id] = median
+    def _check_map(self, views: list[tuple[int, Array]]) -> None:
+        """How far apart this frame's views put each pair of surveyed tags against the map's distance
+        between them (positions in the camera are sure where a far tag's tilt is not, and the camera's own
+        error cancels): a pair that stays MAP_DISAGREEMENT_M off is said once and kept in the state."""
+        for i, (a, camera_from_a) in enumerate(views):
+            for b, camera_from_b in views[i + 1 :]:
+                pair = (min(a, b), max(a, b))
+                seen = float(np.linalg.norm(camera_from_a[:3, 3] - camera_from_b[:3, 3]))
+                mapped = float(np.linalg.norm(self.known[a][1][:3, 3] - self.known[b][1][:3, 3]))
+                recent = self._map_views.setdefault(pair, deque(maxlen=self.MAP_CHECK_VIEWS))
+                recent.append(seen - mapped)
+                median = float(np.median(recent))
+                if len(recent) < self.MAP_CHECK_VIEWS or abs(median) <= self.MAP_DISAGREEMENT_M:
+                    self.state.map_disagreement_m.pop(pair, None)
+                    continue
+                if pair not in self.state.map_disagreement_m:
+                    logging.getLogger(__name__).warning(
+                        "slam: the views put tags %d and %d %.1f cm %s than the tag map does (median of their last "
+                        "%d views together), and the map states both as surveyed: if it is only roughly right "
+                        "there, give its tags position_sigma_m / rotation_sigma_deg (or fix it)",
+                        *pair,
+                        100 * abs(median),
+                        "further apart" if median > 0 else "closer",
+                        len(recent),
+                    )
+                self.state.map_disagreement_m[pair] = median
 
     def _count_blind(self, o: Observation, *, localised: bool) -> None:
         """Count a blind read (a soft read or a tracked view that is not fused) as localised or skipped."""
