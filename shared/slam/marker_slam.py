@@ -108,7 +108,7 @@ class SlamSettings(BaseModel):
     # whose motion is smooth and whose far blurred views the prior holds back, it is worse (fast room
     # without a map 7.97 -> 16.95 cm, with it 2.64 -> 3.10): docs/slam.md, Motion kernel.
     motion_kernel: Literal["gaussian", "cauchy"] = "gaussian"
-    motion_kernel_k: float = Field(default=1.0, gt=0)
+    motion_kernel_k: float = Field(default=1.0, gt=0)  # (above) the Cauchy scale, in whitened sigmas
     # The constant-velocity prior bridges at most this many frames (0.5 s at 30 fps): extrapolated further
     # under a fast camera (25 deg/s) the guess is off by tens of cm, and a new tag mapped from it stays
     # wrong for good (bench.slam's held-out fast room: 28 frames bridged, the map 50 cm off, ATE 58 cm
