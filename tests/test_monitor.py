@@ -95,6 +95,8 @@ def test_the_live_line_and_summary_say_how_sure_slam_is_and_how_far_off() -> Non
     # average): the covariance understates by 3x here, the factor slam's covariance_scale would take
     assert summary["slam_position_nees_mean"] == pytest.approx(9.0)
     assert summary["slam_covariance_scale_measured"] == pytest.approx(3.0)
+    assert summary["slam_position_nees_median"] == pytest.approx(9.0)  # the two regimes: see the median
+    assert summary["slam_position_inside95_pct"] == 0.0  # 9 > 7.81, the 95 % quantile of chi-square(3)
 
 
 def test_the_monitor_says_where_frames_wait_outside_their_compute() -> None:
