@@ -196,3 +196,14 @@ def test_the_in_flight_window_asked_for_stays_that_window() -> None:
     assert RobotInferSettings(max_in_flight=1, in_flight_limit=4).in_flight_limit == 4
     with pytest.raises(ValueError, match="in_flight_limit"):
         RobotInferSettings(max_in_flight=3, in_flight_limit=2)
+
+
+def test_the_settings_reference_states_each_number_settings_bounds() -> None:
+    """A contributor found the reference silent on the bounds the models check (a `gt=0` field refuses 0
+    at start-up): each row now begins with them."""
+    from shared.tools.settings_doc import service_rows
+
+    rows = {r.name: r.meaning for r in service_rows("controller")}
+    assert rows["probe_budget_share"].startswith("(> 0, <= 1) ")
+    assert rows["decide_period_secs"].startswith("(> 0) ")
+    assert not rows["enabled"].startswith("(")

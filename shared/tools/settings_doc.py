@@ -128,6 +128,18 @@ def _choices(annotation: Any) -> list[str]:
     return []
 
 
+def _limits(field: Any) -> str:
+    """A number setting's bounds as its model checks them ("> 0, <= 1"; empty without any): a contributor
+    found the reference silent on them (the model refuses 0 for a `gt=0` field at start-up)."""
+    out = []
+    for constraint in field.metadata:
+        for attr, sign in (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<=")):
+            bound = getattr(constraint, attr, None)
+            if bound is not None:
+                out.append(f"{sign} {bound}")
+    return ", ".join(out)
+
+
 def short(text: str, max_chars: int = 240) -> str:
     """The first sentence of a meaning (the source has the rest), cut at `max_chars`."""
     match = re.search(r"(?<=[a-z0-9)])\.\s+(?=[A-Z(])", text)
@@ -156,6 +168,8 @@ def rows(model: type[BaseModel], *, skip: frozenset[str] = frozenset(), prefix: 
             choices = _choices(field.annotation)
             if choices:
                 meaning = f"one of {' | '.join(choices)}" + (f": {meaning}" if meaning else "")
+            if limits := _limits(field):
+                meaning = f"({limits}) {meaning}".strip()
             yield Row(dotted, format_default(default), meaning)
 
 
