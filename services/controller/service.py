@@ -243,7 +243,7 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
     ]
     edge_token = session.liveliness().declare_subscriber(keys.alive(rid, "edge_infer"), on_edge, history=True)
     pub = session.declare_publisher(keys.controller(rid), encoding=encoding_for(ControllerState.SCHEMA))
-    prober = Prober(session, keys.echo(rid), timeout_secs=5.0)
+    prober = Prober(session, keys.echo(rid), timeout_secs=settings.probe_timeout_secs)
     failures = ProbeFailures(lambda: any(True for _ in session.info.routers_zid()))
     prober_thread = threading.Thread(
         target=_probe_loop, args=(settings, core, lock, prober, stop, failures), daemon=True
@@ -280,7 +280,7 @@ def run(settings: ControllerSettings, *, session: zenoh.Session, stop: threading
         edge_token.undeclare()
         for s in subs:
             s.undeclare()
-        prober_thread.join(timeout=10)
+        prober_thread.join(timeout=settings.probe_timeout_secs + 5.0)  # a probe in flight ends first
         prober.close()
         viz.close()
         stats.undeclare()

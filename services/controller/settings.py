@@ -28,3 +28,6 @@ class ControllerSettings(ServiceSettings, ControllerTuning):
     # Probes use at most this share of the uplink's estimated rate (1 / beta), in one burst of every size
     # at most: on a 4 Mbit/s uplink at k = 7 a trial saw 40 % of it in probes (ProbeBudget)
     probe_budget_share: float = Field(default=0.1, gt=0, le=1)
+    # A probe not answered within this long failed (said once a run of failures); the controller waits for
+    # one in flight at exit
+    probe_timeout_secs: float = Field(default=5.0, gt=0, le=60)
