@@ -385,5 +385,12 @@ def test_probes_stay_within_their_share_of_a_slow_uplink_and_pass_on_a_fast_one(
             assert sent == asked
         else:
             assert 0.8 * share_used * rate * 60 <= sent <= share_used * rate * 60 + 80 * 1024
+    # The burst after a detected change goes whole, even from an empty bucket, and is paid for after
+    clock = FakeClock(0.0)
+    budget = ProbeBudget(share=0.1, depth_bytes=80 * 1024, clock=clock)
+    assert budget.take(80 * 1024, beta_ms_per_kB=2.05) and not budget.take(16 * 1024, beta_ms_per_kB=2.05)
+    assert all(budget.take(s * 1024, beta_ms_per_kB=2.05, force=True) for s in (16, 64))
+    clock.now += 1.0  # ~50 kB refilled: the 80 kB forced below empty are owed first
+    assert not budget.take(16 * 1024, beta_ms_per_kB=2.05)
     with pytest.raises(ValueError):
         ProbeBudget(share=0.0, depth_bytes=1)

@@ -117,7 +117,7 @@ def _probe_loop(
         for size in sizes:
             with lock:
                 beta = core.link.beta_ms_per_kB
-            if not budget.take(size, beta_ms_per_kB=beta):
+            if not budget.take(size, beta_ms_per_kB=beta, force=changed):
                 break  # the uplink's probe budget is spent: the next when it has refilled
             try:
                 r = prober.round_trip(encode(probe_features(size)))

@@ -355,10 +355,10 @@ class SlamNode:
                         log.info(
                             "resumed %s and %d poses of its journal (%s)", path.name, len(stamps), journal.path.name
                         )
-                if len(run.previous_poses):
-                    # a lost frame repeats the last pose: the killed process's (an EKF integrator's trial
-                    # read the identity from a restarted slam until it placed a frame again)
-                    run.last_pose = run.previous_poses[-1]
+                    if len(run.previous_poses):
+                        # a lost frame repeats the last pose: the killed process's, in this world (an EKF
+                        # integrator's trial read the identity from a restarted slam until it placed a frame)
+                        run.last_pose = run.previous_poses[-1]
             else:  # killed before its first checkpoint (or this robot before it was in one)
                 journal.discard("no checkpoint of this robot's trajectory to resume them after")
             # (the journal's lines stay on disk until this process's first checkpoint holds them: killed
@@ -661,7 +661,7 @@ class SlamNode:
             )
             traj_poses, source_traj = traj_poses[traj_found], source_traj[traj_found]
             gt_poses, source_gt = gt_poses[gt_found], source_gt[gt_found]
-        elif len(run.source_stamps) and not in_source_time:
+        elif len(run.source_stamps) and not in_source_time and run.previous_time is None:
             log.warning(
                 "%s in capture time: %d of %d poses have no data-set stamp",
                 self._trajectory_file(robot),

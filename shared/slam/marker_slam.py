@@ -462,7 +462,9 @@ class MarkerSlam:
     # Distances, not where the frame's pose puts a tag: a pose the motion prior pulled off in a sharp turn
     # put a tag of the exact map 5.2 cm off (a first version said so).
     MAP_DISAGREEMENT_M = 0.05
+    MAP_DISAGREEMENT_REL = 0.03  # ... or this share of the pair's distance, if more (a tag size or focal off by %)
     MAP_CHECK_VIEWS = 20
+    MAP_CHECK_TAGS = 8  # pairs of at most this many surveyed views a frame (the nearest ids): bounded cost
     """Incremental marker SLAM (see module docstring)."""
 
     def __init__(
@@ -493,6 +495,7 @@ class MarkerSlam:
         self._fragment_links: dict[int, int] = {}  # fragment -> its weak link's factor index in iSAM2
         # pair of surveyed tags -> their latest views' distance apart less the map's (m)
         self._map_views: dict[tuple[int, int], deque[float]] = {}
+        self._map_said: set[tuple[int, int]] = set()
         self._new_isam()
         if settings.localisation_only:
             if not self.known:
@@ -980,6 +983,7 @@ class MarkerSlam:
         """How far apart this frame's views put each pair of surveyed tags against the map's distance
         between them (positions in the camera are sure where a far tag's tilt is not, and the camera's own
         error cancels): a pair that stays MAP_DISAGREEMENT_M off is said once and kept in the state."""
+        views = sorted(views, key=lambda v: v[0])[: self.MAP_CHECK_TAGS]
         for i, (a, camera_from_a) in enumerate(views):
             for b, camera_from_b in views[i + 1 :]:
                 pair = (min(a, b), max(a, b))
@@ -988,10 +992,12 @@ class MarkerSlam:
                 recent = self._map_views.setdefault(pair, deque(maxlen=self.MAP_CHECK_VIEWS))
                 recent.append(seen - mapped)
                 median = float(np.median(recent))
-                if len(recent) < self.MAP_CHECK_VIEWS or abs(median) <= self.MAP_DISAGREEMENT_M:
+                limit = max(self.MAP_DISAGREEMENT_M, self.MAP_DISAGREEMENT_REL * mapped)
+                if len(recent) < self.MAP_CHECK_VIEWS or abs(median) <= limit:
                     self.state.map_disagreement_m.pop(pair, None)
                     continue
-                if pair not in self.state.map_disagreement_m:
+                if pair not in self._map_said:  # once a run (a median near the limit would say it again and again)
+                    self._map_said.add(pair)
                     logging.getLogger(__name__).warning(
                         "slam: the views put tags %d and %d %.1f cm %s than the tag map does (median of their last "
                         "%d views together), and the map states both as surveyed: if it is only roughly right "
